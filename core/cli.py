@@ -1,0 +1,49 @@
+"""The ``inspect`` command line."""
+from __future__ import annotations
+
+import sys
+
+import click
+
+from core.commands import hardware, sim, stereo
+
+BUILTIN_COMMAND_MODULES = (stereo, hardware, sim)
+
+
+@click.group()
+@click.version_option(package_name="stereo-inspect")
+def cli() -> None:
+    """stereo-inspect: stereo surface inspection of metal parts."""
+
+
+@cli.group("eval")
+def eval_group() -> None:
+    """Evaluate a stereo backend or a detector on a benchmark."""
+
+
+@cli.group("train")
+def train_group() -> None:
+    """Train models."""
+
+
+@cli.group("data")
+def data_group() -> None:
+    """Prepare data sets."""
+
+
+@cli.group("camera")
+def camera_group() -> None:
+    """Work with cameras."""
+
+
+def _build() -> click.Group:
+    for module in BUILTIN_COMMAND_MODULES:
+        module.register(cli)
+    from core.registry import default_registry
+
+    default_registry().manager.hook.stereo_inspect_commands(cli=cli)
+    return cli
+
+
+def main() -> None:
+    sys.exit(_build().main(standalone_mode=True))

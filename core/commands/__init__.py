@@ -1,0 +1,1 @@
+"""Command modules of the ``inspect`` CLI; each exposes ``register(cli)``."""

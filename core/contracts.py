@@ -1,0 +1,78 @@
+"""The four plugin kinds, as the objects the engine talks to.
+
+A plugin package provides *factories* (see ``core.hookspecs``); a factory receives the
+recipe's ``settings`` mapping for that plugin (already validated against the plugin's
+``settings_model`` when it declares one) and a ``PluginContext``, and returns one of these.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+from core.types import Alarm, Detection, FrameError, OutputEvent, PartResult, StereoFrame
+
+PluginKind = Literal["camera", "stereo", "detector", "output"]
+PLUGIN_KINDS: tuple[PluginKind, ...] = ("camera", "stereo", "detector", "output")
+
+
+@dataclass
+class PluginContext:
+    """What a factory may need beyond its own settings."""
+
+    recipe_dir: Path = field(default_factory=Path.cwd)
+    recipe_name: str = ""
+    device: str = "cpu"
+    log: Callable[[str], None] = print
+
+
+@runtime_checkable
+class Camera(Protocol):
+    def frames(self) -> Iterator[StereoFrame | FrameError]:
+        """Rectified pairs in order. A frame that cannot be delivered is a ``FrameError``, never skipped."""
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
+class StereoBackend(Protocol):
+    def compute(self, left: np.ndarray, right: np.ndarray, min_disp: float, max_disp: float) -> np.ndarray:
+        """Disparity of the left image.
+
+        left, right: HxWx3 uint8 BGR, rectified. Returns HxW float32 disparity in pixels,
+        NaN where invalid. Searches ``min_disp <= d < max_disp``.
+        """
+
+
+@runtime_checkable
+class Detector(Protocol):
+    class_names: list[str]
+
+    def detect(self, image: np.ndarray) -> list[Detection]:
+        """Defects in an HxWx3 uint8 BGR image, boxes in its pixel coordinates."""
+
+
+@runtime_checkable
+class RejectOutput(Protocol):
+    def submit(self, part: PartResult) -> None:
+        """Hand over a decided part. Must not block the inspection loop for long."""
+
+    def poll(self) -> list[OutputEvent | Alarm]:
+        """Events and alarms produced since the last call (the engine records them)."""
+
+    def close(self, timeout_s: float = 10.0) -> list[OutputEvent | Alarm]:
+        """Deliver or alarm everything still queued, then release the transport."""
+
+
+@dataclass
+class PluginSpec:
+    """One named implementation of a plugin kind, as returned by the registration hooks."""
+
+    name: str
+    kind: PluginKind
+    factory: Callable[[dict[str, Any], PluginContext], Any]
+    description: str = ""
+    settings_model: type | None = None  # a pydantic model; unknown keys are rejected when given

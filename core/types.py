@@ -1,0 +1,169 @@
+"""The data that flows through the engine, one way:
+
+camera -> StereoFrame -> Detection -> disparity -> DefectMeasurement -> Verdict -> outputs -> store.
+
+Plain dataclasses with numpy arrays; no plugin or driver types appear here.
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Rectified stereo geometry.
+
+    Distance from disparity: ``Z = focal_px * baseline_mm / (d + doffs)``.
+    ``doffs`` is the difference of the two principal points' x (Middlebury's convention);
+    it is 0 for pairs rectified with equal principal points (the ZED, our synthetic scenes).
+    """
+
+    focal_px: float
+    baseline_mm: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    doffs: float = 0.0
+
+    def distance_mm(self, disparity: np.ndarray | float) -> np.ndarray | float:
+        return self.focal_px * self.baseline_mm / (np.asarray(disparity, dtype=np.float64) + self.doffs)
+
+    def disparity_px(self, distance_mm: np.ndarray | float) -> np.ndarray | float:
+        return self.focal_px * self.baseline_mm / np.asarray(distance_mm, dtype=np.float64) - self.doffs
+
+    def scaled(self, factor: float) -> Calibration:
+        """The calibration of the same pair resized by ``factor`` (disparities scale with it)."""
+        return Calibration(
+            focal_px=self.focal_px * factor,
+            baseline_mm=self.baseline_mm,
+            cx=self.cx * factor,
+            cy=self.cy * factor,
+            width=round(self.width * factor),
+            height=round(self.height * factor),
+            doffs=self.doffs * factor,
+        )
+
+
+@dataclass
+class StereoFrame:
+    """A rectified pair. Images are HxWx3 uint8 BGR (OpenCV order), same size."""
+
+    frame_id: str
+    index: int
+    left: np.ndarray
+    right: np.ndarray
+    calib: Calibration
+    timestamp: float
+    source: str = ""
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class FrameError:
+    """A frame the camera should have delivered but could not (corrupt file, disconnect, ...).
+
+    The engine turns it into an ERROR verdict: a part that could not be inspected is rejected.
+    """
+
+    frame_id: str
+    index: int
+    message: str
+    timestamp: float
+    source: str = ""
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One detected defect; ``box`` is (x0, y0, x1, y1) in left-image pixels."""
+
+    class_name: str
+    confidence: float
+    box: tuple[float, float, float, float]
+
+    @property
+    def width(self) -> float:
+        return self.box[2] - self.box[0]
+
+    @property
+    def height(self) -> float:
+        return self.box[3] - self.box[1]
+
+
+@dataclass
+class DefectMeasurement:
+    """What depth says about one detection. ``None`` means "not available" and says why in ``note``.
+
+    deviation_mm: how far the defect's median surface lies below (+) or above (-) the plane
+    fitted to the surrounding plate surface, measured along that plane's normal.
+    """
+
+    detection: Detection
+    distance_mm: float | None
+    deviation_mm: float | None
+    valid_fraction: float
+    depth_resolution_mm: float | None
+    area_mm2: float | None
+    note: str = ""
+
+    def quantity(self, name: str) -> float | None:
+        if name == "confidence":
+            return self.detection.confidence
+        return getattr(self, name)
+
+
+class Status(str, enum.Enum):
+    PASS = "PASS"
+    REJECT = "REJECT"
+    ERROR = "ERROR"
+
+    @property
+    def rejects(self) -> bool:
+        return self is not Status.PASS
+
+
+@dataclass
+class Verdict:
+    status: Status
+    reasons: list[str] = field(default_factory=list)
+
+
+@dataclass
+class PartResult:
+    """Everything decided about one part; the unit that outputs act on and the store records."""
+
+    part_id: str
+    frame_id: str
+    index: int
+    timestamp: float
+    verdict: Verdict
+    measurements: list[DefectMeasurement] = field(default_factory=list)
+    error: str | None = None
+    image_path: str | None = None
+
+
+@dataclass
+class OutputEvent:
+    """A command an output sent (or failed to send) for a part; recorded with the part's row.
+
+    ``outcome`` is ``delivered``, ``failed``, or ``alarm`` (could not be delivered in time).
+    """
+
+    output: str
+    part_id: str | None
+    command: str
+    outcome: str
+    timestamp: float
+    detail: str = ""
+
+
+@dataclass
+class Alarm:
+    source: str
+    message: str
+    timestamp: float
+    part_id: str | None = None

@@ -1,0 +1,200 @@
+"""Recorded stereo sequences on disk: reading and writing, nothing else.
+
+Layout (written by the synthetic generator and by ``inspect camera record``)::
+
+    SEQ/calib.yaml           focal_px, baseline_mm, cx, cy, width, height, doffs
+    SEQ/left/<id>.png        rectified left image
+    SEQ/right/<id>.png       rectified right image
+    SEQ/gt/<id>.png          optional ground-truth disparity, uint16 = round(d * 256), 0 = unknown (KITTI)
+    SEQ/labels/<id>.json     optional ground-truth labels
+
+A Middlebury scene folder (``im0.png``, ``im1.png``, ``calib.txt``) reads as a one-frame sequence.
+This module imports nothing from the rest of stereo-inspect, so it can be tried alone.
+"""
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+CALIB_KEYS = ("focal_px", "baseline_mm", "cx", "cy", "width", "height")
+
+
+class SequenceError(Exception):
+    """A sequence folder or one of its files cannot be used; the message names the file."""
+
+
+@dataclass(frozen=True)
+class FrameFiles:
+    frame_id: str
+    left: Path | None
+    right: Path | None
+    gt: Path | None = None
+    labels: Path | None = None
+
+
+def is_middlebury_scene(folder: Path) -> bool:
+    return (folder / "im0.png").exists() and (folder / "calib.txt").exists()
+
+
+def read_middlebury_calib(path: Path) -> dict:
+    """Parse Middlebury's ``calib.txt`` (cam0=[f 0 cx; 0 f cy; 0 0 1], doffs, baseline, ndisp, ...)."""
+    values: dict[str, str] = {}
+    for line in Path(path).read_text().splitlines():
+        if "=" in line:
+            key, value = line.split("=", 1)
+            values[key.strip()] = value.strip()
+    try:
+        cam0 = [float(x) for x in re.split(r"[\s;\[\]]+", values["cam0"]) if x]
+        return {
+            "focal_px": cam0[0],
+            "cx": cam0[2],
+            "cy": cam0[5],
+            "doffs": float(values.get("doffs", 0.0)),
+            "baseline_mm": float(values["baseline"]),
+            "width": int(values["width"]),
+            "height": int(values["height"]),
+            "ndisp": int(values["ndisp"]),
+        }
+    except (KeyError, IndexError, ValueError) as exc:
+        raise SequenceError(f"{path}: not a Middlebury calibration ({exc})") from None
+
+
+def read_calibration(folder: Path) -> dict:
+    folder = Path(folder)
+    if is_middlebury_scene(folder):
+        return read_middlebury_calib(folder / "calib.txt")
+    path = folder / "calib.yaml"
+    if not path.exists():
+        raise SequenceError(f"{path}: calibration file missing")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise SequenceError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise SequenceError(f"{path}: expected a mapping with {', '.join(CALIB_KEYS)}")
+    missing = [k for k in CALIB_KEYS if k not in data]
+    if missing:
+        raise SequenceError(f"{path}: missing {', '.join(missing)}")
+    data.setdefault("doffs", 0.0)
+    return data
+
+
+def write_calibration(folder: Path, calib: dict) -> None:
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    clean = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in calib.items()}
+    (folder / "calib.yaml").write_text(yaml.safe_dump(clean, sort_keys=False))
+
+
+def _by_stem(folder: Path) -> dict[str, Path]:
+    if not folder.is_dir():
+        return {}
+    return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES}
+
+
+def list_frames(folder: Path) -> list[FrameFiles]:
+    """Every frame id found in ``left/`` or ``right/``; a frame missing one eye keeps ``None`` there
+    so that the reader reports it instead of silently skipping it."""
+    folder = Path(folder)
+    if is_middlebury_scene(folder):
+        gt = folder / "disp0GT.pfm"
+        return [FrameFiles(folder.name, folder / "im0.png", folder / "im1.png", gt if gt.exists() else None)]
+    if not (folder / "left").is_dir():
+        raise SequenceError(f"{folder}: no left/ folder (expected left/, right/ and calib.yaml)")
+    left, right = _by_stem(folder / "left"), _by_stem(folder / "right")
+    gt, labels = _by_stem(folder / "gt"), {p.stem: p for p in sorted((folder / "labels").glob("*.json"))}
+    return [
+        FrameFiles(i, left.get(i), right.get(i), gt.get(i), labels.get(i)) for i in sorted(set(left) | set(right))
+    ]
+
+
+def read_image(path: Path | None, what: str = "image") -> np.ndarray:
+    """HxWx3 uint8 BGR; raises ``SequenceError`` naming the file when it is missing or corrupt."""
+    if path is None:
+        raise SequenceError(f"{what} missing")
+    if not Path(path).exists():
+        raise SequenceError(f"{path}: {what} missing")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise SequenceError(f"{path}: {what} cannot be decoded (corrupt or not an image)")
+    return image
+
+
+def read_disparity_png(path: Path) -> np.ndarray:
+    """KITTI-style 16-bit disparity PNG -> float32, NaN where unknown."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.dtype != np.uint16:
+        raise SequenceError(f"{path}: not a 16-bit disparity PNG")
+    disp = raw.astype(np.float32) / 256.0
+    disp[raw == 0] = np.nan
+    return disp
+
+
+def write_disparity_png(path: Path, disparity: np.ndarray) -> None:
+    values = np.nan_to_num(np.asarray(disparity, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    raw = np.clip(np.round(values * 256.0), 0, 65535).astype(np.uint16)
+    cv2.imwrite(str(path), raw)
+
+
+def write_frame(
+    folder: Path,
+    frame_id: str,
+    left: np.ndarray,
+    right: np.ndarray,
+    gt_disparity: np.ndarray | None = None,
+    labels: dict | list | None = None,
+) -> None:
+    folder = Path(folder)
+    for sub in ("left", "right"):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(folder / "left" / f"{frame_id}.png"), left)
+    cv2.imwrite(str(folder / "right" / f"{frame_id}.png"), right)
+    if gt_disparity is not None:
+        (folder / "gt").mkdir(exist_ok=True)
+        write_disparity_png(folder / "gt" / f"{frame_id}.png", gt_disparity)
+    if labels is not None:
+        (folder / "labels").mkdir(exist_ok=True)
+        (folder / "labels" / f"{frame_id}.json").write_text(json.dumps(labels, indent=2))
+
+
+def read_labels(path: Path) -> dict | list:
+    return json.loads(Path(path).read_text())
+
+
+def read_pfm(path: Path) -> np.ndarray:
+    """A PFM image as float32 (rows top-to-bottom); grey PFMs give HxW."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        header = f.readline().decode("latin-1").strip()
+        if header not in ("Pf", "PF"):
+            raise SequenceError(f"{path}: not a PFM file")
+        dims = f.readline().decode("latin-1").split()
+        while not dims:
+            dims = f.readline().decode("latin-1").split()
+        width, height = int(dims[0]), int(dims[1])
+        scale = float(f.readline().decode("latin-1").strip())
+        dtype = "<f4" if scale < 0 else ">f4"
+        channels = 3 if header == "PF" else 1
+        data = np.frombuffer(f.read(), dtype=dtype, count=width * height * channels)
+    shape = (height, width, 3) if channels == 3 else (height, width)
+    return np.flipud(data.reshape(shape)).astype(np.float32)
+
+
+def write_pfm(path: Path, image: np.ndarray) -> None:
+    """Middlebury convention: little-endian ``Pf``, rows bottom-to-top, invalid as +inf."""
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim != 2:
+        raise ValueError("write_pfm expects an HxW array")
+    out = np.where(np.isfinite(image), image, np.float32(np.inf)).astype("<f4")
+    with open(path, "wb") as f:
+        f.write(b"Pf\n")
+        f.write(f"{image.shape[1]} {image.shape[0]}\n".encode())
+        f.write(b"-1\n")
+        f.write(np.flipud(out).tobytes())

@@ -1,0 +1,68 @@
+"""Training YOLOv8n from scratch on a YOLO-layout dataset (the seed's recipe by default).
+
+No pretrained checkpoint can be fetched here, so the model is built from the
+architecture file that ships inside ultralytics (``yolov8n.yaml``).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+
+@dataclass
+class TrainSettings:
+    epochs: int = 100
+    patience: int = 20
+    imgsz: int = 200
+    batch: int = 16
+    device: str = "auto"
+    workers: int = 2
+    seed: int = 0
+    # The seed's augmentation: flips both ways, HSV jitter, rotation, scale, mosaic, MixUp, copy-paste.
+    fliplr: float = 0.5
+    flipud: float = 0.5
+    hsv_h: float = 0.015
+    hsv_s: float = 0.7
+    hsv_v: float = 0.4
+    degrees: float = 10.0
+    scale: float = 0.5
+    mosaic: float = 1.0
+    mixup: float = 0.1
+    copy_paste: float = 0.1
+    close_mosaic: int = 10
+
+
+def resolve_device(device: str) -> str:
+    if device != "auto":
+        return device
+    import torch
+
+    return "0" if torch.cuda.is_available() else "cpu"
+
+
+def train_detector(data_yaml: Path, out_dir: Path, settings: TrainSettings, name: str = "yolov8n-neu") -> Path:
+    """Train (or resume, when ``out_dir/name/weights/last.pt`` exists) and return the best weights' path."""
+    os.environ.setdefault("YOLO_OFFLINE", "1")
+    from ultralytics import YOLO
+
+    run_dir = Path(out_dir) / name
+    last = run_dir / "weights" / "last.pt"
+    if last.exists():
+        model = YOLO(str(last))
+        model.train(resume=True)
+    else:
+        model = YOLO("yolov8n.yaml")
+        params = asdict(settings)
+        params["device"] = resolve_device(settings.device)
+        model.train(
+            data=str(Path(data_yaml).resolve()),
+            project=str(Path(out_dir).resolve()),
+            name=name,
+            exist_ok=True,
+            pretrained=False,
+            amp=False,
+            plots=True,
+            **params,
+        )
+    return run_dir / "weights" / "best.pt"

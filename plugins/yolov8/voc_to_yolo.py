@@ -1,0 +1,171 @@
+"""Pascal VOC -> YOLO dataset layout, tolerant of real-world annotation faults.
+
+Labels are read from each XML ``<object><name>``; file names are never used for
+labels (NEU-DET has boxes whose class differs from their image's file name).
+Every fault is reported with the file it came from; none stops the conversion.
+"""
+from __future__ import annotations
+
+import shutil
+import xml.etree.ElementTree as ET
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+NEU_DET_CLASSES = (
+    "crazing",
+    "inclusion",
+    "patches",
+    "pitted_surface",
+    "rolled-in_scale",
+    "scratches",
+)
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
+
+
+@dataclass
+class ConversionReport:
+    images: int = 0
+    boxes: int = 0
+    faults: Counter = field(default_factory=Counter)
+    messages: list[str] = field(default_factory=list)
+
+    def fault(self, kind: str, message: str) -> None:
+        self.faults[kind] += 1
+        self.messages.append(f"{kind}: {message}")
+
+    def summary(self) -> str:
+        parts = [f"{self.images} images", f"{self.boxes} boxes"]
+        parts += [f"{n} {kind}" for kind, n in sorted(self.faults.items())]
+        return "converted " + ", ".join(parts)
+
+
+def _find_image(images_dir: Path, stem: str) -> Path | None:
+    for suffix in IMAGE_SUFFIXES:
+        candidate = images_dir / f"{stem}{suffix}"
+        if candidate.exists():
+            return candidate
+    return None
+
+
+def _image_size(path: Path) -> tuple[int, int] | None:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        return None
+    return img.shape[1], img.shape[0]
+
+
+def parse_voc(
+    xml_path: Path, classes: tuple[str, ...], report: ConversionReport, size: tuple[int, int] | None
+) -> list[str] | None:
+    """YOLO label lines for one VOC file, or None when the file is unusable.
+
+    ``size`` is the decoded image size (w, h); it wins over the XML's ``<size>``
+    because annotation tools get that field wrong more often than decoders do.
+    """
+    name = xml_path.name
+    try:
+        root = ET.parse(xml_path).getroot()
+    except ET.ParseError as exc:
+        report.fault("malformed_xml", f"{name}: {exc}")
+        return None
+    if size is None:
+        try:
+            size = (int(root.findtext("size/width")), int(root.findtext("size/height")))
+        except (TypeError, ValueError):
+            report.fault("malformed_xml", f"{name}: no image size")
+            return None
+    width, height = size
+    lines: list[str] = []
+    for index, obj in enumerate(root.iter("object")):
+        label = (obj.findtext("name") or "").strip()
+        if label not in classes:
+            report.fault("unknown_class", f"{name} object {index}: class {label!r} not in {list(classes)}")
+            continue
+        try:
+            box = [float(obj.findtext(f"bndbox/{k}")) for k in ("xmin", "ymin", "xmax", "ymax")]
+        except (TypeError, ValueError):
+            report.fault("malformed_xml", f"{name} object {index}: missing or non-numeric bndbox")
+            continue
+        clamped = [
+            min(max(box[0], 0.0), width),
+            min(max(box[1], 0.0), height),
+            min(max(box[2], 0.0), width),
+            min(max(box[3], 0.0), height),
+        ]
+        if clamped != box:
+            report.fault("box_clamped", f"{name} object {index}: box {box} clamped to image {width}x{height}")
+        x0, y0, x1, y1 = clamped
+        if x1 - x0 < 1.0 or y1 - y0 < 1.0:
+            report.fault("empty_box", f"{name} object {index}: empty box {box}")
+            continue
+        cx, cy = (x0 + x1) / 2 / width, (y0 + y1) / 2 / height
+        bw, bh = (x1 - x0) / width, (y1 - y0) / height
+        lines.append(f"{classes.index(label)} {cx:.6f} {cy:.6f} {bw:.6f} {bh:.6f}")
+    return lines
+
+
+def convert_voc(
+    src: Path,
+    dst: Path,
+    split_files: dict[str, Path] | None = None,
+    classes: tuple[str, ...] = NEU_DET_CLASSES,
+) -> ConversionReport:
+    """Convert ``src/{images,annotations}`` into ``dst/{images,labels}/<split>`` plus ``dst/data.yaml``.
+
+    ``split_files`` maps a split name (``train``, ``val``) to a file of stems; without it,
+    every image goes to ``train`` and ``val``.
+    """
+    src, dst = Path(src), Path(dst)
+    images_dir, ann_dir = src / "images", src / "annotations"
+    report = ConversionReport()
+    xml_stems = {p.stem for p in ann_dir.glob("*.xml")}
+    image_stems = {p.stem for p in images_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+    for stem in sorted(image_stems - xml_stems):
+        report.fault("image_without_xml", f"{stem}: image has no annotation file")
+    for stem in sorted(xml_stems - image_stems):
+        report.fault("xml_without_image", f"{stem}.xml: annotation has no image")
+
+    if split_files:
+        splits = {
+            name: [s.strip() for s in Path(path).read_text().splitlines() if s.strip()]
+            for name, path in split_files.items()
+        }
+    else:
+        everything = sorted(image_stems & xml_stems)
+        splits = {"train": everything, "val": everything}
+
+    for split, stems in splits.items():
+        (dst / "images" / split).mkdir(parents=True, exist_ok=True)
+        (dst / "labels" / split).mkdir(parents=True, exist_ok=True)
+        for stem in stems:
+            image = _find_image(images_dir, stem)
+            xml = ann_dir / f"{stem}.xml"
+            if image is None or not xml.exists():
+                if stem in image_stems or stem in xml_stems:
+                    continue  # already reported above
+                report.fault("missing_in_split", f"{stem}: listed in {split} but neither image nor xml exists")
+                continue
+            size = _image_size(image)
+            if size is None:
+                report.fault("unreadable_image", f"{image.name}: cannot be decoded")
+                continue
+            lines = parse_voc(xml, classes, report, size)
+            if lines is None:
+                continue
+            shutil.copy2(image, dst / "images" / split / image.name)
+            (dst / "labels" / split / f"{stem}.txt").write_text("".join(f"{line}\n" for line in lines))
+            report.images += 1
+            report.boxes += len(lines)
+
+    data = {
+        "path": str(dst.resolve()),
+        **{split: f"images/{split}" for split in splits},
+        "names": dict(enumerate(classes)),
+    }
+    (dst / "data.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    return report

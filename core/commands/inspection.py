@@ -1,0 +1,178 @@
+"""``inspect run``, ``validate``, ``plugins`` and ``report``."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from core.types import Alarm, OutputEvent, Status
+
+_STYLE = {Status.PASS: "green", Status.REJECT: "bold red", Status.ERROR: "bold yellow"}
+
+
+def fail(message: str, code: int = 2) -> None:
+    click.echo(f"error: {message}", err=True)
+    sys.exit(code)
+
+
+def _load(recipe: Path, overrides: tuple[str, ...]):
+    from core.recipe import RecipeError, load_recipe
+
+    try:
+        return load_recipe(recipe, overrides)
+    except RecipeError as exc:
+        fail(str(exc))
+
+
+def _fmt(value: float | None, unit: str, signed: bool = False) -> str:
+    if value is None:
+        return "n/a"
+    return f"{value:+.2f}{unit}" if signed else f"{value:.1f}{unit}"
+
+
+def part_line(outcome) -> str:
+    part = outcome.part
+    defects = "; ".join(
+        f"{m.detection.class_name} {m.detection.confidence:.2f} Z={_fmt(m.distance_mm, 'mm')} dev={_fmt(m.deviation_mm, 'mm', True)}"
+        for m in part.measurements
+    ) or "no defect"
+    line = f"{part.part_id} frame {part.frame_id} {part.verdict.status.value:<6} {defects}"
+    if part.verdict.status.rejects and part.verdict.reasons:
+        line += "  <- " + " | ".join(part.verdict.reasons)
+    return line
+
+
+@click.command("run")
+@click.argument("recipe", type=click.Path(path_type=Path))
+@click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE", help="override a recipe value (repeatable)")
+@click.option("--device", default="auto", show_default=True, help="torch device for plugins that use one")
+@click.option("--max-frames", type=int, default=None, help="stop after this many parts")
+@click.option("--plc-sim", is_flag=True, help="start the Modbus PLC simulator in-process where a modbus output finds nothing listening")
+@click.option("--quiet", is_flag=True, help="no per-part lines")
+def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frames: int | None, plc_sim: bool, quiet: bool) -> None:
+    """Inspect every part the recipe's camera delivers."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from core import engine
+
+    loaded = _load(recipe, overrides)
+    console = Console(highlight=False)
+    simulators = _start_plc_simulators(loaded, console) if plc_sim else []
+    progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        TextColumn("{task.fields[fps]:.1f} fps"), console=console, transient=True)
+    task = None
+
+    def on_part(outcome) -> None:
+        nonlocal task
+        if not quiet:
+            progress.console.print(part_line(outcome), style=_STYLE[outcome.part.verdict.status], markup=False)
+        if task is not None:
+            elapsed = progress.tasks[0].elapsed or 0.0
+            done = progress.tasks[0].completed + 1
+            progress.update(task, advance=1, fps=done / elapsed if elapsed else 0.0)
+
+    def on_event(event: OutputEvent | Alarm) -> None:
+        if isinstance(event, Alarm):
+            progress.console.print(f"ALARM {event.source}: {event.message}", style="bold red", markup=False)
+
+    try:
+        with progress:
+            task = progress.add_task(loaded.recipe.name, total=max_frames, fps=0.0)
+            summary = engine.run(loaded, on_part=on_part, on_event=on_event, device=device, max_frames=max_frames)
+    except engine.SetupError as exc:
+        fail(str(exc))
+    finally:
+        for sim in simulators:
+            sim.stop()
+    c = summary.counts
+    console.print(
+        f"parts {sum(c.values())}  passed {c[Status.PASS]}  rejected {c[Status.REJECT]}  errors {c[Status.ERROR]}  "
+        f"alarms {len(summary.alarms)}  {summary.fps:.2f} frames/s  ({summary.frames} frames in {summary.elapsed_s:.1f} s)",
+        style="bold", markup=False,
+    )
+    console.print(f"results: {loaded.resolve(loaded.recipe.results.path)}", markup=False)
+    if summary.exit_code == engine.EXIT_ALARMS:
+        console.print("exit 4: alarms were raised (see above and the results store)", style="bold red", markup=False)
+    elif summary.exit_code == engine.EXIT_PART_ERRORS:
+        console.print("exit 3: some parts could not be inspected and were rejected as errors", style="yellow", markup=False)
+    sys.exit(summary.exit_code)
+
+
+def _start_plc_simulators(loaded, console) -> list:
+    """Start the in-process PLC simulator for each Modbus TCP output whose port has no listener."""
+    started = []
+    for index, output in enumerate(loaded.recipe.outputs):
+        if output.plugin != "modbus":
+            continue
+        settings = loaded.plugin_settings[f"outputs.{index}"]
+        host, port = settings.get("host"), settings.get("port")
+        if not host or not port or settings.get("transport", "tcp") != "tcp":
+            continue
+        from drivers import plc_sim
+
+        if plc_sim.is_listening(host, port):
+            console.print(f"PLC at {host}:{port} answers; not starting the simulator", markup=False)
+            continue
+        console.print(f"nothing listens on {host}:{port}: starting the PLC simulator in-process there", style="cyan", markup=False)
+        started.append(plc_sim.serve_in_thread(host, port, on_change=lambda line: console.print(f"  PLC {line}", style="cyan", markup=False)))
+    return started
+
+
+@click.command("validate")
+@click.argument("recipe", type=click.Path(path_type=Path))
+@click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE")
+def validate_command(recipe: Path, overrides: tuple[str, ...]) -> None:
+    """Check a recipe (keys, types, ranges, plugins, files) without running it."""
+    loaded = _load(recipe, overrides)
+    r = loaded.recipe
+    click.echo(
+        f"{recipe}: ok (recipe {r.name!r}, camera {r.camera.plugin}, stereo {r.stereo.backend}, detector {r.detector.plugin}, "
+        f"{len(r.decision.rules)} rules, outputs {', '.join(o.plugin for o in r.outputs) or 'none'})"
+    )
+
+
+@click.command("plugins")
+def plugins_command() -> None:
+    """List every camera, stereo backend, detector and output plugin found, with its package."""
+    from core.registry import default_registry
+
+    registry = default_registry()
+    for kind in ("camera", "stereo", "detector", "output"):
+        click.echo(f"{kind}:")
+        for name in registry.names(kind):
+            plugin = registry.get(kind, name)
+            click.echo(f"  {name:<14} {plugin.package:<28} {plugin.spec.description}")
+
+
+@click.command("report")
+@click.argument("results", type=click.Path(path_type=Path))
+@click.option("--run", "run_id", type=int, default=None, help="one run only (default: all runs in the store)")
+@click.option("--csv", "csv_path", type=click.Path(path_type=Path), default=None, help="export one row per defect")
+def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> None:
+    """Yield and counts per class from a results store (folder or results.db)."""
+    from core import store
+
+    try:
+        db = store.open_readonly(results)
+    except FileNotFoundError as exc:
+        fail(str(exc))
+    s = store.summary(db, run_id)
+    runs = db.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+    click.echo(f"{store.db_path(results)}: {runs} run(s){'' if run_id is None else f', run {run_id}'}")
+    yield_text = "n/a" if s["yield_percent"] is None else f"{s['yield_percent']:.1f}%"
+    click.echo(f"parts {s['parts']}  passed {s['passed']}  rejected {s['rejected']}  errors {s['errors']}  yield {yield_text}  alarms {s['alarms']}")
+    if s["defects_per_class"]:
+        click.echo("defects per class (by defect verdict):")
+        for cls, by_verdict in s["defects_per_class"].items():
+            detail = ", ".join(f"{v} {n}" for v, n in sorted(by_verdict.items()))
+            click.echo(f"  {cls:<16} {sum(by_verdict.values()):>4}  ({detail})")
+    if csv_path is not None:
+        n = store.export_csv(db, csv_path)
+        click.echo(f"wrote {n} rows to {csv_path}")
+
+
+def register(cli: click.Group) -> None:
+    for command in (run_command, validate_command, plugins_command, report_command):
+        cli.add_command(command)

@@ -1,0 +1,152 @@
+"""Depth per defect from a disparity map: distance, deviation from the surrounding surface.
+
+Distance follows the seed: the median of the valid disparities inside the defect's region,
+``Z = f*B / (median(d) + doffs)``. Deviation goes one step further: a plane is fitted robustly
+to the valid disparities in a ring around the box, and the defect's pixels are measured
+against it along the plane's 3D normal.
+
+Why fit in disparity space: a 3D plane seen by a rectified pinhole pair is exactly a plane in
+(u, v, d), so the fit is linear. From ``a*u + b*v + c = d + doffs = f*B/Z`` it follows that
+``a*f*X + b*f*Y + (a*cx + b*cy + c)*Z = f*B``, whose normal is ``n = (a*f, b*f, a*cx + b*cy + c)``.
+A point seen at pixel (u, v) with disparity d lies at signed distance
+``f*B*(d_plane/d - 1) / |n|`` from that plane (positive = farther from the camera = below the surface).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from core.types import Calibration, DefectMeasurement, Detection
+
+
+@dataclass(frozen=True)
+class DepthRule:
+    """How a box becomes a measurement region (the recipe's ``depth`` section)."""
+
+    roi: Literal["box", "inner"] = "inner"
+    # For roi="inner": the central share of the box's width and height taken as the defect;
+    # detector boxes include a margin of intact surface that would pull the median towards zero.
+    inner_fraction: float = 0.6
+    ring_gap_px: int = 3
+    ring_width_px: int = 12
+    min_valid_fraction: float = 0.10
+    min_ring_points: int = 30
+    disparity_noise_px: float = 0.25
+
+
+@dataclass(frozen=True)
+class Plane:
+    """Disparity plane ``d + doffs = a*u + b*v + c``."""
+
+    a: float
+    b: float
+    c: float
+
+    def __call__(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return self.a * u + self.b * v + self.c
+
+    def normal_length(self, calib: Calibration) -> float:
+        f = calib.focal_px
+        return float(np.sqrt((self.a * f) ** 2 + (self.b * f) ** 2 + (self.a * calib.cx + self.b * calib.cy + self.c) ** 2))
+
+
+def _clip_box(box: tuple[float, float, float, float], shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    h, w = shape
+    x0, y0, x1, y1 = box
+    return (
+        int(np.clip(np.floor(x0), 0, w)),
+        int(np.clip(np.floor(y0), 0, h)),
+        int(np.clip(np.ceil(x1), 0, w)),
+        int(np.clip(np.ceil(y1), 0, h)),
+    )
+
+
+def roi_box(box: tuple[float, float, float, float], rule: DepthRule) -> tuple[float, float, float, float]:
+    if rule.roi == "box":
+        return box
+    x0, y0, x1, y1 = box
+    shrink = (1.0 - rule.inner_fraction) / 2.0
+    dx, dy = (x1 - x0) * shrink, (y1 - y0) * shrink
+    return (x0 + dx, y0 + dy, x1 - dx, y1 - dy)
+
+
+def valid_mask(disparity: np.ndarray, doffs: float = 0.0) -> np.ndarray:
+    """Usable disparities: finite and in front of the camera (zero is "no match" for many matchers)."""
+    return np.isfinite(disparity) & (disparity + doffs > 0) & (disparity != 0)
+
+
+def ring_mask(shape: tuple[int, int], box: tuple[float, float, float, float], gap: int, width: int) -> np.ndarray:
+    """Pixels between the box grown by ``gap`` and the box grown by ``gap + width``."""
+    h, w = shape
+    mask = np.zeros(shape, dtype=bool)
+    x0, y0, x1, y1 = _clip_box(box, shape)
+    outer = (max(x0 - gap - width, 0), max(y0 - gap - width, 0), min(x1 + gap + width, w), min(y1 + gap + width, h))
+    inner = (max(x0 - gap, 0), max(y0 - gap, 0), min(x1 + gap, w), min(y1 + gap, h))
+    mask[outer[1] : outer[3], outer[0] : outer[2]] = True
+    mask[inner[1] : inner[3], inner[0] : inner[2]] = False
+    return mask
+
+
+def fit_plane_robust(u: np.ndarray, v: np.ndarray, d: np.ndarray, iterations: int = 6) -> Plane | None:
+    """Least-squares plane through (u, v, d), refitted on inliers within 2.5 robust sigmas.
+
+    Returns None when the points cannot define a plane (too few or collinear).
+    """
+    keep = np.ones(d.shape, dtype=bool)
+    plane = None
+    for _ in range(iterations):
+        if keep.sum() < 3:
+            return plane
+        design = np.column_stack([u[keep], v[keep], np.ones(keep.sum())])
+        coeffs, _, rank, _ = np.linalg.lstsq(design, d[keep], rcond=None)
+        if rank < 3:
+            return None
+        plane = Plane(*map(float, coeffs))
+        residual = d - plane(u, v)
+        sigma = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
+        new_keep = np.abs(residual) <= max(2.5 * sigma, 0.05)
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    return plane
+
+
+def measure_defect(
+    disparity: np.ndarray, detection: Detection, calib: Calibration, rule: DepthRule = DepthRule()
+) -> DefectMeasurement:
+    """Distance and deviation of one detection. disparity: HxW float, NaN/inf/0 = invalid."""
+    shape = disparity.shape
+    x0, y0, x1, y1 = _clip_box(roi_box(detection.box, rule), shape)
+    region = disparity[y0:y1, x0:x1]
+    total = region.size
+    valid = valid_mask(region, calib.doffs)
+    valid_fraction = float(valid.sum() / total) if total else 0.0
+    if total == 0 or valid_fraction < rule.min_valid_fraction:
+        return DefectMeasurement(
+            detection, None, None, valid_fraction, None, None,
+            note=f"depth unavailable: {valid_fraction:.0%} of the region valid, {rule.min_valid_fraction:.0%} needed",
+        )
+
+    fb = calib.focal_px * calib.baseline_mm
+    d_defect = region[valid].astype(np.float64) + calib.doffs
+    distance = fb / float(np.median(d_defect))
+    resolution = distance**2 / fb * rule.disparity_noise_px
+    bw, bh = detection.width, detection.height
+    area = bw * bh * (distance / calib.focal_px) ** 2
+
+    ring = ring_mask(shape, detection.box, rule.ring_gap_px, rule.ring_width_px) & valid_mask(disparity, calib.doffs)
+    rv, ru = np.nonzero(ring)
+    plane = None
+    if ru.size >= rule.min_ring_points:
+        plane = fit_plane_robust(ru.astype(np.float64), rv.astype(np.float64), disparity[ring].astype(np.float64) + calib.doffs)
+    if plane is None:
+        return DefectMeasurement(
+            detection, distance, None, valid_fraction, resolution, area,
+            note=f"deviation unavailable: {ru.size} valid surface points around the box, {rule.min_ring_points} needed",
+        )
+    vv, uu = np.nonzero(valid)
+    d_plane = plane((uu + x0).astype(np.float64), (vv + y0).astype(np.float64))
+    deviation = fb * (d_plane / d_defect - 1.0) / plane.normal_length(calib)
+    return DefectMeasurement(detection, distance, float(np.median(deviation)), valid_fraction, resolution, area)

@@ -1,0 +1,252 @@
+"""The run loop: camera -> detections -> disparity -> measurements -> verdict -> store -> outputs.
+
+Nothing a frame does can pass a part it could not inspect: any failure on the way (a frame the
+camera could not deliver, a stereo or detector exception, a missing measurement a rule needs)
+becomes an ERROR verdict, which the outputs reject like any other reject.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from core.annotate import annotate
+from core.contracts import PluginContext
+from core.decision import decide, error_verdict
+from core.depth import DepthRule, measure_defect
+from core.recipe import LoadedRecipe
+from core.recipe.schema import StereoSection
+from core.registry import Registry, default_registry
+from core.store import ResultsStore
+from core.types import Alarm, Calibration, Detection, FrameError, OutputEvent, PartResult, Status, StereoFrame
+
+EXIT_OK, EXIT_USAGE, EXIT_PART_ERRORS, EXIT_ALARMS, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
+
+
+class SetupError(Exception):
+    """The run cannot start (a plugin failed to initialise); the message names the recipe key."""
+
+
+@dataclass
+class Pipeline:
+    camera: Any
+    stereo: Any
+    detector: Any
+    outputs: list[tuple[str, Any]]
+
+    def close(self) -> None:
+        self.camera.close()
+
+
+def resolve_device(device: str) -> str:
+    if device != "auto":
+        return device
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def build_pipeline(loaded: LoadedRecipe, registry: Registry, device: str = "auto") -> Pipeline:
+    recipe = loaded.recipe
+    ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=recipe.name, device=resolve_device(device))
+
+    def make(kind: str, name: str, key: str, settings: dict) -> Any:
+        try:
+            return registry.get(kind, name).spec.factory(settings, ctx)
+        except Exception as exc:  # a plugin's own failure, reported against the recipe key that chose it
+            raise SetupError(f"{loaded.path}: {key}: {name}: {exc}") from exc
+
+    detector_settings = dict(loaded.plugin_settings["detector"])
+    detector_settings["confidence"] = recipe.detector.confidence
+    if recipe.detector.weights is not None:
+        detector_settings["weights"] = str(loaded.resolve(recipe.detector.weights))
+    camera = make("camera", recipe.camera.plugin, "camera", loaded.plugin_settings["camera"])
+    stereo = make("stereo", recipe.stereo.backend, "stereo", loaded.plugin_settings["stereo"])
+    detector = make("detector", recipe.detector.plugin, "detector", detector_settings)
+    unknown = [c for c in recipe.detector.classes or [] if c not in detector.class_names]
+    if unknown:
+        raise SetupError(f"{loaded.path}: detector.classes: {unknown} not known to the model ({', '.join(detector.class_names)})")
+    outputs = [
+        (o.plugin, make("output", o.plugin, f"outputs.{i}", loaded.plugin_settings[f"outputs.{i}"]))
+        for i, o in enumerate(recipe.outputs)
+    ]
+    return Pipeline(camera, stereo, detector, outputs)
+
+
+def disparity_range(stereo: StereoSection, calib: Calibration) -> tuple[float, float]:
+    """The search range in full-resolution pixels; a working distance gets a 2 px margin each side."""
+    if stereo.working_distance_mm is not None:
+        near, far = stereo.working_distance_mm
+        lo = max(0.0, math.floor(float(calib.disparity_px(far))) - 2)
+        hi = math.ceil(float(calib.disparity_px(near))) + 2
+    else:
+        lo, hi = stereo.min_disparity or 0.0, stereo.max_disparity
+    if hi >= calib.width:
+        raise ValueError(f"stereo: disparity range up to {hi:g} px does not fit the {calib.width} px wide image")
+    return lo, hi
+
+
+def compute_disparity(backend: Any, frame: StereoFrame, lo: float, hi: float, scale: float) -> np.ndarray:
+    """Disparity at full resolution; with ``scale < 1`` the pair is matched smaller and scaled back."""
+    if scale >= 1.0:
+        return backend.compute(frame.left, frame.right, lo, hi)
+    size = (max(1, round(frame.left.shape[1] * scale)), max(1, round(frame.left.shape[0] * scale)))
+    small_l = cv2.resize(frame.left, size, interpolation=cv2.INTER_AREA)
+    small_r = cv2.resize(frame.right, size, interpolation=cv2.INTER_AREA)
+    small = backend.compute(small_l, small_r, lo * scale, hi * scale)
+    full = cv2.resize(small, (frame.left.shape[1], frame.left.shape[0]), interpolation=cv2.INTER_NEAREST)
+    return full / scale
+
+
+@dataclass
+class FrameOutcome:
+    part: PartResult
+    per_defect: list[tuple[Status, list[str]]]  # each measurement's status and reasons
+    image: np.ndarray | None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def defect_status(self) -> list[Status]:
+        return [status for status, _ in self.per_defect]
+
+
+def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeline, loaded: LoadedRecipe, rule: DepthRule) -> FrameOutcome:
+    recipe = loaded.recipe
+    if isinstance(item, FrameError):
+        part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(f"camera: {item.message}"), error=item.message)
+        return FrameOutcome(part, [], None)
+
+    timings: dict[str, float] = {}
+    stage = "detection"
+    try:
+        t0 = time.perf_counter()
+        detections = _filter(pipeline.detector.detect(item.left), recipe.detector.confidence, recipe.detector.classes)
+        timings["detection"] = time.perf_counter() - t0
+        measurements = []
+        if detections or recipe.stereo.schedule == "every_frame":
+            stage = "stereo"
+            t0 = time.perf_counter()
+            lo, hi = disparity_range(recipe.stereo, item.calib)
+            disparity = compute_disparity(pipeline.stereo, item, lo, hi, recipe.stereo.scale)
+            timings["stereo"] = time.perf_counter() - t0
+            stage = "depth"
+            t0 = time.perf_counter()
+            measurements = [measure_defect(disparity, d, item.calib, rule) for d in detections]
+            timings["depth"] = time.perf_counter() - t0
+        stage = "decision"
+        verdict, per_defect = decide(measurements, recipe.decision)
+    except Exception as exc:  # one part's failure must not stop the line; it rejects that part
+        message = f"frame {item.frame_id}: {stage} failed: {type(exc).__name__}: {exc}"
+        part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)
+        return FrameOutcome(part, [], item.left, timings)
+    part = PartResult(part_id, item.frame_id, item.index, item.timestamp, verdict, measurements)
+    return FrameOutcome(part, per_defect, item.left, timings)
+
+
+def _filter(detections: list[Detection], confidence: float, classes: list[str] | None) -> list[Detection]:
+    return [d for d in detections if d.confidence >= confidence and (classes is None or d.class_name in classes)]
+
+
+@dataclass
+class RunSummary:
+    run_id: int
+    counts: Counter
+    alarms: list[Alarm]
+    frames: int
+    elapsed_s: float
+    stage_seconds: dict[str, float]
+    interrupted: bool = False
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.elapsed_s if self.elapsed_s > 0 else 0.0
+
+    @property
+    def exit_code(self) -> int:
+        if self.interrupted:
+            return EXIT_INTERRUPTED
+        if self.alarms:
+            return EXIT_ALARMS
+        if self.counts[Status.ERROR]:
+            return EXIT_PART_ERRORS
+        return EXIT_OK
+
+
+def run(
+    loaded: LoadedRecipe,
+    registry: Registry | None = None,
+    on_part: Callable[[FrameOutcome], None] | None = None,
+    on_event: Callable[[OutputEvent | Alarm], None] | None = None,
+    device: str = "auto",
+    max_frames: int | None = None,
+) -> RunSummary:
+    registry = registry or default_registry()
+    recipe = loaded.recipe
+    pipeline = build_pipeline(loaded, registry, device)
+    store = ResultsStore(loaded.resolve(recipe.results.path))
+    run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path))
+    rule = DepthRule(**recipe.depth.model_dump())
+    counts: Counter = Counter()
+    alarms: list[Alarm] = []
+    stage_seconds: Counter = Counter()
+    frames = 0
+    interrupted = False
+
+    def record(events: list[OutputEvent | Alarm]) -> None:
+        store.record_events(run_id, events)
+        for e in events:
+            if isinstance(e, Alarm):
+                alarms.append(e)
+            if on_event:
+                on_event(e)
+
+    started = time.perf_counter()
+    try:
+        for item in pipeline.camera.frames():
+            outcome = inspect_frame(item, f"R{run_id}-{item.index:06d}", pipeline, loaded, rule)
+            part = outcome.part
+            _save_image(store, recipe.results.save_images, outcome)
+            store.record_part(run_id, part, outcome.per_defect)
+            for name, output in pipeline.outputs:
+                try:
+                    output.submit(part)
+                except Exception as exc:
+                    record([Alarm(name, f"reject output failed for {part.part_id}: {exc}", time.time(), part.part_id)])
+                record(output.poll())
+            counts[part.verdict.status] += 1
+            stage_seconds.update(outcome.timings)
+            frames += 1
+            if on_part:
+                on_part(outcome)
+            if max_frames is not None and frames >= max_frames:
+                break
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        elapsed = time.perf_counter() - started
+        for name, output in pipeline.outputs:
+            try:
+                record(output.close())
+            except Exception as exc:
+                record([Alarm(name, f"closing output failed: {exc}", time.time())])
+        pipeline.close()
+    summary = RunSummary(run_id, counts, alarms, frames, elapsed, dict(stage_seconds), interrupted)
+    store.finish_run(run_id, counts, len(alarms), summary.fps, summary.exit_code)
+    store.close()
+    return summary
+
+
+def _save_image(store: ResultsStore, policy: str, outcome: FrameOutcome) -> None:
+    part = outcome.part
+    if outcome.image is None or policy == "none" or (policy == "rejected" and not part.verdict.status.rejects):
+        return
+    store.image_dir.mkdir(parents=True, exist_ok=True)
+    path = store.image_dir / f"{part.part_id}.jpg"
+    cv2.imwrite(str(path), annotate(outcome.image, part, outcome.defect_status))
+    part.image_path = str(path)

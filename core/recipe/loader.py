@@ -1,0 +1,206 @@
+"""Loading a recipe: safe YAML, ``--set`` overrides, schema and plugin-settings validation.
+
+Every problem becomes one ``RecipeError`` whose message names the file, the line and the
+key path (``recipes/x.yaml:12: stereo.max_disparity: ...``), which the CLI prints as one line.
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from core.recipe.schema import Recipe
+from core.registry import Registry, UnknownPlugin, default_registry
+
+
+class RecipeError(Exception):
+    """A recipe that cannot be used; ``str()`` is the one-line message for the user."""
+
+
+KeyPath = tuple[str | int, ...]
+
+
+def _line_map(text: str) -> dict[KeyPath, int]:
+    """1-based line of every key (and list item) in the YAML document."""
+    lines: dict[KeyPath, int] = {}
+
+    def walk(node: yaml.Node, path: KeyPath) -> None:
+        if isinstance(node, yaml.MappingNode):
+            for key_node, value_node in node.value:
+                child = path + (key_node.value,)
+                lines[child] = key_node.start_mark.line + 1
+                walk(value_node, child)
+        elif isinstance(node, yaml.SequenceNode):
+            for index, item in enumerate(node.value):
+                lines[path + (index,)] = item.start_mark.line + 1
+                walk(item, path + (index,))
+
+    root = yaml.compose(text, Loader=yaml.SafeLoader)
+    if root is not None:
+        walk(root, ())
+    return lines
+
+
+def _dotted(path: KeyPath) -> str:
+    return ".".join(str(p) for p in path) or "(top level)"
+
+
+@dataclass
+class LoadedRecipe:
+    recipe: Recipe
+    path: Path
+    text_hash: str
+    plugin_settings: dict[str, Any] = field(default_factory=dict)  # "camera", "stereo", "detector", "outputs.N"
+
+    @property
+    def directory(self) -> Path:
+        return self.path.parent
+
+    def resolve(self, relative: str) -> Path:
+        p = Path(relative).expanduser()
+        return p if p.is_absolute() else (self.directory / p).resolve()
+
+
+class _Locator:
+    def __init__(self, path: Path, lines: dict[KeyPath, int], overridden: set[KeyPath]):
+        self.path, self.lines, self.overridden = path, lines, overridden
+
+    def where(self, key: KeyPath) -> str:
+        for n in range(len(key), 0, -1):
+            prefix = tuple(key[:n])
+            if prefix in self.overridden:
+                return f"{self.path} (--set {_dotted(prefix)})"
+            if prefix in self.lines:
+                return f"{self.path}:{self.lines[prefix]}"
+        return str(self.path)
+
+    def error(self, key: KeyPath, message: str) -> RecipeError:
+        return RecipeError(f"{self.where(key)}: {_dotted(key)}: {message}")
+
+
+def _first_error(exc: ValidationError, base: KeyPath, locator: _Locator) -> RecipeError:
+    err = exc.errors()[0]
+    key = base + tuple(p for p in err["loc"] if p != "__root__")
+    kind = err["type"]
+    if kind == "extra_forbidden":
+        message = "unknown key"
+    elif kind == "missing":
+        message = "required key missing"
+    else:
+        message = err["msg"].removeprefix("Value error, ")
+        if "input" in err and kind not in ("model_type", "dict_type") and not isinstance(err["input"], dict):
+            message += f" (got {err['input']!r})"
+    more = len(exc.errors()) - 1
+    if more:
+        message += f" (and {more} more problem{'s' if more > 1 else ''})"
+    return locator.error(key, message)
+
+
+def apply_override(data: dict, assignment: str) -> KeyPath:
+    """Apply ``a.b.c=value`` (value parsed as YAML, list items by index) to ``data``."""
+    if "=" not in assignment:
+        raise RecipeError(f"--set {assignment}: expected key.path=value")
+    dotted, raw = assignment.split("=", 1)
+    parts: list[str | int] = [int(p) if p.isdigit() else p for p in dotted.strip().split(".")]
+    if not all(str(p) for p in parts):
+        raise RecipeError(f"--set {assignment}: empty key in {dotted!r}")
+    try:
+        value = yaml.safe_load(raw)
+    except yaml.YAMLError:
+        value = raw
+    node: Any = data
+    for i, part in enumerate(parts[:-1]):
+        if isinstance(node, list):
+            if not isinstance(part, int) or part >= len(node):
+                raise RecipeError(f"--set {assignment}: {_dotted(tuple(parts[: i + 1]))}: no such list item")
+            node = node[part]
+        elif isinstance(node, dict):
+            node = node.setdefault(part, {})
+        else:
+            raise RecipeError(f"--set {assignment}: {_dotted(tuple(parts[:i]))} is not a mapping")
+    last = parts[-1]
+    if isinstance(node, list):
+        if not isinstance(last, int) or last >= len(node):
+            raise RecipeError(f"--set {assignment}: {dotted}: no such list item")
+        node[last] = value
+    elif isinstance(node, dict):
+        node[last] = value
+    else:
+        raise RecipeError(f"--set {assignment}: {_dotted(tuple(parts[:-1]))} is not a mapping")
+    return tuple(parts)
+
+
+def _validate_plugin(
+    registry: Registry, kind: str, name: str, settings: dict, key: KeyPath, locator: _Locator, context: dict
+) -> dict:
+    try:
+        plugin = registry.get(kind, name)
+    except UnknownPlugin as exc:
+        raise locator.error(key + ("plugin" if kind != "stereo" else "backend",), str(exc)) from None
+    model: type[BaseModel] | None = plugin.spec.settings_model
+    if model is None:
+        return dict(settings)
+    try:
+        return model.model_validate(settings, context=context).model_dump()
+    except ValidationError as exc:
+        raise _first_error(exc, key + ("settings",), locator) from None
+
+
+def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None) -> LoadedRecipe:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise RecipeError(f"{path}: recipe file not found") from None
+    except OSError as exc:
+        raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from None
+    try:
+        data = yaml.safe_load(text)
+        lines = _line_map(text)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark
+        where = f"{path}:{mark.line + 1}" if mark else str(path)
+        raise RecipeError(f"{where}: YAML syntax error: {exc.problem or exc}") from None
+    except yaml.YAMLError as exc:
+        raise RecipeError(f"{path}: YAML error: {str(exc).splitlines()[0]}") from None
+    if not isinstance(data, dict):
+        raise RecipeError(f"{path}: a recipe must be a mapping of sections (camera, stereo, ...)")
+
+    data = copy.deepcopy(data)
+    overridden = {apply_override(data, assignment) for assignment in overrides}
+    locator = _Locator(path, lines, overridden)
+    try:
+        recipe = Recipe.model_validate(data)
+    except ValidationError as exc:
+        raise _first_error(exc, (), locator) from None
+
+    loaded = LoadedRecipe(
+        recipe=recipe,
+        path=path.resolve(),
+        text_hash=hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16],
+    )
+    registry = registry or default_registry()
+    context = {"recipe_dir": loaded.directory}
+
+    if recipe.detector.weights is not None and not loaded.resolve(recipe.detector.weights).is_file():
+        raise locator.error(("detector", "weights"), f"weights file not found: {loaded.resolve(recipe.detector.weights)}")
+    loaded.plugin_settings["camera"] = _validate_plugin(
+        registry, "camera", recipe.camera.plugin, recipe.camera.settings, ("camera",), locator, context
+    )
+    loaded.plugin_settings["stereo"] = _validate_plugin(
+        registry, "stereo", recipe.stereo.backend, recipe.stereo.settings, ("stereo",), locator, context
+    )
+    loaded.plugin_settings["detector"] = _validate_plugin(
+        registry, "detector", recipe.detector.plugin, recipe.detector.settings, ("detector",), locator, context
+    )
+    for index, output in enumerate(recipe.outputs):
+        loaded.plugin_settings[f"outputs.{index}"] = _validate_plugin(
+            registry, "output", output.plugin, output.settings, ("outputs", index), locator, context
+        )
+    return loaded

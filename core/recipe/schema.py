@@ -1,0 +1,110 @@
+"""The recipe: what a quality engineer writes to describe one inspection.
+
+Every section rejects unknown keys, so a typo is an error instead of a silently ignored setting.
+Relative paths in a recipe are relative to the recipe file.
+"""
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+QUANTITIES = ("deviation_mm", "distance_mm", "confidence", "area_mm2")
+OPERATORS = (">", ">=", "<", "<=")
+
+
+class Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class PluginRef(Section):
+    plugin: str = Field(min_length=1)
+    settings: dict[str, Any] = Field(default_factory=dict)
+
+
+class CameraSection(PluginRef):
+    pass
+
+
+class StereoSection(Section):
+    backend: str = Field("opencv_sgbm", min_length=1)
+    settings: dict[str, Any] = Field(default_factory=dict)
+    min_disparity: float | None = Field(None, ge=0)
+    max_disparity: float | None = Field(None, gt=0)
+    working_distance_mm: tuple[float, float] | None = None
+    scale: float = Field(1.0, gt=0.05, le=1.0)
+    schedule: Literal["every_frame", "on_defect"] = "on_defect"
+
+    @model_validator(mode="after")
+    def _one_range(self) -> StereoSection:
+        has_disp = self.min_disparity is not None or self.max_disparity is not None
+        if has_disp and self.working_distance_mm is not None:
+            raise ValueError("give either min_disparity/max_disparity or working_distance_mm, not both")
+        if not has_disp and self.working_distance_mm is None:
+            raise ValueError("give a disparity range (min_disparity, max_disparity) or working_distance_mm: [near, far]")
+        if has_disp:
+            if self.max_disparity is None:
+                raise ValueError("max_disparity is required with min_disparity")
+            if self.max_disparity <= (self.min_disparity or 0):
+                raise ValueError("max_disparity must be larger than min_disparity")
+        if self.working_distance_mm is not None:
+            near, far = self.working_distance_mm
+            if not 0 < near < far:
+                raise ValueError("working_distance_mm must be [near, far] with 0 < near < far")
+        return self
+
+
+class DetectorSection(Section):
+    plugin: str = Field("yolov8", min_length=1)
+    weights: str | None = None
+    confidence: float = Field(0.25, ge=0.0, le=1.0)
+    classes: list[str] | None = None
+    settings: dict[str, Any] = Field(default_factory=dict)
+
+
+class DepthSection(Section):
+    roi: Literal["box", "inner"] = "inner"
+    inner_fraction: float = Field(0.6, gt=0.0, le=1.0)
+    ring_gap_px: int = Field(3, ge=0, le=200)
+    ring_width_px: int = Field(12, ge=2, le=200)
+    min_valid_fraction: float = Field(0.10, ge=0.0, le=1.0)
+    min_ring_points: int = Field(30, ge=3)
+    disparity_noise_px: float = Field(0.25, gt=0.0)
+
+
+class Rule(Section):
+    """Reject a defect of ``class`` (or any class) when ``quantity op threshold``."""
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+    class_: str = Field("any", alias="class", min_length=1)
+    quantity: Literal["deviation_mm", "distance_mm", "confidence", "area_mm2"]
+    op: Literal[">", ">=", "<", "<="]
+    threshold: float
+    name: str | None = None
+
+    def describe(self) -> str:
+        return self.name or f"{self.class_} {self.quantity} {self.op} {self.threshold:g}"
+
+
+class DecisionSection(Section):
+    rules: list[Rule] = Field(default_factory=list)
+    # A defect the detector finds but no rule covers: pass it (the default) or reject it.
+    reject_unruled_defects: bool = False
+
+
+class ResultsSection(Section):
+    path: str = "results"
+    save_images: Literal["rejected", "all", "none"] = "rejected"
+
+
+class Recipe(Section):
+    name: str = Field(min_length=1)
+    description: str = ""
+    camera: CameraSection
+    stereo: StereoSection
+    detector: DetectorSection = Field(default_factory=DetectorSection)
+    depth: DepthSection = Field(default_factory=DepthSection)
+    decision: DecisionSection = Field(default_factory=DecisionSection)
+    outputs: list[PluginRef] = Field(default_factory=lambda: [PluginRef(plugin="log")])
+    results: ResultsSection = Field(default_factory=ResultsSection)

@@ -1,0 +1,119 @@
+"""Camera ``replay``: plays a recorded sequence folder as if it were the line camera.
+
+It plays the synthetic sequences, folders written by ``inspect camera record``, and any
+folder of ``left/``+``right/`` pairs with a ``calib.yaml`` (or one Middlebury scene).
+A frame that is missing or corrupt becomes a ``FrameError``: the engine rejects that part.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+
+from core.contracts import PluginContext, PluginSpec
+from core.hookspecs import hookimpl
+from core.types import Calibration, FrameError, StereoFrame
+from drivers import sequence_folder as seq
+
+
+class ReplaySettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    path: str = Field(description="sequence folder; relative to the recipe file")
+    rate_fps: float = Field(0.0, ge=0.0, description="frames per second; 0 plays as fast as the line consumes")
+    loop: bool = False
+    max_frames: int | None = Field(None, ge=1)
+
+    @field_validator("path")
+    @classmethod
+    def _exists(cls, value: str, info: ValidationInfo) -> str:
+        base = Path((info.context or {}).get("recipe_dir", "."))
+        folder = Path(value).expanduser()
+        folder = folder if folder.is_absolute() else (base / folder).resolve()
+        if not folder.is_dir():
+            raise ValueError(f"sequence folder not found: {folder}")
+        return str(folder)
+
+
+def calibration_from_dict(data: dict) -> Calibration:
+    return Calibration(
+        focal_px=float(data["focal_px"]),
+        baseline_mm=float(data["baseline_mm"]),
+        cx=float(data["cx"]),
+        cy=float(data["cy"]),
+        width=int(data["width"]),
+        height=int(data["height"]),
+        doffs=float(data.get("doffs", 0.0)),
+    )
+
+
+class ReplayCamera:
+    def __init__(self, settings: ReplaySettings):
+        self.settings = settings
+        self.folder = Path(settings.path)
+        self.calib = calibration_from_dict(seq.read_calibration(self.folder))
+        self.files = seq.list_frames(self.folder)
+        if not self.files:
+            raise seq.SequenceError(f"{self.folder}: no frames in left/")
+
+    def frames(self) -> Iterator[StereoFrame | FrameError]:
+        period = 1.0 / self.settings.rate_fps if self.settings.rate_fps > 0 else 0.0
+        index, passes = 0, 0
+        next_due = time.monotonic()
+        while True:
+            for files in self.files:
+                if self.settings.max_frames is not None and index >= self.settings.max_frames:
+                    return
+                if period:
+                    delay = next_due - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                    next_due = max(next_due + period, time.monotonic() - period)
+                yield self._read(files, index, passes)
+                index += 1
+            passes += 1
+            if not self.settings.loop:
+                return
+
+    def _read(self, files: seq.FrameFiles, index: int, passes: int) -> StereoFrame | FrameError:
+        now = time.time()
+        try:
+            left = seq.read_image(files.left, f"left image of frame {files.frame_id}")
+            right = seq.read_image(files.right, f"right image of frame {files.frame_id}")
+        except seq.SequenceError as exc:
+            return FrameError(files.frame_id, index, str(exc), now, source=str(self.folder))
+        if left.shape != right.shape or left.shape[:2] != (self.calib.height, self.calib.width):
+            return FrameError(
+                files.frame_id, index,
+                f"frame {files.frame_id}: left {left.shape[1]}x{left.shape[0]}, right {right.shape[1]}x{right.shape[0]}, "
+                f"calibration {self.calib.width}x{self.calib.height}",
+                now, source=str(self.folder),
+            )
+        meta = {"pass": passes}
+        if files.gt is not None:
+            meta["gt_disparity"] = str(files.gt)
+        if files.labels is not None:
+            meta["labels"] = str(files.labels)
+        return StereoFrame(files.frame_id, index, left, right, self.calib, now, source=str(self.folder), meta=meta)
+
+    def close(self) -> None:
+        return None
+
+
+def _factory(settings: dict, ctx: PluginContext) -> ReplayCamera:
+    return ReplayCamera(ReplaySettings.model_validate(settings, context={"recipe_dir": ctx.recipe_dir}))
+
+
+@hookimpl
+def stereo_inspect_cameras() -> list[PluginSpec]:
+    return [
+        PluginSpec(
+            name="replay",
+            kind="camera",
+            factory=_factory,
+            settings_model=ReplaySettings,
+            description="plays a recorded or synthetic sequence folder (left/, right/, calib.yaml)",
+        )
+    ]

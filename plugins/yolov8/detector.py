@@ -1,0 +1,80 @@
+"""The ``yolov8`` detector: ultralytics YOLO with optional sliced inference."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from core.types import Detection
+from plugins.yolov8 import tiling
+
+# The NEU-DET model trained by `inspect train detector`, committed with its model card.
+DEFAULT_WEIGHTS = Path(__file__).resolve().parents[2] / "models" / "yolov8n-neu-det.pt"
+
+
+class YoloSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    weights: str | None = Field(None, description="set from the recipe's detector.weights")
+    confidence: float = Field(0.25, ge=0.0, le=1.0)
+    iou: float = Field(0.5, gt=0.0, le=1.0)
+    imgsz: int = Field(224, ge=32, le=4096, description="network input size (per tile when tiling)")
+    tile_size: int | None = Field(224, ge=32, description="tile edge in frame pixels; null = whole frame")
+    tile_overlap: float = Field(0.25, ge=0.0, lt=0.9)
+    device: str = "auto"
+    max_det: int = Field(100, ge=1)
+
+
+class YoloDetector:
+    def __init__(self, settings: YoloSettings, device: str = "cpu"):
+        os.environ.setdefault("YOLO_OFFLINE", "1")
+        from ultralytics import YOLO
+
+        weights = Path(settings.weights) if settings.weights else DEFAULT_WEIGHTS
+        if not weights.is_file():
+            raise FileNotFoundError(f"{weights}: detector weights not found")
+        self.settings = settings
+        self.model = YOLO(str(weights), task="detect")
+        self.class_names = [self.model.names[i] for i in sorted(self.model.names)]
+        if settings.device != "auto":
+            device = settings.device
+        self.device = device
+
+    def _predict(self, images: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        s = self.settings
+        results = self.model.predict(
+            images, imgsz=s.imgsz, conf=s.confidence, iou=s.iou, device=self.device, verbose=False, max_det=s.max_det
+        )
+        out = []
+        for r in results:
+            b = r.boxes
+            out.append((b.xyxy.cpu().numpy(), b.conf.cpu().numpy(), b.cls.cpu().numpy().astype(int)))
+        return out
+
+    def detect(self, image: np.ndarray) -> list[Detection]:
+        s = self.settings
+        h, w = image.shape[:2]
+        if s.tile_size is None or (w <= s.tile_size and h <= s.tile_size):
+            boxes, scores, classes = self._predict([image])[0]
+        else:
+            xs = tiling.tile_origins(w, s.tile_size, s.tile_overlap)
+            ys = tiling.tile_origins(h, s.tile_size, s.tile_overlap)
+            origins = [(x, y) for y in ys for x in xs]
+            tiles = [image[y : y + s.tile_size, x : x + s.tile_size] for x, y in origins]
+            parts = self._predict(tiles)
+            boxes = np.concatenate([p[0] + np.array([x, y, x, y], dtype=np.float32) for p, (x, y) in zip(parts, origins)])
+            scores = np.concatenate([p[1] for p in parts])
+            classes = np.concatenate([p[2] for p in parts])
+            if len(boxes):
+                keep = tiling.nms(boxes, scores, classes, s.iou)
+                boxes, scores, classes = boxes[keep], scores[keep], classes[keep]
+                boxes, scores, classes = tiling.merge_cut_boxes(
+                    boxes, scores, classes,
+                    tiling.interior_cuts(xs, s.tile_size, w), tiling.interior_cuts(ys, s.tile_size, h),
+                )
+        return [
+            Detection(self.class_names[int(c)], float(sc), tuple(float(v) for v in bx))
+            for bx, sc, c in sorted(zip(boxes, scores, classes), key=lambda t: -t[1])
+        ]

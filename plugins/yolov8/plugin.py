@@ -1,0 +1,106 @@
+"""Registers the ``yolov8`` detector and its commands (convert-voc, train detector, eval detector)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from core.contracts import PluginContext, PluginSpec
+from core.hookspecs import hookimpl
+from plugins.yolov8.detector import YoloDetector, YoloSettings
+
+
+def _factory(settings: dict, ctx: PluginContext) -> YoloDetector:
+    return YoloDetector(YoloSettings(**settings), device=ctx.device)
+
+
+@hookimpl
+def stereo_inspect_detectors() -> list[PluginSpec]:
+    return [
+        PluginSpec(
+            name="yolov8",
+            kind="detector",
+            factory=_factory,
+            settings_model=YoloSettings,
+            description="ultralytics YOLOv8 (NEU-DET weights by default), tiled inference",
+        )
+    ]
+
+
+def _fail(message: str) -> None:
+    click.echo(f"error: {message}", err=True)
+    sys.exit(2)
+
+
+@click.command("convert-voc")
+@click.argument("src", type=click.Path(path_type=Path))
+@click.argument("dst", type=click.Path(path_type=Path))
+@click.option("--split-files", nargs=2, type=click.Path(path_type=Path), default=None,
+              help="train and val stem lists (e.g. train.txt val.txt); relative to SRC when not found as given")
+def convert_voc_command(src: Path, dst: Path, split_files: tuple[Path, Path] | None) -> None:
+    """Convert a Pascal VOC folder (images/, annotations/) into the YOLO layout with data.yaml."""
+    from plugins.yolov8.voc_to_yolo import convert_voc
+
+    if not (src / "images").is_dir() or not (src / "annotations").is_dir():
+        _fail(f"{src}: expected images/ and annotations/ folders")
+    splits = None
+    if split_files:
+        splits = {}
+        for name, path in zip(("train", "val"), split_files):
+            path = path if path.exists() else src / path
+            if not path.exists():
+                _fail(f"{path}: split file not found")
+            splits[name] = path
+    report = convert_voc(src, dst, splits)
+    for message in report.messages:
+        click.echo(f"warning: {message}", err=True)
+    click.echo(report.summary())
+    click.echo(f"dataset: {dst / 'data.yaml'}")
+
+
+@click.command("detector")
+@click.option("--data", "data", required=True, type=click.Path(path_type=Path), help="YOLO dataset folder or its data.yaml")
+@click.option("--epochs", default=100, show_default=True)
+@click.option("--patience", default=20, show_default=True)
+@click.option("--imgsz", default=200, show_default=True)
+@click.option("--batch", default=16, show_default=True)
+@click.option("--device", default="auto", show_default=True)
+@click.option("--out", default=Path("runs/detector"), type=click.Path(path_type=Path), show_default=True)
+@click.option("--name", default="yolov8n-neu", show_default=True)
+def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int, device: str, out: Path, name: str) -> None:
+    """Train YOLOv8n from scratch (resumes when OUT/NAME/weights/last.pt exists)."""
+    from plugins.yolov8.training import TrainSettings, train_detector
+
+    data_yaml = data / "data.yaml" if data.is_dir() else data
+    if not data_yaml.is_file():
+        _fail(f"{data_yaml}: dataset file not found (run `inspect data convert-voc` first)")
+    best = train_detector(data_yaml, out, TrainSettings(epochs=epochs, patience=patience, imgsz=imgsz, batch=batch, device=device), name)
+    click.echo(f"best weights: {best}")
+
+
+@click.command("detector")
+@click.option("--data", "data", required=True, type=click.Path(path_type=Path))
+@click.option("--weights", required=True, type=click.Path(path_type=Path))
+@click.option("--split", default="val", show_default=True)
+@click.option("--imgsz", default=224, show_default=True)
+@click.option("--out", default=Path("runs/detector-eval"), type=click.Path(path_type=Path), show_default=True)
+def eval_command(data: Path, weights: Path, split: str, imgsz: int, out: Path) -> None:
+    """mAP@0.50, mAP@0.50:0.95, precision, recall and per-class AP, beside the seed's figures."""
+    from plugins.yolov8.evaluation import evaluate_detector, metrics_markdown
+
+    data_yaml = data / "data.yaml" if data.is_dir() else data
+    if not data_yaml.is_file():
+        _fail(f"{data_yaml}: dataset file not found")
+    if not weights.is_file():
+        _fail(f"{weights}: weights file not found")
+    result = evaluate_detector(data_yaml, weights, split, out, imgsz=imgsz)
+    click.echo(metrics_markdown(result))
+    click.echo(f"saved: {out / 'detector_metrics.json'}, {out / 'detector_metrics.md'}, {out / 'pr_curve.png'}")
+
+
+@hookimpl
+def stereo_inspect_commands(cli: click.Group) -> None:
+    cli.commands["data"].add_command(convert_voc_command)
+    cli.commands["train"].add_command(train_command)
+    cli.commands["eval"].add_command(eval_command)

@@ -70,7 +70,8 @@ def make_manager(extra_plugins: tuple[object, ...] = ()) -> pluggy.PluginManager
     manager.add_hookspecs(hookspecs)
     manager.load_setuptools_entrypoints(hookspecs.ENTRY_POINT_GROUP)
     for plugin in extra_plugins:
-        manager.register(plugin)
+        if not manager.is_registered(plugin):
+            manager.register(plugin)
     return manager
 
 

@@ -118,7 +118,7 @@ def convert_voc(
     """Convert ``src/{images,annotations}`` into ``dst/{images,labels}/<split>`` plus ``dst/data.yaml``.
 
     ``split_files`` maps a split name (``train``, ``val``) to a file of stems; without it,
-    every image goes to ``train`` and ``val``.
+    every image goes to ``train`` and ``val`` reads the same folder.
     """
     src, dst = Path(src), Path(dst)
     images_dir, ann_dir = src / "images", src / "annotations"
@@ -136,8 +136,7 @@ def convert_voc(
             for name, path in split_files.items()
         }
     else:
-        everything = sorted(image_stems & xml_stems)
-        splits = {"train": everything, "val": everything}
+        splits = {"train": sorted(image_stems & xml_stems)}
 
     for split, stems in splits.items():
         (dst / "images" / split).mkdir(parents=True, exist_ok=True)
@@ -165,6 +164,7 @@ def convert_voc(
     data = {
         "path": str(dst.resolve()),
         **{split: f"images/{split}" for split in splits},
+        **({} if "val" in splits else {"val": "images/train"}),
         "names": dict(enumerate(classes)),
     }
     (dst / "data.yaml").write_text(yaml.safe_dump(data, sort_keys=False))

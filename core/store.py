@@ -1,0 +1,211 @@
+"""The results store: SQLite in WAL mode, one row per part, per defect, per output event and alarm.
+
+Each part is committed before its reject is handed to the outputs, so a crash loses nothing
+that was decided; WAL lets a reviewer read the store while a run writes it.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import sqlite3
+import time
+from collections import Counter
+from pathlib import Path
+
+from core.types import Alarm, OutputEvent, PartResult, Status
+
+DB_NAME = "results.db"
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS runs (
+    id INTEGER PRIMARY KEY,
+    recipe_name TEXT NOT NULL,
+    recipe_hash TEXT NOT NULL,
+    recipe_path TEXT NOT NULL,
+    started REAL NOT NULL,
+    finished REAL,
+    parts INTEGER DEFAULT 0,
+    passed INTEGER DEFAULT 0,
+    rejected INTEGER DEFAULT 0,
+    errors INTEGER DEFAULT 0,
+    alarms INTEGER DEFAULT 0,
+    fps REAL,
+    exit_code INTEGER
+);
+CREATE TABLE IF NOT EXISTS parts (
+    id INTEGER PRIMARY KEY,
+    run_id INTEGER NOT NULL REFERENCES runs(id),
+    part_id TEXT NOT NULL,
+    frame_id TEXT NOT NULL,
+    frame_index INTEGER NOT NULL,
+    time REAL NOT NULL,
+    verdict TEXT NOT NULL,
+    reasons TEXT NOT NULL,
+    error TEXT,
+    image_path TEXT
+);
+CREATE TABLE IF NOT EXISTS defects (
+    id INTEGER PRIMARY KEY,
+    part_row INTEGER NOT NULL REFERENCES parts(id),
+    class TEXT NOT NULL,
+    confidence REAL NOT NULL,
+    x0 REAL, y0 REAL, x1 REAL, y1 REAL,
+    distance_mm REAL,
+    deviation_mm REAL,
+    valid_fraction REAL,
+    depth_resolution_mm REAL,
+    area_mm2 REAL,
+    verdict TEXT NOT NULL,
+    reasons TEXT NOT NULL,
+    note TEXT
+);
+CREATE TABLE IF NOT EXISTS output_events (
+    id INTEGER PRIMARY KEY,
+    run_id INTEGER NOT NULL REFERENCES runs(id),
+    part_id TEXT,
+    output TEXT NOT NULL,
+    command TEXT NOT NULL,
+    outcome TEXT NOT NULL,
+    time REAL NOT NULL,
+    detail TEXT
+);
+CREATE TABLE IF NOT EXISTS alarms (
+    id INTEGER PRIMARY KEY,
+    run_id INTEGER NOT NULL REFERENCES runs(id),
+    source TEXT NOT NULL,
+    message TEXT NOT NULL,
+    time REAL NOT NULL,
+    part_id TEXT,
+    acknowledged INTEGER DEFAULT 0
+);
+CREATE INDEX IF NOT EXISTS parts_run ON parts(run_id);
+CREATE INDEX IF NOT EXISTS parts_part_id ON parts(part_id);
+CREATE INDEX IF NOT EXISTS defects_part ON defects(part_row);
+"""
+
+
+def db_path(location: Path) -> Path:
+    location = Path(location)
+    return location if location.suffix == ".db" else location / DB_NAME
+
+
+class ResultsStore:
+    def __init__(self, location: Path):
+        self.path = db_path(location)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.db = sqlite3.connect(self.path, check_same_thread=False)
+        self.db.execute("PRAGMA journal_mode=WAL")
+        # FULL: a decided part survives a power cut, not only a crash of this process.
+        self.db.execute("PRAGMA synchronous=FULL")
+        self.db.executescript(SCHEMA)
+        self.db.commit()
+
+    @property
+    def image_dir(self) -> Path:
+        return self.path.parent / "images"
+
+    def start_run(self, recipe_name: str, recipe_hash: str, recipe_path: str) -> int:
+        cur = self.db.execute(
+            "INSERT INTO runs (recipe_name, recipe_hash, recipe_path, started) VALUES (?, ?, ?, ?)",
+            (recipe_name, recipe_hash, recipe_path, time.time()),
+        )
+        self.db.commit()
+        return int(cur.lastrowid)
+
+    def record_part(self, run_id: int, part: PartResult, defect_verdicts: list[tuple[Status, list[str]]]) -> int:
+        with self.db:
+            cur = self.db.execute(
+                "INSERT INTO parts (run_id, part_id, frame_id, frame_index, time, verdict, reasons, error, image_path)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (run_id, part.part_id, part.frame_id, part.index, part.timestamp, part.verdict.status.value,
+                 json.dumps(part.verdict.reasons), part.error, part.image_path),
+            )
+            row = int(cur.lastrowid)
+            for m, (status, reasons) in zip(part.measurements, defect_verdicts):
+                d = m.detection
+                self.db.execute(
+                    "INSERT INTO defects (part_row, class, confidence, x0, y0, x1, y1, distance_mm, deviation_mm,"
+                    " valid_fraction, depth_resolution_mm, area_mm2, verdict, reasons, note)"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (row, d.class_name, d.confidence, *d.box, m.distance_mm, m.deviation_mm, m.valid_fraction,
+                     m.depth_resolution_mm, m.area_mm2, status.value, json.dumps(reasons), m.note),
+                )
+        return row
+
+    def record_events(self, run_id: int, events: list[OutputEvent | Alarm]) -> None:
+        if not events:
+            return
+        with self.db:
+            for e in events:
+                if isinstance(e, Alarm):
+                    self.db.execute(
+                        "INSERT INTO alarms (run_id, source, message, time, part_id) VALUES (?, ?, ?, ?, ?)",
+                        (run_id, e.source, e.message, e.timestamp, e.part_id),
+                    )
+                else:
+                    self.db.execute(
+                        "INSERT INTO output_events (run_id, part_id, output, command, outcome, time, detail)"
+                        " VALUES (?, ?, ?, ?, ?, ?, ?)",
+                        (run_id, e.part_id, e.output, e.command, e.outcome, e.timestamp, e.detail),
+                    )
+
+    def finish_run(self, run_id: int, counts: Counter, alarms: int, fps: float, exit_code: int) -> None:
+        with self.db:
+            self.db.execute(
+                "UPDATE runs SET finished=?, parts=?, passed=?, rejected=?, errors=?, alarms=?, fps=?, exit_code=? WHERE id=?",
+                (time.time(), sum(counts.values()), counts[Status.PASS], counts[Status.REJECT], counts[Status.ERROR],
+                 alarms, fps, exit_code, run_id),
+            )
+
+    def close(self) -> None:
+        self.db.close()
+
+
+def open_readonly(location: Path) -> sqlite3.Connection:
+    path = db_path(location)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no results store here")
+    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    db.row_factory = sqlite3.Row
+    return db
+
+
+def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
+    where, args = ("WHERE run_id = ?", (run_id,)) if run_id is not None else ("", ())
+    verdicts = Counter(dict(db.execute(f"SELECT verdict, COUNT(*) FROM parts {where} GROUP BY verdict", args).fetchall()))
+    joined = f"SELECT d.class, d.verdict, COUNT(*) FROM defects d JOIN parts p ON p.id = d.part_row {where.replace('run_id', 'p.run_id')} GROUP BY d.class, d.verdict"
+    per_class: dict[str, Counter] = {}
+    for cls, verdict, n in db.execute(joined, args).fetchall():
+        per_class.setdefault(cls, Counter())[verdict] += n
+    alarms = db.execute(f"SELECT COUNT(*) FROM alarms {where}", args).fetchone()[0]
+    parts = sum(verdicts.values())
+    return {
+        "parts": parts,
+        "passed": verdicts.get("PASS", 0),
+        "rejected": verdicts.get("REJECT", 0),
+        "errors": verdicts.get("ERROR", 0),
+        "yield_percent": round(100.0 * verdicts.get("PASS", 0) / parts, 1) if parts else None,
+        "defects_per_class": {c: dict(v) for c, v in sorted(per_class.items())},
+        "alarms": alarms,
+    }
+
+
+CSV_COLUMNS = [
+    "run_id", "part_id", "frame_id", "time", "part_verdict", "part_reasons", "error", "class", "confidence",
+    "x0", "y0", "x1", "y1", "distance_mm", "deviation_mm", "valid_fraction", "depth_resolution_mm", "area_mm2",
+    "defect_verdict", "defect_reasons",
+]
+
+
+def export_csv(db: sqlite3.Connection, out: Path) -> int:
+    """One row per defect; a part without defects gets one row with empty defect columns."""
+    rows = db.execute(
+        "SELECT p.run_id, p.part_id, p.frame_id, p.time, p.verdict, p.reasons, p.error, d.class, d.confidence,"
+        " d.x0, d.y0, d.x1, d.y1, d.distance_mm, d.deviation_mm, d.valid_fraction, d.depth_resolution_mm,"
+        " d.area_mm2, d.verdict, d.reasons FROM parts p LEFT JOIN defects d ON d.part_row = p.id ORDER BY p.id, d.id"
+    ).fetchall()
+    with open(out, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(CSV_COLUMNS)
+        writer.writerows(tuple(r) for r in rows)
+    return len(rows)

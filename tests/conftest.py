@@ -1,0 +1,72 @@
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+TESTS = Path(__file__).resolve().parent
+ROOT = TESTS.parent
+sys.path.insert(0, str(TESTS))
+sys.path.insert(0, str(TESTS / "external_plugin"))
+
+from synthetic_pairs import Pit, calib_for, render  # noqa: E402
+
+from drivers.sequence_folder import write_calibration, write_frame  # noqa: E402
+
+
+def write_plane_sequence(folder: Path, pit_depths_mm: list[float], width: int = 320, height: int = 192,
+                         focal_px: float = 350.06, distance_mm: float = 400.0, tilt_deg: float = 5.0) -> dict:
+    """One frame per entry: a tilted plate with a pit of that depth (0 = no pit) centred in the image.
+
+    Returns the pit's box in the left image.
+    """
+    calib = calib_for(width, height, focal_px)
+    write_calibration(folder, dict(focal_px=calib.focal_px, baseline_mm=calib.baseline_mm, cx=calib.cx,
+                                   cy=calib.cy, width=width, height=height, doffs=0.0))
+    u, v = width / 2, height / 2
+    for i, depth in enumerate(pit_depths_mm):
+        pits = [Pit(u, v, 25.0, depth)] if depth else []
+        left, right, disparity = render(calib, distance_mm, tilt_deg, pits, seed=i)
+        write_frame(folder, f"{i:06d}", left, right, disparity)
+    return {"box": [u - 25, v - 25, u + 25, v + 25], "calib": calib}
+
+
+@pytest.fixture
+def plane_sequence(tmp_path):
+    def make(pit_depths_mm, **kw):
+        folder = tmp_path / "seq"
+        info = write_plane_sequence(folder, pit_depths_mm, **kw)
+        info["folder"] = folder
+        return info
+    return make
+
+
+def write_recipe(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def cli(*args: str, env_extra: dict | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    """Run the installed ``inspect`` console script for real, as a user would."""
+    env = dict(os.environ, **(env_extra or {}))
+    exe = Path(sys.executable).parent / "inspect"
+    return subprocess.run([str(exe), *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=300)
+
+
+@pytest.fixture(scope="session")
+def external_plugin_site(tmp_path_factory) -> Path:
+    """The example third-party plugin package, installed by pip into a folder of its own."""
+    site = tmp_path_factory.mktemp("site")
+    # Build from a copy: an in-tree build leaves an egg-info that would itself register the plugin.
+    source = tmp_path_factory.mktemp("src") / "external_plugin"
+    shutil.copytree(TESTS / "external_plugin", source, ignore=shutil.ignore_patterns("*.egg-info", "build", "__pycache__"))
+    subprocess.run(
+        [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--target", str(site),
+         str(source)],
+        check=True, capture_output=True, timeout=300,
+    )
+    return site

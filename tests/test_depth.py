@@ -1,0 +1,86 @@
+"""Depth per defect against exact geometry."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from synthetic_pairs import Pit, calib_for, render
+
+from core.depth import DepthRule, fit_plane_robust, measure_defect, ring_mask
+from core.types import Detection
+
+CALIB = calib_for(320, 192)
+BOX = (135.0, 71.0, 185.0, 121.0)
+
+
+def _measure(disparity, box=BOX, **rule):
+    return measure_defect(disparity, Detection("pit", 0.9, box), CALIB, DepthRule(**rule))
+
+
+@pytest.mark.parametrize("tilt", [0.0, 8.0])
+def test_flat_plate_distance_and_zero_deviation(tilt):
+    _, _, disparity = render(CALIB, 400.0, tilt)
+    m = _measure(disparity)
+    assert m.distance_mm == pytest.approx(400.0, abs=0.5)
+    assert abs(m.deviation_mm) < 0.01
+    assert m.valid_fraction == 1.0
+    # Z^2 / (f B) * noise
+    assert m.depth_resolution_mm == pytest.approx(400.0**2 / (350.06 * 120) * 0.25, rel=0.01)
+
+
+@pytest.mark.parametrize("depth", [2.0, -1.5])
+def test_pit_centre_deviation_matches_design_depth_on_tilted_plate(depth):
+    _, _, disparity = render(CALIB, 420.0, 6.0, [Pit(160, 96, 25.0, depth)])
+    # A small region at the cap's centre sees (almost) its full depth; sign: + below, - raised.
+    m = _measure(disparity, box=(157.0, 93.0, 163.0, 99.0), roi="box", ring_gap_px=30)
+    assert m.deviation_mm == pytest.approx(depth, rel=0.03)
+
+
+def test_inner_roi_sees_more_of_the_pit_than_the_whole_box():
+    _, _, disparity = render(CALIB, 400.0, 0.0, [Pit(160, 96, 25.0, 3.0)])
+    inner, whole = _measure(disparity, roi="inner"), _measure(disparity, roi="box")
+    assert 0 < whole.deviation_mm < inner.deviation_mm < 3.0
+
+
+def test_too_few_valid_pixels_means_unavailable():
+    _, _, disparity = render(CALIB, 400.0)
+    disparity[60:130, 120:200] = np.nan
+    disparity[96, 160] = 105.0
+    m = _measure(disparity)
+    assert m.distance_mm is None and m.deviation_mm is None
+    assert "depth unavailable" in m.note and m.valid_fraction < 0.1
+
+
+def test_zero_and_inf_count_as_invalid():
+    _, _, disparity = render(CALIB, 400.0)
+    disparity[71:121, 135:160] = 0.0
+    disparity[71:121, 160:182] = np.inf
+    m = _measure(disparity, roi="box")
+    assert m.valid_fraction == pytest.approx(3 / 50, abs=0.01)
+    assert m.distance_mm is None
+
+
+def test_no_surface_ring_gives_distance_without_deviation():
+    _, _, disparity = render(CALIB, 400.0)
+    ring = ring_mask(disparity.shape, BOX, 3, 12)
+    disparity[ring] = np.nan
+    m = _measure(disparity)
+    assert m.distance_mm == pytest.approx(400.0, abs=0.5)
+    assert m.deviation_mm is None and "deviation unavailable" in m.note
+
+
+def test_plane_fit_ignores_outliers():
+    rng = np.random.default_rng(1)
+    u, v = rng.uniform(0, 100, 400), rng.uniform(0, 100, 400)
+    d = 0.02 * u - 0.03 * v + 50 + rng.normal(0, 0.05, 400)
+    d[:60] += rng.uniform(5, 20, 60)  # another defect in the ring
+    plane = fit_plane_robust(u, v, d)
+    assert plane.a == pytest.approx(0.02, abs=0.002)
+    assert plane.b == pytest.approx(-0.03, abs=0.002)
+    assert plane.c == pytest.approx(50, abs=0.1)
+
+
+def test_area_in_square_mm():
+    _, _, disparity = render(CALIB, 400.0)
+    m = _measure(disparity)
+    mm_per_px = 400.0 / 350.06
+    assert m.area_mm2 == pytest.approx(50 * 50 * mm_per_px**2, rel=0.01)

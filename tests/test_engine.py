@@ -1,0 +1,123 @@
+"""The whole loop on exact synthetic plates, with the example detector registered in-process."""
+from __future__ import annotations
+
+import sqlite3
+
+import pytest
+import stereo_inspect_fixed_roi
+from conftest import write_recipe
+
+from core import engine
+from core.hookspecs import hookimpl
+from core.contracts import PluginSpec
+from core.recipe import load_recipe
+from core.registry import Registry, make_manager
+from core.types import OutputEvent, Status
+
+RECIPE = """\
+name: engine-test
+camera:
+  plugin: replay
+  settings: {{path: seq}}
+stereo:
+  backend: opencv_sgbm
+  working_distance_mm: [300, 600]
+  schedule: every_frame
+detector:
+  plugin: fixed_roi
+  settings:
+    regions:
+      - {{name: pit, box: {box}}}
+decision:
+  rules:
+    - {{class: any, quantity: deviation_mm, op: ">", threshold: 1.5}}
+outputs:
+  - plugin: {output}
+results:
+  path: results
+  save_images: rejected
+"""
+
+
+class StoreWitness:
+    """An output that checks, at the moment it is handed a part, that the store already holds it."""
+
+    seen: list[tuple[str, bool]] = []
+
+    def __init__(self, db_path):
+        self.db_path = db_path
+
+    def submit(self, part):
+        with sqlite3.connect(self.db_path) as db:
+            row = db.execute("SELECT verdict FROM parts WHERE part_id = ?", (part.part_id,)).fetchone()
+        StoreWitness.seen.append((part.part_id, row is not None and row[0] == part.verdict.status.value))
+
+    def poll(self):
+        return []
+
+    def close(self, timeout_s=10.0):
+        return [OutputEvent("witness", None, "close", "delivered", 0.0)]
+
+
+class WitnessPlugin:
+    @hookimpl
+    def stereo_inspect_outputs(self):
+        return [PluginSpec("witness", "output", lambda s, ctx: StoreWitness(ctx.recipe_dir / "results" / "results.db"))]
+
+
+@pytest.fixture
+def registry():
+    return Registry(make_manager((stereo_inspect_fixed_roi, WitnessPlugin())))
+
+
+def _run(tmp_path, registry, info, output="log"):
+    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output=output))
+    loaded = load_recipe(path, registry=registry)
+    seen = []
+    summary = engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+    return summary, seen
+
+
+def test_deep_pit_rejected_shallow_and_flat_pass(tmp_path, plane_sequence, registry):
+    info = plane_sequence([0.0, 0.5, 6.0])
+    summary, seen = _run(tmp_path, registry, info)
+    assert [o.part.verdict.status for o in seen] == [Status.PASS, Status.PASS, Status.REJECT]
+    deep = seen[2].part.measurements[0]
+    assert deep.distance_mm == pytest.approx(400, abs=5)
+    assert deep.deviation_mm > 1.5
+    assert "deviation_mm" in seen[2].part.verdict.reasons[0]
+    assert summary.exit_code == engine.EXIT_OK and summary.counts[Status.REJECT] == 1
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    assert db.execute("SELECT COUNT(*) FROM parts").fetchone()[0] == 3
+    row = db.execute("SELECT d.class, d.deviation_mm, d.verdict FROM defects d JOIN parts p ON p.id = d.part_row WHERE p.verdict='REJECT'").fetchone()
+    assert row[0] == "pit" and row[1] == pytest.approx(deep.deviation_mm) and row[2] == "REJECT"
+    assert (tmp_path / "results" / "images" / f"{seen[2].part.part_id}.jpg").exists()
+    assert not (tmp_path / "results" / "images" / f"{seen[0].part.part_id}.jpg").exists()
+    assert db.execute("SELECT outcome FROM output_events").fetchall() == [("delivered",)]
+
+
+def test_corrupt_frame_is_an_error_and_the_run_goes_on(tmp_path, plane_sequence, registry):
+    info = plane_sequence([0.0, 6.0, 0.0])
+    (info["folder"] / "left" / "000000.png").write_bytes(b"garbage")
+    summary, seen = _run(tmp_path, registry, info)
+    assert [o.part.verdict.status for o in seen] == [Status.ERROR, Status.REJECT, Status.PASS]
+    assert "000000.png" in seen[0].part.verdict.reasons[0]
+    assert summary.counts[Status.ERROR] == 1 and summary.exit_code == engine.EXIT_PART_ERRORS
+
+
+def test_part_is_stored_before_outputs_see_it(tmp_path, plane_sequence, registry):
+    StoreWitness.seen.clear()
+    info = plane_sequence([0.0, 6.0])
+    _run(tmp_path, registry, info, output="witness")
+    assert len(StoreWitness.seen) == 2 and all(ok for _, ok in StoreWitness.seen)
+
+
+def test_stereo_failure_rejects_the_part(tmp_path, plane_sequence, registry):
+    info = plane_sequence([0.0])
+    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log"))
+    loaded = load_recipe(path, ["stereo.working_distance_mm=[10, 600]"], registry=registry)
+    seen = []
+    engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+    assert seen[0].part.verdict.status is Status.ERROR
+    assert "stereo failed" in seen[0].part.verdict.reasons[0] and "does not fit" in seen[0].part.verdict.reasons[0]

@@ -1,0 +1,132 @@
+"""Invalid recipes: one line naming file, line and key path; exit 2; no traceback."""
+from __future__ import annotations
+
+import re
+import textwrap
+
+import pytest
+from conftest import cli, write_recipe
+
+from core.recipe import RecipeError, load_recipe
+
+GOOD = """\
+name: t
+camera:
+  plugin: replay
+  settings:
+    path: seq
+stereo:
+  backend: opencv_sgbm
+  max_disparity: 64
+detector:
+  plugin: yolov8
+decision:
+  rules:
+    - {class: any, quantity: deviation_mm, op: ">", threshold: 1.0}
+outputs:
+  - plugin: log
+"""
+
+
+@pytest.fixture
+def recipe_dir(tmp_path, plane_sequence):
+    plane_sequence([0.0])
+    return tmp_path
+
+
+def _error(recipe_dir, text, overrides=()):
+    path = write_recipe(recipe_dir / "r.yaml", text)
+    with pytest.raises(RecipeError) as info:
+        load_recipe(path, overrides)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(str(path))
+    return message
+
+
+def test_good_recipe_loads(recipe_dir):
+    loaded = load_recipe(write_recipe(recipe_dir / "r.yaml", GOOD))
+    assert loaded.recipe.stereo.max_disparity == 64
+    assert loaded.plugin_settings["camera"]["path"] == str((recipe_dir / "seq").resolve())
+
+
+def test_unknown_key_names_line_and_path(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("  max_disparity: 64", "  max_disparty: 64"))
+    assert re.search(r"r\.yaml:8: stereo\.max_disparty: unknown key", message), message
+
+
+def test_wrong_type(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("max_disparity: 64", "max_disparity: lots"))
+    assert ":8: stereo.max_disparity:" in message and "'lots'" in message
+
+
+def test_out_of_range(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("threshold: 1.0}", "threshold: 1.0}\n    - {class: any, quantity: depth, op: '>', threshold: 1}"))
+    assert "decision.rules.1.quantity" in message and ":14:" in message
+
+
+def test_unknown_plugin_lists_known_ones(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("plugin: yolov8", "plugin: yolo9"))
+    assert ":10: detector.plugin: unknown detector plugin 'yolo9'; known:" in message
+    assert "yolov8" in message
+
+
+def test_missing_weights_file(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("plugin: yolov8", "plugin: yolov8\n  weights: models/nope.pt"))
+    assert "detector.weights: weights file not found" in message and "nope.pt" in message
+
+
+def test_missing_sequence_folder(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("path: seq", "path: no_such_seq"))
+    assert ":5: camera.settings.path: sequence folder not found" in message
+
+
+def test_yaml_syntax_error(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("  backend: opencv_sgbm", "  backend: [opencv_sgbm"))
+    assert "YAML syntax error" in message and re.search(r"r\.yaml:\d+:", message)
+
+
+def test_plugin_setting_typo(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("    path: seq", "    path: seq\n    rate_fsp: 5"))
+    assert ":6: camera.settings.rate_fsp: unknown key" in message
+
+
+def test_inconsistent_disparity_range(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("max_disparity: 64", "max_disparity: 64\n  min_disparity: 80"))
+    assert "stereo: max_disparity must be larger than min_disparity" in message
+
+
+def test_set_override_applies_and_is_located(recipe_dir):
+    path = write_recipe(recipe_dir / "r.yaml", GOOD)
+    loaded = load_recipe(path, ["stereo.max_disparity=96", "outputs.0.settings.on_pass=true"])
+    assert loaded.recipe.stereo.max_disparity == 96
+    assert loaded.plugin_settings["outputs.0"]["on_pass"] is True
+    message = _error(recipe_dir, GOOD, ["stereo.max_disparity=-3"])
+    assert "(--set stereo.max_disparity): stereo.max_disparity:" in message
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        ("  max_disparity: 64", "  max_disparty: 64"),
+        ("max_disparity: 64", "max_disparity: lots"),
+        ("plugin: yolov8", "plugin: yolo9"),
+        ("plugin: yolov8", "plugin: yolov8\n  weights: nope.pt"),
+        ("path: seq", "path: nope"),
+        ("  backend: opencv_sgbm", "  backend: [opencv_sgbm"),
+    ],
+)
+def test_cli_validate_exit_2_one_line(recipe_dir, change):
+    path = write_recipe(recipe_dir / "r.yaml", GOOD.replace(*change))
+    for command in ("validate", "run"):
+        result = cli(command, str(path))
+        assert result.returncode == 2, result.stderr
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+        assert "Traceback" not in result.stderr
+
+
+def test_cli_validate_ok(recipe_dir):
+    path = write_recipe(recipe_dir / "r.yaml", GOOD)
+    result = cli("validate", str(path))
+    assert result.returncode == 0 and "ok" in result.stdout

@@ -1,0 +1,57 @@
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from core.contracts import PluginContext
+from core.registry import default_registry
+from core.types import FrameError, StereoFrame
+from drivers.sequence_folder import SequenceError
+
+
+def _camera(folder, **settings):
+    spec = default_registry().get("camera", "replay").spec
+    return spec.factory({"path": str(folder), **settings}, PluginContext())
+
+
+def test_plays_every_frame_in_order_with_calibration(plane_sequence):
+    info = plane_sequence([0.0, 1.0, 2.0])
+    frames = list(_camera(info["folder"]).frames())
+    assert [f.frame_id for f in frames] == ["000000", "000001", "000002"]
+    assert all(isinstance(f, StereoFrame) for f in frames)
+    assert frames[0].calib.focal_px == pytest.approx(350.06) and frames[0].calib.baseline_mm == 120.0
+    assert frames[0].left.shape == (192, 320, 3) and "gt_disparity" in frames[0].meta
+
+
+def test_loop_and_max_frames(plane_sequence):
+    info = plane_sequence([0.0, 1.0])
+    frames = list(_camera(info["folder"], loop=True, max_frames=5).frames())
+    assert [f.index for f in frames] == [0, 1, 2, 3, 4]
+    assert [f.frame_id for f in frames] == ["000000", "000001"] * 2 + ["000000"]
+    assert frames[4].meta["pass"] == 2
+
+
+def test_rate_is_kept(plane_sequence):
+    info = plane_sequence([0.0, 0.0, 0.0, 0.0])
+    start = time.monotonic()
+    list(_camera(info["folder"], rate_fps=20).frames())
+    assert time.monotonic() - start >= 3 / 20 * 0.9
+
+
+def test_corrupt_and_missing_frames_are_errors_not_skips(plane_sequence):
+    info = plane_sequence([0.0, 0.0, 0.0])
+    folder = info["folder"]
+    (folder / "right" / "000001.png").write_bytes(b"\x89PNG not really")
+    (folder / "left" / "000002.png").unlink()
+    frames = list(_camera(folder).frames())
+    assert [type(f) for f in frames] == [StereoFrame, FrameError, FrameError]
+    assert "000001.png" in frames[1].message and "cannot be decoded" in frames[1].message
+    assert "left image of frame 000002 missing" in frames[2].message
+
+
+def test_missing_calibration(plane_sequence):
+    info = plane_sequence([0.0])
+    (info["folder"] / "calib.yaml").unlink()
+    with pytest.raises(SequenceError, match="calib.yaml: calibration file missing"):
+        _camera(info["folder"])

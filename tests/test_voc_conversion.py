@@ -1,0 +1,75 @@
+"""VOC -> YOLO on hand-written annotations with each real-world fault."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+from conftest import cli
+
+from plugins.yolov8.voc_to_yolo import convert_voc
+
+XML = """<annotation><filename>{stem}.jpg</filename><size><width>200</width><height>200</height><depth>1</depth></size>
+{objects}</annotation>"""
+OBJ = "<object><name>{name}</name><bndbox><xmin>{x0}</xmin><ymin>{y0}</ymin><xmax>{x1}</xmax><ymax>{y1}</ymax></bndbox></object>"
+
+
+def _dataset(root: Path) -> Path:
+    src = root / "voc"
+    (src / "images").mkdir(parents=True)
+    (src / "annotations").mkdir()
+    img = np.full((200, 200, 3), 128, np.uint8)
+
+    def add(stem, objects, image=True, xml=True):
+        if image:
+            cv2.imwrite(str(src / "images" / f"{stem}.jpg"), img)
+        if xml:
+            body = "".join(OBJ.format(name=n, x0=a, y0=b, x1=c, y1=d) for n, (a, b, c, d) in objects)
+            (src / "annotations" / f"{stem}.xml").write_text(XML.format(stem=stem, objects=body))
+
+    # File name says crazing, the box says patches: the label must come from the XML.
+    add("crazing_1", [("patches", (10, 20, 110, 120))])
+    add("good_2", [("scratches", (0, 0, 50, 200)), ("inclusion", (150, 150, 180, 190))])
+    add("outside_3", [("scratches", (-10, 20, 250, 60))])
+    add("empty_4", [("inclusion", (50, 50, 50, 80)), ("inclusion", (10, 10, 40, 40))])
+    add("unknown_5", [("rust", (10, 10, 40, 40))])
+    add("noxml_6", [], xml=False)
+    add("noimage_7", [("patches", (1, 1, 9, 9))], image=False)
+    (src / "images" / "malformed_8.jpg").write_bytes(cv2.imencode(".jpg", img)[1].tobytes())
+    (src / "annotations" / "malformed_8.xml").write_text("<annotation><object><name>patches</name>")
+    return src
+
+
+def _labels(dst: Path, stem: str) -> list[list[float]]:
+    return [list(map(float, line.split())) for line in (dst / "labels" / "train" / f"{stem}.txt").read_text().splitlines()]
+
+
+def test_faults_reported_none_fatal(tmp_path):
+    src = _dataset(tmp_path)
+    dst = tmp_path / "yolo"
+    report = convert_voc(src, dst)
+    assert report.faults == {
+        "box_clamped": 1, "empty_box": 1, "unknown_class": 1, "image_without_xml": 1,
+        "xml_without_image": 1, "malformed_xml": 1,
+    }
+    messages = "\n".join(report.messages)
+    for name in ("outside_3.xml", "empty_4.xml", "unknown_5.xml", "noxml_6", "noimage_7.xml", "malformed_8.xml"):
+        assert name in messages
+    assert _labels(dst, "crazing_1") == [[2, 0.3, 0.35, 0.5, 0.5]]
+    assert _labels(dst, "outside_3") == [[5, 0.5, 0.2, 1.0, 0.2]]
+    assert len(_labels(dst, "empty_4")) == 1 and _labels(dst, "unknown_5") == []
+    data = yaml.safe_load((dst / "data.yaml").read_text())
+    assert data["names"][2] == "patches" and data["train"] == "images/train"
+    assert report.images == 5  # malformed and the two orphans are left out
+
+
+def test_split_files_and_cli(tmp_path):
+    src = _dataset(tmp_path)
+    (src / "train.txt").write_text("crazing_1\ngood_2\n")
+    (src / "val.txt").write_text("outside_3\n")
+    out = cli("data", "convert-voc", str(src), str(tmp_path / "y"), "--split-files", "train.txt", "val.txt")
+    assert out.returncode == 0, out.stderr
+    assert "converted 3 images" in out.stdout and "box_clamped" in out.stdout
+    assert "warning: box_clamped: outside_3.xml" in out.stderr
+    assert sorted(p.name for p in (tmp_path / "y" / "labels" / "val").iterdir()) == ["outside_3.txt"]

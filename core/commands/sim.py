@@ -1,6 +1,57 @@
-"""Placeholder: filled in by the work on its issue."""
+"""``inspect sim``: synthetic stereo scenes with exact ground truth (see the ``sim`` package)."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
 import click
 
 
 def register(cli: click.Group) -> None:
-    return None
+    if "sim" in cli.commands:
+        return
+
+    @cli.group("sim")
+    def sim_group() -> None:
+        """Synthetic stereo scenes of steel plates with exact ground truth."""
+
+    @sim_group.command("generate")
+    @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+    @click.option("--frames", default=10, show_default=True, type=click.IntRange(min=1), help="Number of frames.")
+    @click.option("--seed", default=0, show_default=True, type=int, help="Random seed (the output is a function of it).")
+    @click.option("--distance-mm", default=400.0, show_default=True, type=click.FloatRange(min=100.0),
+                  help="Plate distance at the image centre (jittered by -20..+50 mm per frame unless --no-jitter).")
+    @click.option("--tilt-deg", default=5.0, show_default=True, type=click.FloatRange(-30.0, 30.0),
+                  help="Plate tilt about the image x axis (jittered by -5..+3 deg, floored at 0, unless --no-jitter).")
+    @click.option("--jitter/--no-jitter", default=True, show_default=True,
+                  help="Vary distance, tilt and a small yaw per frame.")
+    @click.option("--neu-det", "neu_det", default="../shared/data/neu-det", show_default=True,
+                  type=click.Path(path_type=Path), help="NEU-DET folder (val crops give the defects' appearance).")
+    @click.option("--synthetic-defects", is_flag=True,
+                  help="Do not use NEU-DET: draw stand-in defect appearances instead.")
+    @click.option("--width", default=672, show_default=True, type=click.IntRange(min=32))
+    @click.option("--height", default=376, show_default=True, type=click.IntRange(min=32))
+    @click.option("--image-format", type=click.Choice(["png", "jpg"]), default="png", show_default=True,
+                  help="left/right images as lossless PNG or JPEG quality 95 (GT disparity is always 16-bit PNG).")
+    @click.option("--supersample", default=2, show_default=True, type=click.IntRange(1, 4),
+                  help="Rays per pixel along each axis (anti-aliasing).")
+    def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
+                 image_format, supersample) -> None:
+        """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/."""
+        from sim.generate import generate_sequence
+        from sim.neu_crops import NeuDetError
+
+        if not synthetic_defects and not Path(neu_det).is_dir():
+            click.echo(f"error: NEU-DET folder not found: {neu_det} (give --neu-det DIR or --synthetic-defects)", err=True)
+            raise SystemExit(2)
+        start = time.perf_counter()
+        try:
+            generate_sequence(
+                out, frames=frames, seed=seed, distance_mm=distance_mm, tilt_deg=tilt_deg,
+                neu_det=None if synthetic_defects else neu_det, width=width, height=height, jitter=jitter,
+                supersample=supersample, image_format=image_format, log=click.echo,
+            )
+        except NeuDetError as exc:
+            click.echo(f"error: {exc}", err=True)
+            raise SystemExit(2) from None
+        click.echo(f"wrote {frames} frames to {out} in {time.perf_counter() - start:.1f} s")

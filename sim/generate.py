@@ -1,0 +1,336 @@
+"""Synthetic stereo sequences with exact ground truth, in the sequence-folder format.
+
+``generate_sequence(out, frames=10, seed=0, ...)`` writes ``calib.yaml``, ``left/``,
+``right/``, ``gt/`` (exact left disparity, KITTI uint16) and ``labels/<id>.json``. Everything
+is drawn from one ``np.random.default_rng(seed)`` frame after frame, so the first k frames of
+a longer run equal a k-frame run with the same seed and options.
+
+Ground-truth ``distance_mm``/``deviation_mm`` per defect are ``core.depth.measure_defect`` on the
+GT disparity as stored (quantised to 1/256 px) with the default ``DepthRule``, i.e. the
+platform's own definitions; ``design_depth_mm`` is the shape's true plateau depth.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from core.depth import DepthRule, measure_defect
+from core.types import Calibration, Detection
+from drivers.sequence_folder import write_calibration, write_frame
+from sim.neu_crops import NEU_CLASSES, NeuCrops
+from sim.render import render_pair
+from sim.scene import CLASS_SHAPES, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, plate_axes
+from sim.texture import PLATE_MEAN, belt_albedo, steel_albedo, synthetic_defect_patch
+
+ZED_WVGA = dict(width=672, height=376, focal_px=350.06, baseline_mm=120.0)
+# per frame (cyclic): no defect / shallow defects (pass at a 1.0 mm deviation threshold) /
+# one deep defect (reject) / a shallow and a deep one
+FRAME_PLAN = ("none", "shallow", "deep", "mixed", "shallow", "none", "deep", "shallow", "mixed", "deep")
+SHALLOW_MM = (0.25, 0.7)
+DEEP_MM = (1.8, 3.0)
+BELOW_CLASSES = tuple(c for c in NEU_CLASSES if not CLASS_SHAPES[c][2])
+DEFECT_SCALE = (0.6, 1.2)  # NEU px -> WVGA frame px
+MAX_SIDE_PX, MIN_SIDE_PX = 150.0, 18.0  # at WVGA
+EDGE_MARGIN_PX = 24.0  # box to image border: room for the ring the deviation is fitted on
+GAP_PX = 24.0  # between defects
+
+
+def zed_calibration(width: int = 672, height: int = 376) -> Calibration:
+    """The ZED WVGA pair, scaled to ``width`` (focal length scales with the width)."""
+    f = ZED_WVGA["focal_px"] * width / ZED_WVGA["width"]
+    return Calibration(f, ZED_WVGA["baseline_mm"], (width - 1) / 2.0, (height - 1) / 2.0, width, height, 0.0)
+
+
+class _Deck:
+    """Classes drawn without replacement, reshuffled when empty: every class shows up."""
+
+    def __init__(self, items, rng):
+        self.items, self.rng, self.stack = list(items), rng, []
+
+    def draw(self) -> str:
+        if not self.stack:
+            self.stack = [self.items[i] for i in self.rng.permutation(len(self.items))]
+        return self.stack.pop()
+
+
+@dataclass
+class FrameSpec:
+    distance_mm: float
+    tilt_deg: float
+    yaw_deg: float
+    requests: list[tuple[str, float]]  # (class, signed design depth)
+
+
+def plan_frame(rng, index: int, distance_mm: float, tilt_deg: float, jitter: bool, decks) -> FrameSpec:
+    all_deck, deep_deck = decks
+    if jitter:
+        distance = distance_mm + rng.uniform(-20.0, 50.0)
+        tilt = max(tilt_deg + rng.uniform(-5.0, 3.0), 0.0)
+        yaw = rng.uniform(-2.0, 2.0)
+    else:
+        distance, tilt, yaw = distance_mm, tilt_deg, 0.0
+    kind = FRAME_PLAN[index % len(FRAME_PLAN)]
+    reqs: list[tuple[str, float]] = []
+
+    def shallow():
+        cls = all_deck.draw()
+        depth = rng.uniform(*SHALLOW_MM)
+        reqs.append((cls, -depth if CLASS_SHAPES[cls][2] else depth))
+
+    def deep():
+        reqs.append((deep_deck.draw(), rng.uniform(*DEEP_MM)))
+
+    if kind == "shallow":
+        for _ in range(int(rng.integers(1, 3))):
+            shallow()
+    elif kind == "deep":
+        deep()
+    elif kind == "mixed":
+        shallow()
+        deep()
+    return FrameSpec(float(distance), float(tilt), float(yaw), reqs)
+
+
+def _appearance(rng, cls: str, crops: NeuCrops | None, scale_px: float):
+    """(patch, box in patch, source, frame px per patch px)."""
+    lo, hi = MAX_SIDE_PX * scale_px, MIN_SIDE_PX * scale_px
+    if crops is not None:
+        box = crops.pick(rng, cls)
+        patch, pbox = crops.patch(box)
+        k = rng.uniform(*DEFECT_SCALE) * scale_px
+        bw, bh = box.width, box.height
+        if min(bw, bh) * k < hi:
+            k = hi / min(bw, bh)
+        if max(bw, bh) * k > lo:
+            k = lo / max(bw, bh)
+        return patch, pbox, box.stem, k
+    long_side = rng.uniform(40.0, 130.0)
+    aspect = rng.uniform(3.0, 5.0) if cls == "scratches" else rng.uniform(1.0, 2.0)
+    w, h = long_side, max(long_side / aspect, MIN_SIDE_PX)
+    if rng.random() < 0.5:
+        w, h = h, w
+    # stand-in patches are drawn at 2x the frame size
+    patch, pbox = synthetic_defect_patch(rng, cls, round(2 * w), round(2 * h))
+    return patch, pbox, "synthetic", 0.5 * scale_px
+
+
+def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None) -> Scene:
+    z0 = spec.distance_mm
+    e1, e2, n = plate_axes(spec.tilt_deg, spec.yaw_deg)
+    p0 = np.array([0.0, 0.0, z0])
+    axes = (e1, e2, n, p0)
+    texel = z0 / calib.focal_px / 2.2  # ~2.2 texels per pixel
+    belt_offset = float(rng.uniform(25.0, 40.0))
+    # texture grid: everything either eye can see of the plate or the belt
+    cu = np.array([-0.5, calib.width - 0.5, -0.5, calib.width - 0.5])
+    cv = np.array([-0.5, -0.5, calib.height - 0.5, calib.height - 0.5])
+    ss, ts = [], []
+    for origin in (np.zeros(3), np.array([calib.baseline_mm, 0, 0])):
+        for off in (-5.0, belt_offset):
+            _, s, t = flat_hit(calib, axes, origin, cu, cv, off)
+            ss += list(s)
+            ts += list(t)
+    pad = 6 * texel
+    s0, s1, t0, t1 = min(ss) - pad, max(ss) + pad, min(ts) - pad, max(ts) + pad
+    shape = (int(np.ceil((t1 - t0) / texel)) + 1, int(np.ceil((s1 - s0) / texel)) + 1)
+    albedo = steel_albedo(rng, shape, texel)
+    belt = belt_albedo(rng, shape, texel)
+    height = np.zeros(shape, np.float32)
+
+    half_fov = (calib.width / 2.0) / calib.focal_px * z0
+    if rng.random() < 0.25:
+        s_range = None
+    else:
+        s_range = (-half_fov * rng.uniform(0.72, 0.95), half_fov * rng.uniform(0.72, 0.95))
+    # point light placed so that the left eye sees the mirror highlight on the flat plate at a
+    # random spot; the right eye, 120 mm away, sees it elsewhere on the surface
+    hu, hv = rng.uniform(0.12, 0.88) * calib.width, rng.uniform(0.1, 0.9) * calib.height
+    hz, hs, ht = flat_hit(calib, axes, np.zeros(3), np.array([hu]), np.array([hv]))
+    p_h = p0 + float(hs[0]) * e1 + float(ht[0]) * e2
+    view = -p_h / np.linalg.norm(p_h)
+    m = -n
+    refl = 2 * float(m @ view) * m - view
+    lighting = Lighting(
+        light_pos=p_h + refl * rng.uniform(350.0, 650.0),
+        spec_broad=float(rng.uniform(25.0, 45.0)),
+        spec_core=float(rng.uniform(35.0, 75.0)),
+    )
+    sensor = Sensor(
+        noise_sigma=float(rng.uniform(1.5, 2.0)),
+        right_gain=float(rng.uniform(1.03, 1.08)),
+        right_offset=float(rng.uniform(1.0, 5.0)),
+        vignetting=float(rng.uniform(0.05, 0.12)),
+    )
+
+    scale_px = calib.width / ZED_WVGA["width"]
+    mm_per_px = z0 / calib.focal_px
+    placed: list[Defect] = []
+    for cls, depth in spec.requests:
+        patch, pbox, source, k = _appearance(rng, cls, crops, scale_px)
+        bw, bh = (pbox[2] - pbox[0]) * k, (pbox[3] - pbox[1]) * k  # frame px
+        a, b = bw / 2 * mm_per_px, bh / 2 * mm_per_px / np.cos(np.radians(spec.tilt_deg))
+        margin, gap = EDGE_MARGIN_PX * scale_px, GAP_PX * scale_px * mm_per_px
+        slack = 1.15  # perspective: the projected box differs a little from the estimate
+        ulo, uhi = margin + slack * bw / 2, calib.width - margin - slack * bw / 2
+        vlo, vhi = margin + slack * bh / 2, calib.height - margin - slack * bh / 2
+        if ulo >= uhi or vlo >= vhi:
+            continue
+        for _ in range(200):
+            u, v = rng.uniform(ulo, uhi), rng.uniform(vlo, vhi)
+            _, s, t = flat_hit(calib, axes, np.zeros(3), np.array([u]), np.array([v]))
+            s, t = float(s[0]), float(t[0])
+            if s_range is not None and not (s_range[0] + a + gap <= s <= s_range[1] - a - gap):
+                continue
+            if any(
+                abs(s - d.center[0]) < a + d.half[0] + gap and abs(t - d.center[1]) < b + d.half[1] + gap
+                for d in placed
+            ):
+                continue
+            shape_name, p, _ = CLASS_SHAPES[cls]
+            placed.append(Defect(cls, source, shape_name, p, float(depth), (s, t), (float(a), float(b)), patch, pbox))
+            break
+
+    for d in placed:
+        _paste(d, albedo, height, (s0, t0), texel)
+    return Scene(calib, z0, spec.tilt_deg, spec.yaw_deg, s_range, belt_offset, texel, (s0, t0),
+                 albedo, height, belt, lighting, sensor, placed)
+
+
+def _paste(d: Defect, albedo: np.ndarray, height: np.ndarray, origin, texel: float) -> None:
+    """Write the defect's heightfield and blend its appearance into the plate's albedo."""
+    (sc, tc), (a, b) = d.center, d.half
+    px0, py0, px1, py1 = d.patch_box
+    mm_x, mm_y = 2 * a / (px1 - px0), 2 * b / (py1 - py0)  # mm per patch px
+    ph, pw = d.patch.shape
+    ps0, pt0 = sc - a - px0 * mm_x, tc - b - py0 * mm_y  # patch's top-left corner in mm
+    c0 = int(np.floor((ps0 - origin[0]) / texel))
+    r0 = int(np.floor((pt0 - origin[1]) / texel))
+    c1 = int(np.ceil((ps0 + pw * mm_x - origin[0]) / texel)) + 1
+    r1 = int(np.ceil((pt0 + ph * mm_y - origin[1]) / texel)) + 1
+    c0, r0 = max(c0, 0), max(r0, 0)
+    c1, r1 = min(c1, albedo.shape[1]), min(r1, albedo.shape[0])
+    cols = np.arange(c0, c1)
+    rows = np.arange(r0, r1)
+    S, T = np.meshgrid(origin[0] + cols * texel, origin[1] + rows * texel)
+    height[r0:r1, c0:c1] += heightfield_patch(d, S, T).astype(np.float32)
+    # appearance: sample the patch at each texel (bilinear), feathered towards the patch border
+    mx = ((S - ps0) / mm_x - 0.5).astype(np.float32)
+    my = ((T - pt0) / mm_y - 0.5).astype(np.float32)
+    smooth = cv2.GaussianBlur(d.patch, (0, 0), max(0.5 * min(texel / mm_x, texel / mm_y), 0.01)) if min(mm_x, mm_y) < texel else d.patch
+    vals = cv2.remap(smooth, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    # feather over the context margin on each side (inside the box where the margin is clipped)
+    bw, bh = px1 - px0, py1 - py0
+    alpha = np.ones_like(mx)
+    for dist, width in (
+        (mx + 0.5, max(px0, 0.1 * bw)), (pw - 0.5 - mx, max(pw - px1, 0.1 * bw)),
+        (my + 0.5, max(py0, 0.1 * bh)), (ph - 0.5 - my, max(ph - py1, 0.1 * bh)),
+    ):
+        alpha = np.minimum(alpha, np.clip(dist / width, 0.0, 1.0))
+    alpha = alpha * alpha * (3 - 2 * alpha)
+    med = float(np.median(d.patch))
+    target = PLATE_MEAN + (vals - med) + 0.2 * (med - PLATE_MEAN)
+    win = albedo[r0:r1, c0:c1]
+    albedo[r0:r1, c0:c1] = ((1 - alpha) * win + alpha * target).astype(np.float32)
+
+
+def defect_box(scene: Scene, d: Defect, centre_hits) -> tuple[float, float, float, float] | None:
+    """The defect's footprint rectangle as seen by the left image: bounding box of the pixels
+    whose centre ray hits it."""
+    (sc, tc), (a, b) = d.center, d.half
+    h, w = scene.calib.height, scene.calib.width
+    s = centre_hits.s.reshape(h, w)
+    t = centre_hits.t.reshape(h, w)
+    mask = (np.abs(s - sc) <= a) & (np.abs(t - tc) <= b) & centre_hits.on_plate.reshape(h, w)
+    rows, cols = np.nonzero(mask)
+    if rows.size == 0:
+        return None
+    return (float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1))
+
+
+def quantise_disparity(disparity: np.ndarray) -> np.ndarray:
+    """The disparity exactly as the KITTI uint16 PNG stores it."""
+    return (np.clip(np.round(disparity.astype(np.float64) * 256.0), 0, 65535) / 256.0).astype(np.float32)
+
+
+def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, frame_id: str, ss: int = 2):
+    """(left, right, gt disparity (quantised), labels dict, scene)."""
+    scene = build_scene(rng, calib, spec, crops)
+    left, right, disparity, hits = render_pair(scene, rng, ss=ss)
+    gt = quantise_disparity(disparity)
+    defects = []
+    for d in scene.defects:
+        box = defect_box(scene, d, hits)
+        if box is None:
+            continue
+        m = measure_defect(gt, Detection(d.class_name, 1.0, box), calib, DepthRule())
+        defects.append({
+            "class": d.class_name,
+            "box": [round(v, 1) for v in box],
+            "distance_mm": None if m.distance_mm is None else round(m.distance_mm, 3),
+            "deviation_mm": None if m.deviation_mm is None else round(m.deviation_mm, 3),
+            "design_depth_mm": round(d.design_depth_mm, 3),
+            "shape": d.shape,
+            "source": d.source,
+        })
+    labels = {
+        "frame_id": frame_id,
+        "distance_mm": round(spec.distance_mm, 3),
+        "tilt_deg": round(spec.tilt_deg, 3),
+        "yaw_deg": round(spec.yaw_deg, 3),
+        "plate_fills_view": scene.plate_s_range is None,
+        "defects": defects,
+    }
+    return left, right, gt, labels, scene
+
+
+def generate_sequence(
+    out: Path,
+    frames: int = 10,
+    seed: int = 0,
+    distance_mm: float = 400.0,
+    tilt_deg: float = 5.0,
+    neu_det: Path | None = None,
+    width: int = 672,
+    height: int = 376,
+    jitter: bool = True,
+    supersample: int = 2,
+    image_format: str = "png",
+    log=None,
+) -> list[dict]:
+    """Write a sequence folder; returns the labels of every frame. ``neu_det=None`` uses the
+    synthetic stand-in defect appearance."""
+    out = Path(out)
+    crops = NeuCrops(Path(neu_det)) if neu_det is not None else None
+    calib = zed_calibration(width, height)
+    rng = np.random.default_rng(seed)
+    decks = (_Deck(NEU_CLASSES, rng), _Deck(BELOW_CLASSES, rng))
+    write_calibration(out, {
+        "focal_px": calib.focal_px, "baseline_mm": calib.baseline_mm, "cx": calib.cx, "cy": calib.cy,
+        "width": calib.width, "height": calib.height, "doffs": 0.0,
+        "camera": "ZED WVGA (synthetic)",
+        "generator": f"inspect sim generate (seed {seed})",
+    })
+    all_labels = []
+    for i in range(frames):
+        t_start = time.perf_counter()
+        frame_id = f"{i:06d}"
+        spec = plan_frame(rng, i, distance_mm, tilt_deg, jitter, decks)
+        left, right, gt, labels, _ = render_frame(rng, calib, spec, crops, frame_id, ss=supersample)
+        if image_format == "png":
+            write_frame(out, frame_id, left, right, gt, labels)
+        else:  # high-quality JPEG for the eyes, the rest as write_frame does it
+            write_frame(out, frame_id, left, right, gt, labels)
+            for eye, img in (("left", left), ("right", right)):
+                (out / eye / f"{frame_id}.png").unlink()
+                cv2.imwrite(str(out / eye / f"{frame_id}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        all_labels.append(labels)
+        if log is not None:
+            summary = ", ".join(f"{d['class']} {d['deviation_mm']:+.2f} mm" for d in labels["defects"]) or "no defect"
+            log(f"{frame_id}: Z={labels['distance_mm']:.0f} mm tilt={labels['tilt_deg']:.1f} deg: {summary}"
+                f" ({time.perf_counter() - t_start:.1f} s)")
+    return all_labels

@@ -98,25 +98,25 @@ def plan_frame(rng, index: int, distance_mm: float, tilt_deg: float, jitter: boo
 
 def _appearance(rng, cls: str, crops: NeuCrops | None, scale_px: float):
     """(patch, box in patch, source, frame px per patch px)."""
-    lo, hi = MAX_SIDE_PX * scale_px, MIN_SIDE_PX * scale_px
+    max_side, min_side = MAX_SIDE_PX * scale_px, max(MIN_SIDE_PX * scale_px, 8.0)
     if crops is not None:
         box = crops.pick(rng, cls)
         patch, pbox = crops.patch(box)
         k = rng.uniform(*DEFECT_SCALE) * scale_px
         bw, bh = box.width, box.height
-        if min(bw, bh) * k < hi:
-            k = hi / min(bw, bh)
-        if max(bw, bh) * k > lo:
-            k = lo / max(bw, bh)
+        if min(bw, bh) * k < min_side:
+            k = min_side / min(bw, bh)
+        if max(bw, bh) * k > max_side:  # the size limit wins over the minimum for slivers
+            k = max_side / max(bw, bh)
         return patch, pbox, box.stem, k
-    long_side = rng.uniform(40.0, 130.0)
+    long_side = rng.uniform(40.0, 130.0) * scale_px
     aspect = rng.uniform(3.0, 5.0) if cls == "scratches" else rng.uniform(1.0, 2.0)
-    w, h = long_side, max(long_side / aspect, MIN_SIDE_PX)
+    w, h = long_side, max(long_side / aspect, min_side)
     if rng.random() < 0.5:
         w, h = h, w
     # stand-in patches are drawn at 2x the frame size
     patch, pbox = synthetic_defect_patch(rng, cls, round(2 * w), round(2 * h))
-    return patch, pbox, "synthetic", 0.5 * scale_px
+    return patch, pbox, "synthetic", 0.5  # stand-in patches are drawn at 2x the frame size
 
 
 def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None) -> Scene:
@@ -174,7 +174,9 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
         patch, pbox, source, k = _appearance(rng, cls, crops, scale_px)
         bw, bh = (pbox[2] - pbox[0]) * k, (pbox[3] - pbox[1]) * k  # frame px
         a, b = bw / 2 * mm_per_px, bh / 2 * mm_per_px / np.cos(np.radians(spec.tilt_deg))
-        margin, gap = EDGE_MARGIN_PX * scale_px, GAP_PX * scale_px * mm_per_px
+        # room for the ring measure_defect fits the surface on (3 + 12 px, not scaled)
+        margin = max(EDGE_MARGIN_PX * scale_px, 16.0)
+        gap = max(GAP_PX * scale_px, 16.0) * mm_per_px
         slack = 1.15  # perspective: the projected box differs a little from the estimate
         ulo, uhi = margin + slack * bw / 2, calib.width - margin - slack * bw / 2
         vlo, vhi = margin + slack * bh / 2, calib.height - margin - slack * bh / 2

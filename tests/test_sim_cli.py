@@ -1,0 +1,42 @@
+"""``inspect sim generate``."""
+from __future__ import annotations
+
+import json
+
+from click.testing import CliRunner
+
+from core.cli import _build
+from drivers.sequence_folder import list_frames, read_calibration
+
+
+def test_missing_neu_det_is_a_one_line_error(tmp_path):
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "out"), "--neu-det", str(tmp_path / "nope")])
+    assert result.exit_code == 2
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "nope" in lines[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_not_a_neu_det_folder_is_a_one_line_error(tmp_path):
+    (tmp_path / "empty").mkdir()
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "out"), "--neu-det", str(tmp_path / "empty")])
+    assert result.exit_code == 2
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "val.txt" in lines[0]
+
+
+def test_generate_with_synthetic_defects(tmp_path):
+    out = tmp_path / "seq"
+    result = CliRunner().invoke(_build(), [
+        "sim", "generate", str(out), "--frames", "2", "--seed", "5", "--synthetic-defects",
+        "--width", "160", "--height", "96", "--distance-mm", "420", "--tilt-deg", "3", "--no-jitter",
+        "--image-format", "jpg",
+    ])
+    assert result.exit_code == 0, result.output
+    calib = read_calibration(out)
+    assert (calib["width"], calib["height"]) == (160, 96) and calib["camera"] == "ZED WVGA (synthetic)"
+    frames = list_frames(out)
+    assert [f.frame_id for f in frames] == ["000000", "000001"]
+    assert all(f.left.suffix == ".jpg" and f.right.suffix == ".jpg" and f.gt.suffix == ".png" for f in frames)
+    labels = json.loads(frames[0].labels.read_text())
+    assert labels["distance_mm"] == 420.0 and labels["tilt_deg"] == 3.0

@@ -1,0 +1,169 @@
+"""The synthetic scene generator: determinism, exact GT, labels (small frames, synthetic defects)."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from core.depth import DepthRule, measure_defect
+from core.types import Detection
+from drivers.sequence_folder import list_frames, read_calibration, read_disparity_png, read_image
+from sim.generate import (
+    BELOW_CLASSES, FrameSpec, _Deck, build_scene, generate_sequence, plan_frame, render_frame, zed_calibration,
+)
+from sim.neu_crops import NEU_CLASSES
+from sim.render import render_pair
+
+W, H = 320, 180  # half WVGA: same field of view, small enough to be fast
+
+
+def _warp_right(right: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+    h, w = disparity.shape
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    return cv2.remap(right, uu - disparity.astype(np.float32), vv, cv2.INTER_LINEAR, borderValue=np.nan)
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "seq"
+    labels = generate_sequence(out, frames=4, seed=3, width=W, height=H)
+    return out, labels
+
+
+def test_same_seed_same_arrays_and_prefix(sequence, tmp_path):
+    out, labels = sequence
+    again = generate_sequence(tmp_path / "again", frames=2, seed=3, width=W, height=H)
+    assert again == labels[:2]
+    for fid in ("000000", "000001"):
+        for sub in ("left", "right", "gt"):
+            a = cv2.imread(str(out / sub / f"{fid}.png"), cv2.IMREAD_UNCHANGED)
+            b = cv2.imread(str(tmp_path / "again" / sub / f"{fid}.png"), cv2.IMREAD_UNCHANGED)
+            assert np.array_equal(a, b), (sub, fid)
+    other = generate_sequence(tmp_path / "other", frames=1, seed=4, width=W, height=H)
+    left0 = cv2.imread(str(out / "left" / "000000.png"))
+    assert not np.array_equal(left0, cv2.imread(str(tmp_path / "other" / "left" / "000000.png")))
+    assert other[0]["distance_mm"] != labels[0]["distance_mm"]
+
+
+def test_sequence_folder_format(sequence):
+    out, labels = sequence
+    calib = read_calibration(out)
+    assert calib["width"] == W and calib["height"] == H and calib["doffs"] == 0.0
+    assert calib["baseline_mm"] == 120.0 and calib["focal_px"] == pytest.approx(350.06 * W / 672)
+    assert calib["cx"] == (W - 1) / 2 and calib["cy"] == (H - 1) / 2
+    frames = list_frames(out)
+    assert [f.frame_id for f in frames] == ["000000", "000001", "000002", "000003"]
+    for f in frames:
+        assert read_image(f.left).shape == (H, W, 3) and read_image(f.right).shape == (H, W, 3)
+        gt = read_disparity_png(f.gt)
+        assert gt.shape == (H, W) and np.isfinite(gt).all()
+        lab = json.loads(f.labels.read_text())
+        assert lab["frame_id"] == f.frame_id
+        assert set(lab) >= {"frame_id", "distance_mm", "tilt_deg", "defects"}
+
+
+def test_labels_consistent(sequence):
+    out, labels = sequence
+    calib = zed_calibration(W, H)
+    n_defects = 0
+    for lab in labels:
+        gt = read_disparity_png(out / "gt" / f"{lab['frame_id']}.png")
+        for d in lab["defects"]:
+            n_defects += 1
+            x0, y0, x1, y1 = d["box"]
+            assert 0 <= x0 < x1 <= W and 0 <= y0 < y1 <= H
+            assert d["class"] in NEU_CLASSES and d["source"] == "synthetic"
+            assert d["deviation_mm"] is not None and d["distance_mm"] is not None
+            assert np.sign(d["deviation_mm"]) == np.sign(d["design_depth_mm"])
+            assert abs(d["deviation_mm"]) <= abs(d["design_depth_mm"]) + 0.03
+            assert abs(d["deviation_mm"]) >= 0.7 * abs(d["design_depth_mm"])
+            assert abs(d["distance_mm"] - lab["distance_mm"]) < 60
+            # the labels are measure_defect on the GT file as stored
+            m = measure_defect(gt, Detection(d["class"], 1.0, tuple(d["box"])), calib, DepthRule())
+            assert m.deviation_mm == pytest.approx(d["deviation_mm"], abs=1e-3)
+            assert m.distance_mm == pytest.approx(d["distance_mm"], abs=1e-3)
+    assert n_defects >= 3
+
+
+def _pair_residual(nuisances: bool):
+    calib = zed_calibration(W, H)
+    rng = np.random.default_rng(7)
+    spec = FrameSpec(410.0, 6.0, 1.5, [("pitted_surface", 2.5), ("scratches", 1.0)])
+    scene = build_scene(rng, calib, spec, None)
+    if not nuisances:
+        scene.lighting.spec_broad = scene.lighting.spec_core = 0.0
+    left, right, disparity, hits = render_pair(scene, rng, ss=2, nuisances=nuisances)
+    plate = hits.on_plate.reshape(H, W)
+    lg, rg = left[..., 0].astype(np.float32), right[..., 0].astype(np.float32)
+
+    def residual(shift: float) -> float:
+        warped = _warp_right(rg, disparity - shift)
+        ok = np.isfinite(warped) & plate
+        gain, offset = np.polyfit(warped[ok], lg[ok], 1)  # exposure difference between the eyes
+        return float(np.median(np.abs(lg[ok] - (gain * warped[ok] + offset))))
+
+    return residual, lg, rg
+
+
+def test_right_image_is_the_left_warped_by_gt_exactly():
+    """Without noise, highlight and exposure difference the GT warp reproduces the left image up to
+    resampling, and any sub-pixel shift of the GT makes it worse."""
+    residual, _, _ = _pair_residual(nuisances=False)
+    exact = residual(0.0)
+    assert exact < 2.0
+    for shift in (-0.25, 0.25, 1.0):
+        assert exact < 0.8 * residual(shift), shift
+
+
+def test_right_image_with_nuisances_still_matches_gt():
+    residual, lg, rg = _pair_residual(nuisances=True)
+    exact = residual(0.0)
+    assert exact < 6.0  # sensor noise in both eyes, resampling, the highlight at different places
+    assert exact < 0.75 * residual(1.0)
+    assert exact < residual(0.3) and exact < residual(-0.3)
+    assert np.median(rg) > np.median(lg)  # the right eye's gain/offset
+
+
+def test_plate_centre_distance_and_tilt(tmp_path):
+    labels = generate_sequence(tmp_path / "s", frames=1, seed=0, distance_mm=430.0, tilt_deg=6.0,
+                               width=W, height=H, jitter=False)
+    assert labels[0]["distance_mm"] == 430.0 and labels[0]["tilt_deg"] == 6.0 and labels[0]["defects"] == []
+    gt = read_disparity_png(tmp_path / "s" / "gt" / "000000.png")
+    calib = zed_calibration(W, H)
+    # cx, cy are pixel-centre coordinates ((W-1)/2): the centre disparity is the interpolated 2x2 block
+    d_centre = float(gt[H // 2 - 1 : H // 2 + 1, W // 2 - 1 : W // 2 + 1].mean())
+    assert calib.distance_mm(d_centre) == pytest.approx(430.0, abs=0.5)
+    # tilt about x: disparity changes along v (Z grows downwards for a positive tilt), not along u
+    col = gt[:, W // 2]
+    a = np.polyfit(np.arange(H), col, 1)[0]
+    row = gt[H // 2, W // 4 : 3 * W // 4]
+    assert abs(np.polyfit(np.arange(row.size), row, 1)[0]) < 1e-3
+    z_top, z_bottom = calib.distance_mm(col[5]), calib.distance_mm(col[-6])
+    expected = np.tan(np.radians(6.0))  # dZ/dY for a plane tilted by 6 degrees
+    y_top, y_bottom = (5 - calib.cy) / calib.focal_px * z_top, (H - 6 - calib.cy) / calib.focal_px * z_bottom
+    assert (z_bottom - z_top) / (y_bottom - y_top) == pytest.approx(expected, rel=0.02)
+    assert a != 0
+
+
+def test_plan_covers_every_class_and_splits_pass_reject():
+    rng = np.random.default_rng(0)
+    decks = (_Deck(NEU_CLASSES, rng), _Deck(BELOW_CLASSES, rng))
+    specs = [plan_frame(rng, i, 400.0, 5.0, True, decks) for i in range(10)]
+    classes = {c for s in specs for c, _ in s.requests}
+    assert classes == set(NEU_CLASSES)
+    depths = [d for s in specs for _, d in s.requests]
+    assert all(abs(d) <= 0.7 or d >= 1.8 for d in depths)
+    assert any(d >= 1.8 for d in depths) and any(abs(d) <= 0.7 for d in depths)
+    assert sum(1 for s in specs if not s.requests) >= 2
+    assert all(380 <= s.distance_mm <= 450 and 0 <= s.tilt_deg <= 8 for s in specs)
+
+
+def test_raised_defect_has_negative_deviation():
+    calib = zed_calibration(W, H)
+    rng = np.random.default_rng(11)
+    spec = FrameSpec(400.0, 3.0, 0.0, [("rolled-in_scale", -1.2)])
+    _, _, gt, labels, _ = render_frame(rng, calib, spec, None, "000000")
+    (d,) = labels["defects"]
+    assert d["shape"] == "raised_scale" and -1.2 - 0.03 <= d["deviation_mm"] < -0.9

@@ -58,7 +58,7 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
     from core import engine
 
     loaded = _load(recipe, overrides)
-    console = Console(highlight=False)
+    console = Console(highlight=False, soft_wrap=True)
     simulators = _start_plc_simulators(loaded, console) if plc_sim else []
     progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                         TextColumn("{task.fields[fps]:.1f} fps"), console=console, transient=True)

@@ -1,6 +1,202 @@
-"""Placeholder: filled in by the work on its issue."""
+"""``inspect stereo`` (one disparity map) and ``inspect eval stereo`` (Middlebury scores).
+
+torch and the backends are imported inside the commands so that ``inspect --help`` stays fast.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
 import click
 
 
+def _fail(message: str) -> None:
+    click.echo(f"error: {message}", err=True)
+    raise click.exceptions.Exit(2)
+
+
+def _parse_settings(pairs: tuple[str, ...], option: str = "--set") -> dict:
+    import yaml
+
+    settings = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            _fail(f"{option} {pair!r}: expected KEY=VALUE")
+        settings[key.strip()] = yaml.safe_load(value) if value.strip() else ""
+    return settings
+
+
+def _device(name: str) -> str:
+    if name != "auto":
+        return name
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def make_backend(name: str, settings: dict, device: str):
+    """A stereo backend from the registry; bad names or settings end the command with exit 2."""
+    from pydantic import ValidationError
+
+    from core.contracts import PluginContext
+    from core.registry import UnknownPlugin, default_registry
+
+    try:
+        plugin = default_registry().get("stereo", name)
+    except UnknownPlugin as exc:
+        _fail(f"--backend: {exc}")
+    try:
+        return plugin.spec.factory(dict(settings), PluginContext(device=_device(device)))
+    except (ValidationError, ValueError, TypeError) as exc:
+        first = str(exc).splitlines()
+        _fail(f"--set for backend {name!r}: {' '.join(first[:3])}")
+
+
+def _threads(n: int | None) -> None:
+    if n:
+        import torch
+
+        torch.set_num_threads(n)
+
+
+def check_disparity_range(min_disp: float, max_disp: float, width: int) -> None:
+    if max_disp <= min_disp:
+        _fail(f"--max-disp {max_disp:g} must be larger than --min-disp {min_disp:g}")
+    if max_disp > width:
+        _fail(f"--max-disp {max_disp:g} is larger than the image width {width}")
+
+
+def write_png(path: Path, disparity, vmin: float, vmax: float) -> None:
+    """Colour-mapped view: the disparity range spans the colour map, invalid pixels are black."""
+    import cv2
+    import numpy as np
+
+    from core.stereo_eval import colourise
+
+    if not cv2.imwrite(str(path), colourise(np.asarray(disparity) - vmin, vmax - vmin)):
+        _fail(f"{path}: cannot write PNG")
+
+
+threads_option = click.option("--threads", type=int, default=None,
+                              help="torch CPU threads (1 is fastest when the cores are shared)")
+device_option = click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
+                             help="passed to the backend as the engine's device")
+
+
+@click.command("stereo")
+@click.argument("left", type=click.Path(path_type=Path))
+@click.argument("right", type=click.Path(path_type=Path))
+@click.option("--backend", default="torch_sgm", show_default=True, help="stereo plugin, e.g. torch_sgm or opencv_sgbm")
+@click.option("--max-disp", type=float, required=True, help="search min-disp <= d < max-disp (pixels)")
+@click.option("--min-disp", type=float, default=0.0, show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), help="PFM, Middlebury convention (invalid = inf)")
+@click.option("--png", type=click.Path(path_type=Path), help="colour-mapped view")
+@click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="backend setting, repeatable")
+@device_option
+@threads_option
+def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings, device, threads):
+    """Disparity map of the LEFT image of a rectified pair."""
+    import numpy as np
+
+    from drivers.sequence_folder import SequenceError, read_image, write_pfm
+
+    try:
+        left_img, right_img = read_image(left, "left image"), read_image(right, "right image")
+    except SequenceError as exc:
+        _fail(str(exc))
+    if left_img.shape != right_img.shape:
+        _fail(f"{left} is {left_img.shape[1]}x{left_img.shape[0]} but {right} is "
+              f"{right_img.shape[1]}x{right_img.shape[0]}; a rectified pair has one size")
+    check_disparity_range(min_disp, max_disp, left_img.shape[1])
+    _threads(threads)
+    matcher = make_backend(backend, _parse_settings(settings), device)
+    import time
+
+    start = time.perf_counter()
+    disp = np.asarray(matcher.compute(left_img, right_img, min_disp, max_disp), np.float32)
+    seconds = time.perf_counter() - start
+    valid = np.isfinite(disp)
+    click.echo(f"{backend}: {disp.shape[1]}x{disp.shape[0]}, disparities {min_disp:g}..{max_disp:g}, "
+               f"{100 * valid.mean():.1f}% valid, {seconds:.2f} s")
+    if out:
+        try:
+            write_pfm(out, disp)
+        except OSError as exc:
+            _fail(f"{out}: cannot write PFM ({exc.strerror})")
+        click.echo(f"wrote {out}")
+    if png:
+        write_png(png, disp, min_disp, max_disp)
+        click.echo(f"wrote {png}")
+
+
+def _split(values: tuple[str, ...]) -> list[str]:
+    return [v.strip() for value in values for v in value.split(",") if v.strip()]
+
+
+@click.command("stereo")
+@click.option("--middlebury", "folder", type=click.Path(path_type=Path), required=True,
+              help="folder of Middlebury scene folders (im0.png, im1.png, disp0GT.pfm, mask0nocc.png, calib.txt)")
+@click.option("--backend", "backends", multiple=True, help="repeatable or comma-separated; default torch_sgm")
+@click.option("--scenes", multiple=True, help="scene names, repeatable or comma-separated; default all")
+@click.option("--out", type=click.Path(path_type=Path), default=Path("runs/stereo_eval"), show_default=True)
+@click.option("--set", "settings", multiple=True, metavar="BACKEND.KEY=VALUE", help="backend setting, repeatable")
+@click.option("--figure/--no-figure", default=True, show_default=True, help="save the per-scene figure")
+@device_option
+@threads_option
+def eval_stereo_command(folder, backends, scenes, out, settings, figure, device, threads):
+    """Bad-0.5/1/2/4 (dense and sparse), average error, invalid share and runtime per scene."""
+    import platform
+
+    from core import stereo_eval as ev
+    from drivers.sequence_folder import SequenceError
+
+    names = _split(backends) or ["torch_sgm"]
+    per_backend: dict[str, dict] = {n: {} for n in names}
+    for key, value in _parse_settings(settings).items():
+        name, dot, sub = key.partition(".")
+        if not dot or name not in per_backend:
+            _fail(f"--set {key}: expected BACKEND.KEY with BACKEND one of {', '.join(names)}")
+        per_backend[name][sub] = value
+    if not folder.is_dir():
+        _fail(f"--middlebury {folder}: not a folder")
+    try:
+        scene_dirs = ev.list_scenes(folder, _split(scenes) or None)
+    except ValueError as exc:
+        _fail(f"--scenes: {exc}")
+    if not scene_dirs:
+        _fail(f"--middlebury {folder}: no scene folders (im0.png + calib.txt) inside")
+    _threads(threads)
+    matchers = {n: make_backend(n, per_backend[n], device) for n in names}
+    results = {n: [] for n in names}
+    maps = {n: [] for n in names}
+    loaded = []
+    for scene_dir in scene_dirs:
+        try:
+            scene = ev.load_scene(scene_dir)
+        except SequenceError as exc:
+            _fail(str(exc))
+        loaded.append(scene)
+        for n, matcher in matchers.items():
+            s, disp = ev.evaluate_scene(matcher, n, scene)
+            results[n].append(s)
+            if figure:
+                maps[n].append(disp)
+            click.echo(f"{scene.name:12s} {n:12s} dense bad1.0 {s.dense['bad1.0']:6.2f}%  "
+                       f"sparse {s.sparse['bad1.0']:6.2f}% @ {s.coverage:5.1f}%  {s.runtime_s:6.2f} s")
+    import torch
+
+    meta = {"folder": str(folder), "backends": {n: per_backend[n] for n in names},
+            "machine": f"{platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}",
+            "device": _device(device)}
+    json_path, md_path = ev.save_results(out, results, meta)
+    click.echo("")
+    click.echo(ev.markdown_table(results))
+    click.echo("dense: missing predictions count as bad; sparse: only claimed pixels, cov% = their share")
+    click.echo(f"wrote {json_path} and {md_path}")
+    if figure:
+        click.echo(f"wrote {ev.save_figure(out / 'stereo_eval.png', loaded, maps)}")
+
+
 def register(cli: click.Group) -> None:
-    return None
+    cli.add_command(stereo_command, "stereo")
+    cli.commands["eval"].add_command(eval_stereo_command, "stereo")

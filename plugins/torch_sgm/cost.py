@@ -1,0 +1,135 @@
+"""Matching costs. Images are (B, C, H, W) float in [0, 1]; cost volumes are (B, D, H, W),
+slice ``k`` holding disparity ``min_disp + k``: the left pixel x is compared with the right pixel x - d."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+# Eight directions at distances 1, 2 and 3: a star of 24 comparisons, one bit each.
+STAR_24 = tuple((dy * s, dx * s) for s in (1, 2, 3) for dy, dx in
+                ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)))
+
+
+def to_grey(image: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) RGB -> (B, 1, H, W) luminance."""
+    weights = image.new_tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)
+    return (image * weights).sum(1, keepdim=True)
+
+
+def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
+    """Mean over a (2r+1)^2 window, averaging only the pixels inside the image at the borders."""
+    if radius <= 0:
+        return x
+    return _box_1d(_box_1d(x, radius, -1), radius, -2)
+
+
+def _box_1d(x: torch.Tensor, radius: int, dim: int) -> torch.Tensor:
+    """Windowed mean along one axis from a running sum: cost independent of the radius."""
+    n = x.shape[dim]
+    total = F.pad(torch.cumsum(x, dim), (1, 0) if dim == -1 else (0, 0, 1, 0))
+    pos = torch.arange(n, device=x.device)
+    hi = (pos + radius).clamp(max=n - 1) + 1
+    lo = (pos - radius).clamp(min=0)
+    count = (hi - lo).to(x.dtype)
+    window = total.index_select(dim, hi) - total.index_select(dim, lo)
+    return window / (count if dim == -1 else count.view(-1, 1))
+
+
+def zero_normalise(image: torch.Tensor, radius: int, eps: float = 1e-3) -> torch.Tensor:
+    """Subtract the local mean and divide by the local standard deviation, per channel, so that
+    a gain or offset between the two cameras does not change the AD cost."""
+    mean = box_mean(image, radius)
+    var = (box_mean(image * image, radius) - mean * mean).clamp_min(0)
+    return (image - mean) / (var.sqrt() + eps)
+
+
+def census_transform(grey: torch.Tensor, offsets=STAR_24) -> torch.Tensor:
+    """(B, 1, H, W) -> (B, K, H, W) bool, bit k = neighbour at offsets[k] darker than the centre.
+    Neighbours outside the image repeat the border pixel."""
+    reach = max(max(abs(dy), abs(dx)) for dy, dx in offsets)
+    padded = F.pad(grey, (reach,) * 4, mode="replicate")
+    h, w = grey.shape[-2:]
+    bits = [padded[:, 0, reach + dy: reach + dy + h, reach + dx: reach + dx + w] < grey[:, 0] for dy, dx in offsets]
+    return torch.stack(bits, 1)
+
+
+def horizontal_gradient(grey: torch.Tensor) -> torch.Tensor:
+    """(B, 1, H, W) -> (B, 1, H, W) normalised horizontal Sobel response."""
+    kernel = grey.new_tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]).view(1, 1, 3, 3) / 8.0
+    return F.conv2d(F.pad(grey, (1, 1, 1, 1), mode="replicate"), kernel)
+
+
+def shift_right_image(features: torch.Tensor, d: int) -> torch.Tensor:
+    """Right-image features moved so that column x holds right column x - d (border replicated)."""
+    if d == 0:
+        return features
+    w = features.shape[-1]
+    if d > 0:
+        edge = features[..., :1].expand(*features.shape[:-1], min(d, w))
+        return torch.cat([edge, features[..., : max(w - d, 0)]], -1)[..., :w]
+    edge = features[..., -1:].expand(*features.shape[:-1], min(-d, w))
+    return torch.cat([features[..., min(-d, w):], edge], -1)[..., :w]
+
+
+def _volume(left: torch.Tensor, right: torch.Tensor, disparities, distance) -> torch.Tensor:
+    return torch.stack([distance(left, shift_right_image(right, d)) for d in disparities], 1)
+
+
+def pack_bits(bits: torch.Tensor) -> torch.Tensor:
+    """(B, K, H, W) bool with K <= 31 -> (B, H, W) int32 code, bit k = channel k."""
+    weights = (2 ** torch.arange(bits.shape[1], device=bits.device, dtype=torch.int32)).view(1, -1, 1, 1)
+    return (bits.to(torch.int32) * weights).sum(1, dtype=torch.int32)
+
+
+def popcount(x: torch.Tensor) -> torch.Tensor:
+    """Number of set bits of non-negative int32 values (SWAR: torch has no popcount)."""
+    x = x - ((x >> 1) & 0x55555555)
+    x = (x & 0x33333333) + ((x >> 2) & 0x33333333)
+    x = (x + (x >> 4)) & 0x0F0F0F0F
+    return (x + (x >> 8) + (x >> 16)) & 0x3F
+
+
+def census_cost(left_code: torch.Tensor, right_code: torch.Tensor, disparities) -> torch.Tensor:
+    """Hamming distance between packed census codes (B, H, W) int32 -> (B, D, H, W) float32 bit counts."""
+    return torch.stack([popcount(left_code ^ shift_right_image(right_code, d)).float() for d in disparities], 1)
+
+
+def ad_cost(left: torch.Tensor, right: torch.Tensor, disparities) -> torch.Tensor:
+    """Mean absolute difference over channels: (B, C, H, W) x2 -> (B, D, H, W)."""
+    return _volume(left, right, disparities, lambda a, b: (a - b).abs().mean(1))
+
+
+def gradient_cost(left_grad: torch.Tensor, right_grad: torch.Tensor, disparities) -> torch.Tensor:
+    """Absolute gradient difference: (B, 1, H, W) x2 -> (B, D, H, W)."""
+    return _volume(left_grad, right_grad, disparities, lambda a, b: (a - b).abs()[:, 0])
+
+
+def robust(cost: torch.Tensor, lam: float) -> torch.Tensor:
+    """1 - exp(-c / lambda): maps any cost to [0, 1) so that no term dominates the fusion."""
+    return 1.0 - torch.exp(-cost / lam)
+
+
+def fused_cost(left: torch.Tensor, right: torch.Tensor, disparities, *, w_ad: float, w_census: float,
+               w_grad: float, lam_ad: float, lam_census: float, lam_grad: float, znorm_radius: int,
+               features: dict | None = None) -> torch.Tensor:
+    """(B, 3, H, W) RGB pair -> (B, D, H, W) fused cost in [0, w_ad + w_census + w_grad).
+    ``features`` (from ``cost_features``) avoids recomputing per-image work when called per chunk."""
+    f = features or cost_features(left, right, znorm_radius)
+    total = torch.zeros(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
+    if w_ad:
+        total += w_ad * robust(ad_cost(f["zl"], f["zr"], disparities), lam_ad)
+    if w_census:
+        total += w_census * robust(census_cost(f["cl"], f["cr"], disparities), lam_census)
+    if w_grad:
+        total += w_grad * robust(gradient_cost(f["gl"], f["gr"], disparities), lam_grad)
+    return total
+
+
+def cost_features(left: torch.Tensor, right: torch.Tensor, znorm_radius: int) -> dict:
+    """The per-image inputs of the three costs, computed once for all disparity chunks."""
+    grey_l, grey_r = to_grey(left), to_grey(right)
+    return {
+        "zl": zero_normalise(left, znorm_radius), "zr": zero_normalise(right, znorm_radius),
+        "cl": pack_bits(census_transform(grey_l)), "cr": pack_bits(census_transform(grey_r)),
+        "gl": horizontal_gradient(grey_l), "gr": horizontal_gradient(grey_r),
+    }

@@ -1,0 +1,124 @@
+"""The five stages put together, with every parameter in one settings model."""
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from plugins.torch_sgm import aggregate, cost, refine, select, sgm
+
+
+class TorchSGMParams(BaseModel):
+    """Defaults are the seed paper's parameters (cost weights, guided filter r = 3 / eps = 0.001,
+    4 paths, P1 = 0.04, P2 = 0.65 / (1 + 20 |edge|), 1 px LR check)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    # 1. matching cost
+    w_ad: float = Field(0.10, ge=0)
+    w_census: float = Field(0.60, ge=0)
+    w_grad: float = Field(0.30, ge=0)
+    lam_ad: float = Field(1.0, gt=0)
+    lam_census: float = Field(6.0, gt=0, description="in bits of the 24-bit census string")
+    lam_grad: float = Field(0.02, gt=0, description="in normalised Sobel units of [0, 1] intensity")
+    znorm_radius: int = Field(3, ge=1, description="window radius of the local zero-normalisation")
+    # 2. aggregation
+    agg_radius: int = Field(3, ge=0)
+    agg_eps: float = Field(0.001, gt=0)
+    # 3. SGM
+    paths: Literal[4, 8] = 4
+    p1: float = Field(0.04, ge=0)
+    p2: float = Field(0.65, ge=0)
+    p2_alpha: float = Field(20.0, ge=0, description="P2 = p2 / (1 + p2_alpha * |edge|)")
+    # 5. refinement
+    lr_tolerance: float = Field(1.0, gt=0)
+    fill: Literal["none", "background", "left", "right", "nearest"] = "background"
+    refine_radius: int = Field(3, ge=0, description="guided-filter refinement radius, 0 = off")
+    refine_eps: float = Field(0.001, gt=0)
+    median_radius: int = Field(2, ge=0, description="median over filled pixels, 0 = off")
+    # memory
+    chunk_disparities: int = Field(32, ge=1, description="disparity slices built and filtered at once")
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device 'cuda' requested but CUDA is not available")
+    return torch.device(name)
+
+
+def bgr_to_tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
+    """HxWx3 uint8 BGR -> (1, 3, H, W) float32 RGB in [0, 1]."""
+    rgb = np.ascontiguousarray(image[..., ::-1])
+    return torch.from_numpy(rgb).to(device).permute(2, 0, 1).unsqueeze(0).float() / 255.0
+
+
+def cost_volume(left: torch.Tensor, right: torch.Tensor, disparities: list[int], p: TorchSGMParams) -> torch.Tensor:
+    """Stages 1 and 2: fused cost, guided-filtered, built ``chunk_disparities`` slices at a time so
+    only one chunk's temporaries exist besides the (B, D, H, W) result."""
+    features = cost.cost_features(left, right, p.znorm_radius)
+    guide = cost.to_grey(left)
+    volume = torch.empty(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
+    for start in range(0, len(disparities), p.chunk_disparities):
+        chunk = disparities[start: start + p.chunk_disparities]
+        raw = cost.fused_cost(left, right, chunk, w_ad=p.w_ad, w_census=p.w_census, w_grad=p.w_grad,
+                              lam_ad=p.lam_ad, lam_census=p.lam_census, lam_grad=p.lam_grad,
+                              znorm_radius=p.znorm_radius, features=features)
+        volume[:, start: start + len(chunk)] = aggregate.guided_filter(guide, raw, p.agg_radius, p.agg_eps)
+    return volume
+
+
+def edge_strength(left: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) -> (B, H, W) normalised Sobel gradient magnitude of the grey image."""
+    grey = cost.to_grey(left)
+    gx = cost.horizontal_gradient(grey)
+    gy = cost.horizontal_gradient(grey.transpose(-1, -2)).transpose(-1, -2)
+    return torch.sqrt(gx * gx + gy * gy)[:, 0]
+
+
+def disparity_range(min_disp: float, max_disp: float) -> list[int]:
+    """Integer hypotheses covering min_disp <= d < max_disp."""
+    return list(range(math.floor(min_disp), max(math.ceil(max_disp), math.floor(min_disp) + 1)))
+
+
+def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,
+                    p: TorchSGMParams) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, 3, H, W) RGB pair in [0, 1] -> (disparity (B, H, W) float32, NaN where still invalid;
+    consistent (B, H, W) bool: pixels that passed the left-right check)."""
+    disparities = disparity_range(min_disp, max_disp)
+    volume = cost_volume(left, right, disparities, p)
+    penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
+    paths = sgm.PATHS_8 if p.paths == 8 else sgm.PATHS_4
+    aggregated = sgm.sgm(volume, p.p1, penalty, paths)
+    del volume
+    index = select.winner_takes_all(aggregated)
+    disp = select.parabolic_subpixel(aggregated, index) + disparities[0]
+    right_disp = select.right_view_wta(aggregated, disparities)
+    del aggregated
+    consistent = refine.left_right_check(disp, right_disp, p.lr_tolerance)
+    disp = torch.where(consistent, disp, torch.full_like(disp, float("nan")))
+    if p.fill != "none":
+        holes = ~consistent
+        disp = refine.fill_horizontal(disp, p.fill)
+        disp = refine.median_fill(disp, holes, 0)  # the guided filter needs a hole-free map
+        disp = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
+        disp = refine.median_fill(disp, holes, p.median_radius)
+    disp = disp.clamp(float(min_disp), float(max_disp))
+    return disp, consistent
+
+
+def compute_disparity(left: np.ndarray, right: np.ndarray, min_disp: float, max_disp: float,
+                      params: TorchSGMParams | None = None, device: str | torch.device | None = None,
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """HxWx3 uint8 BGR pair -> (HxW float32 disparity, NaN invalid; HxW bool LR-consistent mask)."""
+    params = params or TorchSGMParams()
+    dev = torch.device(device) if device is not None else pick_device(params.device)
+    with torch.inference_mode():
+        disp, consistent = compute_tensors(bgr_to_tensor(left, dev), bgr_to_tensor(right, dev),
+                                           min_disp, max_disp, params)
+    return disp[0].cpu().numpy().astype(np.float32), consistent[0].cpu().numpy()

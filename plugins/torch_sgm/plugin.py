@@ -1,0 +1,46 @@
+"""Registers ``torch_sgm`` as a stereo backend."""
+from __future__ import annotations
+
+import numpy as np
+
+from core.contracts import PluginContext, PluginSpec
+from core.hookspecs import hookimpl
+from plugins.torch_sgm.pipeline import TorchSGMParams, compute_disparity, pick_device
+
+
+class TorchSGM:
+    def __init__(self, params: TorchSGMParams, device: str):
+        self.params = params
+        self.device = pick_device(device)
+
+    def compute(self, left: np.ndarray, right: np.ndarray, min_disp: float, max_disp: float) -> np.ndarray:
+        return self.compute_with_mask(left, right, min_disp, max_disp)[0]
+
+    def compute_with_mask(self, left, right, min_disp, max_disp) -> tuple[np.ndarray, np.ndarray]:
+        """The disparity and the pixels that passed the left-right check (before hole filling);
+        the evaluation scores the latter as the sparse result."""
+        return compute_disparity(left, right, min_disp, max_disp, self.params, self.device)
+
+
+def _factory(settings: dict, ctx: PluginContext) -> TorchSGM:
+    params = TorchSGMParams(**settings)
+    # The recipe's setting wins; "auto" defers to the engine's device, then to what is available.
+    device = params.device if params.device != "auto" else (ctx.device if ctx.device in ("cpu", "cuda") else "auto")
+    if device == "cuda":
+        import torch
+        if not torch.cuda.is_available() and params.device == "auto":
+            device = "cpu"
+    return TorchSGM(params, device)
+
+
+@hookimpl
+def stereo_inspect_stereo_backends() -> list[PluginSpec]:
+    return [
+        PluginSpec(
+            name="torch_sgm",
+            kind="stereo",
+            factory=_factory,
+            settings_model=TorchSGMParams,
+            description="Classical census/AD/gradient cost + guided filter + SGM in PyTorch (CPU or CUDA)",
+        )
+    ]

@@ -1,0 +1,84 @@
+"""Refinement of a left disparity map (B, H, W) float, NaN = invalid."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from plugins.torch_sgm.aggregate import guided_filter
+
+
+def left_right_check(left_disp: torch.Tensor, right_disp: torch.Tensor, tolerance: float = 1.0) -> torch.Tensor:
+    """Keep a left pixel only where the right image's disparity at x - d agrees within ``tolerance``.
+    Occlusions and mismatches fail the check. (B, H, W) x2 -> (B, H, W) bool valid."""
+    w = left_disp.shape[-1]
+    x = torch.arange(w, device=left_disp.device, dtype=left_disp.dtype)
+    target = torch.round(x - left_disp.nan_to_num(0.0))
+    inside = (target >= 0) & (target <= w - 1) & torch.isfinite(left_disp)
+    seen = right_disp.gather(-1, target.clamp(0, w - 1).long())
+    return inside & ((left_disp - seen).abs() <= tolerance)
+
+
+def _nearest_valid(disp: torch.Tensor, reverse: bool) -> torch.Tensor:
+    """For every pixel, the value of the nearest valid pixel to its left (or right when reverse)."""
+    if reverse:
+        return _nearest_valid(disp.flip(-1), False).flip(-1)
+    w = disp.shape[-1]
+    idx = torch.arange(w, device=disp.device).expand_as(disp)
+    idx = torch.where(torch.isfinite(disp), idx, torch.full_like(idx, -1))
+    last = idx.cummax(-1).values
+    value = disp.gather(-1, last.clamp_min(0))
+    return torch.where(last >= 0, value, torch.full_like(value, float("nan")))
+
+
+def fill_horizontal(disp: torch.Tensor, mode: str = "background") -> torch.Tensor:
+    """Fill each hole from the nearest valid pixels on its row.
+
+    background: the smaller disparity of the two sides, because holes after the LR check are mostly
+    occlusions, which belong to the farther surface; left / right: that side only; nearest: the
+    closer side. A side that has no valid pixel gives way to the other."""
+    left = _nearest_valid(disp, False)
+    right = _nearest_valid(disp, True)
+    if mode == "background":
+        fill = torch.fmin(left, right)
+    elif mode == "left":
+        fill = torch.where(torch.isfinite(left), left, right)
+    elif mode == "right":
+        fill = torch.where(torch.isfinite(right), right, left)
+    elif mode == "nearest":
+        w = disp.shape[-1]
+        idx = torch.arange(w, device=disp.device).expand_as(disp)
+        valid = torch.isfinite(disp)
+        li = torch.where(valid, idx, torch.full_like(idx, -w)).cummax(-1).values
+        ri = torch.where(valid, idx, torch.full_like(idx, 2 * w)).flip(-1).cummin(-1).values.flip(-1)
+        fill = torch.where((idx - li) <= (ri - idx), left, right)
+        fill = torch.where(torch.isfinite(fill), fill, torch.fmax(left, right))
+    else:
+        raise ValueError(f"unknown fill mode {mode!r}")
+    return torch.where(torch.isfinite(disp), disp, fill)
+
+
+def guided_refine(disp: torch.Tensor, guide: torch.Tensor, radius: int, eps: float) -> torch.Tensor:
+    """Smooth a hole-free (B, H, W) map along the grey guide (B, 1, H, W)'s edges."""
+    if radius <= 0:
+        return disp
+    return guided_filter(guide, disp.unsqueeze(1), radius, eps)[:, 0]
+
+
+def median_filter(x: torch.Tensor, radius: int) -> torch.Tensor:
+    """(B, H, W) -> (B, H, W) median over a (2r+1)^2 window ignoring NaN; NaN where all are NaN."""
+    k = 2 * radius + 1
+    patches = F.unfold(F.pad(x.unsqueeze(1), (radius,) * 4, mode="replicate"), k)
+    return patches.nanmedian(1).values.view_as(x)
+
+
+def median_fill(disp: torch.Tensor, holes: torch.Tensor, radius: int) -> torch.Tensor:
+    """Replace the pixels in ``holes`` (B, H, W) bool with the median of their window, which removes
+    the horizontal streaks that row-wise filling leaves; any remaining NaN is filled the same way."""
+    if radius > 0 and holes.any():
+        disp = torch.where(holes, median_filter(disp, radius), disp)
+    for _ in range(32):
+        missing = ~torch.isfinite(disp)
+        if not missing.any():
+            break
+        disp = torch.where(missing, median_filter(disp, 4), disp)
+    return disp

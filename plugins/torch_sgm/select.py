@@ -1,0 +1,44 @@
+"""Disparity selection: winner-takes-all with parabolic sub-pixel interpolation."""
+from __future__ import annotations
+
+import torch
+
+
+def winner_takes_all(volume: torch.Tensor) -> torch.Tensor:
+    """(B, D, H, W) cost -> (B, H, W) int64 index of the lowest cost."""
+    return volume.argmin(1)
+
+
+def parabolic_subpixel(volume: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Refine integer indices (B, H, W) to float32 indices by fitting a parabola through the cost
+    at index-1, index, index+1; the offset is bounded to ±0.5 and zero at the ends of the range."""
+    d = volume.shape[1]
+    lo = (index - 1).clamp(0, d - 1)
+    hi = (index + 1).clamp(0, d - 1)
+    c0 = volume.gather(1, lo.unsqueeze(1))[:, 0]
+    c1 = volume.gather(1, index.unsqueeze(1))[:, 0]
+    c2 = volume.gather(1, hi.unsqueeze(1))[:, 0]
+    curvature = c0 - 2 * c1 + c2
+    offset = torch.where(curvature > 0, (c0 - c2) / (2 * curvature.clamp_min(1e-12)), torch.zeros_like(c1))
+    inner = (index > 0) & (index < d - 1)
+    offset = torch.where(inner, offset.clamp(-0.5, 0.5), torch.zeros_like(offset))
+    return index.to(volume.dtype) + offset
+
+
+def right_view_wta(volume: torch.Tensor, disparities) -> torch.Tensor:
+    """Winner-takes-all of the right image, read off the left volume: C_R(x, d) = C_L(x + d, d).
+
+    (B, D, H, W) -> (B, H, W) float32 disparity (not index), NaN where no disparity lands inside
+    the image. Walks the slices with a running minimum so no second volume is held."""
+    b, _, h, w = volume.shape
+    best = torch.full((b, h, w), float("inf"), dtype=volume.dtype, device=volume.device)
+    disp = torch.full((b, h, w), float("nan"), dtype=volume.dtype, device=volume.device)
+    for k, d in enumerate(disparities):
+        if abs(d) >= w:
+            continue
+        src = volume[:, k, :, d:] if d >= 0 else volume[:, k, :, : w + d]
+        dst = slice(0, w - d) if d >= 0 else slice(-d, w)
+        better = src < best[..., dst]
+        best[..., dst] = torch.where(better, src, best[..., dst])
+        disp[..., dst] = torch.where(better, torch.full_like(src, float(d)), disp[..., dst])
+    return disp

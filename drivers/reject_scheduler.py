@@ -1,0 +1,307 @@
+"""Fire commands at their due time, in order, over a link that may come and go.
+
+The actuator sits downstream of the camera: a reject decided now must be fired when the part
+reaches it. ``RejectScheduler`` keeps a queue ordered by due time and one worker thread that
+
+* waits (no busy loop) until the earliest command is due and sends it over the ``Link``;
+* reconnects with exponential back-off while the link is down, also between commands, so the
+  link is up again before the next one is due;
+* gives each command until ``due + max_late_s`` (its deadline); a command that cannot be sent
+  by then is reported with outcome ``alarm`` and never silently dropped;
+* runs follow-up commands (a coil pulse's release) and an optional periodic heartbeat.
+
+Every outcome is a ``Record``; ``drain()`` hands over what happened since the last call.
+This module imports nothing from the rest of stereo-inspect: any object with ``connect()``,
+``close()`` and ``send(command)`` is a link (see ``modbus_link`` and ``serial_line``).
+"""
+from __future__ import annotations
+
+import heapq
+import itertools
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+
+class LinkError(Exception):
+    """The link could not connect or a command was not acknowledged; the message says why."""
+
+
+class Link(Protocol):
+    def connect(self) -> None:
+        """Open the connection; raise ``LinkError`` (or ``OSError``) when it cannot."""
+
+    def close(self) -> None: ...
+
+    def send(self, command: Any) -> str:
+        """Send one command and wait for its acknowledgement; return a short detail.
+        Raise ``LinkError``/``OSError`` when it fails (the scheduler reconnects and retries)."""
+
+
+@dataclass
+class Command:
+    """What to send for a part. ``follow_up`` is sent ``follow_up_after_s`` after it succeeds."""
+
+    payload: Any
+    text: str
+    follow_up: Command | None = None
+    follow_up_after_s: float = 0.0
+
+
+@dataclass
+class Record:
+    """One outcome: ``delivered``, ``failed`` (an attempt failed; it is retried) or ``alarm``."""
+
+    key: str | None
+    text: str
+    outcome: str
+    timestamp: float
+    detail: str = ""
+    alarm: str | None = None  # set when the operator must hear about it
+    late_s: float | None = None  # sent this long after the due time (delivered records)
+
+
+@dataclass(order=True)
+class _Job:
+    due: float  # time.monotonic()
+    seq: int
+    deadline: float = field(compare=False)
+    key: str | None = field(compare=False)
+    command: Command = field(compare=False)
+    kind: str = field(compare=False, default="part")  # part | follow-up | heartbeat
+    attempts: int = field(compare=False, default=0)
+
+
+class RejectScheduler:
+    def __init__(
+        self,
+        link: Link,
+        name: str = "output",
+        *,
+        max_late_s: float = 0.1,
+        reconnect_min_s: float = 0.05,
+        reconnect_max_s: float = 2.0,
+        on_connect: Command | None = None,
+        on_close: Command | None = None,
+        heartbeat: Callable[[int], Command] | None = None,
+        heartbeat_period_s: float = 1.0,
+        record_failures: bool = True,
+    ):
+        self.link, self.name = link, name
+        self.max_late_s = max_late_s
+        self.reconnect_min_s, self.reconnect_max_s = reconnect_min_s, reconnect_max_s
+        self.on_connect, self.on_close = on_connect, on_close
+        self.heartbeat, self.heartbeat_period_s = heartbeat, heartbeat_period_s
+        self.record_failures = record_failures
+        self._cond = threading.Condition()
+        self._queue: list[_Job] = []
+        self._records: list[Record] = []
+        self._seq = itertools.count()
+        self._connected = False
+        self._backoff = reconnect_min_s
+        self._next_connect = 0.0
+        self._last_connect_error = ""
+        self._down_reported = False
+        self._closing = False
+        self._stop = False
+        self._inflight: _Job | None = None
+        self._beat = 0
+        self._thread = threading.Thread(target=self._run, name=f"{name} scheduler", daemon=True)
+        if heartbeat is not None:
+            self._push(time.monotonic(), None, heartbeat(0), "heartbeat", deadline=float("inf"))
+        self._thread.start()
+
+    # ------------------------------------------------------------------ public
+    def submit(self, key: str | None, command: Command, due_wall: float) -> None:
+        """Queue ``command`` for ``due_wall`` (a ``time.time()`` value). Never blocks for long."""
+        due = time.monotonic() + (due_wall - time.time())
+        with self._cond:
+            if self._closing:
+                self._records.append(Record(key, command.text, "alarm", time.time(), "output already closed",
+                                            alarm=f"{self.name}: {command.text} for {key} not sent: output already closed"))
+                return
+            self._push_locked(due, key, command, "part", due + self.max_late_s)
+            self._cond.notify_all()
+
+    def drain(self) -> list[Record]:
+        with self._cond:
+            records, self._records = self._records, []
+        return records
+
+    @property
+    def pending(self) -> int:
+        with self._cond:
+            return sum(1 for j in self._queue if j.kind != "heartbeat")
+
+    @property
+    def connected(self) -> bool:
+        return self._connected
+
+    def close(self, timeout_s: float = 10.0) -> list[Record]:
+        """Send everything queued (waiting for commands not yet due, up to ``timeout_s``), alarm
+        what cannot be sent, release the link, and return the remaining records."""
+        end = time.monotonic() + timeout_s
+        with self._cond:
+            self._closing = True
+            self._queue = [j for j in self._queue if j.kind != "heartbeat"]
+            heapq.heapify(self._queue)
+            self._cond.notify_all()
+            while (self._queue or self._inflight) and time.monotonic() < end and self._thread.is_alive():
+                self._cond.wait(min(0.05, max(0.0, end - time.monotonic())))
+            leftover, self._queue = self._queue, []
+            self._stop = True
+            self._cond.notify_all()
+            now = time.time()
+            for job in sorted(leftover):
+                self._alarm_locked(job, now, f"not sent: output closed after {timeout_s:g} s with it still queued")
+        self._thread.join(max(1.0, end - time.monotonic() + 1.0))
+        if self._connected and self.on_close is not None:
+            try:
+                self.link.send(self.on_close.payload)
+                self._records.append(Record(None, self.on_close.text, "delivered", time.time()))
+            except (LinkError, OSError) as exc:
+                self._records.append(Record(None, self.on_close.text, "failed", time.time(), str(exc)))
+        try:
+            self.link.close()
+        except Exception:
+            pass
+        self._connected = False
+        return self.drain()
+
+    # ----------------------------------------------------------------- worker
+    def _push(self, due: float, key, command: Command, kind: str, deadline: float) -> None:
+        with self._cond:
+            self._push_locked(due, key, command, kind, deadline)
+
+    def _push_locked(self, due: float, key, command: Command, kind: str, deadline: float) -> None:
+        heapq.heappush(self._queue, _Job(due, next(self._seq), deadline, key, command, kind))
+
+    def _alarm_locked(self, job: _Job, now: float, why: str) -> None:
+        message = f"{self.name}: {job.command.text} for {job.key} {why}" if job.key else f"{self.name}: {job.command.text} {why}"
+        self._records.append(Record(job.key, job.command.text, "alarm", now, why, alarm=message))
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                if self._stop:
+                    return
+                now = time.monotonic()
+                job = self._queue[0] if self._queue else None
+                wake = job.due if job is not None else now + 0.5
+                if not self._connected:
+                    wake = min(wake, max(self._next_connect, now))
+                if wake > now:
+                    self._cond.wait(wake - now)
+                    continue
+                if job is not None and job.due <= now:
+                    self._inflight = heapq.heappop(self._queue)
+                else:
+                    job = None
+            if not self._connected and time.monotonic() >= self._next_connect:
+                self._try_connect()
+            if job is None:
+                continue
+            try:
+                self._attempt(job)
+            finally:
+                with self._cond:
+                    self._inflight = None
+                    self._cond.notify_all()
+
+    def _try_connect(self) -> None:
+        try:
+            self.link.connect()
+        except (LinkError, OSError) as exc:
+            self._last_connect_error = str(exc) or exc.__class__.__name__
+            self._next_connect = time.monotonic() + self._backoff
+            self._backoff = min(self.reconnect_max_s, self._backoff * 2)
+            if not self._down_reported:
+                self._down_reported = True
+                with self._cond:
+                    self._records.append(Record(None, "connect", "failed", time.time(), self._last_connect_error))
+            return
+        self._connected = True
+        self._backoff = self.reconnect_min_s
+        if self._down_reported:
+            with self._cond:
+                self._records.append(Record(None, "connect", "delivered", time.time(), "link up again"))
+        self._down_reported = False
+        if self.on_connect is not None:
+            try:
+                detail = self.link.send(self.on_connect.payload)
+                with self._cond:
+                    self._records.append(Record(None, self.on_connect.text, "delivered", time.time(), detail or ""))
+            except (LinkError, OSError) as exc:
+                self._lost(exc)
+
+    def _lost(self, exc: Exception) -> None:
+        self._connected = False
+        self._last_connect_error = str(exc) or exc.__class__.__name__
+        try:
+            self.link.close()
+        except Exception:
+            pass
+        self._next_connect = time.monotonic()  # first reconnect attempt right away
+
+    def _attempt(self, job: _Job) -> None:
+        if job.kind == "heartbeat":
+            self._heartbeat(job)
+            return
+        while True:
+            now = time.monotonic()
+            if now > job.deadline:
+                why = (f"not sent by its deadline ({self.max_late_s * 1000:.0f} ms after due): "
+                       f"{self._last_connect_error or 'link busy'}")
+                with self._cond:
+                    self._alarm_locked(job, time.time(), why)
+                return
+            if not self._connected:
+                if now < self._next_connect:
+                    with self._cond:
+                        if self._stop:
+                            self._alarm_locked(job, time.time(), "not sent: output closed while the link was down")
+                            return
+                        self._cond.wait(min(self._next_connect, job.deadline + 1e-3) - now)
+                    continue
+                self._try_connect()
+                if not self._connected:
+                    continue
+            job.attempts += 1
+            try:
+                detail = self.link.send(job.command.payload)
+            except (LinkError, OSError) as exc:
+                if self.record_failures:
+                    with self._cond:
+                        self._records.append(Record(job.key, job.command.text, "failed", time.time(),
+                                                    f"attempt {job.attempts}: {exc}"))
+                self._lost(exc)
+                continue
+            done = time.monotonic()
+            late = done - job.due
+            with self._cond:
+                if done > job.deadline:
+                    why = f"sent {late * 1000:.0f} ms after its due time (limit {self.max_late_s * 1000:.0f} ms)"
+                    self._alarm_locked(job, time.time(), why)
+                else:
+                    self._records.append(Record(job.key, job.command.text, "delivered", time.time(),
+                                                f"{late * 1000:+.0f} ms vs due" + (f"; {detail}" if detail else ""), late_s=late))
+                if job.command.follow_up is not None:
+                    follow = job.command.follow_up
+                    due = done + job.command.follow_up_after_s
+                    # a release must still happen even if late; alarm only when it is badly late
+                    self._push_locked(due, job.key, follow, "follow-up", due + max(1.0, 10 * self.max_late_s))
+                    self._cond.notify_all()
+            return
+
+    def _heartbeat(self, job: _Job) -> None:
+        if self._connected and not self._closing:
+            try:
+                self.link.send(job.command.payload)
+            except (LinkError, OSError) as exc:
+                self._lost(exc)
+        if not self._closing and self.heartbeat is not None:
+            self._beat += 1
+            self._push(time.monotonic() + self.heartbeat_period_s, None, self.heartbeat(self._beat), "heartbeat",
+                       float("inf"))

@@ -1,0 +1,142 @@
+"""Reject output ``modbus``: writes a coil pulse or a holding register on the PLC, at the time the
+part reaches the actuator, over Modbus TCP or Modbus RTU (serial).
+
+Recipe example::
+
+    outputs:
+      - plugin: modbus
+        settings:
+          transport: tcp            # or rtu with serial_port, baudrate, parity, stopbits
+          host: 127.0.0.1
+          port: 5020
+          unit: 1
+          on_reject: {write: coil, address: 0, pulse_ms: 200}
+          on_pass: null             # or e.g. {write: register, address: 10, value: 1}
+          actuator_distance_mm: 600 # or delay_ms: 1500
+          conveyor_speed_mm_s: 400
+          max_late_ms: 100
+          ready_coil: 1             # set while the inspection is connected
+          heartbeat: {address: 100, period_ms: 1000}
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from core.contracts import PluginContext, PluginSpec
+from core.hookspecs import hookimpl
+from core.types import PartResult
+from drivers.modbus_link import ModbusLink, ModbusWrite
+from drivers.reject_scheduler import Command, RejectScheduler
+from plugins.reject_timing import ScheduledOutput, TimingSettings
+
+
+class WriteAction(BaseModel):
+    """``coil``: set the coil to ``value`` (1), and back after ``pulse_ms`` when given;
+    ``register``: write ``value`` into the holding register."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    write: Literal["coil", "register"] = "coil"
+    address: int = Field(0, ge=0, le=65535)
+    value: int = Field(1, ge=0, le=65535)
+    pulse_ms: float | None = Field(None, gt=0, description="coil only: reset the coil after this long")
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.write == "coil" and self.value not in (0, 1):
+            raise ValueError("a coil value is 0 or 1")
+        if self.write == "register" and self.pulse_ms is not None:
+            raise ValueError("pulse_ms applies to a coil")
+        return self
+
+
+class HeartbeatSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    address: int = Field(ge=0, le=65535, description="holding register that receives a counter")
+    period_ms: float = Field(1000.0, ge=50)
+
+
+class ModbusSettings(TimingSettings):
+    transport: Literal["tcp", "rtu"] = "tcp"
+    host: str = "127.0.0.1"
+    port: int = Field(502, ge=1, le=65535)
+    serial_port: str | None = Field(None, description="rtu: the serial port (/dev/ttyUSB0)")
+    baudrate: int = Field(19200, gt=0)
+    parity: Literal["N", "E", "O"] = "N"
+    stopbits: Literal[1, 2] = 1
+    unit: int = Field(1, ge=0, le=247, description="Modbus unit/device id")
+    timeout_ms: float = Field(300.0, gt=0, description="wait this long for the PLC to answer one request")
+    on_reject: WriteAction = Field(default_factory=lambda: WriteAction(write="coil", address=0, value=1, pulse_ms=200))
+    on_pass: WriteAction | None = None
+    ready_coil: int | None = Field(None, ge=0, le=65535, description="coil set to 1 while connected, 0 on close")
+    heartbeat: HeartbeatSettings | None = None
+
+    @model_validator(mode="after")
+    def _transport(self):
+        if self.transport == "rtu" and not self.serial_port:
+            raise ValueError("transport rtu needs serial_port")
+        return self
+
+
+def make_command(action: WriteAction, unit: int) -> Command:
+    write = ModbusWrite(action.write, action.address, action.value, unit)
+    if action.write == "coil" and action.pulse_ms:
+        release = ModbusWrite("coil", action.address, 1 - action.value, unit)
+        return Command(write, f"{write.describe()} (pulse {action.pulse_ms:g} ms)",
+                       follow_up=Command(release, f"{release.describe()} (end of pulse)"),
+                       follow_up_after_s=action.pulse_ms / 1000.0)
+    return Command(write, write.describe())
+
+
+class ModbusOutput(ScheduledOutput):
+    name = "modbus"
+
+    def __init__(self, settings: ModbusSettings):
+        self.settings = settings
+        link = ModbusLink(settings.transport, settings.host, settings.port, settings.serial_port, settings.baudrate,
+                          settings.parity, settings.stopbits, timeout_s=settings.timeout_ms / 1000.0)
+        unit = settings.unit
+        ready = close = heartbeat = None
+        if settings.ready_coil is not None:
+            on = ModbusWrite("coil", settings.ready_coil, 1, unit)
+            off = ModbusWrite("coil", settings.ready_coil, 0, unit)
+            ready, close = Command(on, f"{on.describe()} (system ready)"), Command(off, f"{off.describe()} (system stopped)")
+        if settings.heartbeat is not None:
+            address = settings.heartbeat.address
+
+            def heartbeat(n: int) -> Command:
+                write = ModbusWrite("register", address, n & 0xFFFF, unit)
+                return Command(write, f"{write.describe()} (heartbeat)")
+
+        scheduler = RejectScheduler(
+            link, self.name, max_late_s=settings.max_late_ms / 1000.0,
+            reconnect_min_s=settings.reconnect_min_ms / 1000.0, reconnect_max_s=settings.reconnect_max_ms / 1000.0,
+            on_connect=ready, on_close=close, heartbeat=heartbeat,
+            heartbeat_period_s=(settings.heartbeat.period_ms / 1000.0) if settings.heartbeat else 1.0,
+        )
+        super().__init__(settings, scheduler)
+        self._reject = make_command(settings.on_reject, unit)
+        self._pass = make_command(settings.on_pass, unit) if settings.on_pass is not None else None
+
+    def command_for(self, part: PartResult) -> Command | None:
+        return self._reject if part.verdict.status.rejects else self._pass
+
+
+def _factory(settings: dict, ctx: PluginContext) -> ModbusOutput:
+    return ModbusOutput(ModbusSettings.model_validate(settings))
+
+
+@hookimpl
+def stereo_inspect_outputs() -> list[PluginSpec]:
+    return [
+        PluginSpec(
+            name="modbus",
+            kind="output",
+            factory=_factory,
+            settings_model=ModbusSettings,
+            description="reject via Modbus TCP/RTU: coil pulse or register write at the actuator's due time",
+        )
+    ]

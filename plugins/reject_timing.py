@@ -1,0 +1,73 @@
+"""What the ``modbus`` and ``serial`` outputs share: when a reject is due, and turning the
+scheduler's records into the engine's ``OutputEvent``s and ``Alarm``s.
+
+Reject timing: the actuator sits downstream of the camera, so a part's command is due at
+``part.timestamp + delay`` with ``delay = delay_ms`` or ``actuator_distance_mm / conveyor_speed_mm_s``.
+A command that cannot be sent by ``due + max_late_ms`` is an alarm.
+"""
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from core.types import Alarm, OutputEvent, PartResult
+from drivers.reject_scheduler import Command, Record, RejectScheduler
+
+
+class TimingSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    delay_ms: float | None = Field(None, ge=0, description="fire this long after the part was captured")
+    actuator_distance_mm: float | None = Field(None, gt=0, description="camera line to actuator, along the belt")
+    conveyor_speed_mm_s: float | None = Field(None, gt=0, description="belt speed")
+    max_late_ms: float = Field(100.0, gt=0, description="a command not sent by due + this is an alarm")
+    reconnect_min_ms: float = Field(100.0, gt=0, description="first reconnect back-off")
+    reconnect_max_ms: float = Field(2000.0, gt=0, description="longest reconnect back-off")
+
+    @model_validator(mode="after")
+    def _one_delay(self):
+        by_distance = self.actuator_distance_mm is not None or self.conveyor_speed_mm_s is not None
+        if by_distance and self.delay_ms is not None:
+            raise ValueError("give either delay_ms or actuator_distance_mm with conveyor_speed_mm_s, not both")
+        if by_distance and (self.actuator_distance_mm is None or self.conveyor_speed_mm_s is None):
+            raise ValueError("actuator_distance_mm and conveyor_speed_mm_s go together")
+        if self.reconnect_max_ms < self.reconnect_min_ms:
+            raise ValueError("reconnect_max_ms must be at least reconnect_min_ms")
+        return self
+
+    @property
+    def delay_s(self) -> float:
+        if self.actuator_distance_mm is not None and self.conveyor_speed_mm_s is not None:
+            return self.actuator_distance_mm / self.conveyor_speed_mm_s
+        return (self.delay_ms or 0.0) / 1000.0
+
+
+class ScheduledOutput:
+    """A ``RejectOutput`` over a ``RejectScheduler``; subclasses say what to send for a part."""
+
+    name = "output"
+
+    def __init__(self, settings: TimingSettings, scheduler: RejectScheduler):
+        self.timing = settings
+        self.scheduler = scheduler
+
+    def command_for(self, part: PartResult) -> Command | None:
+        raise NotImplementedError
+
+    def submit(self, part: PartResult) -> None:
+        command = self.command_for(part)
+        if command is not None:
+            self.scheduler.submit(part.part_id, command, part.timestamp + self.timing.delay_s)
+
+    def poll(self) -> list[OutputEvent | Alarm]:
+        return self._convert(self.scheduler.drain())
+
+    def close(self, timeout_s: float = 10.0) -> list[OutputEvent | Alarm]:
+        return self._convert(self.scheduler.close(timeout_s))
+
+    def _convert(self, records: list[Record]) -> list[OutputEvent | Alarm]:
+        events: list[OutputEvent | Alarm] = []
+        for r in records:
+            events.append(OutputEvent(self.name, r.key, r.text, r.outcome, r.timestamp, r.detail))
+            if r.alarm:
+                events.append(Alarm(self.name, r.alarm, r.timestamp, r.key))
+        return events

@@ -70,7 +70,9 @@ def plan_frame(rng, index: int, distance_mm: float, tilt_deg: float, jitter: boo
     all_deck, deep_deck = decks
     if jitter:
         distance = distance_mm + rng.uniform(-20.0, 50.0)
-        tilt = max(tilt_deg + rng.uniform(-5.0, 3.0), 0.0)
+        tilt = tilt_deg + rng.uniform(-5.0, 3.0)
+        if tilt_deg >= 0:  # 0..8 deg around the default 5; the sign of the tilt is kept
+            tilt = max(tilt, 0.0)
         yaw = rng.uniform(-2.0, 2.0)
     else:
         distance, tilt, yaw = distance_mm, tilt_deg, 0.0

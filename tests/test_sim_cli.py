@@ -40,3 +40,18 @@ def test_generate_with_synthetic_defects(tmp_path):
     assert all(f.left.suffix == ".jpg" and f.right.suffix == ".jpg" and f.gt.suffix == ".png" for f in frames)
     labels = json.loads(frames[0].labels.read_text())
     assert labels["distance_mm"] == 420.0 and labels["tilt_deg"] == 3.0
+
+
+def test_existing_sequence_needs_overwrite(tmp_path):
+    out = tmp_path / "seq"
+    args = ["sim", "generate", str(out), "--frames", "2", "--synthetic-defects", "--width", "160", "--height", "96"]
+    assert CliRunner().invoke(_build(), args).exit_code == 0
+    result = CliRunner().invoke(_build(), args[:3] + ["--frames", "1", "--synthetic-defects", "--width", "160",
+                                                      "--height", "96", "--image-format", "jpg"])
+    assert result.exit_code == 2 and result.output.startswith("error: ") and "--overwrite" in result.output
+    result = CliRunner().invoke(_build(), args[:3] + ["--frames", "1", "--synthetic-defects", "--width", "160",
+                                                      "--height", "96", "--image-format", "jpg", "--overwrite"])
+    assert result.exit_code == 0, result.output
+    frames = list_frames(out)
+    assert [(f.frame_id, f.left.suffix) for f in frames] == [("000000", ".jpg")]
+    assert sorted(p.name for p in (out / "labels").iterdir()) == ["000000.json"]

@@ -1,10 +1,21 @@
 """``inspect sim``: synthetic stereo scenes with exact ground truth (see the ``sim`` package)."""
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
 import click
+
+
+FRAME_FILE = re.compile(r"^\d{6}\.(png|jpg|jpeg|json)$")
+
+
+def existing_frame_files(out: Path) -> list[Path]:
+    """Frame files a previous run left in OUT (only names this generator writes)."""
+    files = [p for sub in ("left", "right", "gt", "labels") if (out / sub).is_dir()
+             for p in sorted((out / sub).iterdir()) if FRAME_FILE.match(p.name)]
+    return files + ([out / "calib.yaml"] if (out / "calib.yaml").exists() else [])
 
 
 def register(cli: click.Group) -> None:
@@ -33,10 +44,12 @@ def register(cli: click.Group) -> None:
     @click.option("--height", default=376, show_default=True, type=click.IntRange(min=32))
     @click.option("--image-format", type=click.Choice(["png", "jpg"]), default="png", show_default=True,
                   help="left/right images as lossless PNG or JPEG quality 95 (GT disparity is always 16-bit PNG).")
+    @click.option("--overwrite", is_flag=True,
+                  help="Replace the frames of an existing sequence in OUT (otherwise that is an error).")
     @click.option("--supersample", default=2, show_default=True, type=click.IntRange(1, 4),
                   help="Rays per pixel along each axis (anti-aliasing).")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
-                 image_format, supersample) -> None:
+                 image_format, overwrite, supersample) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/."""
         from sim.generate import generate_sequence
         from sim.neu_crops import NeuDetError
@@ -44,6 +57,12 @@ def register(cli: click.Group) -> None:
         if not synthetic_defects and not Path(neu_det).is_dir():
             click.echo(f"error: NEU-DET folder not found: {neu_det} (give --neu-det DIR or --synthetic-defects)", err=True)
             raise SystemExit(2)
+        old = existing_frame_files(out)
+        if old and not overwrite:
+            click.echo(f"error: {out} already holds a sequence ({len(old)} files); give --overwrite to replace it", err=True)
+            raise SystemExit(2)
+        for path in old:  # stale frames (or another image format) would mix into the new sequence
+            path.unlink()
         start = time.perf_counter()
         try:
             generate_sequence(

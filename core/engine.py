@@ -185,6 +185,7 @@ def run(
     on_event: Callable[[OutputEvent | Alarm], None] | None = None,
     device: str = "auto",
     max_frames: int | None = None,
+    on_start: Callable[[Pipeline], None] | None = None,
 ) -> RunSummary:
     registry = registry or default_registry()
     recipe = loaded.recipe
@@ -206,6 +207,8 @@ def run(
             if on_event:
                 on_event(e)
 
+    if on_start:
+        on_start(pipeline)
     started = time.perf_counter()
     try:
         for item in pipeline.camera.frames():

@@ -58,6 +58,13 @@ class ReplayCamera:
         if not self.files:
             raise seq.SequenceError(f"{self.folder}: no frames in left/")
 
+    @property
+    def expected_frames(self) -> int | None:
+        """How many parts this camera will deliver, when that is known (for progress display)."""
+        if self.settings.loop:
+            return self.settings.max_frames
+        return min(len(self.files), self.settings.max_frames or len(self.files))
+
     def frames(self) -> Iterator[StereoFrame | FrameError]:
         period = 1.0 / self.settings.rate_fps if self.settings.rate_fps > 0 else 0.0
         index, passes = 0, 0

@@ -130,3 +130,12 @@ def test_cli_validate_ok(recipe_dir):
     path = write_recipe(recipe_dir / "r.yaml", GOOD)
     result = cli("validate", str(path))
     assert result.returncode == 0 and "ok" in result.stdout
+
+
+def test_missing_calibration_is_one_line_exit_2(recipe_dir):
+    (recipe_dir / "seq" / "calib.yaml").unlink()
+    path = write_recipe(recipe_dir / "r.yaml", GOOD)
+    result = cli("run", str(path))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.count("\n") == 1 and "camera: replay:" in result.stderr
+    assert "calib.yaml: calibration file missing" in result.stderr

@@ -73,6 +73,12 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
             done = progress.tasks[0].completed + 1
             progress.update(task, advance=1, fps=done / elapsed if elapsed else 0.0)
 
+    def on_start(pipeline) -> None:
+        total = getattr(pipeline.camera, "expected_frames", None)
+        if max_frames is not None:
+            total = min(total, max_frames) if total is not None else max_frames
+        progress.update(task, total=total)
+
     def on_event(event: OutputEvent | Alarm) -> None:
         if isinstance(event, Alarm):
             progress.console.print(f"ALARM {event.source}: {event.message}", style="bold red", markup=False)
@@ -80,7 +86,7 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
     try:
         with progress:
             task = progress.add_task(loaded.recipe.name, total=max_frames, fps=0.0)
-            summary = engine.run(loaded, on_part=on_part, on_event=on_event, device=device, max_frames=max_frames)
+            summary = engine.run(loaded, on_part=on_part, on_event=on_event, device=device, max_frames=max_frames, on_start=on_start)
     except engine.SetupError as exc:
         fail(str(exc))
     finally:

@@ -1,0 +1,188 @@
+"""Each torch_sgm stage as a pure tensor function."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from plugins.torch_sgm import aggregate, cost, refine, select, sgm
+from plugins.torch_sgm.pipeline import bgr_to_tensor
+from plugins.torch_sgm.synthetic import fronto_parallel
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    # Two shared cores: a second torch thread mostly waits for the other jobs.
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def shifted_pair(d=5, h=40, w=64):
+    left, right, _, _ = fronto_parallel(h, w, float(d), seed=3)
+    return bgr_to_tensor(left, torch.device("cpu")), bgr_to_tensor(right, torch.device("cpu"))
+
+
+def interior_argmin(volume, d_max):
+    return volume[0, :, 4:-4, d_max + 4:-4].argmin(0)
+
+
+def test_census_cost_is_minimal_at_the_true_disparity():
+    left, right = shifted_pair(5)
+    f = cost.cost_features(left, right, 3)
+    volume = cost.census_cost(f["cl"], f["cr"], range(12))
+    best = interior_argmin(volume, 12)
+    assert (best == 5).float().mean() > 0.98
+    assert volume.shape == (1, 12, 40, 64)
+
+
+def test_census_uses_24_bits_and_counts_hamming_distance():
+    grey = torch.rand(1, 1, 20, 20)
+    bits = cost.census_transform(grey)
+    assert bits.shape == (1, 24, 20, 20)
+    code = cost.pack_bits(bits)
+    assert torch.equal(cost.popcount(code), bits.sum(1).int())
+    assert cost.popcount(torch.tensor([0, 1, 0xFFFFFF, 0b1011])).tolist() == [0, 1, 24, 3]
+
+
+@pytest.mark.parametrize("which", ["ad", "grad"])
+def test_ad_and_gradient_costs_are_minimal_at_the_true_disparity(which):
+    left, right = shifted_pair(7)
+    f = cost.cost_features(left, right, 3)
+    volume = (cost.ad_cost(f["zl"], f["zr"], range(12)) if which == "ad"
+              else cost.gradient_cost(f["gl"], f["gr"], range(12)))
+    assert (interior_argmin(volume, 12) == 7).float().mean() > 0.9
+
+
+def test_zero_normalisation_ignores_gain_and_offset():
+    image = torch.rand(1, 3, 30, 30)
+    a = cost.zero_normalise(image, 3)
+    b = cost.zero_normalise(image * 0.5 + 0.2, 3, eps=1e-3 * 0.5)
+    assert torch.allclose(a, b, atol=1e-4)
+
+
+def test_robust_transform_maps_costs_into_unit_interval():
+    c = torch.tensor([0.0, 1.0, 6.0, 1e6])
+    r = cost.robust(c, 6.0)
+    assert r[0] == 0 and torch.all((r >= 0) & (r <= 1)) and torch.all(r[1:3] > r[:2])
+    assert torch.isclose(r[2], torch.tensor(1 - np.exp(-1.0), dtype=torch.float32))
+
+
+def test_box_mean_matches_average_pooling_at_the_borders():
+    x = torch.rand(1, 2, 17, 23)
+    expected = torch.nn.functional.avg_pool2d(x, 7, 1, 3, count_include_pad=False)
+    assert torch.allclose(cost.box_mean(x, 3), expected, atol=1e-5)
+
+
+def test_guided_filter_keeps_constants_and_guide_edges():
+    guide = torch.zeros(1, 1, 20, 20)
+    guide[..., 10:] = 1.0
+    src = torch.stack([torch.full((20, 20), 0.3), guide[0, 0] * 2.0])[None]
+    out = aggregate.guided_filter(guide, src, 3, 1e-3)
+    assert torch.allclose(out[0, 0], torch.full((20, 20), 0.3), atol=1e-5)
+    # A step aligned with the guide's edge survives instead of being blurred into a ramp.
+    assert out[0, 1, :, 8].max() < 0.05 and out[0, 1, :, 11].min() > 1.95
+
+
+def test_sgm_without_penalties_equals_raw_wta():
+    volume = torch.rand(1, 9, 12, 15)
+    out = sgm.sgm(volume, 0.0, 0.0, sgm.PATHS_8)
+    assert torch.allclose(out, 8 * volume, atol=1e-5)
+    assert torch.equal(out.argmin(1), volume.argmin(1))
+
+
+def _reference_path(cost_np, p1, p2, dy, dx):
+    """Straightforward per-pixel recurrence, the definition the vectorised walk must match."""
+    d, h, w = cost_np.shape
+    out = np.zeros_like(cost_np)
+    ys = range(h) if dy >= 0 else range(h - 1, -1, -1)
+    xs = range(w) if dx >= 0 else range(w - 1, -1, -1)
+    order = [(y, x) for x in xs for y in ys] if dx else [(y, x) for y in ys for x in xs]
+    for y, x in order:
+        py, px = y - dy, x - dx
+        if not (0 <= py < h and 0 <= px < w):
+            out[:, y, x] = cost_np[:, y, x]
+            continue
+        prev = out[:, py, px]
+        m = prev.min()
+        up = np.concatenate([[np.inf], prev[:-1]]) + p1
+        down = np.concatenate([prev[1:], [np.inf]]) + p1
+        out[:, y, x] = cost_np[:, y, x] + np.minimum.reduce([prev, up, down, np.full(d, m + p2[y, x])]) - m
+    return out
+
+
+@pytest.mark.parametrize("direction", sgm.PATHS_8)
+def test_each_path_matches_the_per_pixel_recurrence(direction):
+    rng = np.random.default_rng(1)
+    volume = rng.random((6, 7, 9)).astype(np.float32)
+    p2 = (0.3 + rng.random((7, 9))).astype(np.float32)
+    got = sgm.sgm(torch.from_numpy(volume)[None], 0.1, torch.from_numpy(p2)[None], (direction,))[0].numpy()
+    assert np.allclose(got, _reference_path(volume, 0.1, p2, *direction), atol=1e-5)
+
+
+def test_sgm_overrules_an_isolated_wrong_minimum():
+    volume = torch.ones(1, 8, 9, 9)
+    volume[:, 3] = 0.0
+    volume[0, 3, 4, 4] = 0.2
+    volume[0, 6, 4, 4] = 0.0  # one pixel prefers d = 6, by less than the jump penalty
+    out = sgm.sgm(volume, 0.05, 0.5)
+    assert out.argmin(1)[0, 4, 4] == 3
+
+
+def test_adaptive_p2_drops_at_edges_but_not_below_p1():
+    edge = torch.tensor([[[0.0, 0.05, 10.0]]])
+    p2 = sgm.adaptive_p2(edge, 0.65, 20.0, 0.04)
+    assert torch.allclose(p2, torch.tensor([[[0.65, 0.325, 0.04]]]))
+
+
+def test_parabola_finds_the_subpixel_minimum():
+    d = torch.arange(10, dtype=torch.float32).view(1, 10, 1, 1)
+    volume = (d - 4.3) ** 2
+    index = select.winner_takes_all(volume)
+    assert index.item() == 4
+    assert abs(select.parabolic_subpixel(volume, index).item() - 4.3) < 1e-4
+
+
+def test_parabola_leaves_range_ends_integer():
+    volume = torch.arange(5, dtype=torch.float32).view(1, 5, 1, 1)
+    assert select.parabolic_subpixel(volume, select.winner_takes_all(volume)).item() == 0.0
+
+
+def test_right_view_wta_reads_the_volume_along_diagonals():
+    rng = torch.Generator().manual_seed(0)
+    volume = torch.rand(1, 5, 3, 8, generator=rng)
+    disparities = [2, 3, 4, 5, 6]
+    got = select.right_view_wta(volume, disparities)
+    for x in range(8):
+        costs = [volume[0, k, 1, x + d].item() if x + d < 8 else np.inf for k, d in enumerate(disparities)]
+        expected = np.nan if np.isinf(min(costs)) else disparities[int(np.argmin(costs))]
+        assert np.isnan(expected) and torch.isnan(got[0, 1, x]) or got[0, 1, x].item() == expected
+
+
+def test_left_right_check_rejects_inconsistent_pixels():
+    left = torch.full((1, 1, 10), 2.0)
+    right = torch.full((1, 1, 10), 2.0)
+    right[0, 0, 5] = 6.0  # seen by left x = 7
+    ok = refine.left_right_check(left, right, 1.0)
+    assert not ok[0, 0, :2].any()  # x - d leaves the image
+    assert not ok[0, 0, 7] and ok[0, 0, 2:7].all() and ok[0, 0, 8:].all()
+
+
+def test_background_filling_takes_the_farther_side():
+    nan = float("nan")
+    disp = torch.tensor([[[nan, 9.0, nan, nan, 3.0, nan]]])
+    filled = refine.fill_horizontal(disp, "background")
+    assert filled.tolist() == [[[9.0, 9.0, 3.0, 3.0, 3.0, 3.0]]]
+    assert refine.fill_horizontal(disp, "left").tolist() == [[[9.0, 9.0, 9.0, 9.0, 3.0, 3.0]]]
+
+
+def test_median_fill_leaves_no_hole_and_removes_streaks():
+    disp = torch.full((1, 9, 9), 4.0)
+    disp[0, 4, 2:7] = 9.0  # a streak from row-wise filling
+    holes = torch.zeros(1, 9, 9, dtype=torch.bool)
+    holes[0, 4, 2:7] = True
+    disp[0, 0, 0] = float("nan")
+    out = refine.median_fill(disp, holes, 1)
+    assert torch.isfinite(out).all()
+    assert torch.allclose(out[0, 4, 2:7], torch.full((5,), 4.0))

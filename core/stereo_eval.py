@@ -190,8 +190,7 @@ def save_figure(path: Path, scenes: list[SceneData], disparities: dict[str, list
             err = np.abs(np.nan_to_num(disp, nan=0.0, posinf=0.0) - scene.gt)
             err = np.where(np.isfinite(disp), err, 4.0)
             err = np.ma.masked_where(~(scene.nonocc & np.isfinite(scene.gt)), np.clip(err, 0, 4))
-            cmap = plt.get_cmap("magma").copy()
-            cmap.set_bad("0.5")
+            cmap = plt.get_cmap("magma").with_extremes(bad="0.5")
             axes[r][2 + 2 * j].imshow(err, cmap=cmap, vmin=0, vmax=4)
             axes[r][2 + 2 * j].set_title(f"{n} |error| (0-4 px)", fontsize=8)
         for ax in axes[r]:

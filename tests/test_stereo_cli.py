@@ -1,0 +1,153 @@
+"""``inspect stereo`` and ``inspect eval stereo`` on small synthetic pairs."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from core.cli import _build
+from drivers.sequence_folder import read_pfm, write_pfm
+from plugins.torch_sgm.synthetic import layered_scene
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture
+def pair(tmp_path):
+    left, right, gt, nonocc = layered_scene(48, 72, seed=2)
+    cv2.imwrite(str(tmp_path / "left.png"), left)
+    cv2.imwrite(str(tmp_path / "right.png"), right)
+    return tmp_path / "left.png", tmp_path / "right.png", gt
+
+
+def invoke(*args):
+    return CliRunner().invoke(_build(), [str(a) for a in args])
+
+
+def test_stereo_writes_middlebury_pfm_and_png(pair, tmp_path):
+    left, right, gt = pair
+    out, png = tmp_path / "d.pfm", tmp_path / "d.png"
+    result = invoke("stereo", left, right, "--max-disp", 32, "--out", out, "--png", png)
+    assert result.exit_code == 0, result.output
+    raw = out.read_bytes()
+    assert raw.startswith(b"Pf\n72 48\n-1\n") and len(raw) == len(b"Pf\n72 48\n-1\n") + 48 * 72 * 4
+    disp = read_pfm(out)
+    assert disp.shape == (48, 72)
+    assert np.median(np.abs(disp - gt)) < 0.5
+    # Rows are stored bottom to top.
+    first_stored_row = np.frombuffer(raw[len(b"Pf\n72 48\n-1\n"):][: 72 * 4], "<f4")
+    assert np.array_equal(first_stored_row, disp[-1])
+    view = cv2.imread(str(png))
+    assert view.shape == (48, 72, 3)
+
+
+def test_pfm_round_trip_keeps_invalid_as_inf(tmp_path):
+    disp = np.arange(12, dtype=np.float32).reshape(3, 4)
+    disp[1, 2] = np.nan
+    write_pfm(tmp_path / "x.pfm", disp)
+    back = read_pfm(tmp_path / "x.pfm")
+    assert np.isinf(back[1, 2]) and np.array_equal(back[np.isfinite(disp)], disp[np.isfinite(disp)])
+
+
+def test_stereo_with_the_opencv_backend(pair, tmp_path):
+    left, right, _ = pair
+    result = invoke("stereo", left, right, "--backend", "opencv_sgbm", "--max-disp", 32, "--out", tmp_path / "o.pfm")
+    assert result.exit_code == 0, result.output
+    assert read_pfm(tmp_path / "o.pfm").shape == (48, 72)
+
+
+def _assert_error(result, *words):
+    assert result.exit_code == 2, result.output
+    lines = [l for l in result.output.splitlines() if l.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    assert "Traceback" not in result.output
+    for word in words:
+        assert word in lines[0]
+
+
+def test_pair_of_different_sizes_is_refused(pair, tmp_path):
+    left, _, _ = pair
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((40, 72, 3), np.uint8))
+    _assert_error(invoke("stereo", left, tmp_path / "small.png", "--max-disp", 16), "small.png", "72x40")
+
+
+@pytest.mark.parametrize("args, word", [
+    (["--max-disp", 8, "--min-disp", 8], "--max-disp"),
+    (["--max-disp", 4, "--min-disp", 10], "--min-disp"),
+    (["--max-disp", 100], "width"),
+    (["--max-disp", 16, "--set", "p3=1"], "--set"),
+    (["--max-disp", 16, "--backend", "nope"], "nope"),
+])
+def test_bad_options_are_refused(pair, args, word):
+    left, right, _ = pair
+    _assert_error(invoke("stereo", left, right, *args), word)
+
+
+def test_unreadable_or_missing_file_is_refused(pair, tmp_path):
+    left, _, _ = pair
+    (tmp_path / "junk.png").write_bytes(b"not an image")
+    _assert_error(invoke("stereo", left, tmp_path / "junk.png", "--max-disp", 16), "junk.png")
+    _assert_error(invoke("stereo", tmp_path / "missing.png", left, "--max-disp", 16), "missing.png")
+
+
+def write_scene(folder, seed, ndisp=32):
+    left, right, gt, nonocc = layered_scene(40, 64, seed=seed)
+    folder.mkdir(parents=True)
+    cv2.imwrite(str(folder / "im0.png"), left)
+    cv2.imwrite(str(folder / "im1.png"), right)
+    write_pfm(folder / "disp0GT.pfm", gt)
+    cv2.imwrite(str(folder / "mask0nocc.png"), np.where(nonocc, 255, 128).astype(np.uint8))
+    (folder / "calib.txt").write_text(
+        "cam0=[100 0 32; 0 100 20; 0 0 1]\ncam1=[100 0 32; 0 100 20; 0 0 1]\ndoffs=0\n"
+        f"baseline=100\nwidth=64\nheight=40\nndisp={ndisp}\n")
+
+
+def test_eval_scores_each_scene_and_backends_side_by_side(tmp_path):
+    for i, name in enumerate(["SceneA", "SceneB"]):
+        write_scene(tmp_path / "mb" / name, seed=i)
+    out = tmp_path / "out"
+    result = invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--backend", "torch_sgm,opencv_sgbm",
+                    "--out", out, "--threads", 1)
+    assert result.exit_code == 0, result.output
+    assert "torch_sgm d-bad1" in result.output and "opencv_sgbm d-bad1" in result.output
+    data = json.loads((out / "stereo_eval.json").read_text())
+    torch_rows = data["backends"]["torch_sgm"]["scenes"]
+    assert [r["scene"] for r in torch_rows] == ["SceneA", "SceneB"]
+    assert all(r["dense"]["bad1.0"] < 20 for r in torch_rows)
+    # OpenCV leaves holes; dense scoring counts them as bad, sparse scoring does not.
+    cv_avg = data["backends"]["opencv_sgbm"]["average"]
+    assert cv_avg["invalid"] > 0 and cv_avg["dense"]["bad1.0"] > cv_avg["sparse"]["bad1.0"]
+    md = (out / "stereo_eval.md").read_text()
+    assert "SceneA" in md and "**average**" in md
+    assert cv2.imread(str(out / "stereo_eval.png")) is not None
+
+
+def test_eval_selects_scenes_and_passes_settings(tmp_path):
+    for i, name in enumerate(["SceneA", "SceneB"]):
+        write_scene(tmp_path / "mb" / name, seed=i)
+    out = tmp_path / "out"
+    result = invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--scenes", "SceneB", "--out", out,
+                    "--set", "torch_sgm.fill=none", "--no-figure")
+    assert result.exit_code == 0, result.output
+    data = json.loads((out / "stereo_eval.json").read_text())
+    rows = data["backends"]["torch_sgm"]["scenes"]
+    assert [r["scene"] for r in rows] == ["SceneB"] and rows[0]["invalid"] > 0
+    assert data["meta"]["backends"]["torch_sgm"] == {"fill": "none"}
+    assert not (out / "stereo_eval.png").exists()
+
+
+def test_eval_errors(tmp_path):
+    _assert_error(invoke("eval", "stereo", "--middlebury", tmp_path / "nowhere"), "nowhere")
+    write_scene(tmp_path / "mb" / "SceneA", seed=0)
+    _assert_error(invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--scenes", "Nope"), "Nope")
+    _assert_error(invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--set", "paths=8"), "--set")

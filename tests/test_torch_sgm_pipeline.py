@@ -1,0 +1,99 @@
+"""The whole torch_sgm pipeline and its registration as a stereo backend."""
+from __future__ import annotations
+
+from importlib.metadata import entry_points
+
+import numpy as np
+import pluggy
+import pytest
+import torch
+from pydantic import ValidationError
+
+from core import hookspecs
+from core.contracts import PluginContext, StereoBackend
+from core.registry import Registry
+from core.stereo_eval import score
+from plugins.torch_sgm import plugin as torch_sgm_plugin
+from plugins.torch_sgm.pipeline import TorchSGMParams, bgr_to_tensor, compute_disparity, cost_volume
+from plugins.torch_sgm.synthetic import fronto_parallel, layered_scene
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_fronto_parallel_pair_is_recovered_to_subpixel_accuracy():
+    left, right, gt, nonocc = fronto_parallel(64, 96, 7.4, seed=2)
+    disp, consistent = compute_disparity(left, right, 0, 24, device="cpu")
+    inner = nonocc.copy()
+    inner[:, :4] = inner[:, -4:] = inner[:4] = inner[-4:] = False
+    err = np.abs(disp - gt)[inner]
+    assert np.all(err < 0.5) and np.median(err) < 0.25
+    assert consistent[inner].mean() > 0.97
+
+
+def test_layered_scene_with_occlusions_scores_well():
+    # Held out from any tuning on Middlebury: slanted planes, a depth edge, occlusions.
+    left, right, gt, nonocc = layered_scene(seed=5)
+    disp, consistent = compute_disparity(left, right, 0, 32, device="cpu")
+    s = score(disp, gt, nonocc, consistent)
+    assert s["dense"]["bad1.0"] < 12.0
+    assert s["invalid"] == 0.0  # filling leaves a dense map
+    assert s["coverage"] > 90.0
+
+
+def test_chunked_cost_volume_equals_unchunked():
+    left, right, _, _ = layered_scene(48, 64, seed=1)
+    lt, rt = bgr_to_tensor(left, torch.device("cpu")), bgr_to_tensor(right, torch.device("cpu"))
+    whole = cost_volume(lt, rt, list(range(20)), TorchSGMParams(chunk_disparities=64))
+    chunked = cost_volume(lt, rt, list(range(20)), TorchSGMParams(chunk_disparities=3))
+    assert torch.allclose(whole, chunked, atol=1e-6)
+
+
+def test_output_respects_the_disparity_range_and_min_offset():
+    left, right, gt, _ = fronto_parallel(40, 80, 12.0, seed=4)
+    disp, _ = compute_disparity(left, right, 8, 20, device="cpu")
+    assert disp.dtype == np.float32 and disp.shape == (40, 80)
+    assert np.nanmin(disp) >= 8 and np.nanmax(disp) <= 20
+    assert np.median(np.abs(disp - 12.0)) < 0.3
+
+
+def test_without_filling_invalid_pixels_are_nan():
+    left, right, gt, nonocc = layered_scene(seed=6)
+    disp, consistent = compute_disparity(left, right, 0, 32, TorchSGMParams(fill="none"), device="cpu")
+    assert np.array_equal(np.isfinite(disp), consistent)
+    assert 0 < (~consistent).sum() < consistent.size * 0.3
+
+
+def test_registered_through_the_hook_and_the_entry_point():
+    manager = pluggy.PluginManager(hookspecs.PROJECT)
+    manager.add_hookspecs(hookspecs)
+    manager.register(torch_sgm_plugin)
+    spec = Registry(manager).get("stereo", "torch_sgm").spec
+    assert spec.settings_model is TorchSGMParams
+    backend = spec.factory({"paths": 8}, PluginContext(device="cpu"))
+    assert isinstance(backend, StereoBackend)
+    left, right, _, _ = fronto_parallel(32, 48, 5.0)
+    disp = backend.compute(left, right, 0, 16)
+    assert disp.shape == (32, 48) and disp.dtype == np.float32
+    names = {ep.name: ep.value for ep in entry_points(group=hookspecs.ENTRY_POINT_GROUP)}
+    assert names.get("torch_sgm") == "plugins.torch_sgm.plugin"
+
+
+def test_settings_reject_unknown_keys_and_bad_values():
+    with pytest.raises(ValidationError):
+        TorchSGMParams(p3=1.0)
+    with pytest.raises(ValidationError):
+        TorchSGMParams(paths=6)
+    assert TorchSGMParams().model_dump()["w_census"] == 0.60
+
+
+def test_auto_device_follows_the_engine_and_falls_back_to_cpu():
+    backend = torch_sgm_plugin._factory({}, PluginContext(device="cpu"))
+    assert backend.device.type == "cpu"
+    backend = torch_sgm_plugin._factory({}, PluginContext(device="cuda"))
+    assert backend.device.type == ("cuda" if torch.cuda.is_available() else "cpu")

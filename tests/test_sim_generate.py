@@ -167,3 +167,21 @@ def test_raised_defect_has_negative_deviation():
     _, _, gt, labels, _ = render_frame(rng, calib, spec, None, "000000")
     (d,) = labels["defects"]
     assert d["shape"] == "raised_scale" and -1.2 - 0.03 <= d["deviation_mm"] < -0.9
+
+
+def test_rays_land_on_the_heightfield():
+    """Every plate hit satisfies the surface equation (P - P0).n = h(s, t), also on steep defect walls."""
+    from sim.render import _sample, pixel_grid, trace
+
+    calib = zed_calibration(W, H)
+    rng = np.random.default_rng(2)
+    scene = build_scene(rng, calib, FrameSpec(390.0, 8.0, 2.0, [("pitted_surface", 3.0), ("scratches", 2.5)]), None)
+    assert scene.defects
+    for origin in (np.zeros(3), np.array([calib.baseline_mm, 0.0, 0.0])):
+        uu, vv = pixel_grid(calib, 2)
+        hits = trace(scene, origin, uu, vv)
+        p = np.stack(hits.point, -1)
+        h = _sample(scene.height, *scene.to_texel(hits.s, hits.t))
+        err = np.abs((p - scene.p0) @ scene.n - h)[hits.on_plate]
+        assert err.max() < 1e-3
+        assert (np.abs(h) > 0.5).any()  # the defects are in view

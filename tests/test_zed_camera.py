@@ -3,9 +3,8 @@ side-by-side video, reconnecting, and ``inspect camera record``.
 
 The video is made here from synthetic raw frames: bright dots at known 3D points, projected into
 each *raw* eye with the fixture's intrinsics, distortion and inter-eye pose. After capture and
-rectification a point at distance Z must lie on the same row in both eyes (within 0.1 px; measured
-under 0.04 px) at
-disparity f*B/Z (within 0.1 px); in pure point arithmetic the tolerance is 0.01 px.
+rectification a point at distance Z must lie on the same row in both eyes at disparity f*B/Z,
+both within 0.1 px (measured: under 0.04 px); in pure point arithmetic the tolerance is 0.01 px.
 """
 from __future__ import annotations
 

@@ -1,0 +1,268 @@
+"""The ``modbus`` reject output against a real pymodbus server (the PLC simulator) on 127.0.0.1.
+
+Timing tolerance: a write must reach the PLC within TOL_S = 100 ms of its due time (part
+timestamp + delay). On this 2-core machine, loaded, the measured lateness is a few ms.
+"""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import time
+
+import pytest
+
+from core.types import Alarm, OutputEvent, PartResult, Status, Verdict
+from drivers import plc_sim
+from plugins.modbus_output import ModbusOutput, ModbusSettings
+
+TOL_S = 0.100
+HOST = "127.0.0.1"
+
+
+def part(i: int, status: Status = Status.REJECT, t: float | None = None) -> PartResult:
+    return PartResult(f"P{i:04d}", f"{i:06d}", i, time.time() if t is None else t, Verdict(status))
+
+
+def output(port: int, **settings) -> ModbusOutput:
+    base = {"host": HOST, "port": port, "delay_ms": 300, "timeout_ms": 150, "reconnect_min_ms": 50,
+            "reconnect_max_ms": 200, "on_reject": {"write": "coil", "address": 0, "pulse_ms": 60}}
+    base.update(settings)
+    return ModbusOutput(ModbusSettings.model_validate(base))
+
+
+def events_of(events, kind=OutputEvent):
+    return [e for e in events if isinstance(e, kind)]
+
+
+@pytest.fixture
+def port() -> int:
+    return plc_sim.free_port()
+
+
+@pytest.fixture
+def sim(port):
+    lines: list[str] = []
+    s = plc_sim.serve_in_thread(HOST, port, on_change=lines.append)
+    s.lines = lines
+    yield s
+    s.stop()
+
+
+def coil_on_times(sim, address: int = 0) -> list[float]:
+    return [w.timestamp for w in sim.writes if w.table == "coil" and w.address == address and w.value == 1]
+
+
+def test_every_reject_arrives_as_a_coil_pulse_at_its_delay_in_order(sim, port):
+    out = output(port, on_pass={"write": "register", "address": 10, "value": 7})
+    statuses = [Status.REJECT, Status.PASS, Status.REJECT, Status.ERROR, Status.PASS, Status.REJECT]
+    parts = []
+    for i, status in enumerate(statuses):
+        parts.append(part(i, status))
+        out.submit(parts[-1])
+        time.sleep(0.1)
+    events = out.poll() + out.close(timeout_s=3)
+    rejects = [p for p in parts if p.verdict.status.rejects]
+    on = coil_on_times(sim)
+    assert len(on) == len(rejects)
+    for t, p in zip(on, rejects):
+        assert abs(t - (p.timestamp + 0.3)) < TOL_S, f"{p.part_id}: {t - p.timestamp - 0.3:+.3f} s"
+    offs = [w for w in sim.writes if w.table == "coil" and w.address == 0 and w.value == 0]
+    assert len(offs) == len(rejects)
+    for t_on, off in zip(on, offs):
+        assert 0.06 - 0.02 < off.timestamp - t_on < 0.06 + TOL_S
+    passes = [w for w in sim.writes if w.table == "register" and w.address == 10]
+    assert [w.value for w in passes] == [7, 7]
+    delivered = [e for e in events_of(events) if e.outcome == "delivered" and "(pulse " in e.command]
+    assert [e.part_id for e in delivered] == [p.part_id for p in rejects]
+    assert delivered[0].command == "write_coil 0 = 1 unit 1 (pulse 60 ms)"
+    assert not events_of(events, Alarm)
+    assert sim.coil(0) == 0
+    assert any(line.endswith("coil 0 -> 1") for line in sim.lines)
+
+
+def test_delay_from_actuator_distance_and_belt_speed(sim, port):
+    out = output(port, delay_ms=None, actuator_distance_mm=100, conveyor_speed_mm_s=400,
+                 on_reject={"write": "register", "address": 3, "value": 42})
+    p = part(1)
+    out.submit(p)
+    events = out.close(timeout_s=2)
+    writes = [w for w in sim.writes if w.table == "register" and w.address == 3]
+    assert [w.value for w in writes] == [42]
+    assert abs(writes[0].timestamp - (p.timestamp + 0.25)) < TOL_S
+    assert [e.outcome for e in events_of(events)] == ["delivered"]
+    assert events_of(events)[0].command == "write_register 3 = 42 unit 1"
+
+
+def test_unit_id_ready_coil_and_heartbeat(sim, port):
+    out = output(port, unit=3, ready_coil=5, heartbeat={"address": 100, "period_ms": 100})
+    time.sleep(0.45)
+    assert sim.coil(5, unit=3) == 1
+    assert sim.register(100, unit=3) >= 2
+    out.submit(part(1))
+    events = out.close(timeout_s=2)
+    assert sim.coil(5, unit=3) == 0
+    commands = [e.command for e in events_of(events)]
+    assert "write_coil 5 = 0 unit 3 (system stopped)" in commands
+    assert "write_coil 0 = 1 unit 3 (pulse 60 ms)" in commands
+
+
+def test_plc_down_at_start_then_up_before_due(port):
+    out = output(port, delay_ms=600)
+    p = part(1)
+    out.submit(p)
+    time.sleep(0.25)
+    assert not out.scheduler.connected
+    sim = plc_sim.serve_in_thread(HOST, port, on_change=None)
+    try:
+        events = out.close(timeout_s=3)
+    finally:
+        sim.stop()
+    on = coil_on_times(sim)
+    assert len(on) == 1 and abs(on[0] - (p.timestamp + 0.6)) < TOL_S
+    outcomes = [(e.command, e.outcome) for e in events_of(events)]
+    assert ("connect", "failed") in outcomes and ("connect", "delivered") in outcomes
+    assert not events_of(events, Alarm)
+
+
+def test_plc_never_there_every_reject_is_an_alarm(port):
+    out = output(port, delay_ms=100, max_late_ms=100)
+    parts = [part(i) for i in range(3)]
+    for p in parts:
+        out.submit(p)
+    started = time.monotonic()
+    events = out.poll() + out.close(timeout_s=2)
+    assert time.monotonic() - started < 1.5
+    alarms = events_of(events, Alarm)
+    assert [a.part_id for a in alarms] == [p.part_id for p in parts]
+    assert all("cannot connect to the PLC at 127.0.0.1" in a.message for a in alarms)
+    alarm_events = [e for e in events_of(events) if e.outcome == "alarm"]
+    assert [e.part_id for e in alarm_events] == [p.part_id for p in parts]
+
+
+def test_plc_killed_mid_run_and_restarted(port):
+    """Parts every 80 ms for 1.6 s; the PLC is stopped after 0.5 s and back at 0.9 s. Every reject
+    is delivered (on time) or alarmed, in order, and the output reconnects by itself."""
+    sims = [plc_sim.serve_in_thread(HOST, port, on_change=None)]
+    out = output(port, delay_ms=150, max_late_ms=100)
+    parts = []
+    start = time.monotonic()
+    restarted = killed = False
+    while time.monotonic() - start < 1.6:
+        parts.append(part(len(parts)))
+        out.submit(parts[-1])
+        elapsed = time.monotonic() - start
+        if elapsed > 0.5 and not killed:
+            sims[0].stop()
+            killed = True
+        if elapsed > 0.9 and not restarted:
+            sims.append(plc_sim.serve_in_thread(HOST, port, on_change=None))
+            restarted = True
+        time.sleep(0.08)
+    events = out.close(timeout_s=3)
+    for s in sims:
+        s.stop()
+    by_part: dict[str, str] = {}
+    for e in events_of(events):
+        if e.part_id and "(pulse " in e.command and e.outcome in ("delivered", "alarm"):
+            by_part[e.part_id] = e.outcome
+    assert set(by_part) == {p.part_id for p in parts}, "a reject vanished"
+    alarmed = {a.part_id for a in events_of(events, Alarm)}
+    assert alarmed == {k for k, v in by_part.items() if v == "alarm"}
+    assert alarmed, "the outage should have cost some rejects"
+    delivered = [p for p in parts if by_part[p.part_id] == "delivered"]
+    assert len(delivered) >= len(parts) // 2
+    on = sorted(coil_on_times(sims[0]) + coil_on_times(sims[1]))
+    assert len(on) >= len(delivered)
+    assert by_part[parts[-1].part_id] == "delivered", "the output did not reconnect"
+    ons_after = coil_on_times(sims[1])
+    late_parts = [p for p in delivered if p.timestamp + 0.15 >= ons_after[0] - TOL_S]
+    for p, t in zip(late_parts, ons_after):
+        assert abs(t - (p.timestamp + 0.15)) < TOL_S
+
+
+def test_slow_plc_alarms_then_recovers(sim, port):
+    sim.set_delay(0.4)
+    out = output(port, delay_ms=50, timeout_ms=150, max_late_ms=100)
+    slow = part(1)
+    out.submit(slow)
+    time.sleep(0.6)
+    sim.set_delay(0.0)
+    fast = part(2)
+    out.submit(fast)
+    events = out.poll() + out.close(timeout_s=2)
+    alarms = events_of(events, Alarm)
+    assert [a.part_id for a in alarms] == [slow.part_id]
+    fails = [e for e in events_of(events) if e.part_id == slow.part_id and e.outcome == "failed"]
+    assert fails and "No response" in fails[0].detail
+    ok = [e for e in events_of(events) if e.part_id == fast.part_id and "(pulse " in e.command]
+    assert [e.outcome for e in ok] == ["delivered"]
+
+
+def test_close_waits_for_rejects_not_yet_due(sim, port):
+    out = output(port, delay_ms=400)
+    p = part(1)
+    out.submit(p)
+    events = out.close(timeout_s=2)
+    assert [e.outcome for e in events_of(events) if "(pulse " in e.command] == ["delivered"]
+    out2 = output(port, delay_ms=2000)
+    out2.submit(part(2))
+    events = out2.close(timeout_s=0.2)
+    assert [a.part_id for a in events_of(events, Alarm)] == ["P0002"]
+    assert "output closed" in events_of(events, Alarm)[0].message
+
+
+def test_settings_are_checked():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="either delay_ms or actuator_distance_mm"):
+        ModbusSettings.model_validate({"delay_ms": 10, "actuator_distance_mm": 100, "conveyor_speed_mm_s": 10})
+    with pytest.raises(ValidationError, match="go together"):
+        ModbusSettings.model_validate({"actuator_distance_mm": 100})
+    with pytest.raises(ValidationError, match="rtu needs serial_port"):
+        ModbusSettings.model_validate({"transport": "rtu"})
+    with pytest.raises(ValidationError, match="Extra inputs"):
+        ModbusSettings.model_validate({"hots": "plc"})
+    with pytest.raises(ValidationError, match="pulse_ms applies to a coil"):
+        ModbusSettings.model_validate({"on_reject": {"write": "register", "address": 1, "pulse_ms": 10}})
+
+
+def test_registered_as_output_plugin():
+    from core.registry import default_registry
+
+    plugin = default_registry().get("output", "modbus")
+    assert plugin.spec.settings_model is ModbusSettings
+
+
+# ------------------------------------------------------------------ Modbus RTU over a pty pair
+@pytest.fixture
+def pty_pair(tmp_path):
+    if shutil.which("socat") is None:
+        pytest.skip("socat not installed (apt-get install socat)")
+    a, b = tmp_path / "ttyA", tmp_path / "ttyB"
+    proc = subprocess.Popen(["socat", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 5
+    while not (a.exists() and b.exists()) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    yield str(a), str(b)
+    proc.terminate()
+    proc.wait(5)
+
+
+def test_modbus_rtu_over_a_serial_line(pty_pair):
+    plc_end, our_end = pty_pair
+    sim = plc_sim.serve_rtu_in_thread(plc_end, on_change=None, baudrate=38400)
+    try:
+        out = ModbusOutput(ModbusSettings.model_validate({
+            "transport": "rtu", "serial_port": our_end, "baudrate": 38400, "unit": 2, "delay_ms": 200,
+            "timeout_ms": 300, "on_reject": {"write": "coil", "address": 4, "pulse_ms": 80}}))
+        p = part(1)
+        out.submit(p)
+        events = out.close(timeout_s=3)
+    finally:
+        sim.stop()
+    on = [w for w in sim.writes if w.table == "coil" and w.address == 4]
+    assert [w.value for w in on] == [1, 0]
+    assert abs(on[0].timestamp - (p.timestamp + 0.2)) < TOL_S
+    assert [e.outcome for e in events_of(events)] == ["delivered", "delivered"]
+    assert not events_of(events, Alarm)

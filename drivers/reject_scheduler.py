@@ -252,8 +252,9 @@ class RejectScheduler:
         while True:
             now = time.monotonic()
             if now > job.deadline:
-                why = (f"not sent by its deadline ({self.max_late_s * 1000:.0f} ms after due): "
-                       f"{self._last_connect_error or 'link busy'}")
+                cause = ("earlier commands kept the link busy" if self._connected
+                         else self._last_connect_error or "link down")
+                why = f"not sent by its deadline ({self.max_late_s * 1000:.0f} ms after due): {cause}"
                 with self._cond:
                     self._alarm_locked(job, time.time(), why)
                 return
@@ -269,6 +270,7 @@ class RejectScheduler:
                 if not self._connected:
                     continue
             job.attempts += 1
+            started = time.monotonic()
             try:
                 detail = self.link.send(job.command.payload)
             except (LinkError, OSError) as exc:
@@ -279,14 +281,15 @@ class RejectScheduler:
                 self._lost(exc)
                 continue
             done = time.monotonic()
-            late = done - job.due
+            late = started - job.due  # when the command went out; the answer may take a little longer
             with self._cond:
-                if done > job.deadline:
+                if started > job.deadline:
                     why = f"sent {late * 1000:.0f} ms after its due time (limit {self.max_late_s * 1000:.0f} ms)"
                     self._alarm_locked(job, time.time(), why)
                 else:
                     self._records.append(Record(job.key, job.command.text, "delivered", time.time(),
-                                                f"{late * 1000:+.0f} ms vs due" + (f"; {detail}" if detail else ""), late_s=late))
+                                                f"sent {late * 1000:+.0f} ms vs due, confirmed after {(done - started) * 1000:.0f} ms"
+                                                + (f"; {detail}" if detail else ""), late_s=late))
                 if job.command.follow_up is not None:
                     follow = job.command.follow_up
                     due = done + job.command.follow_up_after_s

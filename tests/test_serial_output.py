@@ -1,0 +1,156 @@
+"""The ``serial`` reject output over a real serial line: a socat pty pair with a peer that
+acknowledges, and pyserial's ``loop://``. Timing tolerance: TOL_S = 100 ms after the due time."""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import threading
+import time
+
+import pytest
+import serial
+
+from core.types import Alarm, OutputEvent, PartResult, Status, Verdict
+from plugins.serial_output import SerialOutput, SerialSettings
+
+TOL_S = 0.100
+
+
+def part(i: int, status: Status = Status.REJECT) -> PartResult:
+    return PartResult(f"P{i:04d}", f"{i:06d}", i, time.time(), Verdict(status))
+
+
+def make(port: str, **settings) -> SerialOutput:
+    base = {"port": port, "baudrate": 115200, "delay_ms": 200, "reconnect_min_ms": 50, "reconnect_max_ms": 200}
+    base.update(settings)
+    return SerialOutput(SerialSettings.model_validate(base))
+
+
+@pytest.fixture
+def pty_pair(tmp_path):
+    if shutil.which("socat") is None:
+        pytest.skip("socat not installed (apt-get install socat)")
+    a, b = tmp_path / "ttyA", tmp_path / "ttyB"
+    proc = subprocess.Popen(["socat", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 5
+    while not (a.exists() and b.exists()) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    yield str(a), str(b)
+    proc.terminate()
+    proc.wait(5)
+
+
+class Peer(threading.Thread):
+    """The PLC end of the line: records each line with its arrival time; acknowledges if asked."""
+
+    def __init__(self, path: str, ack: str | None = "ACK {id}", ignore: set[str] = frozenset()):
+        super().__init__(daemon=True)
+        self.port = serial.Serial(path, 115200, timeout=0.05)
+        self.ack, self.ignore = ack, ignore
+        self.lines: list[tuple[float, str]] = []
+        self.running = True
+        self.start()
+
+    def run(self) -> None:
+        buffer = b""
+        while self.running:
+            buffer += self.port.read(self.port.in_waiting or 1)
+            while b"\n" in buffer:
+                raw, buffer = buffer.split(b"\n", 1)
+                line = raw.decode().strip()
+                self.lines.append((time.time(), line))
+                part_id = line.split()[-1]
+                if self.ack and part_id not in self.ignore:
+                    self.port.write((self.ack.format(id=part_id) + "\n").encode())
+
+    def stop(self) -> None:
+        self.running = False
+        self.join(2)
+        self.port.close()
+
+
+def test_reject_lines_arrive_in_order_at_their_delay_and_are_acknowledged(pty_pair):
+    plc_end, our_end = pty_pair
+    peer = Peer(plc_end)
+    try:
+        out = make(our_end, ack_format="ACK {part_id}", pass_format="PASS {part_id}")
+        parts = [part(i, Status.PASS if i == 2 else Status.REJECT) for i in range(4)]
+        for p in parts:
+            out.submit(p)
+            time.sleep(0.08)
+        events = out.close(timeout_s=3)
+    finally:
+        peer.stop()
+    assert [line for _, line in peer.lines] == ["REJECT P0000", "REJECT P0001", "PASS P0002", "REJECT P0003"], events
+    for (t, _), p in zip(peer.lines, parts):
+        assert 0 <= t - (p.timestamp + 0.2) < TOL_S
+    outputs = [e for e in events if isinstance(e, OutputEvent)]
+    assert [e.outcome for e in outputs] == ["delivered"] * 4
+    assert outputs[0].command == "serial 'REJECT P0000' (ack 'ACK P0000')"
+    assert outputs[0].detail.endswith("ack 'ACK P0000'")
+    assert not [e for e in events if isinstance(e, Alarm)]
+
+
+def test_missing_acknowledgement_is_an_alarm(pty_pair):
+    plc_end, our_end = pty_pair
+    peer = Peer(plc_end, ignore={"P0001"})
+    try:
+        out = make(our_end, ack_format="ACK {part_id}", ack_timeout_ms=60, max_late_ms=150)
+        parts = [part(0), part(1)]
+        for p in parts:
+            out.submit(p)
+        time.sleep(0.02)
+        events = out.close(timeout_s=3)
+    finally:
+        peer.stop()
+    alarms = [e for e in events if isinstance(e, Alarm)]
+    assert [a.part_id for a in alarms] == ["P0001"]
+    assert "no acknowledgement 'ACK P0001'" in alarms[0].message
+    failed = [e for e in events if isinstance(e, OutputEvent) and e.outcome == "failed"]
+    assert failed and all(e.part_id == "P0001" for e in failed)
+
+
+def test_port_missing_at_start_then_present(tmp_path):
+    """The serial adapter is unplugged at start: reconnect with back-off, deliver once it is there."""
+    if shutil.which("socat") is None:
+        pytest.skip("socat not installed")
+    a, b = tmp_path / "ttyA", tmp_path / "ttyB"
+    out = make(str(b), delay_ms=500)
+    p = part(0)
+    out.submit(p)
+    time.sleep(0.15)
+    proc = subprocess.Popen(["socat", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        while not a.exists():
+            time.sleep(0.02)
+        peer = Peer(str(a), ack=None)
+        events = out.close(timeout_s=3)
+        time.sleep(0.1)
+        peer.stop()
+    finally:
+        proc.terminate()
+        proc.wait(5)
+    assert [line for _, line in peer.lines] == ["REJECT P0000"]
+    assert abs(peer.lines[0][0] - (p.timestamp + 0.5)) < TOL_S
+    outcomes = [(e.command, e.outcome) for e in events if isinstance(e, OutputEvent)]
+    assert ("connect", "failed") in outcomes and outcomes[-1] == ("serial 'REJECT P0000'", "delivered")
+
+
+def test_loop_url_echo_counts_as_acknowledgement():
+    out = make("loop://", delay_ms=0, ack_format="REJECT {part_id}", reject_format="REJECT {part_id}")
+    out.submit(part(7))
+    events = out.close(timeout_s=2)
+    assert [(e.outcome, e.part_id) for e in events if isinstance(e, OutputEvent)] == [("delivered", "P0007")]
+
+
+def test_settings_are_checked():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="unknown field"):
+        SerialSettings.model_validate({"port": "loop://", "reject_format": "REJECT {partid}"})
+    with pytest.raises(ValidationError, match="Field required"):
+        SerialSettings.model_validate({})
+    with pytest.raises(ValidationError, match="Extra inputs"):
+        SerialSettings.model_validate({"port": "loop://", "baud": 9600})

@@ -100,7 +100,8 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
     )
     console.print(f"results: {loaded.resolve(loaded.recipe.results.path)}", markup=False)
     if summary.exit_code == engine.EXIT_ALARMS:
-        console.print("exit 4: alarms were raised (see above and the results store)", style="bold red", markup=False)
+        console.print("exit 4: alarms were raised (see above and the results store); no PLC on this machine? "
+                      "run `inspect plc-sim` beside it or pass --plc-sim", style="bold red", markup=False)
     elif summary.exit_code == engine.EXIT_PART_ERRORS:
         console.print("exit 3: some parts could not be inspected and were rejected as errors", style="yellow", markup=False)
     sys.exit(summary.exit_code)

@@ -1,0 +1,94 @@
+"""The whole loop with the ``modbus`` output: synthetic plates -> engine -> PLC simulator, and
+what lands in the results store. The example detector is registered in-process (as in test_engine)."""
+from __future__ import annotations
+
+import sqlite3
+
+import pytest
+import stereo_inspect_fixed_roi
+from conftest import write_recipe
+
+from core import engine
+from core.recipe import load_recipe
+from core.registry import Registry, make_manager
+from core.types import Status
+from drivers import plc_sim
+
+RECIPE = """\
+name: modbus-line
+camera:
+  plugin: replay
+  settings: {{path: seq}}
+stereo:
+  backend: opencv_sgbm
+  working_distance_mm: [300, 600]
+  schedule: every_frame
+detector:
+  plugin: fixed_roi
+  settings:
+    regions:
+      - {{name: pit, box: {box}}}
+decision:
+  rules:
+    - {{class: any, quantity: deviation_mm, op: ">", threshold: 1.5}}
+outputs:
+  - plugin: modbus
+    settings:
+      host: 127.0.0.1
+      port: {port}
+      delay_ms: 150
+      timeout_ms: 150
+      max_late_ms: 100
+      reconnect_min_ms: 50
+      reconnect_max_ms: 200
+      on_reject: {{write: coil, address: 0, pulse_ms: 50}}
+      on_pass: {{write: register, address: 10, value: 1}}
+results:
+  path: results
+  save_images: none
+"""
+
+
+@pytest.fixture
+def registry():
+    import plugins.modbus_output
+
+    return Registry(make_manager((stereo_inspect_fixed_roi, plugins.modbus_output)))
+
+
+def _run(tmp_path, registry, info, port):
+    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], port=port))
+    loaded = load_recipe(path, registry=registry)
+    seen = []
+    summary = engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    return summary, [o.part for o in seen], db
+
+
+def test_each_rejected_plate_pulses_the_coil_and_is_recorded(tmp_path, plane_sequence, registry):
+    info = plane_sequence([3.0, 0.0, 3.0, 0.0])
+    port = plc_sim.free_port()
+    with plc_sim.serve_in_thread("127.0.0.1", port, on_change=None) as sim:
+        summary, parts, db = _run(tmp_path, registry, info, port)
+    rejected = [p.part_id for p in parts if p.verdict.status.rejects]
+    assert [p.verdict.status for p in parts] == [Status.REJECT, Status.PASS, Status.REJECT, Status.PASS]
+    pulses = [w.value for w in sim.writes if w.table == "coil" and w.address == 0]
+    assert pulses.count(1) == pulses.count(0) == len(rejected) and pulses[-1] == 0 and sim.coil(0) == 0
+    assert [w.value for w in sim.writes if w.table == "register" and w.address == 10] == [1, 1]
+    assert summary.exit_code == 0 and not summary.alarms
+    rows = db.execute("SELECT part_id, command, outcome FROM output_events WHERE command LIKE '%(pulse%'"
+                      " ORDER BY id").fetchall()
+    assert [(r[0], r[2]) for r in rows] == [(pid, "delivered") for pid in rejected]
+
+
+def test_plc_unreachable_alarms_every_reject_and_fails_the_run(tmp_path, plane_sequence, registry):
+    info = plane_sequence([3.0, 0.0])
+    port = plc_sim.free_port()  # nothing listens there
+    summary, parts, db = _run(tmp_path, registry, info, port)
+    assert summary.exit_code != 0
+    assert {a.part_id for a in summary.alarms} == {p.part_id for p in parts}
+    stored = db.execute("SELECT part_id, message FROM alarms ORDER BY id").fetchall()
+    assert {r[0] for r in stored} == {p.part_id for p in parts}
+    assert all("cannot connect to the PLC" in r[1] for r in stored)
+    outcomes = db.execute("SELECT part_id, outcome FROM output_events WHERE part_id IS NOT NULL").fetchall()
+    assert {(pid, "alarm") for pid in (p.part_id for p in parts)} <= set(outcomes)

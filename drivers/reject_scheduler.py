@@ -72,6 +72,7 @@ class _Job:
     command: Command = field(compare=False)
     kind: str = field(compare=False, default="part")  # part | follow-up | heartbeat
     attempts: int = field(compare=False, default=0)
+    submitted: float = field(compare=False, default_factory=time.monotonic)
 
 
 class RejectScheduler:
@@ -252,8 +253,13 @@ class RejectScheduler:
         while True:
             now = time.monotonic()
             if now > job.deadline:
-                cause = ("earlier commands kept the link busy" if self._connected
-                         else self._last_connect_error or "link down")
+                if job.submitted > job.deadline:
+                    cause = (f"handed over {(job.submitted - job.due) * 1000:.0f} ms after its due time "
+                             "(inspection took longer than the delay to the actuator)")
+                elif self._connected:
+                    cause = "earlier commands kept the link busy"
+                else:
+                    cause = self._last_connect_error or "link down"
                 why = f"not sent by its deadline ({self.max_late_s * 1000:.0f} ms after due): {cause}"
                 with self._cond:
                     self._alarm_locked(job, time.time(), why)

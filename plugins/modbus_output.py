@@ -10,7 +10,7 @@ Recipe example::
           host: 127.0.0.1
           port: 5020
           unit: 1
-          on_reject: {write: coil, address: 0, pulse_ms: 200}
+          on_reject: {write: coil, address: 0, pulse_ms: 200}   # or {write: counter, address: 20}
           on_pass: null             # or e.g. {write: register, address: 10, value: 1}
           actuator_distance_mm: 600 # or delay_ms: 1500
           conveyor_speed_mm_s: 400
@@ -34,11 +34,13 @@ from plugins.reject_timing import ScheduledOutput, TimingSettings
 
 class WriteAction(BaseModel):
     """``coil``: set the coil to ``value`` (1), and back after ``pulse_ms`` when given;
-    ``register``: write ``value`` into the holding register."""
+    ``register``: write ``value`` into the holding register;
+    ``counter``: write 1, 2, 3, ... (mod 65536) into the holding register, one step per part, so that
+    the PLC sees every part even when parts come closer together than a coil pulse."""
 
     model_config = ConfigDict(extra="forbid")
 
-    write: Literal["coil", "register"] = "coil"
+    write: Literal["coil", "register", "counter"] = "coil"
     address: int = Field(0, ge=0, le=65535)
     value: int = Field(1, ge=0, le=65535)
     pulse_ms: float | None = Field(None, gt=0, description="coil only: reset the coil after this long")
@@ -47,7 +49,7 @@ class WriteAction(BaseModel):
     def _check(self):
         if self.write == "coil" and self.value not in (0, 1):
             raise ValueError("a coil value is 0 or 1")
-        if self.write == "register" and self.pulse_ms is not None:
+        if self.write != "coil" and self.pulse_ms is not None:
             raise ValueError("pulse_ms applies to a coil")
         return self
 
@@ -81,7 +83,10 @@ class ModbusSettings(TimingSettings):
         return self
 
 
-def make_command(action: WriteAction, unit: int) -> Command:
+def make_command(action: WriteAction, unit: int, count: int = 0) -> Command:
+    if action.write == "counter":
+        write = ModbusWrite("register", action.address, count & 0xFFFF, unit)
+        return Command(write, f"{write.describe()} (part counter)")
     write = ModbusWrite(action.write, action.address, action.value, unit)
     if action.write == "coil" and action.pulse_ms:
         release = ModbusWrite("coil", action.address, 1 - action.value, unit)
@@ -118,11 +123,15 @@ class ModbusOutput(ScheduledOutput):
             heartbeat_period_s=(settings.heartbeat.period_ms / 1000.0) if settings.heartbeat else 1.0,
         )
         super().__init__(settings, scheduler)
-        self._reject = make_command(settings.on_reject, unit)
-        self._pass = make_command(settings.on_pass, unit) if settings.on_pass is not None else None
+        self._counts = {"reject": 0, "pass": 0}
 
     def command_for(self, part: PartResult) -> Command | None:
-        return self._reject if part.verdict.status.rejects else self._pass
+        which = "reject" if part.verdict.status.rejects else "pass"
+        action = self.settings.on_reject if which == "reject" else self.settings.on_pass
+        if action is None:
+            return None
+        self._counts[which] += 1
+        return make_command(action, self.settings.unit, self._counts[which])
 
 
 def _factory(settings: dict, ctx: PluginContext) -> ModbusOutput:

@@ -36,7 +36,7 @@ outputs:
     settings:
       host: 127.0.0.1
       port: {port}
-      delay_ms: 150
+      delay_ms: 1000               # inspection of a frame takes up to a few 100 ms here
       timeout_ms: 150
       max_late_ms: 100
       reconnect_min_ms: 50
@@ -73,7 +73,8 @@ def test_each_rejected_plate_pulses_the_coil_and_is_recorded(tmp_path, plane_seq
     rejected = [p.part_id for p in parts if p.verdict.status.rejects]
     assert [p.verdict.status for p in parts] == [Status.REJECT, Status.PASS, Status.REJECT, Status.PASS]
     pulses = [w.value for w in sim.writes if w.table == "coil" and w.address == 0]
-    assert pulses.count(1) == pulses.count(0) == len(rejected) and pulses[-1] == 0 and sim.coil(0) == 0
+    events = db.execute("SELECT part_id, command, outcome, detail FROM output_events ORDER BY id").fetchall()
+    assert pulses.count(1) == pulses.count(0) == len(rejected) and pulses[-1] == 0 and sim.coil(0) == 0, events
     assert [w.value for w in sim.writes if w.table == "register" and w.address == 10] == [1, 1]
     assert summary.exit_code == 0 and not summary.alarms
     rows = db.execute("SELECT part_id, command, outcome FROM output_events WHERE command LIKE '%(pulse%'"

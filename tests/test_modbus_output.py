@@ -93,6 +93,15 @@ def test_delay_from_actuator_distance_and_belt_speed(sim, port):
     assert events_of(events)[0].command == "write_register 3 = 42 unit 1"
 
 
+def test_counter_register_sees_every_reject_even_when_close_together(sim, port):
+    out = output(port, delay_ms=100, on_reject={"write": "counter", "address": 20})
+    for i in range(4):
+        out.submit(part(i))
+    events = out.close(timeout_s=2)
+    assert [w.value for w in sim.writes if w.address == 20] == [1, 2, 3, 4]
+    assert [e.command for e in events_of(events)][0] == "write_register 20 = 1 unit 1 (part counter)"
+
+
 def test_unit_id_ready_coil_and_heartbeat(sim, port):
     out = output(port, unit=3, ready_coil=5, heartbeat={"address": 100, "period_ms": 100})
     time.sleep(0.45)
@@ -196,6 +205,15 @@ def test_slow_plc_alarms_then_recovers(sim, port):
     assert fails and "No response" in fails[0].detail
     ok = [e for e in events_of(events) if e.part_id == fast.part_id and "(pulse " in e.command]
     assert [e.outcome for e in ok] == ["delivered"]
+
+
+def test_part_handed_over_after_its_deadline_is_an_alarm_that_says_why(sim, port):
+    out = output(port, delay_ms=100, max_late_ms=50)
+    out.submit(part(1, t=time.time() - 0.5))  # inspection took 500 ms, the actuator was 100 ms away
+    events = out.close(timeout_s=1)
+    alarms = events_of(events, Alarm)
+    assert len(alarms) == 1 and "inspection took longer than the delay to the actuator" in alarms[0].message
+    assert not coil_on_times(sim)
 
 
 def test_close_waits_for_rejects_not_yet_due(sim, port):

@@ -33,6 +33,12 @@ class DepthRule:
     ring_width_px: int = 12
     min_valid_fraction: float = 0.10
     min_ring_points: int = 30
+    # On every side of the box (top, bottom, left, right) at least this share of the ring must lie
+    # on the fitted plane; otherwise the surroundings are not one surface (a plate edge, the belt)
+    # and a deviation from "the" surface would be meaningless. Checked per side because a plane
+    # slanted across a step can fit most of the ring while missing whole sides of it.
+    min_plane_inliers: float = 0.6
+    plane_tolerance_px: float = 1.0
     disparity_noise_px: float = 0.25
 
 
@@ -89,28 +95,57 @@ def ring_mask(shape: tuple[int, int], box: tuple[float, float, float, float], ga
     return mask
 
 
-def fit_plane_robust(u: np.ndarray, v: np.ndarray, d: np.ndarray, iterations: int = 6) -> Plane | None:
-    """Least-squares plane through (u, v, d), refitted on inliers within 2.5 robust sigmas.
+def fit_plane_robust(
+    u: np.ndarray, v: np.ndarray, d: np.ndarray, tolerance: float = 1.0, trials: int = 128, seed: int = 0
+) -> Plane | None:
+    """Plane through (u, v, d) by RANSAC (points within ``tolerance`` px count), refined by least
+    squares on its inliers. Deterministic (fixed seed). None when no plane can be defined.
 
-    Returns None when the points cannot define a plane (too few or collinear).
+    Why not a MAD-trimmed least squares: with two surfaces in the ring (a plate edge) the residuals
+    are bimodal, the MAD is half the step, and every point passes as an inlier of a blended plane.
     """
-    keep = np.ones(d.shape, dtype=bool)
-    plane = None
-    for _ in range(iterations):
+    n = d.size
+    if n < 3:
+        return None
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, n, size=(trials, 3))
+    systems = np.stack([u[picks], v[picks], np.ones((trials, 3))], axis=-1)
+    solvable = np.abs(np.linalg.det(systems)) > 1e-6
+    if not solvable.any():
+        return None
+    candidates = np.linalg.solve(systems[solvable], d[picks][solvable][..., None])[..., 0]
+    design = np.column_stack([u, v, np.ones(n)])
+    inliers = np.abs(candidates @ design.T - d) <= tolerance
+    keep = inliers[np.argmax(inliers.sum(axis=1))]
+    coeffs = None
+    for _ in range(3):
         if keep.sum() < 3:
-            return plane
-        design = np.column_stack([u[keep], v[keep], np.ones(keep.sum())])
-        coeffs, _, rank, _ = np.linalg.lstsq(design, d[keep], rcond=None)
+            break
+        coeffs, _, rank, _ = np.linalg.lstsq(design[keep], d[keep], rcond=None)
         if rank < 3:
             return None
-        plane = Plane(*map(float, coeffs))
-        residual = d - plane(u, v)
-        sigma = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
-        new_keep = np.abs(residual) <= max(2.5 * sigma, 0.05)
+        new_keep = np.abs(design @ coeffs - d) <= tolerance
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep
-    return plane
+    if coeffs is None:
+        return None
+    return Plane(*map(float, coeffs))
+
+
+def worst_side(
+    plane: Plane, u: np.ndarray, v: np.ndarray, d: np.ndarray, box: tuple[int, int, int, int], tolerance: float
+) -> tuple[str, float]:
+    """The side of the box whose ring pixels fit the plane least, and the share that fits."""
+    x0, y0, x1, y1 = box
+    on_plane = np.abs(plane(u.astype(np.float64), v.astype(np.float64)) - d) <= tolerance
+    top, bottom = v < y0, v >= y1
+    sides = {"top": top, "bottom": bottom, "left": ~top & ~bottom & (u < x0), "right": ~top & ~bottom & (u >= x1)}
+    shares = {name: float(on_plane[m].mean()) for name, m in sides.items() if m.sum() >= 10}
+    if not shares:
+        return "whole", float(on_plane.mean())
+    name = min(shares, key=shares.get)
+    return name, shares[name]
 
 
 def measure_defect(
@@ -140,11 +175,21 @@ def measure_defect(
     rv, ru = np.nonzero(ring)
     plane = None
     if ru.size >= rule.min_ring_points:
-        plane = fit_plane_robust(ru.astype(np.float64), rv.astype(np.float64), disparity[ring].astype(np.float64) + calib.doffs)
+        plane = fit_plane_robust(
+            ru.astype(np.float64), rv.astype(np.float64), disparity[ring].astype(np.float64) + calib.doffs,
+            tolerance=rule.plane_tolerance_px,
+        )
     if plane is None:
         return DefectMeasurement(
             detection, distance, None, valid_fraction, resolution, area,
             note=f"deviation unavailable: {ru.size} valid surface points around the box, {rule.min_ring_points} needed",
+        )
+    side, share = worst_side(plane, ru, rv, disparity[ring] + calib.doffs, _clip_box(detection.box, shape), rule.plane_tolerance_px)
+    if share < rule.min_plane_inliers:
+        return DefectMeasurement(
+            detection, distance, None, valid_fraction, resolution, area,
+            note=f"deviation unavailable: the surface around the box is not one plane "
+            f"(only {share:.0%} of its {side} side fits, {rule.min_plane_inliers:.0%} needed)",
         )
     vv, uu = np.nonzero(valid)
     d_plane = plane((uu + x0).astype(np.float64), (vv + y0).astype(np.float64))

@@ -84,3 +84,13 @@ def test_area_in_square_mm():
     m = _measure(disparity)
     mm_per_px = 400.0 / 350.06
     assert m.area_mm2 == pytest.approx(50 * 50 * mm_per_px**2, rel=0.01)
+
+
+def test_box_on_a_step_has_no_deviation():
+    """A box on the plate's edge: half its ring is the belt 30 mm behind. No single surface."""
+    _, _, disparity = render(CALIB, 400.0)
+    far = CALIB.focal_px * CALIB.baseline_mm / 430.0
+    disparity[:, 160:] = far
+    m = _measure(disparity, box=(140.0, 71.0, 180.0, 121.0))
+    assert m.deviation_mm is None and "not one plane" in m.note
+    assert m.distance_mm is not None

@@ -69,6 +69,8 @@ class DepthSection(Section):
     ring_width_px: int = Field(12, ge=2, le=200)
     min_valid_fraction: float = Field(0.10, ge=0.0, le=1.0)
     min_ring_points: int = Field(30, ge=3)
+    min_plane_inliers: float = Field(0.6, gt=0.0, le=1.0)
+    plane_tolerance_px: float = Field(1.0, gt=0.0)
     disparity_noise_px: float = Field(0.25, gt=0.0)
 
 

@@ -1,0 +1,84 @@
+"""`inspect run recipes/steel_plate.yaml` as `make demo` runs it: the committed NEU-DET weights on
+the committed synthetic sequence, the PLC simulator started in-process, the reject coil pulsed.
+
+Each defect the detector reports is matched to the generator's ground truth (same class or not,
+IoU >= 0.3) and its distance and deviation compared, with the opencv_sgbm tolerances of
+test_sim_fixture_depth.py (1 % and 1.2 mm) plus the difference between a detected box and the
+true one.
+"""
+from __future__ import annotations
+
+import json
+import re
+import socket
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import ROOT, cli
+
+from plugins.yolov8.tiling import box_iou
+
+FIXTURE = ROOT / "sim_fixtures" / "steel_plate"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    results = tmp_path_factory.mktemp("demo") / "results"
+    port = _free_port()
+    out = cli("run", str(ROOT / "recipes" / "steel_plate.yaml"), "--plc-sim",
+              "--set", f"outputs.0.settings.port={port}", "--set", f"results.path={results}",
+              "--set", f"outputs.1.settings.file={results / 'rejects.log'}")
+    return out, results, port
+
+
+def test_demo_runs_and_summarises(demo):
+    out, _, port = demo
+    assert f"nothing listens on 127.0.0.1:{port}: starting the PLC simulator in-process" in out.stdout
+    summary = re.search(r"parts 10  passed (\d+)  rejected (\d+)  errors (\d+)  alarms 0  [\d.]+ frames/s", out.stdout)
+    assert summary, out.stdout + out.stderr
+    # Exit 3 says some parts could not be inspected (and were rejected); otherwise 0.
+    assert out.returncode == (3 if int(summary.group(3)) else 0), out.stdout + out.stderr
+    lines = [l for l in out.stdout.splitlines() if re.match(r"R\d+-\d{6} frame", l)]
+    assert len(lines) == 10
+    for line in lines:
+        if "no defect" not in line:
+            assert re.search(r"Z=\d+\.\dmm dev=[+-]\d+\.\d\dmm", line), line
+
+
+def test_every_reject_pulses_the_plc_coil(demo):
+    out, results, _ = demo
+    # ERROR parts could not be inspected: they are rejected like REJECT parts.
+    rejects = len(re.findall(r"^R\d+-\d{6} frame \d+ (REJECT|ERROR)", out.stdout, re.M))
+    assert out.stdout.count("coil 0 -> 1") == rejects
+    db = sqlite3.connect(results / "results.db")
+    sent = db.execute("SELECT COUNT(*) FROM output_events WHERE output='modbus' AND command LIKE 'write_coil 0 = 1%' AND outcome='delivered'").fetchone()[0]
+    assert sent == rejects
+
+
+def test_measurements_match_ground_truth(demo):
+    _, results, _ = demo
+    db = sqlite3.connect(results / "results.db")
+    matched = 0
+    for frame_id, cls, x0, y0, x1, y1, distance, deviation in db.execute(
+        "SELECT p.frame_id, d.class, d.x0, d.y0, d.x1, d.y1, d.distance_mm, d.deviation_mm FROM defects d JOIN parts p ON p.id = d.part_row"
+    ):
+        truths = json.loads((FIXTURE / "labels" / f"{frame_id}.json").read_text())["defects"]
+        if not truths:
+            continue
+        ious = box_iou(np.array([[x0, y0, x1, y1]]), np.array([t["box"] for t in truths]))[0]
+        best = int(np.argmax(ious))
+        if ious[best] < 0.3:
+            continue
+        truth = truths[best]
+        matched += 1
+        assert distance == pytest.approx(truth["distance_mm"], rel=0.015), (frame_id, cls)
+        assert abs(deviation - truth["deviation_mm"]) <= 1.5, (frame_id, cls, deviation, truth["deviation_mm"])
+    assert matched >= 3

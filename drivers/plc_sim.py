@@ -2,7 +2,7 @@
 
 It keeps 1024 coils, discrete inputs, holding and input registers (addresses 0..1023) for
 every unit id, and reports every coil or register *change* as a line
-``HH:MM:SS.mmm coil 0 -> 1`` (``unit`` is added when it is not 1). Each write is also kept in
+``HH:MM:SS.mmm coil 0 -> 1`` (``unit N`` is added when it is not 1). Each write is also kept in
 ``handle.writes`` so a test can check what arrived and when.
 
 From a Python prompt::
@@ -80,6 +80,12 @@ class PlcState:
         self.registers: dict[tuple[int, int], int] = {}
         self.writes: list[Write] = []
         self.delay_s = 0.0
+        self.last_unit = 0  # unit id of the request being handled (from the server's PDU trace)
+
+    def trace_pdu(self, sending: bool, pdu):
+        if not sending:
+            self.last_unit = int(getattr(pdu, "dev_id", 0) or 0)
+        return pdu
 
     def record(self, unit: int, table: str, address: int, values: list[int]) -> None:
         now = time.time()
@@ -118,11 +124,12 @@ def _build_server_device(state: PlcState, unit_ids: tuple[int, ...] | None):
             if state.delay_s > 0:
                 await asyncio.sleep(state.delay_s)
             if values is not None:
+                unit_id = unit or state.last_unit
                 vals = values if isinstance(values, list) else [values]
                 if function_code in _COIL_WRITES:
-                    state.record(unit, "coil", address, [1 if v else 0 for v in vals])
+                    state.record(unit_id, "coil", address, [1 if v else 0 for v in vals])
                 elif function_code in _REGISTER_WRITES:
-                    state.record(unit, "register", address, [int(v) for v in vals])
+                    state.record(unit_id, "register", address, [int(v) for v in vals])
             return None
 
         return action
@@ -144,11 +151,11 @@ class PlcSimulator:
 
     def coil(self, address: int, unit: int = 1) -> int:
         with self.state.lock:
-            return self.state.coils.get((unit, address), self.state.coils.get((0, address), 0))
+            return self.state.coils.get((unit, address), 0)
 
     def register(self, address: int, unit: int = 1) -> int:
         with self.state.lock:
-            return self.state.registers.get((unit, address), self.state.registers.get((0, address), 0))
+            return self.state.registers.get((unit, address), 0)
 
     def set_delay(self, seconds: float) -> None:
         """Answer every request ``seconds`` late (simulates a slow or overloaded PLC)."""
@@ -197,12 +204,14 @@ def _start(
         servers = []
         try:
             if port is not None:
-                tcp = ModbusTcpServer(_build_server_device(state, unit_ids), address=(host or "127.0.0.1", int(port)))
+                tcp = ModbusTcpServer(_build_server_device(state, unit_ids), address=(host or "127.0.0.1", int(port)),
+                                      trace_pdu=state.trace_pdu)
                 await tcp.serve_forever(background=True)
                 servers.append(tcp)
             if rtu:
                 serial_server = ModbusSerialServer(
-                    _build_server_device(state, unit_ids), port=rtu, baudrate=baudrate, timeout=0.5, reconnect_delay=0.5
+                    _build_server_device(state, unit_ids), port=rtu, baudrate=baudrate, timeout=0.5, reconnect_delay=0.5,
+                    trace_pdu=state.trace_pdu,
                 )
                 await serial_server.serve_forever(background=True)
                 servers.append(serial_server)

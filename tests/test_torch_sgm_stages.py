@@ -42,8 +42,12 @@ def test_census_uses_24_bits_and_counts_hamming_distance():
     bits = cost.census_transform(grey)
     assert bits.shape == (1, 24, 20, 20)
     code = cost.pack_bits(bits)
-    assert torch.equal(cost.popcount(code), bits.sum(1).int())
-    assert cost.popcount(torch.tensor([0, 1, 0xFFFFFF, 0b1011])).tolist() == [0, 1, 24, 3]
+    assert code.shape == (1, 1, 20, 20)
+    assert torch.equal(cost.popcount(code).sum(1), bits.sum(1).int())
+    window = cost.census_transform(grey, cost.window_offsets(4, 3))
+    assert window.shape[1] == 62 and cost.pack_bits(window).shape[1] == 3
+    assert torch.equal(cost.popcount(cost.pack_bits(window)).sum(1), window.sum(1).int())
+    assert cost.popcount(torch.tensor([0, 1, 0xFFFFFF, 0b1011, 2**30 - 1])).tolist() == [0, 1, 24, 3, 30]
 
 
 @pytest.mark.parametrize("which", ["ad", "grad"])

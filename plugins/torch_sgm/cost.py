@@ -75,10 +75,23 @@ def _volume(left: torch.Tensor, right: torch.Tensor, disparities, distance) -> t
     return torch.stack([distance(left, shift_right_image(right, d)) for d in disparities], 1)
 
 
+def window_offsets(radius_x: int, radius_y: int) -> tuple[tuple[int, int], ...]:
+    """Every pixel of a (2ry+1) x (2rx+1) window but the centre, e.g. the 62 bits of a 9x7 census."""
+    return tuple((dy, dx) for dy in range(-radius_y, radius_y + 1) for dx in range(-radius_x, radius_x + 1)
+                 if (dy, dx) != (0, 0))
+
+
+BITS_PER_WORD = 30  # non-negative int32 words keep the shifts in popcount free of sign bits
+
+
 def pack_bits(bits: torch.Tensor) -> torch.Tensor:
-    """(B, K, H, W) bool with K <= 31 -> (B, H, W) int32 code, bit k = channel k."""
-    weights = (2 ** torch.arange(bits.shape[1], device=bits.device, dtype=torch.int32)).view(1, -1, 1, 1)
-    return (bits.to(torch.int32) * weights).sum(1, dtype=torch.int32)
+    """(B, K, H, W) bool -> (B, ceil(K / 30), H, W) int32 words, bit k of the string = bit k % 30 of word k // 30."""
+    words = []
+    for start in range(0, bits.shape[1], BITS_PER_WORD):
+        chunk = bits[:, start: start + BITS_PER_WORD].to(torch.int32)
+        weights = (2 ** torch.arange(chunk.shape[1], device=bits.device, dtype=torch.int32)).view(1, -1, 1, 1)
+        words.append((chunk * weights).sum(1, dtype=torch.int32))
+    return torch.stack(words, 1)
 
 
 def popcount(x: torch.Tensor) -> torch.Tensor:
@@ -86,12 +99,12 @@ def popcount(x: torch.Tensor) -> torch.Tensor:
     x = x - ((x >> 1) & 0x55555555)
     x = (x & 0x33333333) + ((x >> 2) & 0x33333333)
     x = (x + (x >> 4)) & 0x0F0F0F0F
-    return (x + (x >> 8) + (x >> 16)) & 0x3F
+    return (x + (x >> 8) + (x >> 16) + (x >> 24)) & 0x3F
 
 
 def census_cost(left_code: torch.Tensor, right_code: torch.Tensor, disparities) -> torch.Tensor:
-    """Hamming distance between packed census codes (B, H, W) int32 -> (B, D, H, W) float32 bit counts."""
-    return torch.stack([popcount(left_code ^ shift_right_image(right_code, d)).float() for d in disparities], 1)
+    """Hamming distance between packed census strings (B, n_words, H, W) int32 -> (B, D, H, W) float32 bit counts."""
+    return torch.stack([popcount(left_code ^ shift_right_image(right_code, d)).sum(1).float() for d in disparities], 1)
 
 
 def ad_cost(left: torch.Tensor, right: torch.Tensor, disparities) -> torch.Tensor:
@@ -111,10 +124,10 @@ def robust(cost: torch.Tensor, lam: float) -> torch.Tensor:
 
 def fused_cost(left: torch.Tensor, right: torch.Tensor, disparities, *, w_ad: float, w_census: float,
                w_grad: float, lam_ad: float, lam_census: float, lam_grad: float, znorm_radius: int,
-               features: dict | None = None) -> torch.Tensor:
+               features: dict | None = None, census_offsets=STAR_24, znorm_eps: float = 1e-3) -> torch.Tensor:
     """(B, 3, H, W) RGB pair -> (B, D, H, W) fused cost in [0, w_ad + w_census + w_grad).
     ``features`` (from ``cost_features``) avoids recomputing per-image work when called per chunk."""
-    f = features or cost_features(left, right, znorm_radius)
+    f = features or cost_features(left, right, znorm_radius, census_offsets, znorm_eps)
     total = torch.zeros(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
     if w_ad:
         total += w_ad * robust(ad_cost(f["zl"], f["zr"], disparities), lam_ad)
@@ -125,11 +138,13 @@ def fused_cost(left: torch.Tensor, right: torch.Tensor, disparities, *, w_ad: fl
     return total
 
 
-def cost_features(left: torch.Tensor, right: torch.Tensor, znorm_radius: int) -> dict:
+def cost_features(left: torch.Tensor, right: torch.Tensor, znorm_radius: int, census_offsets=STAR_24,
+                  znorm_eps: float = 1e-3) -> dict:
     """The per-image inputs of the three costs, computed once for all disparity chunks."""
     grey_l, grey_r = to_grey(left), to_grey(right)
     return {
-        "zl": zero_normalise(left, znorm_radius), "zr": zero_normalise(right, znorm_radius),
-        "cl": pack_bits(census_transform(grey_l)), "cr": pack_bits(census_transform(grey_r)),
+        "zl": zero_normalise(left, znorm_radius, znorm_eps), "zr": zero_normalise(right, znorm_radius, znorm_eps),
+        "cl": pack_bits(census_transform(grey_l, census_offsets)),
+        "cr": pack_bits(census_transform(grey_r, census_offsets)),
         "gl": horizontal_gradient(grey_l), "gr": horizontal_gradient(grey_r),
     }

@@ -26,6 +26,11 @@ class TorchSGMParams(BaseModel):
     lam_census: float = Field(6.0, gt=0, description="in bits of the 24-bit census string")
     lam_grad: float = Field(0.02, gt=0, description="in normalised Sobel units of [0, 1] intensity")
     znorm_radius: int = Field(3, ge=1, description="window radius of the local zero-normalisation")
+    znorm_eps: float = Field(0.001, gt=0, description="added to the local std; larger = less noise boost in flat areas")
+    census: Literal["star24", "window"] = Field("star24", description="star24: the seed's 24-bit star; "
+                                                "window: every pixel of a (2*census_ry+1)x(2*census_rx+1) window")
+    census_rx: int = Field(4, ge=1, le=7)
+    census_ry: int = Field(3, ge=1, le=7)
     # 2. aggregation
     agg_radius: int = Field(3, ge=0)
     agg_eps: float = Field(0.001, gt=0)
@@ -39,6 +44,9 @@ class TorchSGMParams(BaseModel):
     fill: Literal["none", "background", "left", "right", "nearest"] = "background"
     refine_radius: int = Field(3, ge=0, description="guided-filter refinement radius, 0 = off")
     refine_eps: float = Field(0.001, gt=0)
+    refine_scope: Literal["all", "holes"] = Field("all", description="all: the seed filters the whole map; holes: "
+                                                  "only pixels that failed the LR check, so matched pixels keep "
+                                                  "their sub-pixel value")
     median_radius: int = Field(2, ge=0, description="median over filled pixels, 0 = off")
     # memory
     chunk_disparities: int = Field(32, ge=1, description="disparity slices built and filtered at once")
@@ -61,7 +69,8 @@ def bgr_to_tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
 def cost_volume(left: torch.Tensor, right: torch.Tensor, disparities: list[int], p: TorchSGMParams) -> torch.Tensor:
     """Stages 1 and 2: fused cost, guided-filtered, built ``chunk_disparities`` slices at a time so
     only one chunk's temporaries exist besides the (B, D, H, W) result."""
-    features = cost.cost_features(left, right, p.znorm_radius)
+    offsets = cost.STAR_24 if p.census == "star24" else cost.window_offsets(p.census_rx, p.census_ry)
+    features = cost.cost_features(left, right, p.znorm_radius, offsets, p.znorm_eps)
     guide = cost.to_grey(left)
     volume = torch.empty(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
     for start in range(0, len(disparities), p.chunk_disparities):
@@ -106,7 +115,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         holes = ~consistent
         disp = refine.fill_horizontal(disp, p.fill)
         disp = refine.median_fill(disp, holes, 0)  # the guided filter needs a hole-free map
-        disp = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
+        smooth = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
+        disp = smooth if p.refine_scope == "all" else torch.where(holes, smooth, disp)
         disp = refine.median_fill(disp, holes, p.median_radius)
     disp = disp.clamp(float(min_disp), float(max_disp))
     return disp, consistent

@@ -121,7 +121,7 @@ class RejectScheduler:
         with self._cond:
             if self._closing:
                 self._records.append(Record(key, command.text, "alarm", time.time(), "output already closed",
-                                            alarm=f"{self.name}: {command.text} for {key} not sent: output already closed"))
+                                            alarm=f"{command.text} for {key} not sent: output already closed"))
                 return
             self._push_locked(due, key, command, "part", due + self.max_late_s)
             self._cond.notify_all()
@@ -139,6 +139,12 @@ class RejectScheduler:
     @property
     def connected(self) -> bool:
         return self._connected
+
+    def last_due_in(self) -> float:
+        """Seconds until the last queued command is due (0 when none is waiting)."""
+        with self._cond:
+            dues = [j.due for j in self._queue if j.kind != "heartbeat"]
+        return max(0.0, max(dues) - time.monotonic()) if dues else 0.0
 
     def close(self, timeout_s: float = 10.0) -> list[Record]:
         """Send everything queued (waiting for commands not yet due, up to ``timeout_s``), alarm
@@ -180,7 +186,7 @@ class RejectScheduler:
         heapq.heappush(self._queue, _Job(due, next(self._seq), deadline, key, command, kind))
 
     def _alarm_locked(self, job: _Job, now: float, why: str) -> None:
-        message = f"{self.name}: {job.command.text} for {job.key} {why}" if job.key else f"{self.name}: {job.command.text} {why}"
+        message = f"{job.command.text} for {job.key} {why}" if job.key else f"{job.command.text} {why}"
         self._records.append(Record(job.key, job.command.text, "alarm", now, why, alarm=message))
 
     def _run(self) -> None:

@@ -12,6 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from core.types import Alarm, OutputEvent, PartResult
 from drivers.reject_scheduler import Command, Record, RejectScheduler
 
+MAX_CLOSE_WAIT_S = 120.0
+
 
 class TimingSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -62,7 +64,10 @@ class ScheduledOutput:
         return self._convert(self.scheduler.drain())
 
     def close(self, timeout_s: float = 10.0) -> list[OutputEvent | Alarm]:
-        return self._convert(self.scheduler.close(timeout_s))
+        """Plates still on their way to the actuator get their command: wait at least until the last
+        one is due (plus ``max_late_ms`` and a margin), at most ``MAX_CLOSE_WAIT_S``."""
+        wait = self.scheduler.last_due_in() + self.timing.max_late_ms / 1000.0 + 0.5
+        return self._convert(self.scheduler.close(max(timeout_s, min(wait, MAX_CLOSE_WAIT_S))))
 
     def _convert(self, records: list[Record]) -> list[OutputEvent | Alarm]:
         events: list[OutputEvent | Alarm] = []

@@ -222,11 +222,17 @@ def test_close_waits_for_rejects_not_yet_due(sim, port):
     out.submit(p)
     events = out.close(timeout_s=2)
     assert [e.outcome for e in events_of(events) if "(pulse " in e.command] == ["delivered"]
-    out2 = output(port, delay_ms=2000)
-    out2.submit(part(2))
-    events = out2.close(timeout_s=0.2)
-    assert [a.part_id for a in events_of(events, Alarm)] == ["P0002"]
-    assert "output closed" in events_of(events, Alarm)[0].message
+    out2 = output(port, delay_ms=800)
+    p2 = part(2)
+    out2.submit(p2)
+    events = out2.close(timeout_s=0.1)  # shorter than the delay: the plate on its way still gets its reject
+    assert [e.outcome for e in events_of(events) if "(pulse " in e.command] == ["delivered"]
+    assert abs(coil_on_times(sim)[-1] - (p2.timestamp + 0.8)) < TOL_S
+    out3 = output(port, delay_ms=2000)
+    out3.submit(part(3))
+    events = out3.scheduler.close(timeout_s=0.2)  # the scheduler itself honours its timeout
+    assert [r.key for r in events if r.alarm] == ["P0003"]
+    assert "output closed" in [r.alarm for r in events if r.alarm][0]
 
 
 def test_settings_are_checked():

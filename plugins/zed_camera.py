@@ -63,9 +63,11 @@ class ZedSettings(BaseModel):
     @classmethod
     def _device_path(cls, value: int | str, info: ValidationInfo) -> int | str:
         device = parse_device(value)
-        if isinstance(device, str) and is_file_source(device) and not Path(device).expanduser().is_absolute():
+        path = Path(device).expanduser() if isinstance(device, str) else None
+        # a recorded video given relative to the recipe (an SDK serial such as SN11338 stays as it is)
+        if path is not None and is_file_source(device) and path.suffix and not path.is_absolute():
             base = Path((info.context or {}).get("recipe_dir", "."))
-            return str((base / Path(device).expanduser()).resolve())
+            return str((base / path).resolve())
         return device
 
     @model_validator(mode="after")

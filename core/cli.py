@@ -5,9 +5,9 @@ import sys
 
 import click
 
-from core.commands import hardware, inspection, sim, stereo
+from core.commands import bench, hardware, inspection, sim, stereo
 
-BUILTIN_COMMAND_MODULES = (inspection, stereo, hardware, sim)
+BUILTIN_COMMAND_MODULES = (inspection, bench, stereo, hardware, sim)
 
 
 @click.group()

@@ -55,3 +55,15 @@ def test_boxes_are_in_frame_coordinates(untrained_weights, tile_size):
 def test_missing_weights_file_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.pt: detector weights not found"):
         _detector(tmp_path / "nope.pt")
+
+
+def test_detection_leaves_torch_thread_count_alone(untrained_weights):
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        _detector(untrained_weights, tile_size=None, imgsz=64).detect(np.zeros((64, 64, 3), np.uint8))
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

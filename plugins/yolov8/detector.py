@@ -43,10 +43,18 @@ class YoloDetector:
         self.device = device
 
     def _predict(self, images: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        import torch
+
         s = self.settings
-        results = self.model.predict(
-            images, imgsz=s.imgsz, conf=s.confidence, iou=s.iou, device=self.device, verbose=False, max_det=s.max_det
-        )
+        # ultralytics sets torch to cpu_count - 1 threads when it sets up on a CPU (1 on a 2-core
+        # machine), which would halve every torch stage after it; keep the process's setting.
+        threads = torch.get_num_threads()
+        try:
+            results = self.model.predict(
+                images, imgsz=s.imgsz, conf=s.confidence, iou=s.iou, device=self.device, verbose=False, max_det=s.max_det
+            )
+        finally:
+            torch.set_num_threads(threads)
         out = []
         for r in results:
             b = r.boxes

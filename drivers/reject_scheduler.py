@@ -155,9 +155,10 @@ class RejectScheduler:
             self._queue = [j for j in self._queue if j.kind != "heartbeat"]
             heapq.heapify(self._queue)
             self._cond.notify_all()
-            while (self._queue or self._inflight) and time.monotonic() < end and self._thread.is_alive():
+            while self._busy_locked() and time.monotonic() < end and self._thread.is_alive():
                 self._cond.wait(min(0.05, max(0.0, end - time.monotonic())))
-            leftover, self._queue = self._queue, []
+            leftover = [j for j in self._queue if j.kind != "heartbeat"]
+            self._queue = []
             self._stop = True
             self._cond.notify_all()
             now = time.time()
@@ -168,7 +169,7 @@ class RejectScheduler:
             try:
                 self.link.send(self.on_close.payload)
                 self._records.append(Record(None, self.on_close.text, "delivered", time.time()))
-            except (LinkError, OSError) as exc:
+            except Exception as exc:
                 self._records.append(Record(None, self.on_close.text, "failed", time.time(), str(exc)))
         try:
             self.link.close()
@@ -178,6 +179,11 @@ class RejectScheduler:
         return self.drain()
 
     # ----------------------------------------------------------------- worker
+    def _busy_locked(self) -> bool:
+        if self._inflight is not None and self._inflight.kind != "heartbeat":
+            return True
+        return any(j.kind != "heartbeat" for j in self._queue)
+
     def _push(self, due: float, key, command: Command, kind: str, deadline: float) -> None:
         with self._cond:
             self._push_locked(due, key, command, kind, deadline)
@@ -220,7 +226,7 @@ class RejectScheduler:
     def _try_connect(self) -> None:
         try:
             self.link.connect()
-        except (LinkError, OSError) as exc:
+        except Exception as exc:  # LinkError, OSError, or anything a library raises: keep the worker alive
             self._last_connect_error = str(exc) or exc.__class__.__name__
             self._next_connect = time.monotonic() + self._backoff
             self._backoff = min(self.reconnect_max_s, self._backoff * 2)
@@ -240,7 +246,7 @@ class RejectScheduler:
                 detail = self.link.send(self.on_connect.payload)
                 with self._cond:
                     self._records.append(Record(None, self.on_connect.text, "delivered", time.time(), detail or ""))
-            except (LinkError, OSError) as exc:
+            except Exception as exc:
                 self._lost(exc)
 
     def _lost(self, exc: Exception) -> None:
@@ -285,7 +291,7 @@ class RejectScheduler:
             started = time.monotonic()
             try:
                 detail = self.link.send(job.command.payload)
-            except (LinkError, OSError) as exc:
+            except Exception as exc:  # LinkError, OSError, or a library's own: retried until the deadline
                 if self.record_failures:
                     with self._cond:
                         self._records.append(Record(job.key, job.command.text, "failed", time.time(),
@@ -314,9 +320,10 @@ class RejectScheduler:
         if self._connected and not self._closing:
             try:
                 self.link.send(job.command.payload)
-            except (LinkError, OSError) as exc:
+            except Exception as exc:
                 self._lost(exc)
-        if not self._closing and self.heartbeat is not None:
-            self._beat += 1
-            self._push(time.monotonic() + self.heartbeat_period_s, None, self.heartbeat(self._beat), "heartbeat",
-                       float("inf"))
+        with self._cond:
+            if not self._closing and self.heartbeat is not None:
+                self._beat += 1
+                self._push_locked(time.monotonic() + self.heartbeat_period_s, None, self.heartbeat(self._beat),
+                                  "heartbeat", float("inf"))

@@ -1,0 +1,62 @@
+"""``drivers.reject_scheduler`` on its own, with a small in-process link (a list with a clock)."""
+from __future__ import annotations
+
+import time
+
+from drivers.reject_scheduler import Command, LinkError, RejectScheduler
+
+
+class ListLink:
+    """Keeps what it was sent with the time; ``fail`` makes the next sends raise."""
+
+    def __init__(self):
+        self.sent: list[tuple[float, object]] = []
+        self.fail: list[Exception] = []
+        self.connects = 0
+
+    def connect(self) -> None:
+        self.connects += 1
+
+    def close(self) -> None:
+        pass
+
+    def send(self, command) -> str:
+        if self.fail:
+            raise self.fail.pop(0)
+        self.sent.append((time.time(), command))
+        return ""
+
+
+def test_commands_fire_in_due_order_not_submit_order():
+    link = ListLink()
+    sched = RejectScheduler(link, "t")
+    now = time.time()
+    sched.submit("b", Command("B", "B"), now + 0.2)
+    sched.submit("a", Command("A", "A"), now + 0.1)
+    records = sched.close(timeout_s=2)
+    assert [c for _, c in link.sent] == ["A", "B"]
+    assert [(r.key, r.outcome) for r in records] == [("a", "delivered"), ("b", "delivered")]
+
+
+def test_an_unexpected_exception_is_retried_and_the_worker_survives():
+    link = ListLink()
+    link.fail = [RuntimeError("library bug"), LinkError("timeout")]
+    sched = RejectScheduler(link, "t", max_late_s=0.3, reconnect_min_s=0.01)
+    sched.submit("p", Command("X", "X"), time.time() + 0.05)
+    records = sched.close(timeout_s=2)
+    mine = [r for r in records if r.key == "p"]
+    assert [r.outcome for r in mine] == ["failed", "failed", "delivered"]
+    assert "library bug" in mine[0].detail and "timeout" in mine[1].detail
+    assert [c for _, c in link.sent] == ["X"]
+    assert link.connects >= 3
+
+
+def test_heartbeat_never_turns_into_an_alarm_at_close():
+    link = ListLink()
+    sched = RejectScheduler(link, "t", heartbeat=lambda n: Command(("beat", n), f"beat {n}"), heartbeat_period_s=0.02)
+    time.sleep(0.15)
+    started = time.monotonic()
+    records = sched.close(timeout_s=2)
+    assert time.monotonic() - started < 0.5
+    assert not [r for r in records if r.alarm]
+    assert len([c for _, c in link.sent if c[0] == "beat"]) >= 3

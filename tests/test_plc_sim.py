@@ -13,7 +13,7 @@ import pytest
 from drivers import plc_sim
 from drivers.modbus_link import ModbusLink, ModbusWrite
 
-LINE = re.compile(r"^\d\d:\d\d:\d\d\.\d{3} (coil|register) \d+ -> \d+$")
+LINE = re.compile(r"^\d\d:\d\d:\d\d\.\d{3} (unit \d+ )?(coil|register) \d+ -> \d+$")
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -88,3 +88,33 @@ def test_cli_port_in_use_is_one_line_error():
     assert result.exit_code == 2
     assert result.stderr.startswith("error: PLC simulator cannot serve on") and "Traceback" not in result.output
     assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_cli_serves_modbus_rtu_on_a_serial_port(tmp_path):
+    import shutil
+
+    if shutil.which("socat") is None:
+        pytest.skip("socat not installed (apt-get install socat)")
+    a, b = tmp_path / "ttyA", tmp_path / "ttyB"
+    pair = subprocess.Popen(["socat", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        while not (a.exists() and b.exists()):
+            time.sleep(0.02)
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(
+            [sys.executable, "-c", "from core.commands.hardware import plc_sim_command; plc_sim_command()",
+             "--port", "0", "--rtu", str(a), "--baudrate", "38400", "--duration", "2"],
+            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        first = proc.stdout.readline()  # printed once the server runs
+        assert f"PLC simulator on rtu {a}" in first, first + proc.stderr.read()
+        link = ModbusLink("rtu", serial_port=str(b), baudrate=38400, timeout_s=0.5)
+        link.connect()
+        link.send(ModbusWrite("coil", 3, 1, unit=7))
+        link.close()
+        out, err = proc.communicate(timeout=20)
+    finally:
+        pair.terminate()
+        pair.wait(5)
+    assert proc.returncode == 0, err
+    assert [line[13:] for line in out.splitlines() if LINE.match(line)] == ["unit 7 coil 3 -> 1"]

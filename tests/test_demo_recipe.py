@@ -35,6 +35,8 @@ def demo(tmp_path_factory):
     port = _free_port()
     out = cli("run", str(ROOT / "recipes" / "steel_plate.yaml"), "--plc-sim",
               "--set", f"outputs.0.settings.port={port}", "--set", f"results.path={results}",
+              # A slower belt (6 s to the actuator) so that a busy test machine is not late for it.
+              "--set", "outputs.0.settings.conveyor_speed_mm_s=100",
               "--set", f"outputs.1.settings.file={results / 'rejects.log'}")
     return out, results, port
 

@@ -231,6 +231,8 @@ def run(
                 break
     except KeyboardInterrupt:
         interrupted = True
+    except Exception as exc:  # a camera that raises instead of reporting a FrameError: stop, loudly
+        record([Alarm("engine", f"run stopped after {frames} parts: {type(exc).__name__}: {exc}", time.time())])
     finally:
         elapsed = time.perf_counter() - started
         for name, output in pipeline.outputs:

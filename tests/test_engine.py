@@ -121,3 +121,31 @@ def test_stereo_failure_rejects_the_part(tmp_path, plane_sequence, registry):
     engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
     assert seen[0].part.verdict.status is Status.ERROR
     assert "stereo failed" in seen[0].part.verdict.reasons[0] and "does not fit" in seen[0].part.verdict.reasons[0]
+
+
+class BrokenCamera:
+    def frames(self):
+        yield from ()
+        raise OSError("USB device vanished")
+
+    def close(self):
+        pass
+
+
+class BrokenCameraPlugin:
+    @hookimpl
+    def stereo_inspect_cameras(self):
+        return [PluginSpec("broken", "camera", lambda s, ctx: BrokenCamera())]
+
+
+def test_camera_that_raises_ends_the_run_with_an_alarm(tmp_path, plane_sequence):
+    info = plane_sequence([0.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, BrokenCameraPlugin())))
+    text = RECIPE.format(box=info["box"], output="log").replace("plugin: replay\n  settings: {path: seq}", "plugin: broken")
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
+    summary = engine.run(loaded, registry=registry, device="cpu")
+    assert summary.exit_code == engine.EXIT_ALARMS
+    assert "USB device vanished" in summary.alarms[0].message
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    assert db.execute("SELECT source FROM alarms").fetchall() == [("engine",)]
+    assert db.execute("SELECT exit_code FROM runs").fetchone()[0] == engine.EXIT_ALARMS

@@ -98,6 +98,9 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
         f"alarms {len(summary.alarms)}  {summary.fps:.2f} frames/s  ({summary.frames} frames in {summary.elapsed_s:.1f} s)",
         style="bold", markup=False,
     )
+    if summary.frames and summary.stage_seconds:
+        stages = ", ".join(f"{name} {1000 * seconds / summary.frames:.0f} ms" for name, seconds in summary.stage_seconds.items())
+        console.print(f"mean per part: {stages}", markup=False)
     console.print(f"results: {loaded.resolve(loaded.recipe.results.path)}", markup=False)
     if summary.exit_code == engine.EXIT_ALARMS:
         console.print("exit 4: alarms were raised (see above and the results store); no PLC on this machine? "

@@ -171,11 +171,15 @@ def open_readonly(location: Path) -> sqlite3.Connection:
 
 
 def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
-    where, args = ("WHERE run_id = ?", (run_id,)) if run_id is not None else ("", ())
+    args = () if run_id is None else (run_id,)
+    where = "" if run_id is None else "WHERE run_id = ?"
+    where_parts = "" if run_id is None else "WHERE p.run_id = ?"
     verdicts = Counter(dict(db.execute(f"SELECT verdict, COUNT(*) FROM parts {where} GROUP BY verdict", args).fetchall()))
-    joined = f"SELECT d.class, d.verdict, COUNT(*) FROM defects d JOIN parts p ON p.id = d.part_row {where.replace('run_id', 'p.run_id')} GROUP BY d.class, d.verdict"
     per_class: dict[str, Counter] = {}
-    for cls, verdict, n in db.execute(joined, args).fetchall():
+    for cls, verdict, n in db.execute(
+        f"SELECT d.class, d.verdict, COUNT(*) FROM defects d JOIN parts p ON p.id = d.part_row {where_parts}"
+        " GROUP BY d.class, d.verdict", args
+    ).fetchall():
         per_class.setdefault(cls, Counter())[verdict] += n
     alarms = db.execute(f"SELECT COUNT(*) FROM alarms {where}", args).fetchone()[0]
     parts = sum(verdicts.values())

@@ -8,7 +8,10 @@ reaches it. ``RejectScheduler`` keeps a queue ordered by due time and one worker
   link is up again before the next one is due;
 * gives each command until ``due + max_late_s`` (its deadline); a command that cannot be sent
   by then is reported with outcome ``alarm`` and never silently dropped;
-* runs follow-up commands (a coil pulse's release) and an optional periodic heartbeat.
+* runs follow-up commands (a coil pulse's release) and an optional periodic heartbeat;
+* keeps pulses apart: a command with a follow-up (a pulse) is not started while the previous
+  pulse is still on, plus ``min_pulse_gap_s``, because the actuator would see one long pulse for
+  two parts. If waiting for the gap would miss the deadline, the command is an alarm.
 
 Every outcome is a ``Record``; ``drain()`` hands over what happened since the last call.
 This module imports nothing from the rest of stereo-inspect: any object with ``connect()``,
@@ -89,6 +92,7 @@ class RejectScheduler:
         heartbeat: Callable[[int], Command] | None = None,
         heartbeat_period_s: float = 1.0,
         record_failures: bool = True,
+        min_pulse_gap_s: float = 0.02,
     ):
         self.link, self.name = link, name
         self.max_late_s = max_late_s
@@ -96,6 +100,8 @@ class RejectScheduler:
         self.on_connect, self.on_close = on_connect, on_close
         self.heartbeat, self.heartbeat_period_s = heartbeat, heartbeat_period_s
         self.record_failures = record_failures
+        self.min_pulse_gap_s = min_pulse_gap_s
+        self._pulse_until = 0.0  # monotonic time the last pulse's release is due
         self._cond = threading.Condition()
         self._queue: list[_Job] = []
         self._records: list[Record] = []
@@ -262,6 +268,8 @@ class RejectScheduler:
         if job.kind == "heartbeat":
             self._heartbeat(job)
             return
+        if job.command.follow_up is not None and not self._pulse_apart(job):
+            return
         while True:
             now = time.monotonic()
             if now > job.deadline:
@@ -311,10 +319,28 @@ class RejectScheduler:
                 if job.command.follow_up is not None:
                     follow = job.command.follow_up
                     due = done + job.command.follow_up_after_s
+                    self._pulse_until = due
                     # a release must still happen even if late; alarm only when it is badly late
                     self._push_locked(due, job.key, follow, "follow-up", due + max(1.0, 10 * self.max_late_s))
                     self._cond.notify_all()
             return
+
+    def _pulse_apart(self, job: _Job) -> bool:
+        """True when ``job`` (a pulse) may start now; otherwise it is re-queued after the previous
+        pulse's release (which the queue runs first), or alarmed when that is past its deadline."""
+        ready = self._pulse_until + self.min_pulse_gap_s
+        if time.monotonic() >= ready:
+            return True
+        with self._cond:
+            if ready > job.deadline:
+                self._alarm_locked(job, time.time(), "not sent: it would merge with the previous part's pulse "
+                                   f"(pulses need {self.min_pulse_gap_s * 1000:.0f} ms between them; parts come closer "
+                                   "together than the pulse length: shorten the pulse or use a counter register)")
+            else:
+                heapq.heappush(self._queue, _Job(ready, next(self._seq), job.deadline, job.key, job.command, job.kind,
+                                                 job.attempts, job.submitted))
+                self._cond.notify_all()
+        return False
 
     def _heartbeat(self, job: _Job) -> None:
         if self._connected and not self._closing:

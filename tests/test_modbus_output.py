@@ -102,6 +102,33 @@ def test_counter_register_sees_every_reject_even_when_close_together(sim, port):
     assert [e.command for e in events_of(events)][0] == "write_register 20 = 1 unit 1 (part counter)"
 
 
+def test_close_rejects_give_separate_pulses(sim, port):
+    """Two plates 30 ms apart, 60 ms pulses: the second pulse waits for the first to end, so the
+    actuator sees two rising edges, each within the lateness limit."""
+    out = output(port, max_late_ms=200)
+    t = time.time()
+    out.submit(part(1, t=t))
+    out.submit(part(2, t=t + 0.03))
+    events = out.close(timeout_s=3)
+    on = coil_on_times(sim)
+    offs = [w.timestamp for w in sim.writes if w.table == "coil" and w.address == 0 and w.value == 0]
+    assert len(on) == 2 and len(offs) == 2
+    assert offs[0] < on[1]  # released before the next pulse
+    assert on[1] - (t + 0.33) < 0.2 + 0.05
+    assert not events_of(events, Alarm)
+
+
+def test_rejects_too_close_for_a_pulse_are_alarmed_not_merged(sim, port):
+    out = output(port, max_late_ms=20)
+    t = time.time()
+    out.submit(part(1, t=t))
+    out.submit(part(2, t=t + 0.01))
+    events = out.close(timeout_s=3)
+    assert len(coil_on_times(sim)) == 1
+    alarms = events_of(events, Alarm)
+    assert len(alarms) == 1 and alarms[0].part_id == "P0002" and "merge with the previous part's pulse" in alarms[0].message
+
+
 def test_unit_id_ready_coil_and_heartbeat(sim, port):
     out = output(port, unit=3, ready_coil=5, heartbeat={"address": 100, "period_ms": 100})
     time.sleep(0.45)

@@ -190,3 +190,25 @@ def test_median_fill_leaves_no_hole_and_removes_streaks():
     out = refine.median_fill(disp, holes, 1)
     assert torch.isfinite(out).all()
     assert torch.allclose(out[0, 4, 2:7], torch.full((5,), 4.0))
+
+
+def test_occlusions_are_told_apart_from_mismatches():
+    left = torch.tensor([[[2.0, 2.0, 2.0, 5.0, 2.0, 2.0]]])
+    right = torch.tensor([[[2.0, 2.0, 2.0, 5.0, 2.0, 2.0]]])
+    occ = refine.occluded(left, right, 1.0)
+    # x = 0, 1 and 3 fall off the right image's left edge; x = 5 lands where the right view saw d = 5.
+    assert occ[0, 0].tolist() == [True, True, False, True, False, True]
+
+
+def test_four_way_filling_uses_background_for_occlusions_and_median_for_mismatches():
+    nan = float("nan")
+    disp = torch.full((1, 5, 5), 4.0)
+    disp[0, 2, 1] = 1.0  # background on the left
+    disp[0, 2, 3] = 8.0  # foreground on the right
+    disp[0, 2, 2] = nan
+    occluded = torch.zeros(1, 5, 5, dtype=torch.bool)
+    occluded[0, 2, 2] = True
+    assert refine.fill_four_directions(disp, occluded)[0, 2, 2] == 4.0  # second smallest of 1, 8, 4, 4
+    assert refine.fill_four_directions(disp, ~occluded)[0, 2, 2] == 4.0
+    disp[0, 1, 2] = disp[0, 3, 2] = 1.0
+    assert refine.fill_four_directions(disp, occluded)[0, 2, 2] == 1.0

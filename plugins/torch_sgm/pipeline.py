@@ -41,13 +41,17 @@ class TorchSGMParams(BaseModel):
     p2_alpha: float = Field(20.0, ge=0, description="P2 = p2 / (1 + p2_alpha * |edge|)")
     # 5. refinement
     lr_tolerance: float = Field(1.0, gt=0)
-    fill: Literal["none", "background", "left", "right", "nearest"] = "background"
+    fill: Literal["none", "background", "left", "right", "nearest", "four_way"] = Field(
+        "background", description="background/left/right/nearest: along the row (seed: background); "
+        "four_way: occlusions from the background, mismatches from the median of 4 directions")
     refine_radius: int = Field(3, ge=0, description="guided-filter refinement radius, 0 = off")
     refine_eps: float = Field(0.001, gt=0)
     refine_scope: Literal["all", "holes"] = Field("all", description="all: the seed filters the whole map; holes: "
                                                   "only pixels that failed the LR check, so matched pixels keep "
                                                   "their sub-pixel value")
     median_radius: int = Field(2, ge=0, description="median over filled pixels, 0 = off")
+    median_scope: Literal["holes", "all"] = Field("holes", description="all: also a final median over every "
+                                                  "pixel, which removes isolated mismatches")
     # memory
     chunk_disparities: int = Field(32, ge=1, description="disparity slices built and filtered at once")
 
@@ -110,14 +114,20 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     right_disp = select.right_view_wta(aggregated, disparities)
     del aggregated
     consistent = refine.left_right_check(disp, right_disp, p.lr_tolerance)
+    raw_disp = disp
     disp = torch.where(consistent, disp, torch.full_like(disp, float("nan")))
     if p.fill != "none":
         holes = ~consistent
-        disp = refine.fill_horizontal(disp, p.fill)
+        if p.fill == "four_way":
+            disp = refine.fill_four_directions(disp, refine.occluded(raw_disp, right_disp, p.lr_tolerance) & holes)
+        else:
+            disp = refine.fill_horizontal(disp, p.fill)
         disp = refine.median_fill(disp, holes, 0)  # the guided filter needs a hole-free map
         smooth = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
         disp = smooth if p.refine_scope == "all" else torch.where(holes, smooth, disp)
         disp = refine.median_fill(disp, holes, p.median_radius)
+        if p.median_scope == "all" and p.median_radius > 0:
+            disp = refine.median_filter(disp, p.median_radius)
     disp = disp.clamp(float(min_disp), float(max_disp))
     return disp, consistent
 

@@ -18,6 +18,34 @@ def left_right_check(left_disp: torch.Tensor, right_disp: torch.Tensor, toleranc
     return inside & ((left_disp - seen).abs() <= tolerance)
 
 
+def occluded(left_disp: torch.Tensor, right_disp: torch.Tensor, tolerance: float = 1.0) -> torch.Tensor:
+    """Pixels that fail the LR check because something nearer hides them in the right view: there
+    the right image saw a larger disparity. (B, H, W) -> bool. The rest of the failures are mismatches."""
+    w = left_disp.shape[-1]
+    x = torch.arange(w, device=left_disp.device, dtype=left_disp.dtype)
+    target = torch.round(x - left_disp.nan_to_num(0.0))
+    seen = right_disp.gather(-1, target.clamp(0, w - 1).long())
+    return (target < 0) | (seen.nan_to_num(-1.0) > left_disp + tolerance)
+
+
+def fill_four_directions(disp: torch.Tensor, occlusion: torch.Tensor) -> torch.Tensor:
+    """Hirschmüller-style filling from the nearest valid pixel left, right, above and below:
+    occluded pixels take the second-smallest of those (the background, robust to one outlier),
+    mismatched pixels their median. (B, H, W) float NaN = hole, (B, H, W) bool -> (B, H, W)."""
+    candidates = torch.stack([
+        _nearest_valid(disp, False), _nearest_valid(disp, True),
+        _nearest_valid(disp.transpose(-1, -2), False).transpose(-1, -2),
+        _nearest_valid(disp.transpose(-1, -2), True).transpose(-1, -2),
+    ], 0)
+    ordered = candidates.nan_to_num(float("inf")).sort(0).values
+    count = torch.isfinite(candidates).sum(0)
+    second = torch.where(count >= 2, ordered[1], ordered[0])
+    background = torch.where(torch.isfinite(second), second, torch.full_like(second, float("nan")))
+    median = candidates.nanmedian(0).values
+    fill = torch.where(occlusion, background, median)
+    return torch.where(torch.isfinite(disp), disp, fill)
+
+
 def _nearest_valid(disp: torch.Tensor, reverse: bool) -> torch.Tensor:
     """For every pixel, the value of the nearest valid pixel to its left (or right when reverse)."""
     if reverse:

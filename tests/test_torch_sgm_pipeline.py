@@ -97,3 +97,24 @@ def test_auto_device_follows_the_engine_and_falls_back_to_cpu():
     assert backend.device.type == "cpu"
     backend = torch_sgm_plugin._factory({}, PluginContext(device="cuda"))
     assert backend.device.type == ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def test_improved_preset_changes_defaults_but_explicit_settings_win():
+    from plugins.torch_sgm.pipeline import IMPROVED
+
+    improved = TorchSGMParams(preset="improved")
+    assert IMPROVED and all(getattr(improved, k) == v for k, v in IMPROVED.items())
+    assert improved != TorchSGMParams()
+    key = next(iter(IMPROVED))
+    assert getattr(TorchSGMParams(preset="improved", **{key: TorchSGMParams().model_dump()[key]}), key) \
+        == TorchSGMParams().model_dump()[key]
+
+
+def test_improved_preset_beats_the_seed_on_a_held_out_synthetic_pair():
+    # Not a Middlebury scene: guards the Middlebury-measured changes against overfitting.
+    left, right, gt, nonocc = layered_scene(seed=11)
+    seed = compute_disparity(left, right, 0, 32, TorchSGMParams(), device="cpu")
+    improved = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="improved"), device="cpu")
+    seed_bad = score(seed[0], gt, nonocc, seed[1])["dense"]["bad1.0"]
+    improved_bad = score(improved[0], gt, nonocc, improved[1])["dense"]["bad1.0"]
+    assert improved_bad < 0.5 * seed_bad

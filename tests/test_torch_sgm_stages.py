@@ -212,3 +212,11 @@ def test_four_way_filling_uses_background_for_occlusions_and_median_for_mismatch
     assert refine.fill_four_directions(disp, ~occluded)[0, 2, 2] == 4.0
     disp[0, 1, 2] = disp[0, 3, 2] = 1.0
     assert refine.fill_four_directions(disp, occluded)[0, 2, 2] == 1.0
+
+
+def test_equiangular_fit_finds_the_minimum_of_a_v_shaped_cost():
+    d = torch.arange(10, dtype=torch.float32).view(1, 10, 1, 1)
+    volume = (d - 6.2).abs()
+    index = select.winner_takes_all(volume)
+    assert abs(select.equiangular_subpixel(volume, index).item() - 6.2) < 1e-4
+    assert abs(select.parabolic_subpixel(volume, index).item() - 6.2) > 0.05

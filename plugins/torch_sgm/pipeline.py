@@ -53,6 +53,8 @@ class TorchSGMParams(BaseModel):
     p1: float = Field(0.04, ge=0)
     p2: float = Field(0.65, ge=0)
     p2_alpha: float = Field(20.0, ge=0, description="P2 = p2 / (1 + p2_alpha * |edge|)")
+    # 4. selection
+    subpixel: Literal["parabola", "equiangular"] = "parabola"
     # 5. refinement
     lr_tolerance: float = Field(1.0, gt=0)
     fill: Literal["none", "background", "left", "right", "nearest", "four_way"] = Field(
@@ -124,7 +126,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     aggregated = sgm.sgm(volume, p.p1, penalty, paths)
     del volume
     index = select.winner_takes_all(aggregated)
-    disp = select.parabolic_subpixel(aggregated, index) + disparities[0]
+    fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel
+    disp = fit(aggregated, index) + disparities[0]
     right_disp = select.right_view_wta(aggregated, disparities)
     del aggregated
     consistent = refine.left_right_check(disp, right_disp, p.lr_tolerance)

@@ -136,16 +136,20 @@ def fit_plane_robust(
 def worst_side(
     plane: Plane, u: np.ndarray, v: np.ndarray, d: np.ndarray, box: tuple[int, int, int, int], tolerance: float
 ) -> tuple[str, float]:
-    """The side of the box whose ring pixels fit the plane least, and the share that fits."""
+    """How the worst side of the box's ring fits the plane (a phrase for the note) and the share
+    of it that fits. Fewer than two sides in view count as not fitting."""
     x0, y0, x1, y1 = box
     on_plane = np.abs(plane(u.astype(np.float64), v.astype(np.float64)) - d) <= tolerance
     top, bottom = v < y0, v >= y1
     sides = {"top": top, "bottom": bottom, "left": ~top & ~bottom & (u < x0), "right": ~top & ~bottom & (u >= x1)}
     shares = {name: float(on_plane[m].mean()) for name, m in sides.items() if m.sum() >= 10}
-    if not shares:
-        return "whole", float(on_plane.mean())
+    if len(shares) < 2:
+        # A box filling the image sees its surroundings on one side only: a plane fitted to a
+        # single strip is free to tilt along it. Two sides (a corner, or top and bottom) suffice.
+        missing = [name for name in sides if name not in shares]
+        return f"only its {next(iter(shares), 'no')} side is in view ({', '.join(missing)} outside the image)", 0.0
     name = min(shares, key=shares.get)
-    return name, shares[name]
+    return f"only {shares[name]:.0%} of its {name} side fits", shares[name]
 
 
 def measure_defect(
@@ -184,12 +188,12 @@ def measure_defect(
             detection, distance, None, valid_fraction, resolution, area,
             note=f"deviation unavailable: {ru.size} valid surface points around the box, {rule.min_ring_points} needed",
         )
-    side, share = worst_side(plane, ru, rv, disparity[ring] + calib.doffs, _clip_box(detection.box, shape), rule.plane_tolerance_px)
+    how, share = worst_side(plane, ru, rv, disparity[ring] + calib.doffs, _clip_box(detection.box, shape), rule.plane_tolerance_px)
     if share < rule.min_plane_inliers:
         return DefectMeasurement(
             detection, distance, None, valid_fraction, resolution, area,
-            note=f"deviation unavailable: the surface around the box is not one plane "
-            f"(only {share:.0%} of its {side} side fits, {rule.min_plane_inliers:.0%} needed)",
+            note=f"deviation unavailable: {how}" if "outside the image" in how else
+            f"deviation unavailable: the surface around the box is not one plane ({how}, {rule.min_plane_inliers:.0%} needed)",
         )
     vv, uu = np.nonzero(valid)
     d_plane = plane((uu + x0).astype(np.float64), (vv + y0).astype(np.float64))

@@ -40,6 +40,15 @@ class Pipeline:
     detector: Any
     outputs: list[tuple[str, Any]]
 
+    def warm_up(self) -> None:
+        """Run the detector once before the first part: its first call builds the model and would
+        make the first part late for the actuator. A detector that fails here fails on the parts
+        too, where the failure is reported per part."""
+        try:
+            self.detector.detect(np.zeros((64, 64, 3), dtype=np.uint8))
+        except Exception:
+            pass
+
     def close(self) -> None:
         self.camera.close()
 
@@ -207,6 +216,7 @@ def run(
             if on_event:
                 on_event(e)
 
+    pipeline.warm_up()
     if on_start:
         on_start(pipeline)
     started = time.perf_counter()

@@ -94,3 +94,16 @@ def test_box_on_a_step_has_no_deviation():
     m = _measure(disparity, box=(140.0, 71.0, 180.0, 121.0))
     assert m.deviation_mm is None and "not one plane" in m.note
     assert m.distance_mm is not None
+
+
+def test_box_filling_the_image_has_no_deviation():
+    _, _, disparity = render(CALIB, 400.0, 5.0)
+    m = _measure(disparity, box=(2.0, 0.0, 320.0, 186.0))
+    assert m.distance_mm is not None and m.deviation_mm is None
+    assert m.note == "deviation unavailable: only its bottom side is in view (top, left, right outside the image)", m.note
+
+
+def test_box_in_a_corner_is_measured_from_two_sides():
+    _, _, disparity = render(CALIB, 400.0, 5.0, [Pit(20, 20, 24.0, 2.0)])
+    m = _measure(disparity, box=(0.0, 0.0, 40.0, 40.0))
+    assert m.deviation_mm is not None and 0.5 < m.deviation_mm < 2.0

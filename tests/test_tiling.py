@@ -31,3 +31,12 @@ def test_neighbours_not_at_a_border_stay_apart():
     boxes = np.array([[10, 10, 50, 50], [51, 10, 90, 50]], float)
     merged, _, _ = tiling.merge_cut_boxes(boxes, np.array([0.6, 0.7]), np.array([1, 1]), [168], [])
     assert len(merged) == 2
+
+
+def test_whole_tile_detections_do_not_chain_across_the_frame():
+    xs = tiling.tile_origins(672, 224, 0.25)
+    cuts = tiling.interior_cuts(xs, 224, 672)
+    boxes = np.array([[x, 0, x + 224, 224] for x in xs], float)
+    merged, _, _ = tiling.merge_cut_boxes(boxes, np.full(len(xs), 0.5), np.zeros(len(xs), int), cuts, [], max_size=336)
+    assert len(merged) > 1
+    assert all(b[2] - b[0] <= 336 for b in merged)

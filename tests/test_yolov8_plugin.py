@@ -67,3 +67,11 @@ def test_detection_leaves_torch_thread_count_alone(untrained_weights):
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_full_tile_boxes_are_dropped_when_tiling():
+    from plugins.yolov8.detector import _without_full_tile
+
+    boxes = np.array([[0, 0, 224, 224], [1, 2, 220, 223], [10, 10, 60, 224], [0, 0, 224, 100]], np.float32)
+    kept, scores, classes = _without_full_tile((boxes, np.ones(4), np.zeros(4, int)), 224 * 0.95)
+    assert kept.tolist() == [[10, 10, 60, 224], [0, 0, 224, 100]]

@@ -23,8 +23,18 @@ class YoloSettings(BaseModel):
     imgsz: int = Field(224, ge=32, le=4096, description="network input size (per tile when tiling)")
     tile_size: int | None = Field(224, ge=32, description="tile edge in frame pixels; null = whole frame")
     tile_overlap: float = Field(0.25, ge=0.0, lt=0.9)
+    # NEU-DET boxes whole images of texture-like classes (pitted surface, crazing), so on a tile of
+    # plain rolled steel the model may answer "this whole tile is pitted": a box as large as the
+    # tile locates nothing. Tiled mode drops boxes covering this share of their tile both ways.
+    drop_full_tile: float | None = Field(0.95, gt=0.0, le=1.0)
     device: str = "auto"
     max_det: int = Field(100, ge=1)
+
+
+def _without_full_tile(part: tuple[np.ndarray, np.ndarray, np.ndarray], limit: float):
+    boxes, scores, classes = part
+    keep = ~(((boxes[:, 2] - boxes[:, 0]) >= limit) & ((boxes[:, 3] - boxes[:, 1]) >= limit))
+    return boxes[keep], scores[keep], classes[keep]
 
 
 class YoloDetector:
@@ -72,6 +82,8 @@ class YoloDetector:
             origins = [(x, y) for y in ys for x in xs]
             tiles = [image[y : y + s.tile_size, x : x + s.tile_size] for x, y in origins]
             parts = self._predict(tiles)
+            if s.drop_full_tile is not None:
+                parts = [_without_full_tile(p, s.tile_size * s.drop_full_tile) for p in parts]
             boxes = np.concatenate([p[0] + np.array([x, y, x, y], dtype=np.float32) for p, (x, y) in zip(parts, origins)])
             scores = np.concatenate([p[1] for p in parts])
             classes = np.concatenate([p[2] for p in parts])
@@ -81,6 +93,7 @@ class YoloDetector:
                 boxes, scores, classes = tiling.merge_cut_boxes(
                     boxes, scores, classes,
                     tiling.interior_cuts(xs, s.tile_size, w), tiling.interior_cuts(ys, s.tile_size, h),
+                    max_size=1.5 * s.tile_size,
                 )
         return [
             Detection(self.class_names[int(c)], float(sc), tuple(float(v) for v in bx))

@@ -52,12 +52,15 @@ def _touches_cut(box: np.ndarray, cuts_x: list[int], cuts_y: list[int], tol: flo
 
 
 def merge_cut_boxes(
-    boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, cuts_x: list[int], cuts_y: list[int], tol: float = 3.0
+    boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, cuts_x: list[int], cuts_y: list[int],
+    tol: float = 3.0, max_size: float = float("inf"),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Join same-class boxes that overlap or touch where one of them ends at a tile border.
 
     ``cuts_x``/``cuts_y`` are the interior tile edges (where a tile starts or ends inside the
-    image); a box ending there was probably cut by the tile, not by the defect.
+    image); a box ending there was probably cut by the tile, not by the defect. No join grows a
+    box beyond ``max_size`` in either direction: detections that fill whole tiles (a texture
+    class seen everywhere) would otherwise chain into one box the size of the frame.
     """
     boxes, scores, classes = boxes.copy(), scores.copy(), classes.copy()
     merged = True
@@ -74,7 +77,10 @@ def merge_cut_boxes(
                     continue
                 if not (_touches_cut(a, cuts_x, cuts_y, tol) or _touches_cut(b, cuts_x, cuts_y, tol)):
                     continue
-                boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                union = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                if union[2] - union[0] > max_size or union[3] - union[1] > max_size:
+                    continue
+                boxes[i] = union
                 scores[i] = max(scores[i], scores[j])
                 boxes = np.delete(boxes, j, axis=0)
                 scores = np.delete(scores, j)

@@ -70,3 +70,14 @@ def external_plugin_site(tmp_path_factory) -> Path:
         check=True, capture_output=True, timeout=300,
     )
     return site
+
+
+@pytest.fixture
+def torch_one_thread():
+    """Torch on one thread: on two shared cores a second thread mostly waits for other jobs."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -14,12 +14,7 @@ from drivers.sequence_folder import read_pfm, write_pfm
 from plugins.torch_sgm.synthetic import layered_scene
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture

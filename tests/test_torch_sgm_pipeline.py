@@ -18,12 +18,7 @@ from plugins.torch_sgm.pipeline import TorchSGMParams, bgr_to_tensor, compute_di
 from plugins.torch_sgm.synthetic import fronto_parallel, layered_scene
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 def test_fronto_parallel_pair_is_recovered_to_subpixel_accuracy():

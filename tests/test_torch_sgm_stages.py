@@ -10,13 +10,7 @@ from plugins.torch_sgm.pipeline import bgr_to_tensor
 from plugins.torch_sgm.synthetic import fronto_parallel
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    # Two shared cores: a second torch thread mostly waits for the other jobs.
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 def shifted_pair(d=5, h=40, w=64):

@@ -2,74 +2,14 @@
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from plugins.torch_sgm import aggregate, cost, refine, select, sgm
 
 
-# Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
-IMPROVED: dict = {"refine_radius": 0, "paths": 8, "p1": 0.08, "p2": 1.3}
-
-
-class TorchSGMParams(BaseModel):
-    """Defaults are the seed paper's parameters (cost weights, guided filter r = 3 / eps = 0.001,
-    4 paths, P1 = 0.04, P2 = 0.65 / (1 + 20 |edge|), 1 px LR check). ``preset: improved`` starts from
-    ``IMPROVED`` instead; settings given explicitly still win."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    preset: Literal["seed", "improved"] = "seed"
-
-    @model_validator(mode="before")
-    @classmethod
-    def _apply_preset(cls, data):
-        if isinstance(data, dict) and data.get("preset") == "improved":
-            return {**IMPROVED, **data}
-        return data
-
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    # 1. matching cost
-    w_ad: float = Field(0.10, ge=0)
-    w_census: float = Field(0.60, ge=0)
-    w_grad: float = Field(0.30, ge=0)
-    lam_ad: float = Field(1.0, gt=0)
-    lam_census: float = Field(6.0, gt=0, description="in bits of the 24-bit census string")
-    lam_grad: float = Field(0.02, gt=0, description="in normalised Sobel units of [0, 1] intensity")
-    znorm_radius: int = Field(3, ge=1, description="window radius of the local zero-normalisation")
-    znorm_eps: float = Field(0.001, gt=0, description="added to the local std; larger = less noise boost in flat areas")
-    census: Literal["star24", "window"] = Field("star24", description="star24: the seed's 24-bit star; "
-                                                "window: every pixel of a (2*census_ry+1)x(2*census_rx+1) window")
-    census_rx: int = Field(4, ge=1, le=7)
-    census_ry: int = Field(3, ge=1, le=7)
-    # 2. aggregation
-    agg_radius: int = Field(3, ge=0)
-    agg_eps: float = Field(0.001, gt=0)
-    # 3. SGM
-    paths: Literal[4, 8] = 4
-    p1: float = Field(0.04, ge=0)
-    p2: float = Field(0.65, ge=0)
-    p2_alpha: float = Field(20.0, ge=0, description="P2 = p2 / (1 + p2_alpha * |edge|)")
-    # 4. selection
-    subpixel: Literal["parabola", "equiangular"] = "parabola"
-    # 5. refinement
-    lr_tolerance: float = Field(1.0, gt=0)
-    fill: Literal["none", "background", "left", "right", "nearest", "four_way"] = Field(
-        "background", description="background/left/right/nearest: along the row (seed: background); "
-        "four_way: occlusions from the background, mismatches from the median of 4 directions")
-    refine_radius: int = Field(3, ge=0, description="guided-filter refinement radius, 0 = off")
-    refine_eps: float = Field(0.001, gt=0)
-    refine_scope: Literal["all", "holes"] = Field("all", description="all: the seed filters the whole map; holes: "
-                                                  "only pixels that failed the LR check, so matched pixels keep "
-                                                  "their sub-pixel value")
-    median_radius: int = Field(2, ge=0, description="median over filled pixels, 0 = off")
-    median_scope: Literal["holes", "all"] = Field("holes", description="all: also a final median over every "
-                                                  "pixel, which removes isolated mismatches")
-    # memory
-    chunk_disparities: int = Field(32, ge=1, description="disparity slices built and filtered at once")
+from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
 
 
 def pick_device(name: str) -> torch.device:

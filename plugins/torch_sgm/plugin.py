@@ -5,11 +5,13 @@ import numpy as np
 
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
-from plugins.torch_sgm.pipeline import TorchSGMParams, compute_disparity, pick_device
+from plugins.torch_sgm.params import TorchSGMParams
 
 
 class TorchSGM:
     def __init__(self, params: TorchSGMParams, device: str):
+        from plugins.torch_sgm.pipeline import pick_device  # torch loads only when the backend is used
+
         self.params = params
         self.device = pick_device(device)
 
@@ -19,6 +21,8 @@ class TorchSGM:
     def compute_with_mask(self, left, right, min_disp, max_disp) -> tuple[np.ndarray, np.ndarray]:
         """The disparity and the pixels that passed the left-right check (before hole filling);
         the evaluation scores the latter as the sparse result."""
+        from plugins.torch_sgm.pipeline import compute_disparity
+
         return compute_disparity(left, right, min_disp, max_disp, self.params, self.device)
 
 

@@ -75,3 +75,24 @@ def test_full_tile_boxes_are_dropped_when_tiling():
     boxes = np.array([[0, 0, 224, 224], [1, 2, 220, 223], [10, 10, 60, 224], [0, 0, 224, 100]], np.float32)
     kept, scores, classes = _without_full_tile((boxes, np.ones(4), np.zeros(4, int)), 224 * 0.95)
     assert kept.tolist() == [[10, 10, 60, 224], [0, 0, 224, 100]]
+
+
+def test_importing_ultralytics_keeps_thread_settings():
+    import subprocess
+    import sys
+
+    code = ("import torch, cv2; from plugins.yolov8.detector import import_yolo; n = cv2.getNumThreads(); "
+            "import_yolo(); print(torch.get_num_threads(), cv2.getNumThreads() == n)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"})
+    threads, cv_same = out.stdout.split()
+    assert int(threads) == torch_default_threads() and cv_same == "True"
+
+
+def torch_default_threads() -> int:
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", "import torch; print(torch.get_num_threads())"], capture_output=True,
+                         text=True, check=True, env={k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"})
+    return int(out.stdout)

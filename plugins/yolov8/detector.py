@@ -37,10 +37,25 @@ def _without_full_tile(part: tuple[np.ndarray, np.ndarray, np.ndarray], limit: f
     return boxes[keep], scores[keep], classes[keep]
 
 
+def import_yolo():
+    """``ultralytics.YOLO``, imported without its process-wide side effects: on import it sets
+    OMP_NUM_THREADS=1 (so torch, if not yet started, would use one thread) and turns OpenCV's
+    threading off, which would slow every other stage (stereo above all)."""
+    import cv2
+    import torch
+
+    os.environ.setdefault("YOLO_OFFLINE", "1")
+    torch_threads, cv_threads = torch.get_num_threads(), cv2.getNumThreads()
+    from ultralytics import YOLO
+
+    torch.set_num_threads(torch_threads)
+    cv2.setNumThreads(cv_threads)
+    return YOLO
+
+
 class YoloDetector:
     def __init__(self, settings: YoloSettings, device: str = "cpu"):
-        os.environ.setdefault("YOLO_OFFLINE", "1")
-        from ultralytics import YOLO
+        YOLO = import_yolo()
 
         weights = Path(settings.weights) if settings.weights else DEFAULT_WEIGHTS
         if not weights.is_file():

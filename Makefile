@@ -14,8 +14,12 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# Exit 3 means "some plates could not be measured and were rejected as ERROR": a legitimate
+# outcome of an inspection, which the demo sequence shows (see README). Any other failure fails.
 demo: $(STAMP)
-	$(BIN)/inspect run recipes/steel_plate.yaml --plc-sim
+	@$(BIN)/inspect run recipes/steel_plate.yaml --plc-sim; rc=$$?; \
+	if [ $$rc -eq 3 ]; then echo "(demo: exit 3 is expected here: those plates were rejected as ERROR, with the reason on their line)"; \
+	elif [ $$rc -ne 0 ]; then exit $$rc; fi
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

@@ -5,8 +5,6 @@ timestamp + delay). On this 2-core machine, loaded, the measured lateness is a f
 """
 from __future__ import annotations
 
-import shutil
-import subprocess
 import time
 
 import pytest
@@ -285,21 +283,6 @@ def test_registered_as_output_plugin():
 
 
 # ------------------------------------------------------------------ Modbus RTU over a pty pair
-@pytest.fixture
-def pty_pair(tmp_path):
-    if shutil.which("socat") is None:
-        pytest.skip("socat not installed (apt-get install socat)")
-    a, b = tmp_path / "ttyA", tmp_path / "ttyB"
-    proc = subprocess.Popen(["socat", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 5
-    while not (a.exists() and b.exists()) and time.monotonic() < deadline:
-        time.sleep(0.02)
-    yield str(a), str(b)
-    proc.terminate()
-    proc.wait(5)
-
-
 def test_modbus_rtu_over_a_serial_line(pty_pair):
     plc_end, our_end = pty_pair
     sim = plc_sim.serve_rtu_in_thread(plc_end, on_change=None, baudrate=38400)

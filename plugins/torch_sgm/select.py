@@ -9,35 +9,37 @@ def winner_takes_all(volume: torch.Tensor) -> torch.Tensor:
     return volume.argmin(1)
 
 
-def equiangular_subpixel(volume: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """Like ``parabolic_subpixel`` but fitting two lines of opposite slope, which suits costs that grow
-    linearly away from the minimum (census, absolute differences) and locks less to integers."""
+def _neighbour_costs(volume: torch.Tensor, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Cost at index-1, index, index+1 (clamped to the range), each (B, H, W)."""
     d = volume.shape[1]
     lo = (index - 1).clamp(0, d - 1)
     hi = (index + 1).clamp(0, d - 1)
-    c0 = volume.gather(1, lo.unsqueeze(1))[:, 0]
-    c1 = volume.gather(1, index.unsqueeze(1))[:, 0]
-    c2 = volume.gather(1, hi.unsqueeze(1))[:, 0]
+    return tuple(volume.gather(1, i.unsqueeze(1))[:, 0] for i in (lo, index, hi))
+
+
+def _bounded(offset: torch.Tensor, index: torch.Tensor, d: int) -> torch.Tensor:
+    """Offsets within ±0.5, and zero at the ends of the range where one neighbour is missing."""
+    inner = (index > 0) & (index < d - 1)
+    return torch.where(inner, offset.clamp(-0.5, 0.5), torch.zeros_like(offset))
+
+
+def equiangular_subpixel(volume: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Like ``parabolic_subpixel`` but fitting two lines of opposite slope, which suits costs that grow
+    linearly away from the minimum (census, absolute differences) and locks less to integers."""
+    c0, c1, c2 = _neighbour_costs(volume, index)
     slope = torch.maximum(c0, c2) - c1
     offset = torch.where(slope > 0, (c0 - c2) / (2 * slope.clamp_min(1e-12)), torch.zeros_like(c1))
-    inner = (index > 0) & (index < d - 1)
-    offset = torch.where(inner, offset.clamp(-0.5, 0.5), torch.zeros_like(offset))
+    offset = _bounded(offset, index, volume.shape[1])
     return index.to(volume.dtype) + offset
 
 
 def parabolic_subpixel(volume: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """Refine integer indices (B, H, W) to float32 indices by fitting a parabola through the cost
     at index-1, index, index+1; the offset is bounded to ±0.5 and zero at the ends of the range."""
-    d = volume.shape[1]
-    lo = (index - 1).clamp(0, d - 1)
-    hi = (index + 1).clamp(0, d - 1)
-    c0 = volume.gather(1, lo.unsqueeze(1))[:, 0]
-    c1 = volume.gather(1, index.unsqueeze(1))[:, 0]
-    c2 = volume.gather(1, hi.unsqueeze(1))[:, 0]
+    c0, c1, c2 = _neighbour_costs(volume, index)
     curvature = c0 - 2 * c1 + c2
     offset = torch.where(curvature > 0, (c0 - c2) / (2 * curvature.clamp_min(1e-12)), torch.zeros_like(c1))
-    inner = (index > 0) & (index < d - 1)
-    offset = torch.where(inner, offset.clamp(-0.5, 0.5), torch.zeros_like(offset))
+    offset = _bounded(offset, index, volume.shape[1])
     return index.to(volume.dtype) + offset
 
 

@@ -84,17 +84,23 @@ def torch_one_thread():
     torch.set_num_threads(before)
 
 
-@pytest.fixture
-def pty_pair(tmp_path):
-    """Two ends of a real serial line: a socat pseudo-terminal pair."""
+def start_pty_pair(folder: Path) -> tuple[subprocess.Popen, Path, Path]:
+    """Two ends of a real serial line, a socat pseudo-terminal pair, as links in ``folder``.
+    Skips the test when socat is missing; the caller terminates the returned process."""
     if shutil.which("socat") is None:
         pytest.skip("socat not installed (apt-get install socat)")
-    a, b = tmp_path / "ttyA", tmp_path / "ttyB"
+    a, b = folder / "ttyA", folder / "ttyB"
     proc = subprocess.Popen(["socat", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 5
     while not (a.exists() and b.exists()) and time.monotonic() < deadline:
         time.sleep(0.02)
+    return proc, a, b
+
+
+@pytest.fixture
+def pty_pair(tmp_path):
+    proc, a, b = start_pty_pair(tmp_path)
     yield str(a), str(b)
     proc.terminate()
     proc.wait(5)

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import start_pty_pair
 
 from drivers import plc_sim
 from drivers.modbus_link import ModbusLink, ModbusWrite
@@ -91,16 +92,8 @@ def test_cli_port_in_use_is_one_line_error():
 
 
 def test_cli_serves_modbus_rtu_on_a_serial_port(tmp_path):
-    import shutil
-
-    if shutil.which("socat") is None:
-        pytest.skip("socat not installed (apt-get install socat)")
-    a, b = tmp_path / "ttyA", tmp_path / "ttyB"
-    pair = subprocess.Popen(["socat", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    pair, a, b = start_pty_pair(tmp_path)
     try:
-        while not (a.exists() and b.exists()):
-            time.sleep(0.02)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         proc = subprocess.Popen(
             [sys.executable, "-c", "from core.commands.hardware import plc_sim_command; plc_sim_command()",

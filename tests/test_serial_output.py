@@ -2,13 +2,12 @@
 acknowledges, and pyserial's ``loop://``. Timing tolerance: TOL_S = 100 ms after the due time."""
 from __future__ import annotations
 
-import shutil
-import subprocess
 import threading
 import time
 
 import pytest
 import serial
+from conftest import start_pty_pair
 
 from core.types import Alarm, OutputEvent, PartResult, Status, Verdict
 from plugins.serial_output import SerialOutput, SerialSettings
@@ -98,18 +97,12 @@ def test_missing_acknowledgement_is_an_alarm(pty_pair):
 
 def test_port_missing_at_start_then_present(tmp_path):
     """The serial adapter is unplugged at start: reconnect with back-off, deliver once it is there."""
-    if shutil.which("socat") is None:
-        pytest.skip("socat not installed")
-    a, b = tmp_path / "ttyA", tmp_path / "ttyB"
-    out = make(str(b), delay_ms=500)
+    out = make(str(tmp_path / "ttyB"), delay_ms=500)
     p = part(0)
     out.submit(p)
     time.sleep(0.15)
-    proc = subprocess.Popen(["socat", f"pty,raw,echo=0,link={a}", f"pty,raw,echo=0,link={b}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc, a, _ = start_pty_pair(tmp_path)
     try:
-        while not a.exists():
-            time.sleep(0.02)
         peer = Peer(str(a), ack=None)
         events = out.close(timeout_s=3)
         time.sleep(0.1)

@@ -11,7 +11,6 @@ platform's own definitions; ``design_depth_mm`` is the shape's true plateau dept
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path

@@ -12,7 +12,6 @@ import json
 import re
 import socket
 import sqlite3
-from pathlib import Path
 
 import numpy as np
 import pytest

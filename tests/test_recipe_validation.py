@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import re
-import textwrap
 
 import pytest
 from conftest import cli, write_recipe

@@ -17,7 +17,7 @@ import pytest
 from click.testing import CliRunner
 
 from drivers.zed_calibration import CalibrationError, RESOLUTIONS, StereoRectifier, read_conf
-from drivers.zed_uvc import Grab, Missed, ZedUvc
+from drivers.zed_uvc import Grab, ZedUvc
 
 CONF = Path(__file__).resolve().parent / "fixtures" / "zed" / "SN11338.conf"
 W, H = RESOLUTIONS["WVGA"]

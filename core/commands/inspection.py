@@ -65,7 +65,6 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
     task = None
 
     def on_part(outcome) -> None:
-        nonlocal task
         if not quiet:
             progress.console.print(part_line(outcome), style=_STYLE[outcome.part.verdict.status], markup=False)
         if task is not None:

@@ -67,15 +67,22 @@ def convert_voc_command(src: Path, dst: Path, split_files: tuple[Path, Path] | N
 @click.option("--batch", default=16, show_default=True)
 @click.option("--device", default="auto", show_default=True)
 @click.option("--out", default=Path("runs/detector"), type=click.Path(path_type=Path), show_default=True)
+@click.option("--workers", default=2, show_default=True, help="data-loader processes")
 @click.option("--name", default="yolov8n-neu", show_default=True)
-def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int, device: str, out: Path, name: str) -> None:
+@click.option("--init", "init", default=None, type=click.Path(path_type=Path),
+              help="start from these weights (an earlier run of ours, never a downloaded checkpoint) with a fresh schedule")
+def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int, device: str, out: Path,
+                  workers: int, name: str, init: Path | None) -> None:
     """Train YOLOv8n from scratch (resumes when OUT/NAME/weights/last.pt exists)."""
     from plugins.yolov8.training import TrainSettings, train_detector
 
     data_yaml = data / "data.yaml" if data.is_dir() else data
     if not data_yaml.is_file():
         _fail(f"{data_yaml}: dataset file not found (run `inspect data convert-voc` first)")
-    best = train_detector(data_yaml, out, TrainSettings(epochs=epochs, patience=patience, imgsz=imgsz, batch=batch, device=device), name)
+    if init is not None and not init.is_file():
+        _fail(f"{init}: weights file not found")
+    settings = TrainSettings(epochs=epochs, patience=patience, imgsz=imgsz, batch=batch, device=device, workers=workers)
+    best = train_detector(data_yaml, out, settings, name, init=init)
     click.echo(f"best weights: {best}")
 
 

@@ -41,8 +41,13 @@ def resolve_device(device: str) -> str:
     return "0" if torch.cuda.is_available() else "cpu"
 
 
-def train_detector(data_yaml: Path, out_dir: Path, settings: TrainSettings, name: str = "yolov8n-neu") -> Path:
-    """Train (or resume, when ``out_dir/name/weights/last.pt`` exists) and return the best weights' path."""
+def train_detector(data_yaml: Path, out_dir: Path, settings: TrainSettings, name: str = "yolov8n-neu",
+                   init: Path | None = None) -> Path:
+    """Train (or resume, when ``out_dir/name/weights/last.pt`` exists) and return the best weights' path.
+
+    ``init`` starts a new run from weights of an earlier run with a fresh learning-rate schedule:
+    how a CPU-bound training is continued in stages once its first schedule has run out.
+    """
     os.environ.setdefault("YOLO_OFFLINE", "1")
     from ultralytics import YOLO
 
@@ -52,7 +57,7 @@ def train_detector(data_yaml: Path, out_dir: Path, settings: TrainSettings, name
         model = YOLO(str(last))
         model.train(resume=True)
     else:
-        model = YOLO("yolov8n.yaml")
+        model = YOLO(str(init) if init is not None else "yolov8n.yaml")
         params = asdict(settings)
         params["device"] = resolve_device(settings.device)
         model.train(
@@ -60,7 +65,8 @@ def train_detector(data_yaml: Path, out_dir: Path, settings: TrainSettings, name
             project=str(Path(out_dir).resolve()),
             name=name,
             exist_ok=True,
-            pretrained=False,
+            # ultralytics loads no weights at all with pretrained=False, not even those of ``init``
+            pretrained=init is not None,
             amp=False,
             plots=True,
             **params,

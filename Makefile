@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo test install clean-results
+.PHONY: demo test install screenshot clean-results
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -23,6 +23,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# The operator view's screenshot in docs/ and the README: the demo recipe's page in headless Chromium.
+screenshot: $(STAMP)
+	VIEW_SCREENSHOT=docs/operator-view.png $(BIN)/python -m pytest -q tests/test_view_browser.py -k demo
 
 clean-results:
 	rm -rf results

@@ -5,9 +5,9 @@ import sys
 
 import click
 
-from core.commands import bench, hardware, inspection, sim, stereo
+from core.commands import bench, hardware, inspection, sim, stereo, view
 
-BUILTIN_COMMAND_MODULES = (inspection, bench, stereo, hardware, sim)
+BUILTIN_COMMAND_MODULES = (inspection, bench, stereo, hardware, sim, view)
 
 
 @click.group()

@@ -201,15 +201,43 @@ CSV_COLUMNS = [
 ]
 
 
-def export_csv(db: sqlite3.Connection, out: Path) -> int:
-    """One row per defect; a part without defects gets one row with empty defect columns."""
+def csv_rows(db: sqlite3.Connection, run_id: int | None = None, verdict: str | None = None,
+             defect_class: str | None = None) -> list[tuple]:
+    """One row per defect (a part without defects gets one row with empty defect columns), in
+    ``CSV_COLUMNS`` order; the filters keep the parts of one run, of one verdict, or with a defect of one class."""
+    where, args = part_filter(run_id, verdict, defect_class)
     rows = db.execute(
         "SELECT p.run_id, p.part_id, p.frame_id, p.time, p.verdict, p.reasons, p.error, d.class, d.confidence,"
         " d.x0, d.y0, d.x1, d.y1, d.distance_mm, d.deviation_mm, d.valid_fraction, d.depth_resolution_mm,"
-        " d.area_mm2, d.verdict, d.reasons FROM parts p LEFT JOIN defects d ON d.part_row = p.id ORDER BY p.id, d.id"
+        f" d.area_mm2, d.verdict, d.reasons FROM parts p LEFT JOIN defects d ON d.part_row = p.id {where} ORDER BY p.id, d.id",
+        args,
     ).fetchall()
+    return [tuple(r) for r in rows]
+
+
+def part_filter(run_id: int | None, verdict: str | None, defect_class: str | None) -> tuple[str, list]:
+    clauses, args = [], []
+    if run_id is not None:
+        clauses.append("p.run_id = ?")
+        args.append(run_id)
+    if verdict is not None:
+        clauses.append("p.verdict = ?")
+        args.append(verdict)
+    if defect_class is not None:
+        clauses.append("EXISTS (SELECT 1 FROM defects dc WHERE dc.part_row = p.id AND dc.class = ?)")
+        args.append(defect_class)
+    return ("WHERE " + " AND ".join(clauses)) if clauses else "", args
+
+
+def write_csv(rows: list[tuple], out) -> None:
+    writer = csv.writer(out)
+    writer.writerow(CSV_COLUMNS)
+    writer.writerows(rows)
+
+
+def export_csv(db: sqlite3.Connection, out: Path) -> int:
+    """Every part of every run, one row per defect."""
+    rows = csv_rows(db)
     with open(out, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(CSV_COLUMNS)
-        writer.writerows(tuple(r) for r in rows)
+        write_csv(rows, f)
     return len(rows)

@@ -50,7 +50,13 @@ def part_line(outcome) -> str:
 @click.option("--max-frames", type=int, default=None, help="stop after this many parts")
 @click.option("--plc-sim", is_flag=True, help="start the Modbus PLC simulator in-process where a modbus output finds nothing listening")
 @click.option("--quiet", is_flag=True, help="no per-part lines")
-def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frames: int | None, plc_sim: bool, quiet: bool) -> None:
+@click.option("--view", "view", is_flag=True, help="serve the operator web page (as the recipe's view.enabled)")
+@click.option("--host", default=None, help="view: address to serve on (default: the recipe's view.host, 127.0.0.1)")
+@click.option("--port", default=None, type=click.IntRange(1, 65535), help="view: port (default: the recipe's view.port, 8080)")
+@click.option("--token", default=None, help="view: require this token from every browser (the recipe's view.token)")
+@click.option("--keep-serving", is_flag=True, help="view: keep the page up after the run ends, until Ctrl-C")
+def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frames: int | None, plc_sim: bool, quiet: bool,
+                view: bool, host: str | None, port: int | None, token: str | None, keep_serving: bool) -> None:
     """Inspect every part the recipe's camera delivers."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -59,12 +65,26 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
 
     loaded = _load(recipe, overrides)
     console = Console(highlight=False, soft_wrap=True)
+    if token is not None and len(token) < 8:
+        fail("--token: use at least 8 characters")
+    feed = server = None
+    settings = loaded.recipe.view
+    if view or settings.enabled:
+        from core.commands.view import start_view
+        from core.view.feed import LiveFeed
+
+        feed = LiveFeed()
+        server = start_view(loaded.resolve(loaded.recipe.results.path), feed, host or settings.host, port or settings.port,
+                            token or settings.token, settings.jpeg_quality, settings.max_fps,
+                            echo=lambda line: console.print(line, style="bold cyan", markup=False))
     simulators = _start_plc_simulators(loaded, console) if plc_sim else []
     progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                         TextColumn("{task.fields[fps]:.1f} fps"), console=console, transient=True)
     task = None
 
     def on_part(outcome) -> None:
+        if feed is not None:
+            feed.part(outcome)
         if not quiet:
             progress.console.print(part_line(outcome), style=_STYLE[outcome.part.verdict.status], markup=False)
         if task is not None:
@@ -73,6 +93,8 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
             progress.update(task, advance=1, fps=done / elapsed if elapsed else 0.0)
 
     def on_start(pipeline) -> None:
+        if feed is not None:
+            feed.started(loaded.recipe.name)
         total = getattr(pipeline.camera, "expected_frames", None)
         if max_frames is not None:
             total = min(total, max_frames) if total is not None else max_frames
@@ -87,10 +109,14 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
             task = progress.add_task(loaded.recipe.name, total=max_frames, fps=0.0)
             summary = engine.run(loaded, on_part=on_part, on_event=on_event, device=device, max_frames=max_frames, on_start=on_start)
     except engine.SetupError as exc:
+        if server is not None:
+            server.stop()
         fail(str(exc))
     finally:
         for sim in simulators:
             sim.stop()
+        if feed is not None:
+            feed.finished()
     c = summary.counts
     console.print(
         f"parts {sum(c.values())}  passed {c[Status.PASS]}  rejected {c[Status.REJECT]}  errors {c[Status.ERROR]}  "
@@ -101,6 +127,14 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
         stages = ", ".join(f"{name} {1000 * seconds / summary.frames:.0f} ms" for name, seconds in summary.stage_seconds.items())
         console.print(f"mean per part: {stages}", markup=False)
     console.print(f"results: {loaded.resolve(loaded.recipe.results.path)}", markup=False)
+    if server is not None:
+        if keep_serving:
+            console.print(f"run finished; the page stays up at {server.url} until Ctrl-C", style="cyan", markup=False)
+            from core.commands.view import serve_until_interrupted
+
+            serve_until_interrupted(server)
+        else:
+            server.stop()
     if summary.exit_code == engine.EXIT_ALARMS:
         console.print("exit 4: alarms were raised (see above and the results store); no PLC on this machine? "
                       "run `inspect plc-sim` beside it or pass --plc-sim", style="bold red", markup=False)

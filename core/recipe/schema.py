@@ -100,6 +100,18 @@ class ResultsSection(Section):
     save_images: Literal["rejected", "all", "none"] = "rejected"
 
 
+class ViewSection(Section):
+    """The operator's web page (``inspect run --view``)."""
+
+    enabled: bool = False
+    # Loopback by default: the page has no user accounts. Any other address warns, or asks for ``token``.
+    host: str = Field("127.0.0.1", min_length=1)
+    port: int = Field(8080, ge=1, le=65535)
+    token: str | None = Field(None, min_length=8)
+    jpeg_quality: int = Field(80, ge=30, le=100)
+    max_fps: float = Field(10.0, gt=0.0, le=60.0)  # live frames per second sent to each browser at most
+
+
 class Recipe(Section):
     name: str = Field(min_length=1)
     description: str = ""
@@ -110,3 +122,4 @@ class Recipe(Section):
     decision: DecisionSection = Field(default_factory=DecisionSection)
     outputs: list[PluginRef] = Field(default_factory=lambda: [PluginRef(plugin="log")])
     results: ResultsSection = Field(default_factory=ResultsSection)
+    view: ViewSection = Field(default_factory=ViewSection)

@@ -34,6 +34,11 @@ class StereoSection(Section):
     working_distance_mm: tuple[float, float] | None = None
     scale: float = Field(1.0, gt=0.05, le=1.0)
     schedule: Literal["every_frame", "on_defect"] = "on_defect"
+    # full: match the whole frame (the reference). defects: match only the rows and columns that the
+    # detector's boxes, their depth ring and roi_margin_px need (plus the disparity search range to
+    # the left), so a frame costs stereo in proportion to its defects (needs schedule: on_defect).
+    region: Literal["full", "defects"] = "full"
+    roi_margin_px: int = Field(32, ge=0, le=1000)
 
     @model_validator(mode="after")
     def _one_range(self) -> StereoSection:
@@ -51,6 +56,8 @@ class StereoSection(Section):
             near, far = self.working_distance_mm
             if not 0 < near < far:
                 raise ValueError("working_distance_mm must be [near, far] with 0 < near < far")
+        if self.region == "defects" and self.schedule == "every_frame":
+            raise ValueError("region: defects matches only around detections; it needs schedule: on_defect")
         return self
 
 

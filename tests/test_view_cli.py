@@ -61,3 +61,19 @@ def test_view_section_in_the_recipe_is_validated(tmp_path, plane_sequence, exter
     good = write_recipe(tmp_path / "good.yaml", RECIPE.format(box=info["box"]) + f"view:\n  enabled: true\n  port: {port}\n")
     run = cli("run", str(good), env_extra={"PYTHONPATH": str(external_plugin_site)})
     assert run.returncode == 0 and f"operator view: http://127.0.0.1:{port}/" in run.stdout
+
+
+def test_bench_view_measures_the_loop_with_and_without_browsers(tmp_path, plane_sequence, external_plugin_site):
+    info = plane_sequence([0.0, 6.0])
+    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"]))
+    result = cli("bench-view", str(path), "--frames", "4", "--browsers", "0,1",
+                 env_extra={"PYTHONPATH": str(external_plugin_site)})
+    assert result.returncode == 0, result.stdout + result.stderr
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+            for line in result.stdout.splitlines() if line.startswith("| ") and "browser" in line and "configuration" not in line}
+    assert set(rows) == {"0 browsers", "1 browser", "1 browser + 1 stalled"}
+    assert rows["0 browsers"][2:] == ["4", "0", "0"]  # frames, sent, encoded: no browser, no work
+    assert int(rows["1 browser"][3]) >= 1 and rows["1 browser"][2] == "4"
+    assert rows["1 browser + 1 stalled"][2] == "4"
+    bad = cli("bench-view", str(path), "--browsers", "one", env_extra={"PYTHONPATH": str(external_plugin_site)})
+    assert bad.returncode == 2 and "--browsers" in bad.stderr

@@ -54,5 +54,41 @@ def view_command(results: Path, host: str, port: int, token: str | None) -> None
     serve_until_interrupted(server)
 
 
+@click.command("bench-view")
+@click.argument("recipe", type=click.Path(path_type=Path), default=Path("recipes/steel_plate.yaml"))
+@click.option("--frames", default=40, show_default=True, type=click.IntRange(1), help="parts per configuration")
+@click.option("--browsers", default="0,1,3", show_default=True, help="comma-separated numbers of page-like clients")
+@click.option("--port", default=None, type=click.IntRange(1, 65535), help="default: a free port")
+@click.option("--device", default="cpu", show_default=True)
+@click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE")
+def bench_view_command(recipe: Path, frames: int, browsers: str, port: int | None, device: str, overrides: tuple[str, ...]) -> None:
+    """The loop's frame rate with no browser, with browsers pulling every frame, and with one that stalled.
+
+    The replay runs as fast as it can (rate_fps 0) and loops, so every configuration inspects the same frames.
+    """
+    from core.commands.inspection import _load
+    from core.view.bench import markdown, run_config
+    from drivers.plc_sim import free_port
+
+    loaded = _load(recipe, ("camera.settings.rate_fps=0", "camera.settings.loop=true", *overrides))
+    if any(o.plugin == "modbus" for o in loaded.recipe.outputs):
+        loaded = _load(recipe, ("camera.settings.rate_fps=0", "camera.settings.loop=true", "outputs=[{plugin: log}]", *overrides))
+    try:
+        counts = [int(n) for n in browsers.split(",")]
+    except ValueError:
+        fail(f"--browsers: {browsers!r} is not a comma-separated list of numbers")
+    def label(n: int) -> str:
+        return f"{n} browser{'' if n == 1 else 's'}"
+
+    configs = [(label(n), n, False) for n in counts]
+    configs.append((f"{label(max(counts))} + 1 stalled", max(counts), True))
+    rows = []
+    for label, n, stalled in configs:
+        rows.append(run_config(loaded, label, n, stalled, frames, "127.0.0.1", port or free_port(), device))
+        click.echo(f"{label}: {rows[-1].fps:.2f} frames/s")
+    click.echo(markdown(rows))
+
+
 def register(cli: click.Group) -> None:
     cli.add_command(view_command)
+    cli.add_command(bench_view_command)

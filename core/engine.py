@@ -24,6 +24,7 @@ from core.recipe import LoadedRecipe
 from core.recipe.schema import StereoSection
 from core.registry import Registry, default_registry
 from core.store import ResultsStore
+from core.stereo_region import disparity_around
 from core.types import Alarm, Calibration, Detection, FrameError, OutputEvent, PartResult, Status, StereoFrame
 
 EXIT_OK, EXIT_USAGE, EXIT_PART_ERRORS, EXIT_ALARMS, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
@@ -113,6 +114,17 @@ def compute_disparity(backend: Any, frame: StereoFrame, lo: float, hi: float, sc
     return full / scale
 
 
+def frame_disparity(backend: Any, frame: StereoFrame, stereo: StereoSection, detections: list[Detection],
+                    rule: DepthRule) -> np.ndarray:
+    """The frame's disparity as the recipe asks: the whole frame (``region: full``), or only the boxes,
+    their depth rings and a margin (``region: defects``, NaN elsewhere). Always from this frame."""
+    lo, hi = disparity_range(stereo, frame.calib)
+    if stereo.region == "full":
+        return compute_disparity(backend, frame, lo, hi, stereo.scale)
+    return disparity_around(lambda crop: compute_disparity(backend, crop, lo, hi, stereo.scale), frame,
+                            [d.box for d in detections], rule, stereo.roi_margin_px, hi)
+
+
 @dataclass
 class FrameOutcome:
     part: PartResult
@@ -141,8 +153,7 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         if detections or recipe.stereo.schedule == "every_frame":
             stage = "stereo"
             t0 = time.perf_counter()
-            lo, hi = disparity_range(recipe.stereo, item.calib)
-            disparity = compute_disparity(pipeline.stereo, item, lo, hi, recipe.stereo.scale)
+            disparity = frame_disparity(pipeline.stereo, item, recipe.stereo, detections, rule)
             timings["stereo"] = time.perf_counter() - t0
             stage = "depth"
             t0 = time.perf_counter()

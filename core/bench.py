@@ -2,9 +2,17 @@
 
 Stages are the engine's (``core.engine``): capture (the replay read), detection, stereo, depth,
 decision and outputs; "loop" is the whole time per frame. For each stage the figure is the
-per-frame mean of one pass; the table gives the median, min and max over the passes. Stereo runs
-on every frame (depth for every frame, whatever the recipe's schedule) so backends compare on
-equal work.
+per-frame mean of one pass; the table gives the median, min and max over the passes.
+
+Regions: ``full`` runs stereo on every frame over the whole image (depth for every frame, whatever
+the recipe's schedule) so backends compare on equal work. ``defects`` is the live setting
+(``stereo.region: defects``): stereo only on frames with detections and only around them; its row
+also gives the largest difference of each defect's depth to the same box measured on full-frame
+disparity of the same frame (computed untimed). Backend ``none`` times detection alone, the frame
+rate that depth is measured against.
+
+``soak`` runs the real loop (``core.engine.run``) for many frames of a looped replay and reports the
+resident memory at its start and end.
 """
 from __future__ import annotations
 
@@ -22,7 +30,7 @@ import cv2
 from core.contracts import PluginContext
 from core.decision import decide
 from core.depth import DepthRule, measure_defect
-from core.engine import compute_disparity, disparity_range, resolve_device
+from core.engine import compute_disparity, disparity_range, frame_disparity, resolve_device
 from core.recipe import LoadedRecipe
 from core.registry import Registry
 from core.types import FrameError, PartResult, StereoFrame
@@ -60,13 +68,18 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+NO_STEREO = "none"
+
+
 def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: tuple[int, int],
-                  device: str, repeats: int, frames: int | None, detector: Any) -> dict[str, Any]:
+                  device: str, repeats: int, frames: int | None, detector: Any, region: str = "full") -> dict[str, Any]:
     recipe = loaded.recipe
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=recipe.name, device=device)
-    stereo = registry.get("stereo", backend).spec.factory(
+    stereo = None if backend == NO_STEREO else registry.get("stereo", backend).spec.factory(
         loaded.plugin_settings["stereo"] if backend == recipe.stereo.backend else {}, ctx)
     rule = DepthRule(**recipe.depth.model_dump())
+    section = recipe.stereo.model_copy(update={"region": region})
+    diffs = {"defects": 0, "distance_mm": 0.0, "deviation_mm": 0.0, "availability_differs": 0}
     camera_spec = registry.get("camera", recipe.camera.plugin).spec
     with tempfile.TemporaryDirectory() as tmp:
         output = registry.get("output", "log").spec.factory({"file": str(Path(tmp) / "bench.log")}, ctx)
@@ -89,11 +102,14 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
                 t = {"capture": time.perf_counter()}
                 detections = detector.detect(frame.left)
                 t["detection"] = time.perf_counter()
-                lo, hi = disparity_range(recipe.stereo, frame.calib)
-                disparity = compute_disparity(stereo, frame, lo, hi, recipe.stereo.scale)
-                t["stereo"] = time.perf_counter()
-                measurements = [measure_defect(disparity, d, frame.calib, rule) for d in detections]
-                t["depth"] = time.perf_counter()
+                measurements = []
+                if stereo is not None and (region == "full" or detections):
+                    disparity = frame_disparity(stereo, frame, section, detections, rule)
+                    t["stereo"] = time.perf_counter()
+                    measurements = [measure_defect(disparity, d, frame.calib, rule) for d in detections]
+                    t["depth"] = time.perf_counter()
+                else:
+                    t["stereo"] = t["depth"] = t["detection"]
                 verdict, _ = decide(measurements, recipe.decision)
                 t["decision"] = time.perf_counter()
                 output.submit(PartResult(f"B-{count:06d}", frame.frame_id, frame.index, frame.timestamp, verdict, measurements))
@@ -105,10 +121,15 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
                     previous = t[stage]
                 totals["loop"] += t["outputs"] - t_loop
                 count += 1
+                if region != "full" and measurements and not passes:  # untimed: the next frame's clock starts later
+                    _compare_to_full(diffs, stereo, frame, recipe.stereo, detections, rule, measurements)
             camera.close()
             passes.append({stage: totals[stage] / max(count, 1) for stage in STAGES})
         output.close()
-    result: dict[str, Any] = {"backend": backend, "frames": count, "repeats": repeats, "stages_ms": {}}
+    result: dict[str, Any] = {"backend": backend, "region": region if stereo is not None else "-", "frames": count,
+                              "repeats": repeats, "stages_ms": {}}
+    if region != "full" and stereo is not None:
+        result["depth_vs_full_frame"] = diffs
     for stage in STAGES:
         values = [p[stage] * 1000.0 for p in passes]
         result["stages_ms"][stage] = {"median": statistics.median(values), "min": min(values), "max": max(values)}
@@ -122,6 +143,21 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
     return result
 
 
+def _compare_to_full(diffs: dict[str, Any], stereo: Any, frame: StereoFrame, section, detections, rule: DepthRule,
+                     measurements) -> None:
+    """Each defect's depth against the same box measured on this frame's full-frame disparity."""
+    reference = frame_disparity(stereo, frame, section.model_copy(update={"region": "full"}), detections, rule)
+    for det, m in zip(detections, measurements):
+        ref = measure_defect(reference, det, frame.calib, rule)
+        diffs["defects"] += 1
+        for key in ("distance_mm", "deviation_mm"):
+            a, b = getattr(ref, key), getattr(m, key)
+            if (a is None) != (b is None):
+                diffs["availability_differs"] += 1
+            elif a is not None:
+                diffs[key] = max(diffs[key], abs(a - b))
+
+
 def _warm_up(camera_spec, loaded: LoadedRecipe, ctx: PluginContext, detector: Any, stereo: Any, size: tuple[int, int]) -> None:
     """One untimed frame: first calls build models, allocate buffers and compile kernels."""
     camera = camera_spec.factory({**loaded.plugin_settings["camera"], "rate_fps": 0.0, "loop": False, "max_frames": 1}, ctx)
@@ -129,12 +165,13 @@ def _warm_up(camera_spec, loaded: LoadedRecipe, ctx: PluginContext, detector: An
         if isinstance(item, StereoFrame):
             frame = resize_frame(item, size)
             detector.detect(frame.left)
-            compute_disparity(stereo, frame, *disparity_range(loaded.recipe.stereo, frame.calib), loaded.recipe.stereo.scale)
+            if stereo is not None:
+                compute_disparity(stereo, frame, *disparity_range(loaded.recipe.stereo, frame.calib), loaded.recipe.stereo.scale)
     camera.close()
 
 
 def run_bench(loaded: LoadedRecipe, registry: Registry, backends: list[str], resolution: str, device: str,
-              repeats: int, frames: int | None) -> dict[str, Any]:
+              repeats: int, frames: int | None, regions: tuple[str, ...] = ("full",)) -> dict[str, Any]:
     device = resolve_device(device)
     recipe = loaded.recipe
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=recipe.name, device=device)
@@ -143,7 +180,8 @@ def run_bench(loaded: LoadedRecipe, registry: Registry, backends: list[str], res
         detector_settings["weights"] = str(loaded.resolve(recipe.detector.weights))
     detector = registry.get("detector", recipe.detector.plugin).spec.factory(detector_settings, ctx)
     size = RESOLUTIONS[resolution]
-    results = [bench_backend(loaded, registry, b, size, device, repeats, frames, detector) for b in backends]
+    results = [bench_backend(loaded, registry, b, size, device, repeats, frames, detector, r)
+               for b in backends for r in (regions if b != NO_STEREO else ("full",))]
     return {"recipe": str(loaded.path), "resolution": f"{size[0]}x{size[1]}", "device": device,
             "machine": machine(), "when": time.strftime("%Y-%m-%d %H:%M"), "results": results}
 
@@ -155,10 +193,63 @@ def markdown(report: dict[str, Any]) -> str:
         f"machine: {m['cpu']}, {m['cores']} cores, {m['torch_threads']} torch threads"
         + (f", GPU {m['gpu']}" if "gpu" in m else "") + f"; {report['when']}",
         "",
-        "| backend | " + " | ".join(f"{s} ms (median, min-max)" for s in STAGES) + " | fps | peak RSS MB |",
-        "|---|" + "---|" * (len(STAGES) + 2),
+        "| backend | region | " + " | ".join(f"{s} ms (median, min-max)" for s in STAGES)
+        + " | fps | peak RSS MB | depth vs full frame: max abs diff distance / deviation mm (defects) |",
+        "|---|---|" + "---|" * (len(STAGES) + 3),
     ]
     for r in report["results"]:
         cells = [f"{r['stages_ms'][s]['median']:.1f} ({r['stages_ms'][s]['min']:.1f}-{r['stages_ms'][s]['max']:.1f})" for s in STAGES]
-        lines.append(f"| {r['backend']} | " + " | ".join(cells) + f" | {r['fps']:.2f} | {r['peak_rss_mb']:.0f} |")
+        diff = r.get("depth_vs_full_frame")
+        versus = "" if diff is None else (f"{diff['distance_mm']:.3f} / {diff['deviation_mm']:.3f} ({diff['defects']}"
+                                         + (f", {diff['availability_differs']} available in one only" if diff["availability_differs"] else "") + ")")
+        lines.append(f"| {r['backend']} | {r['region']} | " + " | ".join(cells) + f" | {r['fps']:.2f} | {r['peak_rss_mb']:.0f} | {versus} |")
     return "\n".join(lines) + "\n"
+
+
+def current_rss_mb() -> float:
+    """Resident memory now (``VmRSS``), not the peak: what a leak makes grow."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def run_soak(loaded: LoadedRecipe, registry: Registry, frames: int, device: str, every: int = 1000,
+             on_sample=None) -> dict[str, Any]:
+    """The real loop (``core.engine.run``) over ``frames`` frames of the recipe's camera, looped, as fast as
+    it runs, with its results store and a log output in a temporary folder (no PLC needed). Resident
+    memory is sampled after the first frame (models loaded, buffers allocated), every ``every`` frames
+    and at the end."""
+    from core import engine
+    from core.recipe.schema import PluginRef
+
+    recipe = loaded.recipe
+    samples: list[tuple[int, float]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        log = {"file": str(Path(tmp) / "rejects.log")}
+        soak = LoadedRecipe(
+            recipe=recipe.model_copy(update={
+                "outputs": [PluginRef(plugin="log", settings=log)],
+                "results": recipe.results.model_copy(update={"path": str(Path(tmp) / "results")}),
+            }),
+            path=loaded.path, text_hash=loaded.text_hash,
+            plugin_settings={**{k: v for k, v in loaded.plugin_settings.items() if not k.startswith("outputs.")},
+                             "outputs.0": log, "camera": {**loaded.plugin_settings["camera"], "loop": True, "rate_fps": 0.0}},
+        )
+        done = [0]
+
+        def on_part(outcome) -> None:
+            done[0] += 1
+            if done[0] == 1 or done[0] % every == 0 or done[0] == frames:
+                samples.append((done[0], current_rss_mb()))
+                if on_sample:
+                    on_sample(*samples[-1])
+
+        start = time.perf_counter()
+        summary = engine.run(soak, registry=registry, on_part=on_part, device=device, max_frames=frames)
+        elapsed = time.perf_counter() - start
+    return {"recipe": str(loaded.path), "frames": summary.frames, "requested": frames, "seconds": elapsed,
+            "fps": summary.fps, "counts": {k.value: v for k, v in summary.counts.items()},
+            "rss_mb": samples, "rss_start_mb": samples[0][1] if samples else None,
+            "rss_end_mb": samples[-1][1] if samples else None, "peak_rss_mb": _peak_rss_mb(),
+            "machine": machine(), "when": time.strftime("%Y-%m-%d %H:%M")}

@@ -7,11 +7,12 @@ from conftest import ROOT, cli
 
 def test_bench_times_every_stage_and_saves_tables(tmp_path):
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "opencv_sgbm",
-              "--frames", "2", "--repeats", "2", "--out", str(tmp_path))
+              "--regions", "full", "--frames", "2", "--repeats", "2", "--out", str(tmp_path))
     assert out.returncode == 0, out.stderr
     report = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())
     result = report["results"][0]
     assert result["backend"] == "opencv_sgbm" and result["frames"] == 2 and result["repeats"] == 2
+    assert result["region"] == "full" and "depth_vs_full_frame" not in result
     stages = result["stages_ms"]
     assert set(stages) == {"capture", "detection", "stereo", "depth", "decision", "outputs", "loop"}
     assert all(s["min"] <= s["median"] <= s["max"] for s in stages.values())
@@ -29,3 +30,29 @@ def test_bench_hd720_and_unknown_backend(tmp_path):
               "--resolution", "hd720", "--frames", "1", "--repeats", "1", "--out", str(tmp_path))
     assert out.returncode == 0, out.stderr
     assert json.loads((tmp_path / "bench-hd720-cpu.json").read_text())["resolution"] == "1280x720"
+
+
+def test_bench_defect_region_is_compared_with_full_frame_and_detection_alone(tmp_path):
+    """Frames 1-2 of the sim sequence hold defects the detector finds; the defects row measures them on
+    crops and states how far that depth is from full-frame depth; "none" times detection alone."""
+    out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "none,opencv_sgbm",
+              "--regions", "defects", "--frames", "3", "--repeats", "1", "--threads", "1", "--out", str(tmp_path))
+    assert out.returncode == 0, out.stderr
+    results = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())["results"]
+    assert [(r["backend"], r["region"]) for r in results] == [("none", "-"), ("opencv_sgbm", "defects")]
+    assert results[0]["stages_ms"]["stereo"]["median"] == 0.0 and results[0]["stages_ms"]["detection"]["median"] > 0
+    versus = results[1]["depth_vs_full_frame"]
+    assert versus["defects"] >= 1 and versus["availability_differs"] == 0
+    assert versus["distance_mm"] < 0.05 and versus["deviation_mm"] < 0.05
+    assert "| opencv_sgbm | defects |" in (tmp_path / "bench-wvga-cpu.md").read_text()
+
+
+def test_soak_reports_rss_at_start_and_end(tmp_path):
+    out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--soak", "12", "--soak-every", "5",
+              "--threads", "1", "--set", "stereo.region=defects", "--out", str(tmp_path))
+    assert out.returncode == 0, out.stderr
+    report = json.loads((tmp_path / "soak.json").read_text())
+    assert report["frames"] == 12  # the 10-frame sequence looped
+    assert [n for n, _ in report["rss_mb"]] == [1, 5, 10, 12]
+    assert 0 < report["rss_start_mb"] <= report["peak_rss_mb"] and report["rss_end_mb"] <= report["peak_rss_mb"]
+    assert "RSS" in out.stdout and not (ROOT / "results" / "steel_plate" / "soak").exists()

@@ -20,12 +20,23 @@ from core.commands.inspection import _load, fail
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or auto")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 100))
 @click.option("--frames", default=None, type=click.IntRange(1), help="use only the first N frames")
+@click.option("--regions", default="full,defects", show_default=True,
+              help="comma-separated: full (stereo on every whole frame) and/or defects (stereo.region: defects, "
+                   "compared with full-frame depth)")
 @click.option("--out", default=Path("results/bench"), type=click.Path(path_type=Path), show_default=True)
+@click.option("--soak", default=None, type=click.IntRange(1), metavar="FRAMES",
+              help="instead of the table: run the real loop (the recipe's backend and region) for FRAMES frames of a "
+                   "looped replay and report resident memory at the start and end")
+@click.option("--soak-every", default=1000, show_default=True, type=click.IntRange(1), help="soak: sample RSS every N frames")
+@click.option("--quiet", is_flag=True, help="soak: no line per sample")
+@click.option("--threads", type=click.IntRange(1), default=None,
+              help="torch and OpenCV CPU threads (1 is fastest when another job keeps a core busy)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE")
-def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, device, repeats, frames, out, overrides):
+def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, device, repeats, frames, regions, out,
+                  soak, soak_every, quiet, threads, overrides):
     """Time capture, detection, stereo, depth, decision, outputs and the whole loop; print and save
-    a table (JSON + Markdown)."""
-    from core.bench import markdown, run_bench
+    a table (JSON + Markdown). Backend "none" times detection alone."""
+    from core.bench import NO_STEREO, markdown, run_bench, run_soak
     from core.registry import default_registry
 
     overrides = list(overrides)
@@ -37,12 +48,30 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         overrides += ["stereo.working_distance_mm=null", f"stereo.min_disparity={min_disp}", f"stereo.max_disparity={max_disp}"]
     loaded = _load(recipe, tuple(overrides))
     registry = default_registry()
+    if threads:
+        import cv2
+        import torch
+
+        torch.set_num_threads(threads)
+        cv2.setNumThreads(threads)
+    if soak is not None:
+        report = run_soak(loaded, registry, soak, device, soak_every,
+                          None if quiet else lambda n, mb: click.echo(f"frame {n}: RSS {mb:.0f} MB"))
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "soak.json").write_text(json.dumps(report, indent=2))
+        click.echo(f"soak: {report['frames']} frames in {report['seconds']:.0f} s ({report['fps']:.2f} fps); RSS "
+                   f"{report['rss_start_mb']:.0f} MB after the first frame, {report['rss_end_mb']:.0f} MB at the end, "
+                   f"peak {report['peak_rss_mb']:.0f} MB; saved: {out / 'soak.json'}")
+        return
     names = [b.strip() for b in backends.split(",") if b.strip()]
     known = registry.names("stereo")
-    unknown = [b for b in names if b not in known]
+    unknown = [b for b in names if b not in known and b != NO_STEREO]
     if unknown:
-        fail(f"--backends: unknown stereo backend {', '.join(unknown)}; known: {', '.join(known)}")
-    report = run_bench(loaded, registry, names, resolution, device, repeats, frames)
+        fail(f"--backends: unknown stereo backend {', '.join(unknown)}; known: {', '.join(known)}, or {NO_STEREO}")
+    region_names = tuple(r.strip() for r in regions.split(",") if r.strip())
+    if not region_names or any(r not in ("full", "defects") for r in region_names):
+        fail(f"--regions: give full and/or defects, not {regions!r}")
+    report = run_bench(loaded, registry, names, resolution, device, repeats, frames, region_names)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"bench-{resolution}-{report['device']}"
     (out / f"{stem}.json").write_text(json.dumps(report, indent=2))

@@ -28,6 +28,7 @@ from core.stereo_region import disparity_around
 from core.types import Alarm, Calibration, Detection, FrameError, OutputEvent, PartResult, Status, StereoFrame
 
 EXIT_OK, EXIT_USAGE, EXIT_PART_ERRORS, EXIT_ALARMS, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
+CAMERA_LOST_AFTER = 3  # consecutive frames the camera could not deliver
 
 
 class SetupError(Exception):
@@ -231,10 +232,18 @@ def run(
     if on_start:
         on_start(pipeline)
     started = time.perf_counter()
+    failed_in_a_row = 0
     try:
         for item in pipeline.camera.frames():
             outcome = inspect_frame(item, f"R{run_id}-{item.index:06d}", pipeline, loaded, rule)
             part = outcome.part
+            # One bad frame is that part's ERROR; several in a row mean the camera is lost, which
+            # the operator must hear about once per outage, not once per frame.
+            failed_in_a_row = failed_in_a_row + 1 if isinstance(item, FrameError) else 0
+            if failed_in_a_row == CAMERA_LOST_AFTER:
+                record([Alarm("camera", f"camera lost: {CAMERA_LOST_AFTER} frames in a row could not be captured "
+                                        f"(last: {item.message}); parts are rejected as ERROR until frames arrive",
+                              time.time(), part.part_id)])
             _save_image(store, recipe.results.save_images, outcome)
             store.record_part(run_id, part, outcome.per_defect)
             for name, output in pipeline.outputs:

@@ -104,6 +104,21 @@ def test_corrupt_frame_is_an_error_and_the_run_goes_on(tmp_path, plane_sequence,
     assert [o.part.verdict.status for o in seen] == [Status.ERROR, Status.REJECT, Status.PASS]
     assert "000000.png" in seen[0].part.verdict.reasons[0]
     assert summary.counts[Status.ERROR] == 1 and summary.exit_code == engine.EXIT_PART_ERRORS
+    assert summary.alarms == []  # one bad frame is that part's ERROR, not a lost camera
+
+
+def test_camera_lost_for_several_frames_is_one_alarm(tmp_path, plane_sequence, registry):
+    info = plane_sequence([0.0] * 8)
+    for i in (1, 2, 3, 4):  # an outage of four frames
+        (info["folder"] / "left" / f"{i:06d}.png").unlink()
+    summary, seen = _run(tmp_path, registry, info)
+    assert [o.part.verdict.status for o in seen].count(Status.ERROR) == 4
+    (alarm,) = summary.alarms
+    assert alarm.source == "camera" and alarm.message.startswith("camera lost: 3 frames in a row")
+    assert "000003" in alarm.message and alarm.part_id == seen[3].part.part_id
+    assert summary.exit_code == engine.EXIT_ALARMS
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    assert db.execute("SELECT source, part_id FROM alarms").fetchall() == [("camera", seen[3].part.part_id)]
 
 
 def test_part_is_stored_before_outputs_see_it(tmp_path, plane_sequence, registry):

@@ -235,9 +235,9 @@ def write_csv(rows: list[tuple], out) -> None:
     writer.writerows(rows)
 
 
-def export_csv(db: sqlite3.Connection, out: Path) -> int:
-    """Every part of every run, one row per defect."""
-    rows = csv_rows(db)
+def export_csv(db: sqlite3.Connection, out: Path, run_id: int | None = None) -> int:
+    """Every part (of one run, or of all), one row per defect."""
+    rows = csv_rows(db, run_id)
     with open(out, "w", newline="") as f:
         write_csv(rows, f)
     return len(rows)

@@ -42,3 +42,16 @@ def test_report_csv_export(results, tmp_path):
 def test_report_on_missing_store(tmp_path):
     out = cli("report", str(tmp_path / "nothing"))
     assert out.returncode == 2 and out.stderr.startswith("error: ") and "no results store" in out.stderr
+
+
+def test_report_csv_of_one_run(results, tmp_path):
+    from core.recipe import load_recipe as load
+    from core.registry import Registry, make_manager
+
+    registry = Registry(make_manager((stereo_inspect_fixed_roi,)))
+    engine.run(load(tmp_path / "r.yaml", registry=registry), registry=registry, device="cpu")  # run 2, same plates
+    target = tmp_path / "run2.csv"
+    out = cli("report", str(results), "--run", "2", "--csv", str(target))
+    assert out.returncode == 0, out.stderr
+    rows = list(csv.DictReader(target.open()))
+    assert len(rows) == 3 and {r["run_id"] for r in rows} == {"2"}

@@ -212,7 +212,7 @@ def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> 
             detail = ", ".join(f"{v} {n}" for v, n in sorted(by_verdict.items()))
             click.echo(f"  {cls:<16} {sum(by_verdict.values()):>4}  ({detail})")
     if csv_path is not None:
-        n = store.export_csv(db, csv_path)
+        n = store.export_csv(db, csv_path, run_id)
         click.echo(f"wrote {n} rows to {csv_path}")
 
 

@@ -114,23 +114,41 @@ def fit_plane_robust(
     if not solvable.any():
         return None
     candidates = np.linalg.solve(systems[solvable], d[picks][solvable][..., None])[..., 0]
-    design = np.column_stack([u, v, np.ones(n)])
-    inliers = np.abs(candidates @ design.T - d) <= tolerance
+    # Elementwise, not ``candidates @ design.T``: a matrix product goes to the multi-threaded BLAS,
+    # whose threads keep spinning after it returns and slow the detector running next (35 -> 10 ms
+    # of depth per frame and detection back to its own speed on a 2-core machine, docs/benchmarks.md).
+    inliers = np.abs(candidates[:, :1] * u + candidates[:, 1:2] * v + candidates[:, 2:3] - d) <= tolerance
     keep = inliers[np.argmax(inliers.sum(axis=1))]
     coeffs = None
     for _ in range(3):
         if keep.sum() < 3:
             break
-        coeffs, _, rank, _ = np.linalg.lstsq(design[keep], d[keep], rcond=None)
-        if rank < 3:
+        coeffs = _least_squares_plane(u[keep], v[keep], d[keep])
+        if coeffs is None:
             return None
-        new_keep = np.abs(design @ coeffs - d) <= tolerance
+        new_keep = np.abs(coeffs[0] * u + coeffs[1] * v + coeffs[2] - d) <= tolerance
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep
     if coeffs is None:
         return None
     return Plane(*map(float, coeffs))
+
+
+def _least_squares_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray | None:
+    """(a, b, c) minimising sum (a*u + b*v + c - d)^2, from the 3x3 normal equations in coordinates
+    centred on the points' mean (well conditioned, and nothing for the threaded BLAS).
+    None when the points do not define a plane (fewer than three, or all on one line)."""
+    mu, mv, md = u.mean(), v.mean(), d.mean()
+    du, dv, dd = u - mu, v - mv, d - md
+    suu, suv, svv = float(np.sum(du * du)), float(np.sum(du * dv)), float(np.sum(dv * dv))
+    det = suu * svv - suv * suv
+    if det <= 1e-9 * max(suu * svv, 1e-300):
+        return None
+    sud, svd = float(np.sum(du * dd)), float(np.sum(dv * dd))
+    a = (sud * svv - svd * suv) / det
+    b = (svd * suu - sud * suv) / det
+    return np.array([a, b, md - a * mu - b * mv])
 
 
 def worst_side(

@@ -148,3 +148,113 @@ def cost_features(left: torch.Tensor, right: torch.Tensor, znorm_radius: int, ce
         "cr": pack_bits(census_transform(grey_r, census_offsets)),
         "gl": horizontal_gradient(grey_l), "gr": horizontal_gradient(grey_r),
     }
+
+
+# --- Fast path -------------------------------------------------------------------------------------
+# The same fused cost as ``fused_cost`` (its reference), computed for a run of consecutive
+# disparities at once from a strided view of the right image's features instead of one shifted copy
+# per disparity, with every step writing into a buffer of the chunk's size. Shapes as above.
+
+
+def shifted_stack(features: torch.Tensor, d_first: int, count: int) -> torch.Tensor:
+    """A view (no copy), (B, C, count, H, W): slice k holds ``shift_right_image(features, d_first - k)``,
+    i.e. *descending* disparities d_first, d_first - 1, ... (a view can only step forwards in memory)."""
+    b, c, h, w = features.shape
+    d_last = d_first - count + 1
+    pad_left, pad_right = max(d_first, 0), max(-d_last, 0)
+    padded = _pad_columns(features, pad_left, pad_right)
+    sb, sc, sh, sw = padded.stride()
+    start = pad_left - d_first  # column of padded that holds right column x - d_first for x = 0
+    return padded.as_strided((b, c, count, h, w), (sb, sc, sw, sh, sw), padded.storage_offset() + start * sw)
+
+
+def _pad_columns(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
+    """Replicate padding along the last axis for any dtype (F.pad's replicate mode wants floats)."""
+    parts = [x[..., :1].expand(*x.shape[:-1], left), x, x[..., -1:].expand(*x.shape[:-1], right)]
+    return torch.cat([p for p in parts if p.shape[-1]], -1)
+
+
+def _popcount_(x: torch.Tensor, tmp: torch.Tensor) -> torch.Tensor:
+    """``popcount`` in place on non-negative int32 (bits 0..29), using ``tmp`` as scratch."""
+    torch.bitwise_right_shift(x, 1, out=tmp).bitwise_and_(0x55555555)
+    x.sub_(tmp)
+    torch.bitwise_right_shift(x, 2, out=tmp).bitwise_and_(0x33333333)
+    x.bitwise_and_(0x33333333).add_(tmp)
+    torch.bitwise_right_shift(x, 4, out=tmp)
+    x.add_(tmp).bitwise_and_(0x0F0F0F0F)
+    torch.bitwise_right_shift(x, 8, out=tmp)
+    x.add_(tmp)
+    torch.bitwise_right_shift(x, 16, out=tmp)
+    return x.add_(tmp).bitwise_and_(0x3F)
+
+
+def fused_cost_chunk(features: dict, d_first: int, count: int, *, w_ad: float, w_census: float, w_grad: float,
+                     lam_ad: float, lam_census: float, lam_grad: float) -> torch.Tensor:
+    """``fused_cost`` for disparities d_first, d_first + 1, ..., d_first + count - 1, from ``cost_features``.
+    Returns (B, count, H, W) float32, equal to the reference up to float rounding."""
+    zl, cl, gl = features["zl"], features["cl"], features["gl"]
+    b, _, h, w = zl.shape
+    d_top = d_first + count - 1
+    weight = torch.zeros(b, count, h, w, dtype=zl.dtype, device=zl.device)  # sum of w * exp(-c / lambda)
+    term = torch.empty_like(weight)
+    tmp = torch.empty_like(weight)
+    if w_ad:
+        right = shifted_stack(features["zr"], d_top, count)
+        term.zero_()
+        for ch in range(zl.shape[1]):
+            term.add_(torch.sub(zl[:, ch].unsqueeze(1), right[:, ch], out=tmp).abs_())
+        weight.add_(term.mul_(-1.0 / (zl.shape[1] * lam_ad)).exp_(), alpha=w_ad)
+    if w_census:
+        right = shifted_stack(features["cr"], d_top, count)
+        bits = torch.zeros(b, count, h, w, dtype=torch.int32, device=zl.device)
+        word = torch.empty_like(bits)
+        scratch = torch.empty_like(bits)
+        for k in range(cl.shape[1]):
+            torch.bitwise_xor(cl[:, k].unsqueeze(1), right[:, k], out=word)
+            bits.add_(_popcount_(word, scratch))
+        del word, scratch
+        term.copy_(bits)
+        del bits
+        weight.add_(term.mul_(-1.0 / lam_census).exp_(), alpha=w_census)
+    if w_grad:
+        right = shifted_stack(features["gr"], d_top, count)
+        torch.sub(gl, right[:, 0], out=term).abs_()
+        weight.add_(term.mul_(-1.0 / lam_grad).exp_(), alpha=w_grad)
+    # sum of w * (1 - exp(-c / lambda)), in ascending disparity order
+    return torch.flip(weight, (1,)).neg_().add_(w_ad + w_census + w_grad)
+
+
+def _box_sum_(x: torch.Tensor, radius: int, dim: int, out: torch.Tensor, work: torch.Tensor) -> torch.Tensor:
+    """Window sums along ``dim`` (-1 or -2) into ``out`` from a running sum in ``work``, by slicing
+    (the reference's ``index_select`` is several times slower). ``x`` is read only for the running sum,
+    so ``out`` may be ``x``. Needs size >= 2 * radius + 2."""
+    n, r = x.shape[dim], radius
+    torch.cumsum(x, dim, out=work)
+    cs = lambda a, b: work.narrow(dim, a, b - a)  # noqa: E731
+    dst = lambda a, b: out.narrow(dim, a, b - a)  # noqa: E731
+    torch.sub(cs(2 * r + 1, n), cs(0, n - 2 * r - 1), out=dst(r + 1, n - r))
+    dst(0, r + 1).copy_(cs(r, 2 * r + 1))
+    torch.sub(cs(n - 1, n), cs(n - 2 * r - 1, n - r - 1), out=dst(n - r, n))
+    return out
+
+
+def box_counts(h: int, w: int, radius: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """(H, W): 1 / the number of in-image pixels in each (2r+1)^2 window."""
+    def count(n):
+        pos = torch.arange(n, device=device)
+        return ((pos + radius).clamp(max=n - 1) - (pos - radius).clamp(min=0) + 1).to(dtype)
+    return 1.0 / (count(h)[:, None] * count(w)[None, :])
+
+
+def box_mean_fast(x: torch.Tensor, radius: int, out: torch.Tensor | None = None, work: torch.Tensor | None = None,
+                  inv_count: torch.Tensor | None = None) -> torch.Tensor:
+    """``box_mean`` (the reference) for (..., H, W) with H, W >= 2r + 2, into ``out`` (may not be ``x``),
+    using ``work`` (same shape) as scratch; ``inv_count`` from ``box_counts`` can be passed in."""
+    if radius <= 0:
+        return x if out is None else out.copy_(x)
+    out = torch.empty_like(x) if out is None else out
+    work = torch.empty_like(x) if work is None else work
+    _box_sum_(x, radius, -1, out, work)
+    _box_sum_(out, radius, -2, out, work)  # reads ``out`` only for the running sum, then overwrites it
+    inv = box_counts(x.shape[-2], x.shape[-1], radius, x.device, x.dtype) if inv_count is None else inv_count
+    return out.mul_(inv)

@@ -63,5 +63,9 @@ class TorchSGMParams(BaseModel):
     median_radius: int = Field(2, ge=0, description="median over filled pixels, 0 = off")
     median_scope: Literal["holes", "all"] = Field("holes", description="all: also a final median over every "
                                                   "pixel, which removes isolated mismatches")
-    # memory
-    chunk_disparities: int = Field(32, ge=1, description="disparity slices built and filtered at once")
+    # memory and speed
+    chunk_disparities: int = Field(32, ge=1, description="disparity slices built and filtered at once "
+                                   "(the fast implementation uses at most 8)")
+    implementation: Literal["fast", "reference"] = Field(
+        "fast", description="fast: batched, in-place versions of the cost, aggregation and SGM stages; "
+        "reference: the plain stage functions they are tested against (same result up to float rounding)")

@@ -42,6 +42,25 @@ def cost_volume(left: torch.Tensor, right: torch.Tensor, disparities: list[int],
     return volume
 
 
+FAST_CHUNK = 8  # disparity slices per step of the fast path: its buffers stay small enough to be reused
+
+
+def cost_volume_fast(left: torch.Tensor, right: torch.Tensor, disparities: list[int], p: TorchSGMParams) -> torch.Tensor:
+    """``cost_volume`` (the reference) from ``cost.fused_cost_chunk`` and ``aggregate.guided_filter_fast``:
+    the disparities of a chunk in one strided view, the guide's statistics computed once."""
+    offsets = cost.STAR_24 if p.census == "star24" else cost.window_offsets(p.census_rx, p.census_ry)
+    features = cost.cost_features(left, right, p.znorm_radius, offsets, p.znorm_eps)
+    stats = aggregate.guide_statistics(cost.to_grey(left), p.agg_radius, p.agg_eps) if p.agg_radius > 0 else None
+    volume = torch.empty(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
+    step = min(p.chunk_disparities, FAST_CHUNK)
+    for start in range(0, len(disparities), step):
+        count = min(step, len(disparities) - start)
+        raw = cost.fused_cost_chunk(features, disparities[start], count, w_ad=p.w_ad, w_census=p.w_census,
+                                    w_grad=p.w_grad, lam_ad=p.lam_ad, lam_census=p.lam_census, lam_grad=p.lam_grad)
+        volume[:, start: start + count] = raw if stats is None else aggregate.guided_filter_fast(stats, raw, p.agg_radius)
+    return volume
+
+
 def edge_strength(left: torch.Tensor) -> torch.Tensor:
     """(B, 3, H, W) -> (B, H, W) normalised Sobel gradient magnitude of the grey image."""
     grey = cost.to_grey(left)
@@ -60,10 +79,11 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     """(B, 3, H, W) RGB pair in [0, 1] -> (disparity (B, H, W) float32, NaN where still invalid;
     consistent (B, H, W) bool: pixels that passed the left-right check)."""
     disparities = disparity_range(min_disp, max_disp)
-    volume = cost_volume(left, right, disparities, p)
+    fast = p.implementation == "fast"
+    volume = (cost_volume_fast if fast else cost_volume)(left, right, disparities, p)
     penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
     paths = sgm.PATHS_8 if p.paths == 8 else sgm.PATHS_4
-    aggregated = sgm.sgm(volume, p.p1, penalty, paths)
+    aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
     del volume
     index = select.winner_takes_all(aggregated)
     fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel

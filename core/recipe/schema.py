@@ -39,6 +39,9 @@ class StereoSection(Section):
     # the left), so a frame costs stereo in proportion to its defects (needs schedule: on_defect).
     region: Literal["full", "defects"] = "full"
     roi_margin_px: int = Field(32, ge=0, le=1000)
+    # Detect the next frame (in a second thread) while this frame's stereo, depth, decision and
+    # outputs run. A part's verdict still uses its own frame's disparity.
+    concurrent: bool = False
 
     @model_validator(mode="after")
     def _one_range(self) -> StereoSection:

@@ -7,9 +7,11 @@ becomes an ERROR verdict, which the outputs reject like any other reject.
 from __future__ import annotations
 
 import math
+import queue
+import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -138,18 +140,42 @@ class FrameOutcome:
         return [status for status, _ in self.per_defect]
 
 
-def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeline, loaded: LoadedRecipe, rule: DepthRule) -> FrameOutcome:
+@dataclass
+class Detected:
+    """What the detection stage made of one frame: its detections, or the failure to report."""
+
+    detections: list[Detection] | None
+    seconds: float = 0.0
+    error: str | None = None
+
+
+def detect_frame(item: StereoFrame | FrameError, pipeline: Pipeline, recipe) -> Detected | None:
+    """Stage 1 of a frame (None for a FrameError, which has nothing to detect on)."""
+    if isinstance(item, FrameError):
+        return None
+    t0 = time.perf_counter()
+    try:
+        detections = _filter(pipeline.detector.detect(item.left), recipe.detector.confidence, recipe.detector.classes)
+    except Exception as exc:  # reported on the part by inspect_frame
+        return Detected(None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}")
+    return Detected(detections, time.perf_counter() - t0)
+
+
+def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeline, loaded: LoadedRecipe, rule: DepthRule,
+                  detected: Detected | None = None) -> FrameOutcome:
+    """One frame through every stage; ``detected`` when its detection already ran (``stereo.concurrent``)."""
     recipe = loaded.recipe
     if isinstance(item, FrameError):
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(f"camera: {item.message}"), error=item.message)
         return FrameOutcome(part, [], None)
 
-    timings: dict[str, float] = {}
+    detected = detected or detect_frame(item, pipeline, recipe)
+    timings: dict[str, float] = {"detection": detected.seconds}
     stage = "detection"
     try:
-        t0 = time.perf_counter()
-        detections = _filter(pipeline.detector.detect(item.left), recipe.detector.confidence, recipe.detector.classes)
-        timings["detection"] = time.perf_counter() - t0
+        if detected.error is not None:
+            raise _StageFailed(detected.error)
+        detections = detected.detections
         measurements = []
         if detections or recipe.stereo.schedule == "every_frame":
             stage = "stereo"
@@ -163,11 +189,65 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         stage = "decision"
         verdict, per_defect = decide(measurements, recipe.decision)
     except Exception as exc:  # one part's failure must not stop the line; it rejects that part
-        message = f"frame {item.frame_id}: {stage} failed: {type(exc).__name__}: {exc}"
+        what = str(exc) if isinstance(exc, _StageFailed) else f"{type(exc).__name__}: {exc}"
+        message = f"frame {item.frame_id}: {stage} failed: {what}"
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)
         return FrameOutcome(part, [], item.left, timings)
     part = PartResult(part_id, item.frame_id, item.index, item.timestamp, verdict, measurements)
     return FrameOutcome(part, per_defect, item.left, timings)
+
+
+class _StageFailed(Exception):
+    """A failure already described (a detection that ran ahead of its frame)."""
+
+
+class _CameraFailed:
+    def __init__(self, exc: BaseException):
+        self.exc = exc
+
+
+def _detected_ahead(pipeline: Pipeline, recipe, stop: threading.Event) -> Iterator[tuple[StereoFrame | FrameError, Detected | None]]:
+    """Frames with their detections, detected one frame ahead in a second thread: while the caller
+    works on frame n (stereo, depth, store, outputs), frame n + 1 is read and detected. Torch and
+    OpenCV release the GIL, so the two overlap where a core is free. Set ``stop`` and close the
+    iterator to end the thread."""
+    ready: queue.Queue = queue.Queue(maxsize=1)
+    done = object()
+
+    def produce() -> None:
+        try:
+            for item in pipeline.camera.frames():
+                entry = (item, detect_frame(item, pipeline, recipe))
+                while not stop.is_set():
+                    try:
+                        ready.put(entry, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            ready.put(done)
+        except BaseException as exc:  # a camera that raises: handed to the loop, which raises it there
+            ready.put(_CameraFailed(exc))
+
+    worker = threading.Thread(target=produce, name="detect-ahead", daemon=True)
+    worker.start()
+    try:
+        while True:
+            entry = ready.get()
+            if entry is done:
+                return
+            if isinstance(entry, _CameraFailed):
+                raise entry.exc
+            yield entry
+    finally:
+        stop.set()
+        while worker.is_alive():  # a producer waiting to put needs room to notice ``stop``
+            try:
+                ready.get(timeout=0.1)
+            except queue.Empty:
+                pass
+        worker.join()
 
 
 def _filter(detections: list[Detection], confidence: float, classes: list[str] | None) -> list[Detection]:
@@ -233,9 +313,12 @@ def run(
         on_start(pipeline)
     started = time.perf_counter()
     failed_in_a_row = 0
+    stop = threading.Event()
+    frames_in = (_detected_ahead(pipeline, recipe, stop) if recipe.stereo.concurrent
+                 else ((item, None) for item in pipeline.camera.frames()))
     try:
-        for item in pipeline.camera.frames():
-            outcome = inspect_frame(item, f"R{run_id}-{item.index:06d}", pipeline, loaded, rule)
+        for item, detected in frames_in:
+            outcome = inspect_frame(item, f"R{run_id}-{item.index:06d}", pipeline, loaded, rule, detected)
             part = outcome.part
             # One bad frame is that part's ERROR; several in a row mean the camera is lost, which
             # the operator must hear about once per outage, not once per frame.
@@ -264,6 +347,8 @@ def run(
     except Exception as exc:  # a camera that raises instead of reporting a FrameError: stop, loudly
         record([Alarm("engine", f"run stopped after {frames} parts: {type(exc).__name__}: {exc}", time.time())])
     finally:
+        stop.set()
+        frames_in.close()  # with stereo.concurrent: ends the detection thread before the camera closes
         elapsed = time.perf_counter() - started
         for name, output in pipeline.outputs:
             try:

@@ -104,7 +104,7 @@ def sgm(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=PATHS_4) 
 
 def _walk_both(cost: torch.Tensor, p1: float, p2: torch.Tensor, crosses: tuple[int, ...], out: torch.Tensor) -> None:
     """Add to ``out`` the path costs of walking dim 1 forwards and backwards, once per predecessor
-    offset in ``crosses`` along X. cost, out: (B, N, D, X) contiguous; p2: (B, N, X)."""
+    offset in ``crosses`` along X. cost, out: (B, N, D, X), views allowed; p2: (B, N, X)."""
     b, n, d, x = cost.shape
     g = len(crosses)
     bufs = [torch.empty(2, g, b, d, x, dtype=cost.dtype, device=cost.device) for _ in range(2)]
@@ -152,15 +152,6 @@ def _to_columns(cost: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def _to_rows(cost: torch.Tensor) -> torch.Tensor:
-    """(B, D, H, W) -> contiguous (B, H, D, W), one copy per disparity."""
-    b, d, h, w = cost.shape
-    out = torch.empty(b, h, d, w, dtype=cost.dtype, device=cost.device)
-    for k in range(d):
-        out[:, :, k].copy_(cost[:, k])
-    return out
-
-
 def sgm_fast(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=PATHS_4) -> torch.Tensor:
     """``sgm`` (the reference) for path sets that hold every direction with its opposite (PATHS_4,
     PATHS_8). cost: (B, D, H, W) -> (B, D, H, W); p2: scalar or (B, H, W)."""
@@ -169,21 +160,18 @@ def sgm_fast(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=PATH
     if set(paths) != {(-dy, -dx) for dy, dx in paths}:
         return sgm(cost, p1, p2, paths)
     crosses = tuple(sorted({dy for dy, dx in paths if dx == 1}, key=abs))
-    d = cost.shape[1]
     out = torch.zeros_like(cost)
+    if any(dx == 0 for _, dx in paths):
+        # Vertical paths step along H: each step's (B, D, W) slice is D rows of W contiguous values,
+        # so they walk the volume as it is, through a (B, H, D, W) view.
+        _walk_both(cost.permute(0, 2, 1, 3), p1, p2, (0,), out.permute(0, 2, 1, 3))
     if crosses:
+        # Horizontal and diagonal paths step along W: a column slice would touch a cache line per
+        # value, so they walk a transposed copy.
         cost_c = _to_columns(cost)  # (B, W, D, H)
         out_c = torch.zeros_like(cost_c)
         _walk_both(cost_c, p1, p2.transpose(1, 2).contiguous(), crosses, out_c)
         del cost_c
-        for k in range(d):
-            out[:, k].copy_(out_c[:, :, k].transpose(-1, -2))
-        del out_c
-    if any(dx == 0 for _, dx in paths):
-        cost_r = _to_rows(cost)  # (B, H, D, W)
-        out_r = torch.zeros_like(cost_r)
-        _walk_both(cost_r, p1, p2, (0,), out_r)
-        del cost_r
-        for k in range(d):
-            out[:, k].add_(out_r[:, :, k])
+        for k in range(cost.shape[1]):
+            out[:, k].add_(out_c[:, :, k].transpose(-1, -2))
     return out

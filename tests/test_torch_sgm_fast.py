@@ -41,9 +41,11 @@ def test_fused_cost_chunk_equals_fused_cost(census, weights):
     assert fast.shape == ref.shape and torch.allclose(fast, ref, atol=1e-6)
 
 
-def test_popcount_in_place_equals_reference():
-    x = torch.randint(0, 2**30, (3, 50), dtype=torch.int32)
-    assert torch.equal(cost._popcount_(x.clone(), torch.empty_like(x)), cost.popcount(x))
+def test_census_factor_table_is_the_robust_term_of_a_half_word():
+    table = cost.census_factor_table(6.0)
+    codes = torch.tensor([0, 1, 0b101, 2 ** 15 - 1], dtype=torch.int32)
+    assert table.shape == (2 ** 15,)
+    assert torch.allclose(table[codes.long()], torch.exp(-torch.tensor([0.0, 1.0, 2.0, 15.0]) / 6.0))
 
 
 @pytest.mark.parametrize("shape", [(8, 8), (17, 30), (40, 56)])

@@ -174,52 +174,63 @@ def _pad_columns(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
     return torch.cat([p for p in parts if p.shape[-1]], -1)
 
 
-def _popcount_(x: torch.Tensor, tmp: torch.Tensor) -> torch.Tensor:
-    """``popcount`` in place on non-negative int32 (bits 0..29), using ``tmp`` as scratch."""
-    torch.bitwise_right_shift(x, 1, out=tmp).bitwise_and_(0x55555555)
-    x.sub_(tmp)
-    torch.bitwise_right_shift(x, 2, out=tmp).bitwise_and_(0x33333333)
-    x.bitwise_and_(0x33333333).add_(tmp)
-    torch.bitwise_right_shift(x, 4, out=tmp)
-    x.add_(tmp).bitwise_and_(0x0F0F0F0F)
-    torch.bitwise_right_shift(x, 8, out=tmp)
-    x.add_(tmp)
-    torch.bitwise_right_shift(x, 16, out=tmp)
-    return x.add_(tmp).bitwise_and_(0x3F)
+HALF_WORD = 15  # census words hold 30 bits: two 15-bit halves index one table each
+
+
+def census_factor_table(lam: float, device=None) -> torch.Tensor:
+    """exp(-popcount(i) / lam) for every 15-bit i: since exp(-(a + b) / lam) = exp(-a / lam) * exp(-b / lam),
+    the robust census term of a code is the product of its halves' entries (two look-ups instead of a
+    popcount, a conversion and an exponential)."""
+    values = torch.arange(2 ** HALF_WORD, dtype=torch.int32, device=device)
+    return torch.exp(-popcount(values).float() / lam)
 
 
 def fused_cost_chunk(features: dict, d_first: int, count: int, *, w_ad: float, w_census: float, w_grad: float,
                      lam_ad: float, lam_census: float, lam_grad: float) -> torch.Tensor:
     """``fused_cost`` for disparities d_first, d_first + 1, ..., d_first + count - 1, from ``cost_features``.
-    Returns (B, count, H, W) float32, equal to the reference up to float rounding."""
+    Returns (B, count, H, W) float32, equal to the reference up to float rounding.
+
+    Works on ``sum_t w_t * exp(-c_t / lambda_t)`` (``weight``), which is ``w_ad + w_census + w_grad`` minus
+    the fused cost."""
     zl, cl, gl = features["zl"], features["cl"], features["gl"]
     b, _, h, w = zl.shape
     d_top = d_first + count - 1
-    weight = torch.zeros(b, count, h, w, dtype=zl.dtype, device=zl.device)  # sum of w * exp(-c / lambda)
-    term = torch.empty_like(weight)
-    tmp = torch.empty_like(weight)
+    shape = (b, count, h, w)
+    tmp = torch.empty(shape, dtype=zl.dtype, device=zl.device)
+    weight = None
+
+    def add(term: torch.Tensor, w_term: float) -> torch.Tensor:
+        return term.mul_(w_term) if weight is None else weight.add_(term, alpha=w_term)
+
     if w_ad:
         right = shifted_stack(features["zr"], d_top, count)
-        term.zero_()
-        for ch in range(zl.shape[1]):
-            term.add_(torch.sub(zl[:, ch].unsqueeze(1), right[:, ch], out=tmp).abs_())
-        weight.add_(term.mul_(-1.0 / (zl.shape[1] * lam_ad)).exp_(), alpha=w_ad)
+        term = torch.sub(zl[:, :1], right[:, 0], out=torch.empty_like(tmp)).abs_()
+        for ch in range(1, zl.shape[1]):
+            term.add_(torch.sub(zl[:, ch: ch + 1], right[:, ch], out=tmp).abs_())
+        weight = add(term.mul_(-1.0 / (zl.shape[1] * lam_ad)).exp_(), w_ad)
     if w_census:
+        table = census_factor_table(lam_census, zl.device)
         right = shifted_stack(features["cr"], d_top, count)
-        bits = torch.zeros(b, count, h, w, dtype=torch.int32, device=zl.device)
-        word = torch.empty_like(bits)
-        scratch = torch.empty_like(bits)
+        word = torch.empty(shape, dtype=torch.int32, device=zl.device)
+        low = torch.empty_like(word)
+        term = torch.empty_like(tmp)
         for k in range(cl.shape[1]):
-            torch.bitwise_xor(cl[:, k].unsqueeze(1), right[:, k], out=word)
-            bits.add_(_popcount_(word, scratch))
-        del word, scratch
-        term.copy_(bits)
-        del bits
-        weight.add_(term.mul_(-1.0 / lam_census).exp_(), alpha=w_census)
+            torch.bitwise_xor(cl[:, k: k + 1], right[:, k], out=word)
+            torch.bitwise_and(word, 2 ** HALF_WORD - 1, out=low)
+            factor = term if k == 0 else tmp
+            torch.index_select(table, 0, low.view(-1), out=factor.view(-1))
+            if k > 0:
+                term.mul_(factor)
+            torch.index_select(table, 0, word.bitwise_right_shift_(HALF_WORD).view(-1), out=tmp.view(-1))
+            term.mul_(tmp)
+        del word, low
+        weight = add(term, w_census)
     if w_grad:
         right = shifted_stack(features["gr"], d_top, count)
-        torch.sub(gl, right[:, 0], out=term).abs_()
-        weight.add_(term.mul_(-1.0 / lam_grad).exp_(), alpha=w_grad)
+        term = torch.sub(gl, right[:, 0], out=torch.empty_like(tmp)).abs_()
+        weight = add(term.mul_(-1.0 / lam_grad).exp_(), w_grad)
+    if weight is None:
+        return torch.zeros(shape, dtype=zl.dtype, device=zl.device)
     # sum of w * (1 - exp(-c / lambda)), in ascending disparity order
     return torch.flip(weight, (1,)).neg_().add_(w_ad + w_census + w_grad)
 

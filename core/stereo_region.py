@@ -38,11 +38,19 @@ def needed_rect(box: tuple[float, float, float, float], rule: DepthRule, shape: 
 
 def crop_rect(needed: Rect, margin: int, max_disp: float, shape: tuple[int, int]) -> Rect:
     """The columns and rows matched for a needed rectangle: grown by ``margin`` on every side and by
-    the search range (``max_disp + SEARCH_SLACK_PX``) to the left."""
+    the search range (``max_disp + SEARCH_SLACK_PX``) to the left, and never narrower than that range
+    plus the margin."""
     h, w = shape
     x0, y0, x1, y1 = needed
     reach = math.ceil(max_disp) + SEARCH_SLACK_PX
-    return (max(0, x0 - margin - reach), max(0, y0 - margin), min(w, x1 + margin), min(h, y1 + margin))
+    cx0, cx1 = max(0, x0 - margin - reach), min(w, x1 + margin)
+    # Near the left edge the crop would be narrower than the search range, which a matcher may refuse
+    # (OpenCV does); widen it to the right. Those pixels have no match on the full frame either.
+    narrowest = min(w, reach + max(margin, SEARCH_SLACK_PX))
+    if cx1 - cx0 < narrowest:
+        cx1 = min(w, cx0 + narrowest)
+        cx0 = max(0, cx1 - narrowest)
+    return (cx0, max(0, y0 - margin), cx1, min(h, y1 + margin))
 
 
 def _overlap(a: Rect, b: Rect) -> bool:

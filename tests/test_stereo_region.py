@@ -30,7 +30,22 @@ def test_needed_rect_is_box_and_ring_clipped():
 def test_crop_reaches_the_search_range_to_the_left():
     x0, y0, x1, y1 = crop_rect((300, 100, 350, 150), margin=10, max_disp=142.0, shape=(376, 672))
     assert (x0, y0, x1, y1) == (300 - 10 - 142 - SEARCH_SLACK_PX, 90, 360, 160)
-    assert crop_rect((20, 0, 60, 30), 10, 142.0, (376, 672)) == (0, 0, 70, 40)
+    # At the left edge the crop is widened to the right so a matcher still sees the whole search range.
+    assert crop_rect((20, 0, 60, 30), 10, 142.0, (376, 672)) == (0, 0, 142 + SEARCH_SLACK_PX + SEARCH_SLACK_PX, 40)
+    assert crop_rect((20, 0, 60, 30), 10, 142.0, (376, 150)) == (0, 0, 150, 40)
+
+
+@pytest.mark.parametrize("box", [(0, 0, 20, 15), (0, 100, 40, 140), (650, 360, 672, 376)])
+def test_boxes_at_the_image_edges_match_like_the_full_frame(box):
+    frame = list(ReplayCamera(ReplaySettings(path=str(FIXTURE), max_frames=2)).frames())[1]
+    sgbm = default_registry().get("stereo", "opencv_sgbm").spec.factory({}, PluginContext())
+    section = StereoSection(working_distance_mm=(300, 600))
+    detections = [Detection("x", 1.0, box)]
+    roi = frame_disparity(sgbm, frame, section.model_copy(update={"region": "defects"}), detections, RULE)
+    full = frame_disparity(sgbm, frame, section, detections, RULE)
+    x0, y0, x1, y1 = needed_rect(box, RULE, roi.shape)
+    assert np.array_equal(np.isfinite(roi[y0:y1, x0:x1]), np.isfinite(full[y0:y1, x0:x1]))
+    assert np.nanmax(np.abs(roi - full), initial=0.0) < 0.5
 
 
 def test_overlapping_crops_merge_and_distant_ones_stay_apart():

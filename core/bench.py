@@ -251,5 +251,7 @@ def run_soak(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
     return {"recipe": str(loaded.path), "frames": summary.frames, "requested": frames, "seconds": elapsed,
             "fps": summary.fps, "counts": {k.value: v for k, v in summary.counts.items()},
             "rss_mb": samples, "rss_start_mb": samples[0][1] if samples else None,
-            "rss_end_mb": samples[-1][1] if samples else None, "peak_rss_mb": _peak_rss_mb(),
+            "rss_end_mb": samples[-1][1] if samples else None,
+            # VmRSS is read from per-thread counters that can run a little ahead of ru_maxrss
+            "peak_rss_mb": max([_peak_rss_mb(), *(mb for _, mb in samples)]),
             "machine": machine(), "when": time.strftime("%Y-%m-%d %H:%M")}

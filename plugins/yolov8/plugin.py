@@ -1,4 +1,4 @@
-"""Registers the ``yolov8`` detector and its commands (convert-voc, train detector, eval detector)."""
+"""Registers the ``yolov8`` detector and its commands (convert-voc, add-backgrounds, train detector, eval detector)."""
 from __future__ import annotations
 
 import sys
@@ -59,6 +59,25 @@ def convert_voc_command(src: Path, dst: Path, split_files: tuple[Path, Path] | N
     click.echo(f"dataset: {dst / 'data.yaml'}")
 
 
+@click.command("add-backgrounds")
+@click.argument("sequence", type=click.Path(path_type=Path))
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--split", default="train", show_default=True)
+@click.option("--tile", default=224, show_default=True, help="tile edge in frame pixels, as the recipe's tile_size")
+@click.option("--overlap", default=0.25, show_default=True, help="as the recipe's tile_overlap")
+@click.option("--margin", default=32.0, show_default=True, help="px kept clear around every labelled defect")
+def add_backgrounds_command(sequence: Path, dataset: Path, split: str, tile: int, overlap: float, margin: float) -> None:
+    """Add the defect-free tiles of a rendered sequence (`inspect sim generate`) to DATASET as background images."""
+    from plugins.yolov8.backgrounds import BackgroundError, add_backgrounds
+
+    try:
+        report = add_backgrounds(sequence, dataset, split, tile, overlap, margin)
+    except BackgroundError as exc:
+        _fail(str(exc))
+    click.echo(f"{report.tiles} background tiles from {report.frames} frames "
+               f"({report.skipped_tiles} tiles near a defect left out) -> {dataset / 'images' / split}")
+
+
 @click.command("detector")
 @click.option("--data", "data", required=True, type=click.Path(path_type=Path), help="YOLO dataset folder or its data.yaml")
 @click.option("--epochs", default=100, show_default=True)
@@ -109,5 +128,6 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, out: Path) -
 @hookimpl
 def stereo_inspect_commands(cli: click.Group) -> None:
     cli.commands["data"].add_command(convert_voc_command)
+    cli.commands["data"].add_command(add_backgrounds_command)
     cli.commands["train"].add_command(train_command)
     cli.commands["eval"].add_command(eval_command)

@@ -1,0 +1,86 @@
+"""Defect-free tiles of rendered plates as background (negative) training images.
+
+NEU-DET holds only images with defects, so a model trained on it alone has never been told
+that plain rolled steel, a plate edge or the belt is *not* a defect; on a full frame it
+boxes plate texture as ``pitted_surface``. ultralytics treats an image with an empty label
+file as background. These helpers cut a rendered sequence (``inspect sim generate``) into
+the same tiles the detector sees at inference and keep the tiles that stay clear of every
+labelled defect.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from plugins.yolov8.tiling import tile_origins
+
+
+class BackgroundError(Exception):
+    """The sequence or the dataset folder cannot be used; the message names the file."""
+
+
+def clear_tiles(
+    height: int, width: int, boxes: np.ndarray, tile: int, overlap: float, margin: float
+) -> list[tuple[int, int]]:
+    """Origins (x0, y0) of the inference tiles of a (height, width) frame that do not touch any box.
+
+    boxes: (N, 4) x0, y0, x1, y1 in frame pixels; each box is grown by ``margin`` px first, so
+    that a defect's blended rim never lands in a "background" tile.
+    """
+    grown = np.asarray(boxes, dtype=np.float64).reshape(-1, 4) + np.array([-margin, -margin, margin, margin])
+    clear = []
+    for y0 in tile_origins(height, tile, overlap):
+        for x0 in tile_origins(width, tile, overlap):
+            x1, y1 = x0 + tile, y0 + tile
+            hit = (grown[:, 0] < x1) & (grown[:, 2] > x0) & (grown[:, 1] < y1) & (grown[:, 3] > y0)
+            if not hit.any():
+                clear.append((x0, y0))
+    return clear
+
+
+@dataclass
+class BackgroundReport:
+    frames: int = 0
+    tiles: int = 0
+    skipped_tiles: int = 0
+
+
+def add_backgrounds(sequence: Path, dataset: Path, split: str = "train", tile: int = 224,
+                    overlap: float = 0.25, margin: float = 32.0) -> BackgroundReport:
+    """Write every clear tile of SEQUENCE's left images into DATASET/images/SPLIT with an empty label file."""
+    labels = sorted((sequence / "labels").glob("*.json"))
+    if not labels:
+        raise BackgroundError(f"{sequence / 'labels'}: no frame labels (render one with `inspect sim generate`)")
+    images_dir, labels_dir = dataset / "images" / split, dataset / "labels" / split
+    if not images_dir.is_dir():
+        raise BackgroundError(f"{images_dir}: not a YOLO dataset split (run `inspect data convert-voc` first)")
+    labels_dir.mkdir(parents=True, exist_ok=True)
+    report = BackgroundReport()
+    for label_path in labels:
+        try:
+            label = json.loads(label_path.read_text())
+            frame_id = label["frame_id"]
+            boxes = np.array([d["box"] for d in label["defects"]], dtype=np.float64).reshape(-1, 4)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise BackgroundError(f"{label_path}: not a frame label ({exc})") from exc
+        candidates = sorted((sequence / "left").glob(f"{frame_id}.*"))
+        image = cv2.imread(str(candidates[0]), cv2.IMREAD_COLOR) if candidates else None
+        if image is None:
+            raise BackgroundError(f"{sequence / 'left' / frame_id}.*: left image missing or unreadable")
+        h, w = image.shape[:2]
+        origins = clear_tiles(h, w, boxes, tile, overlap, margin)
+        report.frames += 1
+        report.skipped_tiles += len(tile_origins(h, tile, overlap)) * len(tile_origins(w, tile, overlap)) - len(origins)
+        for x0, y0 in origins:
+            # the sequence folder's name keeps tiles of different renders apart
+            stem = f"bg_{sequence.name}_{frame_id}_{x0}_{y0}"
+            cv2.imwrite(str(images_dir / f"{stem}.jpg"), image[y0:y0 + tile, x0:x0 + tile], [cv2.IMWRITE_JPEG_QUALITY, 95])
+            (labels_dir / f"{stem}.txt").write_text("")
+            report.tiles += 1
+    # ultralytics caches the label scan per split; a stale cache would hide the new images
+    (dataset / "labels" / f"{split}.cache").unlink(missing_ok=True)
+    return report

@@ -1,0 +1,68 @@
+"""Background tiles for detector training: cut from a rendered sequence, clear of every defect."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from core.cli import _build
+from plugins.yolov8.backgrounds import clear_tiles
+from plugins.yolov8.tiling import tile_origins
+from sim.generate import generate_sequence
+
+
+def test_clear_tiles_keep_away_from_boxes_by_the_margin():
+    # 448x224 frame, 224 tiles, no overlap: two tiles, origins x = 0 and 224
+    assert clear_tiles(224, 448, np.zeros((0, 4)), 224, 0.0, 0.0) == [(0, 0), (224, 0)]
+    box = np.array([[10, 10, 50, 50]])
+    assert clear_tiles(224, 448, box, 224, 0.0, 0.0) == [(224, 0)]
+    near_border = np.array([[180, 10, 200, 50]])
+    assert clear_tiles(224, 448, near_border, 224, 0.0, 10.0) == [(224, 0)]
+    # grown by 30 px the box reaches x = 230, into the second tile too
+    assert clear_tiles(224, 448, near_border, 224, 0.0, 30.0) == []
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bg") / "plates"
+    generate_sequence(out, frames=3, seed=5, width=448, height=300, neu_det=None)
+    return out
+
+
+def test_add_backgrounds_writes_clear_tiles_with_empty_labels(rendered, tmp_path):
+    dataset = tmp_path / "data"
+    (dataset / "images" / "train").mkdir(parents=True)
+    (dataset / "labels").mkdir()
+    (dataset / "labels" / "train.cache").write_text("stale")
+    result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(rendered), str(dataset), "--margin", "16"])
+    assert result.exit_code == 0, result.output
+    images = sorted((dataset / "images" / "train").glob("bg_plates_*.jpg"))
+    assert images and f"{len(images)} background tiles from 3 frames" in result.output
+    assert not (dataset / "labels" / "train.cache").exists()
+    expected = 0
+    for label in (rendered / "labels").glob("*.json"):
+        boxes = np.array([d["box"] for d in json.loads(label.read_text())["defects"]]).reshape(-1, 4)
+        expected += len(clear_tiles(300, 448, boxes, 224, 0.25, 16.0))
+    per_frame = len(tile_origins(300, 224, 0.25)) * len(tile_origins(448, 224, 0.25))
+    assert len(images) == expected < 3 * per_frame  # the rendered defects keep some tiles out
+    for image in images:
+        _, frame_id, x0, y0 = image.stem.rsplit("_", 3)
+        x0, y0 = int(x0), int(y0)
+        assert (dataset / "labels" / "train" / f"{image.stem}.txt").read_text() == ""
+        tile = cv2.imread(str(image))
+        assert tile.shape[:2] == (224, 224)
+        frame = cv2.imread(str(next((rendered / "left").glob(f"{frame_id}.*"))))
+        assert np.abs(tile.astype(int) - frame[y0:y0 + 224, x0:x0 + 224].astype(int)).mean() < 3  # JPEG only
+        for defect in json.loads((rendered / "labels" / f"{frame_id}.json").read_text())["defects"]:
+            bx0, by0, bx1, by1 = defect["box"]
+            assert bx1 + 16 <= x0 or bx0 - 16 >= x0 + 224 or by1 + 16 <= y0 or by0 - 16 >= y0 + 224
+
+
+def test_add_backgrounds_errors_name_the_folder(rendered, tmp_path):
+    result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(rendered), str(tmp_path / "nodata")])
+    assert result.exit_code == 2 and "nodata/images/train" in result.output
+    result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(tmp_path), str(tmp_path)])
+    assert result.exit_code == 2 and "labels: no frame labels" in result.output

@@ -23,7 +23,7 @@ from core.store import ResultsStore
 from core.types import Alarm
 from core.view.app import create_app
 from core.view.feed import LiveFeed
-from core.view.server import ViewServer, exposure_warning, is_loopback
+from core.view.server import ViewServer, allowed_hosts, exposure_warning, is_loopback
 from drivers.plc_sim import free_port
 
 PITS = [0.0, 6.0, 0.0, 6.0, 0.0]  # frames 1 and 3 have a 6 mm pit: REJECT; frame 4 loses its right image: ERROR
@@ -104,6 +104,28 @@ def test_alarm_acknowledged_is_stored_and_leaves_the_page(results):
 
     assert sqlite3.connect(results / "results.db").execute("SELECT acknowledged FROM alarms").fetchone()[0] == 1
     assert client.post("/api/alarms/999/ack").status_code == 404
+
+
+def test_another_site_cannot_acknowledge_or_rebind(results):
+    client = TestClient(create_app(results, allowed_hosts=allowed_hosts("127.0.0.1")), base_url="http://127.0.0.1:8080")
+    (alarm,) = client.get("/api/state").json()["alarms"]
+    refused = client.post(f"/api/alarms/{alarm['id']}/ack", headers={"Origin": "http://evil.example"})
+    assert refused.status_code == 403 and "evil.example" in refused.json()["error"]
+    assert client.get("/api/state").json()["alarms"]  # still open
+    # the page's own origin may
+    assert client.post(f"/api/alarms/{alarm['id']}/ack", headers={"Origin": "http://127.0.0.1:8080"}).status_code == 200
+    # a rebound name reaching the loopback server is refused before anything is read
+    assert client.get("/api/state", headers={"Host": "evil.example:8080"}).status_code == 400
+    assert allowed_hosts("0.0.0.0") is None
+
+
+def test_errors_have_one_shape_and_filenames_stay_ascii(results):
+    client = TestClient(create_app(results))
+    assert client.get("/api/nothing-here").json() == {"error": "Not Found"}
+    assert client.put("/api/state").status_code == 405 and "error" in client.put("/api/state").json()
+    odd = client.get("/api/export.csv", params={"class": 'ü"x'})
+    assert odd.status_code == 200 and odd.headers["content-disposition"] == 'attachment; filename="parts-run1-__x.csv"'
+    assert "image_path" not in client.get("/api/parts/R1-000001").json()
 
 
 def test_csv_export_follows_the_filters(results):

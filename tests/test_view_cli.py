@@ -75,5 +75,6 @@ def test_bench_view_measures_the_loop_with_and_without_browsers(tmp_path, plane_
     assert rows["0 browsers"][2:] == ["4", "0", "0"]  # frames, sent, encoded: no browser, no work
     assert int(rows["1 browser"][3]) >= 1 and rows["1 browser"][2] == "4"
     assert rows["1 browser + 1 stalled"][2] == "4"
+    assert not (tmp_path / "results").exists()  # benchmark parts stay out of the line's results store
     bad = cli("bench-view", str(path), "--browsers", "one", env_extra={"PYTHONPATH": str(external_plugin_site)})
     assert bad.returncode == 2 and "--browsers" in bad.stderr

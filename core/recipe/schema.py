@@ -119,7 +119,7 @@ class ViewSection(Section):
     port: int = Field(8080, ge=1, le=65535)
     token: str | None = Field(None, min_length=8)
     jpeg_quality: int = Field(80, ge=30, le=100)
-    max_fps: float = Field(10.0, gt=0.0, le=60.0)  # live frames per second sent to each browser at most
+    max_fps: float = Field(10.0, gt=0.0, le=60.0)  # the page asks for at most this many live frames per second
 
 
 class Recipe(Section):

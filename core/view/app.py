@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import asyncio
 import io
+import re
 import secrets
 import time
 from pathlib import Path
 from typing import Literal
+from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
@@ -19,6 +21,8 @@ from fastapi import FastAPI, HTTPException, Query, Request
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from core.store import write_csv
 from core.view.feed import LiveFeed, encode_jpeg
@@ -29,10 +33,21 @@ VerdictName = Literal["PASS", "REJECT", "ERROR"]
 
 
 def create_app(results: Path, feed: LiveFeed | None = None, *, token: str | None = None,
-               jpeg_quality: int = 80, max_fps: float = 10.0) -> FastAPI:
+               jpeg_quality: int = 80, max_fps: float = 10.0, allowed_hosts: list[str] | None = None) -> FastAPI:
+    """``allowed_hosts``: the names the page may be asked for (Host header); on loopback these are the
+    loopback names, so that a web page of another site cannot reach the view through DNS rebinding."""
     reader = StoreReader(results)
     app = FastAPI(title="stereo-inspect operator view", docs_url=None, redoc_url=None, openapi_url=None)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    @app.middleware("http")
+    async def same_origin_writes(request: Request, call_next):
+        # A page of another site may make the operator's browser POST here (acknowledging alarms)
+        # without asking first; browsers always say where such a request comes from.
+        origin = request.headers.get("origin")
+        if request.method not in ("GET", "HEAD") and origin and urlsplit(origin).netloc != request.headers.get("host"):
+            return JSONResponse({"error": f"cross-site request from {origin} refused"}, status_code=403)
+        return await call_next(request)
 
     if token:
         @app.middleware("http")
@@ -47,6 +62,10 @@ def create_app(results: Path, feed: LiveFeed | None = None, *, token: str | None
             if request.query_params.get("token"):
                 response.set_cookie("view_token", token, httponly=True, samesite="strict")
             return response
+
+    if allowed_hosts:
+        # added last, so it runs first
+        app.add_middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts)
 
     def run_or_latest(run: int | None) -> int | None:
         if run is not None:
@@ -106,6 +125,7 @@ def create_app(results: Path, feed: LiveFeed | None = None, *, token: str | None
         found = reader.part(part_id)
         if found is None:
             raise HTTPException(404, f"part {part_id} not in {reader.path}")
+        found.pop("image_path", None)  # a path on the inspection PC: the browser gets image_url instead
         found["image_url"] = f"/api/parts/{part_id}/image.jpg"
         return found
 
@@ -129,11 +149,13 @@ def create_app(results: Path, feed: LiveFeed | None = None, *, token: str | None
         buf = io.StringIO()
         write_csv(reader.csv_rows(run_id, verdict, defect_class), buf)
         name = f"parts-run{run_id or 'all'}{'-' + verdict if verdict else ''}{'-' + defect_class if defect_class else ''}.csv"
+        name = re.sub(r"[^A-Za-z0-9_.-]", "_", name)  # the class comes from the URL: keep the header plain ASCII
         return Response(buf.getvalue(), media_type="text/csv",
                         headers={"Content-Disposition": f'attachment; filename="{name}"'})
 
-    @app.exception_handler(HTTPException)
-    async def http_error(request: Request, exc: HTTPException) -> JSONResponse:
+    # Starlette's class: also the router's own 404 and 405 answer in the same shape
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         return JSONResponse({"error": exc.detail}, status_code=exc.status_code)
 
     return app

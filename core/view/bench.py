@@ -27,7 +27,8 @@ class PageLikeClient(threading.Thread):
         while not self.stop.is_set():
             try:
                 if time.monotonic() >= next_state:
-                    urllib.request.urlopen(self.base + "api/state", timeout=10).read()
+                    with urllib.request.urlopen(self.base + "api/state", timeout=10) as r:
+                        r.read()
                     next_state = time.monotonic() + 0.5
                 with urllib.request.urlopen(f"{self.base}api/frame.jpg?after={seq}&wait=0.5", timeout=10) as r:
                     body = r.read()
@@ -45,9 +46,12 @@ class StalledClient:
     """Asks for many frames on one connection and never reads an answer."""
 
     def __init__(self, host: str, port: int):
-        self.sock = socket.create_connection((host, port))
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        # a small receive window before connecting, so the server's sends back up quickly
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-        self.sock.sendall(b"".join(b"GET /api/frame.jpg?wait=0 HTTP/1.1\r\nHost: x\r\n\r\n" for _ in range(500)))
+        self.sock.connect((host, port))
+        request = f"GET /api/frame.jpg?wait=0 HTTP/1.1\r\nHost: {host}:{port}\r\n\r\n".encode()
+        self.sock.sendall(request * 500)
 
     def close(self) -> None:
         self.sock.close()
@@ -56,7 +60,6 @@ class StalledClient:
 @dataclass
 class ViewBenchRow:
     label: str
-    browsers: int
     fps: float
     frames: int
     frames_to_browsers: int
@@ -71,8 +74,9 @@ def run_config(loaded: LoadedRecipe, label: str, browsers: int, stalled: bool, f
                                    jpeg_quality=settings.jpeg_quality, max_fps=settings.max_fps), host, port).start()
     base = server.url
     clients = [PageLikeClient(base) for _ in range(browsers)]
-    blocker = StalledClient(host, port) if stalled else None
+    blocker = None
     try:
+        blocker = StalledClient(host, port) if stalled else None
         for c in clients:
             c.start()
         summary = engine.run(loaded, on_part=feed.part, on_start=lambda _: feed.started(loaded.recipe.name),
@@ -85,7 +89,7 @@ def run_config(loaded: LoadedRecipe, label: str, browsers: int, stalled: bool, f
         if blocker is not None:
             blocker.close()
         server.stop()
-    return ViewBenchRow(label, browsers, summary.fps, summary.frames, sum(c.frames for c in clients), feed.encodes)
+    return ViewBenchRow(label, summary.fps, summary.frames, sum(c.frames for c in clients), feed.encodes)
 
 
 def markdown(rows: list[ViewBenchRow]) -> str:

@@ -21,7 +21,8 @@ class StoreReader:
         if not self.path.is_file():
             yield None
             return
-        uri = f"file:{self.path}" + ("" if write else "?mode=ro")
+        # as_uri() percent-encodes, so a folder name with '?' or '#' stays a path
+        uri = self.path.resolve().as_uri() + ("" if write else "?mode=ro")
         db = sqlite3.connect(uri, uri=True, timeout=5.0)
         db.row_factory = sqlite3.Row
         try:
@@ -67,8 +68,9 @@ class StoreReader:
         return [_part_summary(r) for r in rows]
 
     def parts(self, run_id: int | None, verdict: str | None, defect_class: str | None, page: int, per_page: int) -> dict:
+        """One page of a run's parts; no run (a live run not yet started, an empty store) has none."""
         with self._db() as db:
-            if db is None:
+            if db is None or run_id is None:
                 return {"total": 0, "page": page, "per_page": per_page, "parts": []}
             where, args = store.part_filter(run_id, verdict, defect_class)
             total = db.execute(f"SELECT COUNT(*) FROM parts p {where}", args).fetchone()[0]
@@ -104,13 +106,14 @@ class StoreReader:
         part["output_events"] = [dict(e) for e in events]
         return part
 
-    def alarms(self, run_id: int | None, include_acknowledged: bool = False) -> list[dict]:
+    def alarms(self, run_id: int | None) -> list[dict]:
+        """The run's alarms not yet acknowledged, newest first."""
         with self._db() as db:
             if db is None or run_id is None:
                 return []
-            extra = "" if include_acknowledged else " AND acknowledged = 0"
             return [dict(r) for r in db.execute(
-                f"SELECT id, source, message, time, part_id, acknowledged FROM alarms WHERE run_id = ?{extra} ORDER BY id DESC LIMIT 100",
+                "SELECT id, source, message, time, part_id, acknowledged FROM alarms WHERE run_id = ? AND acknowledged = 0"
+                " ORDER BY id DESC LIMIT 100",
                 (run_id,),
             )]
 
@@ -124,7 +127,7 @@ class StoreReader:
 
     def csv_rows(self, run_id: int | None, verdict: str | None, defect_class: str | None) -> list[tuple]:
         with self._db() as db:
-            if db is None:
+            if db is None or run_id is None:
                 return []
             return store.csv_rows(db, run_id, verdict, defect_class)
 

@@ -22,6 +22,12 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def allowed_hosts(host: str) -> list[str] | None:
+    """Host header names to accept: on loopback only the loopback names (against DNS rebinding);
+    on a network address the name the line uses for the PC is not known here, so any."""
+    return ["127.0.0.1", "localhost", "[::1]", "::1"] if is_loopback(host) else None
+
+
 def exposure_warning(host: str, token: str | None) -> str | None:
     if is_loopback(host):
         return None

@@ -4,7 +4,7 @@
 
 const $ = (id) => document.getElementById(id);
 const view = { mode: null, run: null, selectedRun: null, seq: 0, maxFps: 10, filmIds: "", page: 1, perPage: 25,
-               partsKey: "", lastPartsLoad: 0, metaLoaded: false, reviewImagePart: null };
+               partsKey: "", lastPartsLoad: 0, metaLoaded: false, lastMeta: 0, reviewImagePart: null };
 
 function el(tag, attrs = {}, ...children) {
   const node = document.createElement(tag);

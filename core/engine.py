@@ -206,6 +206,9 @@ class _CameraFailed:
         self.exc = exc
 
 
+DETECT_AHEAD_STOP_S = 5.0  # how long stopping waits for the detection thread
+
+
 def _detected_ahead(pipeline: Pipeline, recipe, stop: threading.Event) -> Iterator[tuple[StereoFrame | FrameError, Detected | None]]:
     """Frames with their detections, detected one frame ahead in a second thread: while the caller
     works on frame n (stereo, depth, store, outputs), frame n + 1 is read and detected. Torch and
@@ -242,12 +245,14 @@ def _detected_ahead(pipeline: Pipeline, recipe, stop: threading.Event) -> Iterat
             yield entry
     finally:
         stop.set()
-        while worker.is_alive():  # a producer waiting to put needs room to notice ``stop``
+        # A producer waiting to put needs room to notice ``stop``. One blocked inside the camera
+        # (a reconnect back-off, a hardware trigger) is left behind: the camera's close ends it.
+        deadline = time.monotonic() + DETECT_AHEAD_STOP_S
+        while worker.is_alive() and time.monotonic() < deadline:
             try:
                 ready.get(timeout=0.1)
             except queue.Empty:
                 pass
-        worker.join()
 
 
 def _filter(detections: list[Detection], confidence: float, classes: list[str] | None) -> list[Detection]:
@@ -348,7 +353,10 @@ def run(
         record([Alarm("engine", f"run stopped after {frames} parts: {type(exc).__name__}: {exc}", time.time())])
     finally:
         stop.set()
-        frames_in.close()  # with stereo.concurrent: ends the detection thread before the camera closes
+        try:
+            frames_in.close()  # with stereo.concurrent: ends the detection thread before the camera closes
+        except KeyboardInterrupt:  # a second Ctrl-C must not skip closing the outputs and the store
+            interrupted = True
         elapsed = time.perf_counter() - started
         for name, output in pipeline.outputs:
             try:

@@ -69,6 +69,8 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
         fail("--token: use at least 8 characters")
     feed = server = None
     settings = loaded.recipe.view
+    if keep_serving and not (view or settings.enabled):
+        fail("--keep-serving: there is no page to keep up (add --view or set view.enabled)")
     if view or settings.enabled:
         from core.commands.view import start_view
         from core.view.feed import LiveFeed

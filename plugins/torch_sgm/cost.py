@@ -2,6 +2,8 @@
 slice ``k`` holding disparity ``min_disp + k``: the left pixel x is compared with the right pixel x - d."""
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 
@@ -177,6 +179,7 @@ def _pad_columns(x: torch.Tensor, left: int, right: int) -> torch.Tensor:
 HALF_WORD = 15  # census words hold 30 bits: two 15-bit halves index one table each
 
 
+@functools.lru_cache(maxsize=8)  # built once per lambda and device, not once per disparity chunk
 def census_factor_table(lam: float, device=None) -> torch.Tensor:
     """exp(-popcount(i) / lam) for every 15-bit i: since exp(-(a + b) / lam) = exp(-a / lam) * exp(-b / lam),
     the robust census term of a code is the product of its halves' entries (two look-ups instead of a

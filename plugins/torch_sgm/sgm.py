@@ -157,7 +157,9 @@ def sgm_fast(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=PATH
     PATHS_8). cost: (B, D, H, W) -> (B, D, H, W); p2: scalar or (B, H, W)."""
     if not torch.is_tensor(p2):
         p2 = torch.full((cost.shape[0], *cost.shape[-2:]), float(p2), dtype=cost.dtype, device=cost.device)
-    if set(paths) != {(-dy, -dx) for dy, dx in paths}:
+    if set(paths) not in (set(PATHS_4), set(PATHS_8)):
+        # the walks below pair each direction with its mirror image of the same row step; other
+        # sets (say only the two main diagonals) go to the reference
         return sgm(cost, p1, p2, paths)
     crosses = tuple(sorted({dy for dy, dx in paths if dx == 1}, key=abs))
     out = torch.zeros_like(cost)

@@ -49,6 +49,8 @@ def test_run_with_view_on_the_network_warns(tmp_path, plane_sequence, external_p
     assert f"?token=s3cret-token" in with_token.stdout
     short = cli("run", str(path), "--view", "--token", "abc", env_extra={"PYTHONPATH": str(external_plugin_site)})
     assert short.returncode == 2 and "--token" in short.stderr
+    lonely = cli("run", str(path), "--keep-serving", env_extra={"PYTHONPATH": str(external_plugin_site)})
+    assert lonely.returncode == 2 and lonely.stderr.startswith("error: --keep-serving:") and "parts" not in lonely.stdout
 
 
 def test_view_section_in_the_recipe_is_validated(tmp_path, plane_sequence, external_plugin_site):

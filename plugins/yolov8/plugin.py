@@ -1,4 +1,4 @@
-"""Registers the ``yolov8`` detector and its commands (convert-voc, add-backgrounds, train detector, eval detector)."""
+"""Registers the ``yolov8`` detector and its commands (convert-voc, add-backgrounds, train detector, eval detector, eval detector-frames)."""
 from __future__ import annotations
 
 import sys
@@ -125,9 +125,40 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, out: Path) -
     click.echo(f"saved: {out / 'detector_metrics.json'}, {out / 'detector_metrics.md'}, {out / 'pr_curve.png'}")
 
 
+@click.command("detector-frames")
+@click.argument("sequence", type=click.Path(path_type=Path), default=Path("sim_fixtures/steel_plate"))
+@click.option("--weights", default=None, type=click.Path(path_type=Path), help="default: the committed model")
+@click.option("--confidence", "confidences", default="0.3,0.4,0.5,0.6,0.7", show_default=True,
+              help="comma-separated thresholds to score")
+@click.option("--tile-size", default=224, show_default=True)
+@click.option("--tile-overlap", default=0.25, show_default=True)
+@click.option("--iou", default=0.3, show_default=True, help="a box this close to a labelled defect finds it")
+def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, tile_size: int, tile_overlap: float,
+                        iou: float) -> None:
+    """The detector on whole frames of a labelled sequence, tiled as on the line: defects found, boxes on sound surface."""
+    from plugins.yolov8.frame_eval import load_labelled_frames, markdown, score_frames
+
+    try:
+        thresholds = sorted(float(c) for c in confidences.split(","))
+    except ValueError:
+        _fail(f"--confidence: {confidences!r} is not a comma-separated list of numbers")
+    if weights is not None and not weights.is_file():
+        _fail(f"{weights}: weights file not found")
+    try:
+        frames = load_labelled_frames(sequence)
+    except ValueError as exc:
+        _fail(str(exc))
+    detector = YoloDetector(YoloSettings(weights=str(weights) if weights else None, confidence=min(thresholds),
+                                         tile_size=tile_size, tile_overlap=tile_overlap), device="cpu")
+    detections = [[(d.class_name, d.confidence, d.box) for d in detector.detect(image)] for _, image, _ in frames]
+    click.echo(f"{sequence}: {len(frames)} frames, weights {weights or 'the committed model'}")
+    click.echo(markdown(score_frames(detections, [t for _, _, t in frames], thresholds, iou)))
+
+
 @hookimpl
 def stereo_inspect_commands(cli: click.Group) -> None:
     cli.commands["data"].add_command(convert_voc_command)
     cli.commands["data"].add_command(add_backgrounds_command)
     cli.commands["train"].add_command(train_command)
     cli.commands["eval"].add_command(eval_command)
+    cli.commands["eval"].add_command(eval_frames_command)

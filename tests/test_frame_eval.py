@@ -1,0 +1,42 @@
+"""`inspect eval detector-frames`: the detector on whole labelled frames, as the line runs it."""
+from __future__ import annotations
+
+import json
+
+from click.testing import CliRunner
+
+from core.cli import _build
+from plugins.yolov8.frame_eval import score_frames
+from sim.generate import generate_sequence
+
+
+def test_score_frames_counts_found_defects_and_boxes_on_sound_surface():
+    truths = [[{"class": "scratches", "box": [0, 0, 100, 20]}, {"class": "inclusion", "box": [200, 200, 220, 260]}],
+              []]
+    detections = [
+        [("scratches", 0.9, (2, 0, 98, 22)),     # finds the scratch, right class
+         ("patches", 0.45, (201, 205, 221, 255)),  # finds the inclusion, wrong class, low confidence
+         ("pitted_surface", 0.6, (400, 10, 500, 90))],  # on sound surface
+        [("pitted_surface", 0.35, (10, 10, 60, 60))],  # a frame without defects
+    ]
+    low, high = score_frames(detections, truths, [0.3, 0.5])
+    assert (low.defects, low.found, low.found_same_class, low.other_boxes, low.frames) == (2, 2, 1, 2, 2)
+    assert (high.found, high.found_same_class, high.other_boxes) == (1, 1, 1)
+    assert high.other_per_frame == 0.5
+
+
+def test_cli_on_a_rendered_sequence(tmp_path):
+    seq = tmp_path / "plates"
+    labels = generate_sequence(seq, frames=2, seed=5, width=448, height=300, neu_det=None)
+    defects = sum(len(label["defects"]) for label in labels)
+    runner = CliRunner()
+    result = runner.invoke(_build(), ["eval", "detector-frames", str(seq), "--confidence", "0.5,0.25"])
+    assert result.exit_code == 0, result.output
+    rows = [line.split("|")[1:-1] for line in result.output.splitlines() if line.startswith("| 0.")]
+    assert [r[0].strip() for r in rows] == ["0.25", "0.50"]
+    found = [int(r[1].split("/")[0]) for r in rows]
+    assert all(r[1].strip().endswith(f"/{defects}") for r in rows) and found[0] >= found[1]
+    assert int(rows[0][3]) >= int(rows[1][3])  # a higher threshold never adds boxes
+    (seq / "labels" / "000001.json").write_text(json.dumps({"frame_id": "000001"}))
+    broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
+    assert broken.exit_code == 2 and "000001.json: not a frame label" in broken.output

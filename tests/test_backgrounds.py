@@ -64,5 +64,20 @@ def test_add_backgrounds_writes_clear_tiles_with_empty_labels(rendered, tmp_path
 def test_add_backgrounds_errors_name_the_folder(rendered, tmp_path):
     result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(rendered), str(tmp_path / "nodata")])
     assert result.exit_code == 2 and "nodata/images/train" in result.output
-    result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(tmp_path), str(tmp_path)])
-    assert result.exit_code == 2 and "labels: no frame labels" in result.output
+    dataset = tmp_path / "data"
+    (dataset / "images" / "train").mkdir(parents=True)
+    result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(tmp_path), str(dataset)])
+    assert result.exit_code == 2 and "labels: no frame labels" in result.output and "--all-clear" in result.output
+
+
+def test_recorded_sound_parts_give_every_tile(rendered, tmp_path):
+    recorded = tmp_path / "recorded"
+    (recorded / "left").mkdir(parents=True)
+    for image in (rendered / "left").glob("*"):
+        (recorded / "left" / image.name).write_bytes(image.read_bytes())
+    dataset = tmp_path / "data"
+    (dataset / "images" / "train").mkdir(parents=True)
+    result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(recorded), str(dataset), "--all-clear"])
+    assert result.exit_code == 0, result.output
+    per_frame = len(tile_origins(300, 224, 0.25)) * len(tile_origins(448, 224, 0.25))
+    assert len(list((dataset / "images" / "train").glob("bg_recorded_*.jpg"))) == 3 * per_frame

@@ -49,24 +49,41 @@ class BackgroundReport:
     skipped_tiles: int = 0
 
 
-def add_backgrounds(sequence: Path, dataset: Path, split: str = "train", tile: int = 224,
-                    overlap: float = 0.25, margin: float = 32.0) -> BackgroundReport:
-    """Write every clear tile of SEQUENCE's left images into DATASET/images/SPLIT with an empty label file."""
+def _frames(sequence: Path, all_clear: bool) -> list[tuple[str, np.ndarray]]:
+    """(frame id, defect boxes) of every frame: from labels/*.json, or every left image with none."""
+    if all_clear:
+        frames = [(p.stem, np.zeros((0, 4))) for p in sorted((sequence / "left").glob("*")) if p.is_file()]
+        if not frames:
+            raise BackgroundError(f"{sequence / 'left'}: no images")
+        return frames
     labels = sorted((sequence / "labels").glob("*.json"))
     if not labels:
-        raise BackgroundError(f"{sequence / 'labels'}: no frame labels (render one with `inspect sim generate`)")
-    images_dir, labels_dir = dataset / "images" / split, dataset / "labels" / split
-    if not images_dir.is_dir():
-        raise BackgroundError(f"{images_dir}: not a YOLO dataset split (run `inspect data convert-voc` first)")
-    labels_dir.mkdir(parents=True, exist_ok=True)
-    report = BackgroundReport()
+        raise BackgroundError(f"{sequence / 'labels'}: no frame labels (render one with `inspect sim generate`, "
+                              "or pass --all-clear for recorded parts known to be sound)")
+    frames = []
     for label_path in labels:
         try:
             label = json.loads(label_path.read_text())
-            frame_id = label["frame_id"]
             boxes = np.array([d["box"] for d in label["defects"]], dtype=np.float64).reshape(-1, 4)
+            frames.append((label["frame_id"], boxes))
         except (ValueError, KeyError, TypeError) as exc:
             raise BackgroundError(f"{label_path}: not a frame label ({exc})") from exc
+    return frames
+
+
+def add_backgrounds(sequence: Path, dataset: Path, split: str = "train", tile: int = 224,
+                    overlap: float = 0.25, margin: float = 32.0, all_clear: bool = False) -> BackgroundReport:
+    """Write every clear tile of SEQUENCE's left images into DATASET/images/SPLIT with an empty label file.
+
+    ``all_clear``: the sequence has no labels because every part in it is sound (e.g. recorded on the
+    line with ``inspect camera record``); every tile is background."""
+    images_dir, labels_dir = dataset / "images" / split, dataset / "labels" / split
+    if not images_dir.is_dir():
+        raise BackgroundError(f"{images_dir}: not a YOLO dataset split (run `inspect data convert-voc` first)")
+    frames = _frames(sequence, all_clear)
+    labels_dir.mkdir(parents=True, exist_ok=True)
+    report = BackgroundReport()
+    for frame_id, boxes in frames:
         candidates = sorted((sequence / "left").glob(f"{frame_id}.*"))
         image = cv2.imread(str(candidates[0]), cv2.IMREAD_COLOR) if candidates else None
         if image is None:

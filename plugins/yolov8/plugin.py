@@ -66,12 +66,15 @@ def convert_voc_command(src: Path, dst: Path, split_files: tuple[Path, Path] | N
 @click.option("--tile", default=224, show_default=True, help="tile edge in frame pixels, as the recipe's tile_size")
 @click.option("--overlap", default=0.25, show_default=True, help="as the recipe's tile_overlap")
 @click.option("--margin", default=32.0, show_default=True, help="px kept clear around every labelled defect")
-def add_backgrounds_command(sequence: Path, dataset: Path, split: str, tile: int, overlap: float, margin: float) -> None:
-    """Add the defect-free tiles of a rendered sequence (`inspect sim generate`) to DATASET as background images."""
+@click.option("--all-clear", is_flag=True, help="no labels: every part in SEQUENCE is sound (recorded good parts)")
+def add_backgrounds_command(sequence: Path, dataset: Path, split: str, tile: int, overlap: float, margin: float,
+                            all_clear: bool) -> None:
+    """Add the defect-free tiles of a labelled sequence (`inspect sim generate`), or of recorded sound parts
+    (`inspect camera record`, --all-clear), to DATASET as background images."""
     from plugins.yolov8.backgrounds import BackgroundError, add_backgrounds
 
     try:
-        report = add_backgrounds(sequence, dataset, split, tile, overlap, margin)
+        report = add_backgrounds(sequence, dataset, split, tile, overlap, margin, all_clear)
     except BackgroundError as exc:
         _fail(str(exc))
     click.echo(f"{report.tiles} background tiles from {report.frames} frames "

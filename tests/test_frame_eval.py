@@ -40,3 +40,6 @@ def test_cli_on_a_rendered_sequence(tmp_path):
     (seq / "labels" / "000001.json").write_text(json.dumps({"frame_id": "000001"}))
     broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
     assert broken.exit_code == 2 and "000001.json: not a frame label" in broken.output
+    (seq / "labels" / "000001.json").write_text(json.dumps({"frame_id": "000001", "defects": [{"box": [1, 2, 3]}]}))
+    broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
+    assert broken.exit_code == 2 and "000001.json: not a frame label (a box is not x0, y0, x1, y1)" in broken.output

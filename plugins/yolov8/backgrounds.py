@@ -9,13 +9,13 @@ labelled defect.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from plugins.yolov8.frame_eval import read_frame_labels, read_left
 from plugins.yolov8.tiling import tile_origins
 
 
@@ -56,19 +56,15 @@ def _frames(sequence: Path, all_clear: bool) -> list[tuple[str, np.ndarray]]:
         if not frames:
             raise BackgroundError(f"{sequence / 'left'}: no images")
         return frames
-    labels = sorted((sequence / "labels").glob("*.json"))
-    if not labels:
+    if not any((sequence / "labels").glob("*.json")):
         raise BackgroundError(f"{sequence / 'labels'}: no frame labels (render one with `inspect sim generate`, "
                               "or pass --all-clear for recorded parts known to be sound)")
-    frames = []
-    for label_path in labels:
-        try:
-            label = json.loads(label_path.read_text())
-            boxes = np.array([d["box"] for d in label["defects"]], dtype=np.float64).reshape(-1, 4)
-            frames.append((label["frame_id"], boxes))
-        except (ValueError, KeyError, TypeError) as exc:
-            raise BackgroundError(f"{label_path}: not a frame label ({exc})") from exc
-    return frames
+    try:
+        labelled = read_frame_labels(sequence)
+    except ValueError as exc:
+        raise BackgroundError(str(exc)) from exc
+    return [(frame_id, np.array([d["box"] for d in defects], dtype=np.float64).reshape(-1, 4))
+            for frame_id, defects in labelled]
 
 
 def add_backgrounds(sequence: Path, dataset: Path, split: str = "train", tile: int = 224,
@@ -84,10 +80,10 @@ def add_backgrounds(sequence: Path, dataset: Path, split: str = "train", tile: i
     labels_dir.mkdir(parents=True, exist_ok=True)
     report = BackgroundReport()
     for frame_id, boxes in frames:
-        candidates = sorted((sequence / "left").glob(f"{frame_id}.*"))
-        image = cv2.imread(str(candidates[0]), cv2.IMREAD_COLOR) if candidates else None
-        if image is None:
-            raise BackgroundError(f"{sequence / 'left' / frame_id}.*: left image missing or unreadable")
+        try:
+            image = read_left(sequence, frame_id)
+        except ValueError as exc:
+            raise BackgroundError(str(exc)) from exc
         h, w = image.shape[:2]
         origins = clear_tiles(h, w, boxes, tile, overlap, margin)
         report.frames += 1

@@ -31,8 +31,8 @@ class FrameEvalRow:
         return self.other_boxes / self.frames if self.frames else 0.0
 
 
-def load_labelled_frames(sequence: Path) -> list[tuple[str, np.ndarray, list[dict]]]:
-    """(frame id, left image, labelled defects) for every frame of ``sequence``; one-line errors name the file."""
+def read_frame_labels(sequence: Path) -> list[tuple[str, list[dict]]]:
+    """(frame id, labelled defects) of every ``labels/*.json``; one-line errors name the file."""
     labels = sorted((sequence / "labels").glob("*.json"))
     if not labels:
         raise ValueError(f"{sequence / 'labels'}: no frame labels")
@@ -40,15 +40,26 @@ def load_labelled_frames(sequence: Path) -> list[tuple[str, np.ndarray, list[dic
     for path in labels:
         try:
             label = json.loads(path.read_text())
-            frame_id, defects = label["frame_id"], label["defects"]
-        except (ValueError, KeyError) as exc:
+            defects = [{**d, "box": [float(v) for v in d["box"]]} for d in label["defects"]]
+            if any(len(d["box"]) != 4 for d in defects):
+                raise ValueError("a box is not x0, y0, x1, y1")
+            frames.append((label["frame_id"], defects))
+        except (ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"{path}: not a frame label ({exc})") from exc
-        found = sorted((sequence / "left").glob(f"{frame_id}.*"))
-        image = cv2.imread(str(found[0]), cv2.IMREAD_COLOR) if found else None
-        if image is None:
-            raise ValueError(f"{sequence / 'left' / frame_id}.*: left image missing or unreadable")
-        frames.append((frame_id, image, defects))
     return frames
+
+
+def read_left(sequence: Path, frame_id: str) -> np.ndarray:
+    found = sorted((sequence / "left").glob(f"{frame_id}.*"))
+    image = cv2.imread(str(found[0]), cv2.IMREAD_COLOR) if found else None
+    if image is None:
+        raise ValueError(f"{sequence / 'left' / frame_id}.*: left image missing or unreadable")
+    return image
+
+
+def load_labelled_frames(sequence: Path) -> list[tuple[str, np.ndarray, list[dict]]]:
+    """(frame id, left image, labelled defects) for every frame of ``sequence``."""
+    return [(frame_id, read_left(sequence, frame_id), defects) for frame_id, defects in read_frame_labels(sequence)]
 
 
 def score_frames(detections: list[list[tuple[str, float, tuple]]], truths: list[list[dict]],

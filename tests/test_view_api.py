@@ -167,6 +167,8 @@ def test_live_frames_are_long_polled_newest_first(tmp_path, plane_sequence):
     feed = LiveFeed()
     client = TestClient(create_app(folder, feed))
     assert client.get("/api/state").json()["run_id"] is None  # starting: the store's newest run is not this one
+    assert client.get("/api/parts").json()["total"] == 0  # nor are its parts
+    assert client.get("/api/export.csv").text.count("\n") == 1  # the header only
     assert client.get("/api/frame.jpg", params={"wait": 0}).status_code == 204
     feed.started("engine-test")
     feed.part(outcomes[0])

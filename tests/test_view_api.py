@@ -106,6 +106,15 @@ def test_alarm_acknowledged_is_stored_and_leaves_the_page(results):
     assert client.post("/api/alarms/999/ack").status_code == 404
 
 
+def test_runs_in_progress_show_their_parts(results):
+    import sqlite3
+
+    with sqlite3.connect(results / "results.db") as db:  # as while the run is still going
+        db.execute("UPDATE runs SET parts = 0, finished = NULL")
+    (run,) = TestClient(create_app(results)).get("/api/meta").json()["runs"]
+    assert run["parts"] == 5 and run["finished"] is None
+
+
 def test_another_site_cannot_acknowledge_or_rebind(results):
     client = TestClient(create_app(results, allowed_hosts=allowed_hosts("127.0.0.1")), base_url="http://127.0.0.1:8080")
     (alarm,) = client.get("/api/state").json()["alarms"]

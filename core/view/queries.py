@@ -34,8 +34,11 @@ class StoreReader:
         with self._db() as db:
             if db is None:
                 return []
+            # counted, not the runs.parts column: that is written when a run finishes, and a run
+            # in progress has parts too
             return [dict(r) for r in db.execute(
-                "SELECT id, recipe_name, started, finished, parts, exit_code FROM runs ORDER BY id DESC")]
+                "SELECT id, recipe_name, started, finished, (SELECT COUNT(*) FROM parts p WHERE p.run_id = runs.id)"
+                " AS parts, exit_code FROM runs ORDER BY id DESC")]
 
     def latest_run(self) -> int | None:
         with self._db() as db:

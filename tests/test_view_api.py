@@ -23,6 +23,7 @@ from core.store import ResultsStore
 from core.types import Alarm
 from core.view.app import create_app
 from core.view.feed import LiveFeed
+from core.view.queries import StoreReader, counters
 from core.view.server import ViewServer, allowed_hosts, exposure_warning, is_loopback
 from drivers.plc_sim import free_port
 
@@ -203,6 +204,17 @@ def test_the_line_does_no_view_work_while_nobody_watches(tmp_path, plane_sequenc
     feed = LiveFeed()
     _run(tmp_path, plane_sequence, on_part=feed.part)
     assert feed.seq == 5 and feed.encodes == 0
+
+
+def test_live_counters_kept_by_the_feed_match_the_store(tmp_path, plane_sequence):
+    feed = LiveFeed()
+    folder, _ = _run(tmp_path, plane_sequence, on_part=feed.part)
+    feed.started("engine-test")
+    reader = StoreReader(folder)
+    stored = reader.counters(1)
+    assert (stored["parts"], stored["rejected"], stored["errors"], stored["rejects_per_class"]) == (5, 2, 1, {"pit": 2})
+    assert counters(*feed.verdict_counts(), reader.alarm_count(1)) == stored
+    assert TestClient(create_app(folder, feed)).get("/api/state").json()["counters"] == stored
 
 
 def test_a_stalled_browser_does_not_hold_the_line(tmp_path, plane_sequence):

@@ -26,7 +26,7 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from core.store import write_csv
 from core.view.feed import LiveFeed, encode_jpeg
-from core.view.queries import StoreReader
+from core.view.queries import StoreReader, counters
 
 STATIC = Path(__file__).parent / "static"
 VerdictName = Literal["PASS", "REJECT", "ERROR"]
@@ -87,7 +87,7 @@ def create_app(results: Path, feed: LiveFeed | None = None, *, token: str | None
             "recipe": feed.recipe_name if feed is not None else _recipe_name(reader, run_id),
             "run_id": run_id,
             "verdict": _current_verdict(feed, reader, run_id),
-            "counters": reader.counters(run_id),
+            "counters": _counters(feed, reader, run, run_id),
             "fps": round(feed.fps(), 2) if feed is not None else None,
             "frame_seq": feed.seq if feed is not None else None,
             "filmstrip": reader.filmstrip(run_id),
@@ -166,6 +166,12 @@ def _recipe_name(reader: StoreReader, run_id: int | None) -> str:
         if run["id"] == run_id:
             return run["recipe_name"]
     return ""
+
+
+def _counters(feed: LiveFeed | None, reader: StoreReader, asked_run: int | None, run_id: int | None) -> dict:
+    if feed is not None and asked_run is None:  # the line's own run: counted as it goes
+        return counters(*feed.verdict_counts(), reader.alarm_count(run_id))
+    return reader.counters(run_id)
 
 
 def _current_verdict(feed: LiveFeed | None, reader: StoreReader, run_id: int | None) -> dict | None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import Counter, OrderedDict, deque
 from typing import Any
 
 import cv2
@@ -31,6 +31,10 @@ class LiveFeed:
         self.encodes = 0  # frames drawn and encoded for browsers: none while nobody watches
         self.state = "starting"  # starting -> running -> finished
         self.recipe_name = ""
+        # Kept here, not counted in the store per request: a GROUP BY over a shift's parts takes
+        # half a second at 300,000 parts, twice a second per browser, on the line's own cores.
+        self._verdicts: Counter[str] = Counter()
+        self._rejects_per_class: Counter[str] = Counter()
 
     # -- engine side (called from the inspection thread) ------------------------------------
     def started(self, recipe_name: str) -> None:
@@ -46,6 +50,10 @@ class LiveFeed:
             if outcome.image is not None:
                 self._latest = outcome
             self._times.append(now)
+            self._verdicts[outcome.part.verdict.status.value] += 1
+            for measurement, status in zip(outcome.part.measurements, outcome.defect_status):
+                if status.value == "REJECT":
+                    self._rejects_per_class[measurement.detection.class_name] += 1
             if outcome.part.verdict.status.rejects and outcome.image is not None:
                 self._rejects[outcome.part.part_id] = outcome
                 while len(self._rejects) > self._keep:
@@ -67,6 +75,11 @@ class LiveFeed:
         if len(times) < 2 or time.monotonic() - times[-1] > 2.0:
             return 0.0
         return (len(times) - 1) / (times[-1] - times[0]) if times[-1] > times[0] else 0.0
+
+    def verdict_counts(self) -> tuple[dict[str, int], dict[str, int]]:
+        """Parts per verdict and rejected defects per class since the run started."""
+        with self._lock:
+            return dict(self._verdicts), dict(self._rejects_per_class)
 
     def latest_part(self) -> Any:
         with self._lock:

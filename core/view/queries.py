@@ -50,12 +50,16 @@ class StoreReader:
     def counters(self, run_id: int | None) -> dict:
         with self._db() as db:
             if db is None or run_id is None:
-                return {"parts": 0, "passed": 0, "rejected": 0, "errors": 0, "yield_percent": None,
-                        "rejects_per_class": {}, "alarms": 0}
+                return counters({}, {}, 0)
             s = store.summary(db, run_id)
-        s["rejects_per_class"] = {cls: by.get("REJECT", 0) for cls, by in s.pop("defects_per_class").items()
-                                  if by.get("REJECT", 0)}
-        return s
+        rejects = {cls: by.get("REJECT", 0) for cls, by in s["defects_per_class"].items()}
+        return counters({"PASS": s["passed"], "REJECT": s["rejected"], "ERROR": s["errors"]}, rejects, s["alarms"])
+
+    def alarm_count(self, run_id: int | None) -> int:
+        with self._db() as db:
+            if db is None or run_id is None:
+                return 0
+            return db.execute("SELECT COUNT(*) FROM alarms WHERE run_id = ?", (run_id,)).fetchone()[0]
 
     def filmstrip(self, run_id: int | None, length: int = FILMSTRIP_LENGTH) -> list[dict]:
         """The run's last rejected parts (REJECT and ERROR), newest first."""
@@ -133,6 +137,20 @@ class StoreReader:
             if db is None or run_id is None:
                 return []
             return store.csv_rows(db, run_id, verdict, defect_class)
+
+
+def counters(verdicts: dict[str, int], rejects_per_class: dict[str, int], alarms: int) -> dict:
+    """The page's counters from parts per verdict and rejected defects per class."""
+    parts = sum(verdicts.values())
+    return {
+        "parts": parts,
+        "passed": verdicts.get("PASS", 0),
+        "rejected": verdicts.get("REJECT", 0),
+        "errors": verdicts.get("ERROR", 0),
+        "yield_percent": round(100.0 * verdicts.get("PASS", 0) / parts, 1) if parts else None,
+        "rejects_per_class": {cls: n for cls, n in sorted(rejects_per_class.items()) if n},
+        "alarms": alarms,
+    }
 
 
 def _part_summary(row: sqlite3.Row) -> dict:

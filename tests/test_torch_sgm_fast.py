@@ -55,6 +55,12 @@ def test_box_mean_fast_equals_box_mean(shape, radius):
     assert torch.allclose(cost.box_mean_fast(x, radius), cost.box_mean(x, radius), atol=1e-5)
 
 
+def test_box_mean_fast_uses_running_sums_beyond_the_shifted_sums_radius():
+    radius = cost.SHIFTED_SUM_MAX_RADIUS + 2
+    x = torch.rand(1, 2, 40, 56)
+    assert torch.allclose(cost.box_mean_fast(x, radius), cost.box_mean(x, radius), atol=1e-5)
+
+
 @pytest.mark.parametrize("shape", [(5, 6), (40, 56)])  # (5, 6): too small for running sums, the reference runs
 def test_guided_filter_fast_equals_guided_filter(shape):
     guide, src = torch.rand(1, 1, *shape), torch.rand(1, 6, *shape)

@@ -214,3 +214,21 @@ def test_equiangular_fit_finds_the_minimum_of_a_v_shaped_cost():
     index = select.winner_takes_all(volume)
     assert abs(select.equiangular_subpixel(volume, index).item() - 6.2) < 1e-4
     assert abs(select.parabolic_subpixel(volume, index).item() - 6.2) > 0.05
+
+
+def test_winner_takes_all_picks_the_first_of_equal_minima():
+    volume = torch.tensor([3.0, 1.0, 2.0, 1.0, 1.0]).view(1, 5, 1, 1).repeat(1, 1, 2, 3)
+    volume[0, 1, 0, 0] = 5.0  # here the first minimum is at index 3
+    assert select.winner_takes_all(volume).tolist() == [[[3, 1, 1], [1, 1, 1]]]
+
+
+def test_median_at_equals_the_median_filter_where_asked():
+    torch.manual_seed(0)
+    disp = torch.rand(2, 17, 23) * 10
+    disp[disp < 1.5] = float("nan")
+    where = torch.rand(2, 17, 23) < 0.3
+    out = refine.median_at(disp, where, 2)
+    full = refine.median_filter(disp, 2)
+    assert torch.equal(out[where].nan_to_num(-1), full[where].nan_to_num(-1))
+    assert torch.equal(out[~where].nan_to_num(-1), disp[~where].nan_to_num(-1))
+    assert refine.median_at(disp, torch.zeros_like(where), 2) is disp

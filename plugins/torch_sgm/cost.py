@@ -238,6 +238,21 @@ def fused_cost_chunk(features: dict, d_first: int, count: int, *, w_ad: float, w
     return torch.flip(weight, (1,)).neg_().add_(w_ad + w_census + w_grad)
 
 
+# Up to this radius, 2r shifted additions beat a running sum: torch.cumsum walks a row element by
+# element, while each addition is one vectorised pass (1.5x faster at r = 3, the seed's radius).
+SHIFTED_SUM_MAX_RADIUS = 4
+
+
+def _shifted_sum_(x: torch.Tensor, radius: int, dim: int, out: torch.Tensor) -> torch.Tensor:
+    """Window sums along ``dim`` into ``out`` (not ``x``) by adding the 2r shifted copies of ``x``."""
+    n = x.shape[dim]
+    out.copy_(x)
+    for s in range(1, min(radius, n - 1) + 1):
+        out.narrow(dim, s, n - s).add_(x.narrow(dim, 0, n - s))
+        out.narrow(dim, 0, n - s).add_(x.narrow(dim, s, n - s))
+    return out
+
+
 def _box_sum_(x: torch.Tensor, radius: int, dim: int, out: torch.Tensor, work: torch.Tensor) -> torch.Tensor:
     """Window sums along ``dim`` (-1 or -2) into ``out`` from a running sum in ``work``, by slicing
     (the reference's ``index_select`` is several times slower). ``x`` is read only for the running sum,
@@ -268,7 +283,11 @@ def box_mean_fast(x: torch.Tensor, radius: int, out: torch.Tensor | None = None,
         return x if out is None else out.copy_(x)
     out = torch.empty_like(x) if out is None else out
     work = torch.empty_like(x) if work is None else work
-    _box_sum_(x, radius, -1, out, work)
-    _box_sum_(out, radius, -2, out, work)  # reads ``out`` only for the running sum, then overwrites it
+    if radius <= SHIFTED_SUM_MAX_RADIUS:
+        _shifted_sum_(x, radius, -1, work)
+        _shifted_sum_(work, radius, -2, out)
+    else:
+        _box_sum_(x, radius, -1, out, work)
+        _box_sum_(out, radius, -2, out, work)  # reads ``out`` only for the running sum, then overwrites it
     inv = box_counts(x.shape[-2], x.shape[-1], radius, x.device, x.dtype) if inv_count is None else inv_count
     return out.mul_(inv)

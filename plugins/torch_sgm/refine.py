@@ -99,14 +99,31 @@ def median_filter(x: torch.Tensor, radius: int) -> torch.Tensor:
     return patches.nanmedian(1).values.view_as(x)
 
 
+def median_at(x: torch.Tensor, where: torch.Tensor, radius: int) -> torch.Tensor:
+    """``median_filter`` evaluated only at the pixels in ``where`` (B, H, W) bool; the others keep their
+    value. The holes after the LR check are a sixth of a frame, so this gathers their windows instead
+    of unfolding the whole image (the same values: the median does not depend on their order)."""
+    b, y, x_ = where.nonzero(as_tuple=True)
+    if b.numel() == 0:
+        return x
+    k = 2 * radius + 1
+    padded = F.pad(x.unsqueeze(1), (radius,) * 4, mode="replicate")[:, 0]
+    dy = torch.arange(k, device=x.device).repeat_interleave(k)
+    dx = torch.arange(k, device=x.device).repeat(k)
+    windows = padded[b[:, None], y[:, None] + dy, x_[:, None] + dx]  # (N, k * k)
+    out = x.clone()
+    out[b, y, x_] = windows.nanmedian(1).values
+    return out
+
+
 def median_fill(disp: torch.Tensor, holes: torch.Tensor, radius: int) -> torch.Tensor:
     """Replace the pixels in ``holes`` (B, H, W) bool with the median of their window, which removes
     the horizontal streaks that row-wise filling leaves; any remaining NaN is filled the same way."""
-    if radius > 0 and holes.any():
-        disp = torch.where(holes, median_filter(disp, radius), disp)
+    if radius > 0:
+        disp = median_at(disp, holes, radius)
     for _ in range(32):
         missing = ~torch.isfinite(disp)
         if not missing.any():
             break
-        disp = torch.where(missing, median_filter(disp, 4), disp)
+        disp = median_at(disp, missing, 4)
     return disp

@@ -118,18 +118,18 @@ def _walk_both(cost: torch.Tensor, p1: float, p2: torch.Tensor, crosses: tuple[i
         if prev is None:
             cur.copy_(c.expand_as(cur))
         else:
-            # the predecessor, shifted along X; pixels without one (0) restart the path: L = C
+            # t = L(p-r, d) - min_k L(p-r, k): the predecessor shifted along X, less its minimum, in one
+            # pass; pixels without a predecessor (t = 0) restart the path: L = C
+            torch.amin(prev, 3, keepdim=True, out=floor)
             for k, dy in enumerate(crosses):
                 if dy == 0:
-                    cur[:, k].copy_(prev[:, k])
+                    torch.sub(prev[:, k], floor[:, k], out=cur[:, k])
                 elif dy > 0:
-                    cur[:, k, ..., dy:].copy_(prev[:, k, ..., :-dy])
+                    torch.sub(prev[:, k, ..., :-dy], floor[:, k, ..., :-dy], out=cur[:, k, ..., dy:])
                     cur[:, k, ..., :dy].zero_()
                 else:
-                    cur[:, k, ..., :dy].copy_(prev[:, k, ..., -dy:])
+                    torch.sub(prev[:, k, ..., -dy:], floor[:, k, ..., -dy:], out=cur[:, k, ..., :dy])
                     cur[:, k, ..., dy:].zero_()
-            torch.amin(cur, 3, keepdim=True, out=floor)
-            cur.sub_(floor)                                         # t = L(p-r, d) - min_k L(p-r, k)
             if pair is not None:
                 torch.minimum(cur[..., 1:, :], cur[..., :-1, :], out=pair).add_(p1)
                 torch.minimum(cur[..., 1:, :], pair, out=cur[..., 1:, :])

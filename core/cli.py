@@ -46,4 +46,7 @@ def _build() -> click.Group:
 
 
 def main() -> None:
+    from core.memory import keep_freed_memory
+
+    keep_freed_memory()  # before the first frame's volumes are allocated
     sys.exit(_build().main(standalone_mode=True))

@@ -63,6 +63,18 @@ class TorchSGMParams(BaseModel):
     median_radius: int = Field(2, ge=0, description="median over filled pixels, 0 = off")
     median_scope: Literal["holes", "all"] = Field("holes", description="all: also a final median over every "
                                                   "pixel, which removes isolated mismatches")
+    # search
+    search: Literal["full", "coarse_to_fine"] = Field(
+        "full", description="full: every disparity of the range at full resolution; coarse_to_fine: a pass at "
+        "1/coarse_factor of the resolution finds the disparities the scene occupies, and only those are "
+        "searched at full resolution (a plate spans a fraction of the working-distance range)")
+    coarse_factor: int = Field(4, ge=2, le=8, description="downsampling of the coarse pass")
+    coarse_margin: float = Field(6.0, ge=0, description="full-resolution pixels added on each side of the "
+                                 "occupied range (1 px is about 4 mm at 420 mm from a ZED)")
+    coarse_quantile: float = Field(0.005, ge=0, lt=0.5, description="share of the coarse matches ignored at "
+                                   "each end of the range as mismatches")
+    coarse_min_coverage: float = Field(0.2, ge=0, le=1, description="below this share of matched coarse "
+                                       "pixels the whole range is searched")
     # memory and speed
     chunk_disparities: int = Field(32, ge=1, description="disparity slices built and filtered at once "
                                    "(the fast implementation uses at most 8)")

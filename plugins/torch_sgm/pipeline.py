@@ -6,7 +6,7 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import aggregate, cost, refine, select, sgm
+from plugins.torch_sgm import aggregate, cost, refine, search, select, sgm
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -74,11 +74,43 @@ def disparity_range(min_disp: float, max_disp: float) -> list[int]:
     return list(range(math.floor(min_disp), max(math.ceil(max_disp), math.floor(min_disp) + 1)))
 
 
+def coarse_range(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,
+                 p: TorchSGMParams) -> tuple[int, int] | None:
+    """``search: coarse_to_fine``: the disparities ``lo <= d < hi`` that a pass over the whole range at
+    1 / ``coarse_factor`` of the resolution finds occupied (see ``search``); None = search everything
+    (the image is too small to shrink, or the coarse pass matched too little of it)."""
+    found = coarse_pass(left, right, min_disp, max_disp, p)
+    return None if found is None else found[0]
+
+
+def coarse_pass(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float, p: TorchSGMParams,
+                ) -> tuple[tuple[int, int], torch.Tensor] | None:
+    """``coarse_range`` and, with it, the (B, H, W) bool pixels that the coarse pass matched outside
+    that range (``search.outside_range``)."""
+    factor = p.coarse_factor
+    small_l, small_r = search.downsample(left, factor), search.downsample(right, factor)
+    h, w = small_l.shape[-2:]
+    if min(h, w) < 8:
+        return None
+    lo, hi = search.coarse_bounds(min_disp, max_disp, factor, w)
+    coarse = p.model_copy(update={"search": "full", "fill": "none"})
+    disp, matched = compute_tensors(small_l, small_r, lo, hi, coarse)
+    found = search.occupied_range(disp, matched, factor, p.coarse_margin, p.coarse_quantile,
+                                  p.coarse_min_coverage, min_disp, max_disp)
+    if found is None:
+        return None
+    return found, search.outside_range(disp, matched, factor, tuple(left.shape[-2:]), *found)
+
+
 def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,
                     p: TorchSGMParams) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 3, H, W) RGB pair in [0, 1] -> (disparity (B, H, W) float32, NaN where still invalid;
     consistent (B, H, W) bool: pixels that passed the left-right check)."""
     disparities = disparity_range(min_disp, max_disp)
+    narrowed = coarse_pass(left, right, min_disp, max_disp, p) if p.search == "coarse_to_fine" else None
+    if narrowed is not None:
+        full = disparities
+        disparities = list(range(*narrowed[0]))
     fast = p.implementation == "fast"
     volume = (cost_volume_fast if fast else cost_volume)(left, right, disparities, p)
     penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
@@ -91,6 +123,10 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     right_disp = select.right_view_wta(aggregated, disparities)
     del aggregated
     consistent = refine.left_right_check(disp, right_disp, p.lr_tolerance)
+    if narrowed is not None:
+        consistent &= ~search.at_narrowed_bound(index, len(disparities), disparities[0] > full[0],
+                                                disparities[-1] < full[-1])
+        consistent &= ~narrowed[1]
     raw_disp = disp
     disp = torch.where(consistent, disp, torch.full_like(disp, float("nan")))
     if p.fill != "none":

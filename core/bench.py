@@ -72,11 +72,18 @@ NO_STEREO = "none"
 
 
 def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: tuple[int, int],
-                  device: str, repeats: int, frames: int | None, detector: Any, region: str = "full") -> dict[str, Any]:
+                  device: str, repeats: int, frames: int | None, detector: Any, region: str = "full",
+                  versus: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``versus``: settings of the backend that change for the reference the depth numbers are compared
+    against (full frame, untimed); without it, regions other than ``full`` are compared with ``full``."""
     recipe = loaded.recipe
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=recipe.name, device=device)
-    stereo = None if backend == NO_STEREO else registry.get("stereo", backend).spec.factory(
-        loaded.plugin_settings["stereo"] if backend == recipe.stereo.backend else {}, ctx)
+    settings = loaded.plugin_settings["stereo"] if backend == recipe.stereo.backend else {}
+    stereo = None if backend == NO_STEREO else registry.get("stereo", backend).spec.factory(settings, ctx)
+    reference = stereo
+    if versus and stereo is not None:
+        reference = registry.get("stereo", backend).spec.factory({**settings, **versus}, ctx)
+    compare = stereo is not None and (region != "full" or bool(versus))
     rule = DepthRule(**recipe.depth.model_dump())
     section = recipe.stereo.model_copy(update={"region": region})
     diffs = {"defects": 0, "distance_mm": 0.0, "deviation_mm": 0.0, "availability_differs": 0}
@@ -121,15 +128,17 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
                     previous = t[stage]
                 totals["loop"] += t["outputs"] - t_loop
                 count += 1
-                if region != "full" and measurements and not passes:  # untimed: the next frame's clock starts later
-                    _compare_to_full(diffs, stereo, frame, recipe.stereo, detections, rule, measurements)
+                if compare and measurements and not passes:  # untimed: the next frame's clock starts later
+                    _compare_to_full(diffs, reference, frame, recipe.stereo, detections, rule, measurements)
             camera.close()
             passes.append({stage: totals[stage] / max(count, 1) for stage in STAGES})
         output.close()
     result: dict[str, Any] = {"backend": backend, "region": region if stereo is not None else "-", "frames": count,
                               "repeats": repeats, "stages_ms": {}}
-    if region != "full" and stereo is not None:
+    if compare:
         result["depth_vs_full_frame"] = diffs
+        if versus:
+            result["versus"] = versus
     for stage in STAGES:
         values = [p[stage] * 1000.0 for p in passes]
         result["stages_ms"][stage] = {"median": statistics.median(values), "min": min(values), "max": max(values)}
@@ -171,7 +180,8 @@ def _warm_up(camera_spec, loaded: LoadedRecipe, ctx: PluginContext, detector: An
 
 
 def run_bench(loaded: LoadedRecipe, registry: Registry, backends: list[str], resolution: str, device: str,
-              repeats: int, frames: int | None, regions: tuple[str, ...] = ("full",)) -> dict[str, Any]:
+              repeats: int, frames: int | None, regions: tuple[str, ...] = ("full",),
+              versus: dict[str, Any] | None = None) -> dict[str, Any]:
     device = resolve_device(device)
     recipe = loaded.recipe
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=recipe.name, device=device)
@@ -180,7 +190,8 @@ def run_bench(loaded: LoadedRecipe, registry: Registry, backends: list[str], res
         detector_settings["weights"] = str(loaded.resolve(recipe.detector.weights))
     detector = registry.get("detector", recipe.detector.plugin).spec.factory(detector_settings, ctx)
     size = RESOLUTIONS[resolution]
-    results = [bench_backend(loaded, registry, b, size, device, repeats, frames, detector, r)
+    results = [bench_backend(loaded, registry, b, size, device, repeats, frames, detector, r,
+                             versus if b == recipe.stereo.backend else None)
                for b in backends for r in (regions if b != NO_STEREO else ("full",))]
     return {"recipe": str(loaded.path), "resolution": f"{size[0]}x{size[1]}", "device": device,
             "machine": machine(), "when": time.strftime("%Y-%m-%d %H:%M"), "results": results}
@@ -194,7 +205,9 @@ def markdown(report: dict[str, Any]) -> str:
         + (f", GPU {m['gpu']}" if "gpu" in m else "") + f"; {report['when']}",
         "",
         "| backend | region | " + " | ".join(f"{s} ms (median, min-max)" for s in STAGES)
-        + " | fps | peak RSS MB | depth vs full frame: max abs diff distance / deviation mm (defects) |",
+        + " | fps | peak RSS MB | depth vs full frame" + "".join(
+            f" with {', '.join(f'{k}={v}' for k, v in r['versus'].items())}" for r in report["results"][:1] if r.get("versus"))
+        + ": max abs diff distance / deviation mm (defects) |",
         "|---|---|" + "---|" * (len(STAGES) + 3),
     ]
     for r in report["results"]:

@@ -47,6 +47,29 @@ def test_bench_defect_region_is_compared_with_full_frame_and_detection_alone(tmp
     assert "| opencv_sgbm | defects |" in (tmp_path / "bench-wvga-cpu.md").read_text()
 
 
+def test_bench_versus_compares_depth_with_other_settings_of_the_backend(tmp_path):
+    """torch_sgm's coarse-to-fine search against its full search: the same depth for each defect found
+    on frames 1-2 (the first frame is sound plate)."""
+    recipe = str(ROOT / "recipes" / "steel_plate.yaml")
+    out = cli("bench", "--recipe", recipe, "--backends", "torch_sgm", "--regions", "defects", "--frames", "3",
+              "--repeats", "1", "--threads", "1", "--set", "stereo.backend=torch_sgm",
+              "--set", "stereo.settings.search=coarse_to_fine", "--versus", "search=full", "--out", str(tmp_path))
+    assert out.returncode == 0, out.stderr
+    result = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())["results"][0]
+    assert result["versus"] == {"search": "full"}
+    versus = result["depth_vs_full_frame"]
+    assert versus["defects"] >= 2 and versus["availability_differs"] == 0
+    assert versus["distance_mm"] < 0.05 and versus["deviation_mm"] < 0.05
+    assert "depth vs full frame with search=full" in (tmp_path / "bench-wvga-cpu.md").read_text()
+    bad = cli("bench", "--recipe", recipe, "--backends", "opencv_sgbm", "--versus", "search=full", "--out", str(tmp_path))
+    assert bad.returncode == 2 and "--versus: search: Extra inputs are not permitted" in bad.stderr
+    bad = cli("bench", "--recipe", recipe, "--backends", "none", "--versus", "search=full", "--out", str(tmp_path))
+    assert bad.returncode == 2 and "which --backends leaves out" in bad.stderr
+    bad = cli("bench", "--recipe", recipe, "--backends", "torch_sgm", "--set", "stereo.backend=torch_sgm",
+              "--versus", "search=sideways", "--out", str(tmp_path))
+    assert bad.returncode == 2 and "--versus: search:" in bad.stderr
+
+
 def test_soak_reports_rss_at_start_and_end(tmp_path):
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--soak", "12", "--soak-every", "5",
               "--threads", "1", "--set", "stereo.region=defects", "--out", str(tmp_path))

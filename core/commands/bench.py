@@ -5,6 +5,8 @@ import json
 from pathlib import Path
 
 import click
+import yaml
+from pydantic import ValidationError
 
 from core.commands.inspection import _load, fail
 
@@ -32,8 +34,11 @@ from core.commands.inspection import _load, fail
 @click.option("--threads", type=click.IntRange(1), default=None,
               help="torch and OpenCV CPU threads (1 is fastest when another job keeps a core busy)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE")
+@click.option("--versus", "versus", multiple=True, metavar="KEY=VALUE",
+              help="compare every defect's depth with the recipe's stereo backend run full-frame with this setting "
+                   "changed (e.g. --versus search=full); repeatable")
 def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, device, repeats, frames, regions, out,
-                  soak, soak_every, quiet, threads, overrides):
+                  soak, soak_every, quiet, threads, overrides, versus):
     """Time capture, detection, stereo, depth, decision, outputs and the whole loop; print and save
     a table (JSON + Markdown). Backend "none" times detection alone."""
     from core.bench import NO_STEREO, markdown, run_bench, run_soak
@@ -71,7 +76,22 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
     region_names = tuple(r.strip() for r in regions.split(",") if r.strip())
     if not region_names or any(r not in ("full", "defects") for r in region_names):
         fail(f"--regions: give full and/or defects, not {regions!r}")
-    report = run_bench(loaded, registry, names, resolution, device, repeats, frames, region_names)
+    reference = {}
+    for item in versus:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            fail(f"--versus: expected KEY=VALUE, got {item!r}")
+        reference[key.strip()] = yaml.safe_load(value)
+    if reference and loaded.recipe.stereo.backend not in names:
+        fail(f"--versus changes the recipe's stereo backend {loaded.recipe.stereo.backend}, which --backends leaves out")
+    if reference:
+        try:
+            spec = registry.get("stereo", loaded.recipe.stereo.backend).spec
+            if spec.settings_model is not None:
+                spec.settings_model(**{**loaded.plugin_settings["stereo"], **reference})
+        except ValidationError as exc:
+            fail(f"--versus: {exc.errors()[0]['loc'][0]}: {exc.errors()[0]['msg']}")
+    report = run_bench(loaded, registry, names, resolution, device, repeats, frames, region_names, reference or None)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"bench-{resolution}-{report['device']}"
     (out / f"{stem}.json").write_text(json.dumps(report, indent=2))

@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 # Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
-IMPROVED: dict = {"refine_radius": 0, "paths": 8, "p1": 0.08, "p2": 1.3}
+IMPROVED: dict = {"refine_radius": 0, "paths": 8, "p1": 0.08, "p2": 1.3, "search": "coarse_to_fine"}
 
 
 class TorchSGMParams(BaseModel):

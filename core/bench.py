@@ -199,14 +199,14 @@ def run_bench(loaded: LoadedRecipe, registry: Registry, backends: list[str], res
 
 def markdown(report: dict[str, Any]) -> str:
     m = report["machine"]
+    versus = next((", ".join(f"{k}={v}" for k, v in r["versus"].items()) for r in report["results"] if r.get("versus")), "")
     lines = [
         f"Recipe `{Path(report['recipe']).name}`, {report['resolution']}, device {report['device']}; "
         f"machine: {m['cpu']}, {m['cores']} cores, {m['torch_threads']} torch threads"
         + (f", GPU {m['gpu']}" if "gpu" in m else "") + f"; {report['when']}",
         "",
         "| backend | region | " + " | ".join(f"{s} ms (median, min-max)" for s in STAGES)
-        + " | fps | peak RSS MB | depth vs full frame" + "".join(
-            f" with {', '.join(f'{k}={v}' for k, v in r['versus'].items())}" for r in report["results"][:1] if r.get("versus"))
+        + " | fps | peak RSS MB | depth vs full frame" + (f" with {versus}" if versus else "")
         + ": max abs diff distance / deviation mm (defects) |",
         "|---|---|" + "---|" * (len(STAGES) + 3),
     ]

@@ -13,6 +13,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
+import os
 
 M_TRIM_THRESHOLD = -1  # from glibc's malloc.h
 M_MMAP_MAX = -4
@@ -21,7 +22,10 @@ M_MMAP_MAX = -4
 @functools.lru_cache(maxsize=1)
 def keep_freed_memory() -> bool:
     """Serve large blocks from the heap and never trim it; True where that took effect (glibc), False
-    elsewhere (musl, macOS, Windows), where the allocator is left as it is."""
+    elsewhere (musl, macOS, Windows), where the allocator is left as it is, and where the environment
+    sets ``STEREO_INSPECT_KEEP_MEMORY=0`` (to compare, or to share a small machine)."""
+    if os.environ.get("STEREO_INSPECT_KEEP_MEMORY", "1").strip() == "0":
+        return False
     name = ctypes.util.find_library("c")
     if not name:
         return False

@@ -2,6 +2,7 @@
 process-wide)."""
 from __future__ import annotations
 
+import os
 import platform
 import subprocess
 import sys
@@ -18,6 +19,8 @@ def rss():
 
 if sys.argv[1] == 'keep':
     assert keep_freed_memory() and keep_freed_memory()
+if sys.argv[1] == 'off':
+    assert not keep_freed_memory()
 block = np.ones(64 * 2**20, np.uint8)
 held = rss()
 del block
@@ -27,9 +30,11 @@ print((held - rss()) // 2**20)
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="the switches are glibc's")
 def test_a_freed_block_stays_in_the_process_only_when_asked():
-    def returned_mb(mode):
-        out = subprocess.run([sys.executable, "-c", SCRIPT, mode], capture_output=True, text=True, check=True)
+    def returned_mb(mode, **env):
+        out = subprocess.run([sys.executable, "-c", SCRIPT, mode], capture_output=True, text=True, check=True,
+                             env={**os.environ, **env})
         return int(out.stdout)
 
     assert returned_mb("default") >= 60   # glibc unmaps a 64 MB block on free
     assert returned_mb("keep") <= 4       # kept for the next frame's volumes
+    assert returned_mb("off", STEREO_INSPECT_KEEP_MEMORY="0") >= 60  # the opt-out

@@ -1,4 +1,4 @@
-"""Registers the ``yolov8`` detector and its commands (convert-voc, add-backgrounds, train detector, eval detector, eval detector-frames)."""
+"""Registers the ``yolov8`` detector and its commands (convert-voc, add-backgrounds, train detector, train average, eval detector, eval detector-frames)."""
 from __future__ import annotations
 
 import sys
@@ -93,8 +93,16 @@ def add_backgrounds_command(sequence: Path, dataset: Path, split: str, tile: int
 @click.option("--name", default="yolov8n-neu", show_default=True)
 @click.option("--init", "init", default=None, type=click.Path(path_type=Path),
               help="start from these weights (an earlier run of ours, never a downloaded checkpoint) with a fresh schedule")
+@click.option("--optimizer", default="auto", show_default=True,
+              help="SGD, AdamW, ...; 'auto' lets ultralytics choose the optimiser and its learning rate (lr0 unused)")
+@click.option("--lr0", default=0.01, show_default=True, help="initial learning rate (with a named --optimizer)")
+@click.option("--lrf", default=0.01, show_default=True, help="final learning rate as a fraction of lr0 (linear decay)")
+@click.option("--warmup-epochs", default=3.0, show_default=True)
+@click.option("--save-period", default=-1, show_default=True,
+              help="also keep the weights of every Nth epoch (for `inspect train average`); -1: only best and last")
 def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int, device: str, out: Path,
-                  workers: int, name: str, init: Path | None) -> None:
+                  workers: int, name: str, init: Path | None, optimizer: str, lr0: float, lrf: float,
+                  warmup_epochs: float, save_period: int) -> None:
     """Train YOLOv8n from scratch (resumes when OUT/NAME/weights/last.pt exists)."""
     from plugins.yolov8.training import TrainSettings, train_detector
 
@@ -103,9 +111,30 @@ def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int
         _fail(f"{data_yaml}: dataset file not found (run `inspect data convert-voc` first)")
     if init is not None and not init.is_file():
         _fail(f"{init}: weights file not found")
-    settings = TrainSettings(epochs=epochs, patience=patience, imgsz=imgsz, batch=batch, device=device, workers=workers)
+    settings = TrainSettings(epochs=epochs, patience=patience, imgsz=imgsz, batch=batch, device=device, workers=workers,
+                             optimizer=optimizer, lr0=lr0, lrf=lrf, warmup_epochs=warmup_epochs,
+                             save_period=save_period)
     best = train_detector(data_yaml, out, settings, name, init=init)
     click.echo(f"best weights: {best}")
+
+
+@click.command("average")
+@click.argument("weights", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="the averaged checkpoint to write")
+def average_command(weights: tuple[Path, ...], out: Path) -> None:
+    """Average the weights of several detector checkpoints of one architecture (a model soup)."""
+    from plugins.yolov8.averaging import AveragingError, average_checkpoints
+
+    if len(weights) < 2:
+        _fail("give at least two checkpoints to average")
+    for path in weights:
+        if not path.is_file():
+            _fail(f"{path}: weights file not found")
+    try:
+        average_checkpoints(list(weights), out)
+    except AveragingError as exc:
+        _fail(str(exc))
+    click.echo(f"mean of {len(weights)} checkpoints -> {out}")
 
 
 @click.command("detector")
@@ -163,5 +192,6 @@ def stereo_inspect_commands(cli: click.Group) -> None:
     cli.commands["data"].add_command(convert_voc_command)
     cli.commands["data"].add_command(add_backgrounds_command)
     cli.commands["train"].add_command(train_command)
+    cli.commands["train"].add_command(average_command)
     cli.commands["eval"].add_command(eval_command)
     cli.commands["eval"].add_command(eval_frames_command)

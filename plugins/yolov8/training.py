@@ -31,6 +31,13 @@ class TrainSettings:
     mixup: float = 0.1
     copy_paste: float = 0.1
     close_mosaic: int = 10
+    # The schedule. ultralytics' "auto" optimiser picks its own learning rate and ignores lr0;
+    # a low-rate fine-tune of an earlier stage names the optimiser to set lr0.
+    optimizer: str = "auto"
+    lr0: float = 0.01
+    lrf: float = 0.01
+    warmup_epochs: float = 3.0
+    save_period: int = -1
 
 
 def resolve_device(device: str) -> str:

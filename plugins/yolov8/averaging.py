@@ -1,0 +1,70 @@
+"""Averaging the weights of several runs of one architecture (a "model soup", Wortsman et al. 2022).
+
+Our detector is trained in CPU-sized stages, each a fine-tune of the one before, so every stage's
+weights lie in one basin of the loss; their mean is often better than any one of them, at no
+inference cost. Which weights to average is chosen on the validation split, like ``best.pt`` itself.
+"""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import torch
+
+
+class AveragingError(ValueError):
+    """The checkpoints cannot be averaged (unreadable file, other architecture)."""
+
+
+def _load(path: Path) -> dict:
+    try:
+        checkpoint = torch.load(str(path), map_location="cpu", weights_only=False)
+    except Exception as exc:  # torch raises several unrelated types for a bad file
+        raise AveragingError(f"{path}: not a readable checkpoint ({exc.__class__.__name__})") from exc
+    if not isinstance(checkpoint, dict) or checkpoint.get("model") is None:
+        raise AveragingError(f"{path}: not an ultralytics checkpoint (no 'model' entry)")
+    return checkpoint
+
+
+def _weights_module(checkpoint: dict) -> torch.nn.Module:
+    # ultralytics evaluates and predicts with the EMA weights when a checkpoint carries them
+    return (checkpoint.get("ema") or checkpoint["model"]).float()
+
+
+def average_state_dicts(state_dicts: list[dict[str, torch.Tensor]], weights: list[float] | None = None,
+                        ) -> dict[str, torch.Tensor]:
+    """Weighted mean of floating-point entries; integer entries (counters) come from the first.
+
+    Shapes: every ``state_dicts[i][key]`` has the shape of ``state_dicts[0][key]``.
+    """
+    if not state_dicts:
+        raise AveragingError("nothing to average")
+    weights = weights or [1.0 / len(state_dicts)] * len(state_dicts)
+    if len(weights) != len(state_dicts) or abs(sum(weights) - 1.0) > 1e-6:
+        raise AveragingError("averaging weights must be one per checkpoint and sum to 1")
+    keys = list(state_dicts[0])
+    for index, sd in enumerate(state_dicts[1:], start=1):
+        if list(sd) != keys or any(sd[k].shape != state_dicts[0][k].shape for k in keys):
+            raise AveragingError(f"checkpoint {index + 1} has another architecture than the first")
+    return {
+        key: sum(w * sd[key].double() for w, sd in zip(weights, state_dicts)).to(state_dicts[0][key].dtype)
+        if state_dicts[0][key].is_floating_point() else state_dicts[0][key].clone()
+        for key in keys
+    }
+
+
+def average_checkpoints(paths: list[Path], out: Path, weights: list[float] | None = None) -> Path:
+    """Write to ``out`` a checkpoint whose model is the (weighted) mean of the given checkpoints' models."""
+    checkpoints = [_load(Path(p)) for p in paths]
+    modules = [_weights_module(c) for c in checkpoints]
+    averaged = average_state_dicts([m.state_dict() for m in modules], weights)
+    result = copy.deepcopy(checkpoints[0])
+    model = copy.deepcopy(modules[0])
+    model.load_state_dict(averaged)
+    # half precision, as ultralytics saves its own best.pt; no EMA or optimiser state: not a run to resume
+    result.update(model=model.half(), ema=None, optimizer=None, updates=None,
+                  train_args={**(result.get("train_args") or {}), "averaged_from": [str(p) for p in paths]})
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(result, str(out))
+    return out

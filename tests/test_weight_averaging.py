@@ -1,0 +1,95 @@
+"""`inspect train average`: the mean of several checkpoints, loadable by the detector plugin."""
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from core.cli import _build
+from plugins.yolov8.averaging import AveragingError, average_checkpoints, average_state_dicts
+
+NAMES = ["crazing", "inclusion", "patches", "pitted_surface", "rolled-in_scale", "scratches"]
+
+
+def _checkpoint(path, seed: int, nc: int = len(NAMES)):
+    os.environ.setdefault("YOLO_OFFLINE", "1")
+    from ultralytics import YOLO
+    from ultralytics.nn.tasks import DetectionModel
+
+    torch.manual_seed(seed)
+    model = YOLO("yolov8n.yaml")
+    model.model = DetectionModel("yolov8n.yaml", nc=nc, verbose=False)
+    model.model.names = dict(enumerate(NAMES[:nc]))
+    with torch.no_grad():  # a fresh model's batch-norm statistics are all equal: make them differ too
+        for name, buffer in model.model.named_buffers():
+            if buffer.is_floating_point():
+                buffer.uniform_(0.5, 1.5)
+    model.save(str(path))
+    return path
+
+
+def _float_params(path) -> dict[str, torch.Tensor]:
+    checkpoint = torch.load(str(path), map_location="cpu", weights_only=False)
+    module = (checkpoint.get("ema") or checkpoint["model"]).float()
+    return {k: v for k, v in module.state_dict().items() if v.is_floating_point()}
+
+
+@pytest.fixture(scope="module")
+def two_checkpoints(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("ckpt")
+    return _checkpoint(folder / "a.pt", 0), _checkpoint(folder / "b.pt", 1)
+
+
+def test_state_dict_mean_is_weighted_and_keeps_integer_entries():
+    a = {"w": torch.tensor([0.0, 2.0]), "n": torch.tensor(3)}
+    b = {"w": torch.tensor([4.0, 6.0]), "n": torch.tensor(7)}
+    assert torch.equal(average_state_dicts([a, b])["w"], torch.tensor([2.0, 4.0]))
+    assert torch.equal(average_state_dicts([a, b], [0.25, 0.75])["w"], torch.tensor([3.0, 5.0]))
+    assert average_state_dicts([a, b])["n"].item() == 3
+    with pytest.raises(AveragingError, match="sum to 1"):
+        average_state_dicts([a, b], [0.5, 0.6])
+
+
+def test_averaged_checkpoint_holds_the_mean_and_detects(two_checkpoints, tmp_path):
+    out = average_checkpoints(list(two_checkpoints), tmp_path / "mean.pt")
+    a, b, mean = (_float_params(p) for p in (*two_checkpoints, out))
+    assert mean.keys() == a.keys()
+    differing = [k for k in a if not torch.equal(a[k], b[k])]
+    assert len(differing) > len(a) // 2
+    for key in differing:
+        # saved in half precision, as ultralytics saves its own weights
+        torch.testing.assert_close(mean[key], ((a[key] + b[key]) / 2).half().float(), atol=2e-3, rtol=2e-3)
+
+    from core.contracts import PluginContext
+    from core.registry import default_registry
+
+    spec = default_registry().get("detector", "yolov8").spec
+    detector = spec.factory({"weights": str(out), "imgsz": 128, "confidence": 0.0001}, PluginContext(device="cpu"))
+    assert detector.class_names == NAMES
+    assert detector.detect(torch.randint(0, 255, (128, 128, 3), dtype=torch.uint8).numpy())
+
+
+def test_other_architecture_is_refused(two_checkpoints, tmp_path):
+    other = _checkpoint(tmp_path / "three_classes.pt", 2, nc=3)
+    with pytest.raises(AveragingError, match="checkpoint 2 has another architecture"):
+        average_checkpoints([two_checkpoints[0], other], tmp_path / "mean.pt")
+    assert not (tmp_path / "mean.pt").exists()
+
+
+def test_cli_averages_and_names_a_bad_file(two_checkpoints, tmp_path):
+    runner = CliRunner()
+    result = runner.invoke(_build(), ["train", "average", *map(str, two_checkpoints), "--out", str(tmp_path / "m.pt")])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "m.pt").is_file()
+
+    broken = tmp_path / "broken.pt"
+    broken.write_bytes(b"not a checkpoint")
+    result = runner.invoke(_build(), ["train", "average", str(two_checkpoints[0]), str(broken), "--out", str(tmp_path / "n.pt")])
+    assert result.exit_code == 2
+    assert "broken.pt: not a readable checkpoint" in result.output
+    assert not (tmp_path / "n.pt").exists()
+
+    result = runner.invoke(_build(), ["train", "average", str(two_checkpoints[0]), "--out", str(tmp_path / "n.pt")])
+    assert result.exit_code == 2 and "at least two" in result.output

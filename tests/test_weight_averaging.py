@@ -71,6 +71,17 @@ def test_averaged_checkpoint_holds_the_mean_and_detects(two_checkpoints, tmp_pat
     assert detector.detect(torch.randint(0, 255, (128, 128, 3), dtype=torch.uint8).numpy())
 
 
+def test_epoch_checkpoints_with_only_ema_weights_are_averaged(two_checkpoints, tmp_path):
+    # what `--save-period` writes: the EMA weights, and model = None
+    ema_only = torch.load(str(two_checkpoints[1]), map_location="cpu", weights_only=False)
+    ema_only["ema"], ema_only["model"] = ema_only["model"], None
+    torch.save(ema_only, str(tmp_path / "epoch3.pt"))
+    out = average_checkpoints([two_checkpoints[0], tmp_path / "epoch3.pt"], tmp_path / "mean.pt")
+    a, b, mean = (_float_params(p) for p in (*two_checkpoints, out))
+    key = next(k for k in a if not torch.equal(a[k], b[k]))
+    torch.testing.assert_close(mean[key], ((a[key] + b[key]) / 2).half().float(), atol=2e-3, rtol=2e-3)
+
+
 def test_other_architecture_is_refused(two_checkpoints, tmp_path):
     other = _checkpoint(tmp_path / "three_classes.pt", 2, nc=3)
     with pytest.raises(AveragingError, match="checkpoint 2 has another architecture"):

@@ -21,8 +21,9 @@ def _load(path: Path) -> dict:
         checkpoint = torch.load(str(path), map_location="cpu", weights_only=False)
     except Exception as exc:  # torch raises several unrelated types for a bad file
         raise AveragingError(f"{path}: not a readable checkpoint ({exc.__class__.__name__})") from exc
-    if not isinstance(checkpoint, dict) or checkpoint.get("model") is None:
-        raise AveragingError(f"{path}: not an ultralytics checkpoint (no 'model' entry)")
+    # a run's epoch checkpoints (save_period) carry only the EMA weights, with model = None
+    if not isinstance(checkpoint, dict) or (checkpoint.get("model") is None and checkpoint.get("ema") is None):
+        raise AveragingError(f"{path}: not an ultralytics checkpoint (no 'model' or 'ema' entry)")
     return checkpoint
 
 

@@ -29,7 +29,8 @@ def _load(path: Path) -> dict:
 
 def _weights_module(checkpoint: dict) -> torch.nn.Module:
     # ultralytics evaluates and predicts with the EMA weights when a checkpoint carries them
-    return (checkpoint.get("ema") or checkpoint["model"]).float()
+    module = checkpoint.get("ema")
+    return (module if module is not None else checkpoint["model"]).float()
 
 
 def average_state_dicts(state_dicts: list[dict[str, torch.Tensor]], weights: list[float] | None = None,

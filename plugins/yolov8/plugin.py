@@ -94,6 +94,7 @@ def add_backgrounds_command(sequence: Path, dataset: Path, split: str, tile: int
 @click.option("--init", "init", default=None, type=click.Path(path_type=Path),
               help="start from these weights (an earlier run of ours, never a downloaded checkpoint) with a fresh schedule")
 @click.option("--optimizer", default="auto", show_default=True,
+              type=click.Choice(["auto", "SGD", "Adam", "Adamax", "AdamW", "NAdam", "RAdam", "RMSProp"]),
               help="SGD, AdamW, ...; 'auto' lets ultralytics choose the optimiser and its learning rate (lr0 unused)")
 @click.option("--lr0", default=0.01, show_default=True, help="initial learning rate (with a named --optimizer)")
 @click.option("--lrf", default=0.01, show_default=True, help="final learning rate as a fraction of lr0 (linear decay)")

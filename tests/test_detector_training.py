@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from core.cli import _build
 from plugins.yolov8.voc_to_yolo import convert_voc
-from tests.test_weight_averaging import _checkpoint
+from untrained_yolo import untrained_checkpoint
 
 FIXTURES = Path(__file__).parent / "fixtures" / "neu_val"
 
@@ -31,7 +31,7 @@ def _dataset(tmp_path: Path) -> Path:
 
 def test_fine_tune_schedule_reaches_ultralytics_and_keeps_every_epoch(tmp_path):
     data = _dataset(tmp_path)
-    init = _checkpoint(tmp_path / "init.pt", 0)
+    init = untrained_checkpoint(tmp_path / "init.pt")
     result = CliRunner().invoke(_build(), [
         "train", "detector", "--data", str(data), "--epochs", "2", "--imgsz", "64", "--batch", "4",
         "--device", "cpu", "--workers", "0", "--out", str(tmp_path / "runs"), "--name", "ft",

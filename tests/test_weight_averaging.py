@@ -1,39 +1,24 @@
 """`inspect train average`: the mean of several checkpoints, loadable by the detector plugin."""
 from __future__ import annotations
 
-import os
-
 import pytest
 import torch
 from click.testing import CliRunner
 
 from core.cli import _build
 from plugins.yolov8.averaging import AveragingError, average_checkpoints, average_state_dicts
-
-NAMES = ["crazing", "inclusion", "patches", "pitted_surface", "rolled-in_scale", "scratches"]
+from untrained_yolo import NEU_NAMES as NAMES
+from untrained_yolo import untrained_checkpoint
 
 
 def _checkpoint(path, seed: int, nc: int = len(NAMES)):
-    os.environ.setdefault("YOLO_OFFLINE", "1")
-    from ultralytics import YOLO
-    from ultralytics.nn.tasks import DetectionModel
-
-    torch.manual_seed(seed)
-    model = YOLO("yolov8n.yaml")
-    model.model = DetectionModel("yolov8n.yaml", nc=nc, verbose=False)
-    model.model.names = dict(enumerate(NAMES[:nc]))
-    with torch.no_grad():  # a fresh model's batch-norm statistics are all equal: make them differ too
-        for name, buffer in model.model.named_buffers():
-            if buffer.is_floating_point():
-                buffer.uniform_(0.5, 1.5)
-    model.save(str(path))
-    return path
+    return untrained_checkpoint(path, nc=nc, seed=seed, vary_statistics=True)
 
 
 def _float_params(path) -> dict[str, torch.Tensor]:
     checkpoint = torch.load(str(path), map_location="cpu", weights_only=False)
-    module = (checkpoint.get("ema") or checkpoint["model"]).float()
-    return {k: v for k, v in module.state_dict().items() if v.is_floating_point()}
+    module = checkpoint["ema"] if checkpoint.get("ema") is not None else checkpoint["model"]
+    return {k: v for k, v in module.float().state_dict().items() if v.is_floating_point()}
 
 
 @pytest.fixture(scope="module")

@@ -10,22 +10,13 @@ import pytest
 from core.contracts import PluginContext
 from core.registry import default_registry
 from core.types import Detection
-
-NAMES = ["crazing", "inclusion", "patches", "pitted_surface", "rolled-in_scale", "scratches"]
+from untrained_yolo import NEU_NAMES as NAMES
+from untrained_yolo import untrained_checkpoint
 
 
 @pytest.fixture(scope="module")
 def untrained_weights(tmp_path_factory):
-    os.environ.setdefault("YOLO_OFFLINE", "1")
-    from ultralytics import YOLO
-    from ultralytics.nn.tasks import DetectionModel
-
-    model = YOLO("yolov8n.yaml")
-    model.model = DetectionModel("yolov8n.yaml", nc=len(NAMES), verbose=False)
-    model.model.names = dict(enumerate(NAMES))
-    path = tmp_path_factory.mktemp("w") / "untrained.pt"
-    model.save(str(path))
-    return path
+    return untrained_checkpoint(tmp_path_factory.mktemp("w") / "untrained.pt")
 
 
 def _detector(weights, **settings):

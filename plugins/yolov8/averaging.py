@@ -6,7 +6,6 @@ inference cost. Which weights to average is chosen on the validation split, like
 """
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 
 import torch
@@ -60,12 +59,13 @@ def average_checkpoints(paths: list[Path], out: Path, weights: list[float] | Non
     checkpoints = [_load(Path(p)) for p in paths]
     modules = [_weights_module(c) for c in checkpoints]
     averaged = average_state_dicts([m.state_dict() for m in modules], weights)
-    result = copy.deepcopy(checkpoints[0])
-    model = copy.deepcopy(modules[0])
+    # the loaded checkpoints are ours alone: the first one's module takes the mean in place
+    model = modules[0]
     model.load_state_dict(averaged)
+    first = checkpoints[0]
     # half precision, as ultralytics saves its own best.pt; no EMA or optimiser state: not a run to resume
-    result.update(model=model.half(), ema=None, optimizer=None, updates=None,
-                  train_args={**(result.get("train_args") or {}), "averaged_from": [str(p) for p in paths]})
+    result = {**first, "model": model.half(), "ema": None, "optimizer": None, "updates": None,
+              "train_args": {**(first.get("train_args") or {}), "averaged_from": [str(p) for p in paths]}}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.save(result, str(out))

@@ -14,6 +14,7 @@ from drivers import plc_sim
 from plugins.modbus_output import ModbusOutput, ModbusSettings
 
 TOL_S = 0.100
+TRANSIT_S = 0.050  # send -> PLC receipt on loopback, for writes sent at the edge of their deadline
 HOST = "127.0.0.1"
 
 
@@ -211,7 +212,9 @@ def test_plc_killed_mid_run_and_restarted(port):
     ons_after = coil_on_times(sims[1])
     late_parts = [p for p in delivered if p.timestamp + 0.15 >= ons_after[0] - TOL_S]
     for p, t in zip(late_parts, ons_after):
-        assert abs(t - (p.timestamp + 0.15)) < TOL_S
+        # a reject waiting for the reconnect may go out up to max_late_ms after its due time (the
+        # output's contract); the PLC sees it that late plus the write's transit on loopback
+        assert -TOL_S < t - (p.timestamp + 0.15) < 0.100 + TRANSIT_S, f"{p.part_id}: {t - p.timestamp - 0.15:+.3f} s"
 
 
 def test_slow_plc_alarms_then_recovers(sim, port):

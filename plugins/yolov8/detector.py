@@ -53,15 +53,22 @@ def import_yolo():
     return YOLO
 
 
+def load_model(weights: Path):
+    """The YOLO model in ``weights``; a missing or unreadable file is a one-line error naming it."""
+    if not Path(weights).is_file():
+        raise FileNotFoundError(f"{weights}: detector weights not found")
+    YOLO = import_yolo()
+    try:
+        return YOLO(str(weights), task="detect")
+    except Exception as exc:  # ultralytics words its own errors over several lines
+        first = next((line for line in str(exc).splitlines() if line.strip()), exc.__class__.__name__)
+        raise ValueError(f"{weights}: not a loadable YOLO checkpoint: {first.strip()}") from exc
+
+
 class YoloDetector:
     def __init__(self, settings: YoloSettings, device: str = "cpu"):
-        YOLO = import_yolo()
-
-        weights = Path(settings.weights) if settings.weights else DEFAULT_WEIGHTS
-        if not weights.is_file():
-            raise FileNotFoundError(f"{weights}: detector weights not found")
         self.settings = settings
-        self.model = YOLO(str(weights), task="detect")
+        self.model = load_model(Path(settings.weights) if settings.weights else DEFAULT_WEIGHTS)
         self.class_names = [self.model.names[i] for i in sorted(self.model.names)]
         if settings.device != "auto":
             device = settings.device

@@ -143,8 +143,10 @@ def average_command(weights: tuple[Path, ...], out: Path) -> None:
 @click.option("--weights", required=True, type=click.Path(path_type=Path))
 @click.option("--split", default="val", show_default=True)
 @click.option("--imgsz", default=224, show_default=True)
+@click.option("--iou", default=YoloSettings.model_fields["iou"].default, show_default=True, type=click.FloatRange(0, 1, min_open=True),
+              help="NMS IoU; the default is what the yolov8 detector runs with (detector.settings.iou); ultralytics' own val uses 0.7")
 @click.option("--out", default=Path("runs/detector-eval"), type=click.Path(path_type=Path), show_default=True)
-def eval_command(data: Path, weights: Path, split: str, imgsz: int, out: Path) -> None:
+def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, out: Path) -> None:
     """mAP@0.50, mAP@0.50:0.95, precision, recall and per-class AP, beside the seed's figures."""
     from plugins.yolov8.evaluation import evaluate_detector, metrics_markdown
 
@@ -153,7 +155,10 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, out: Path) -
         _fail(f"{data_yaml}: dataset file not found")
     if not weights.is_file():
         _fail(f"{weights}: weights file not found")
-    result = evaluate_detector(data_yaml, weights, split, out, imgsz=imgsz)
+    try:
+        result = evaluate_detector(data_yaml, weights, split, out, imgsz=imgsz, iou=iou)
+    except ValueError as exc:
+        _fail(str(exc))
     click.echo(metrics_markdown(result))
     click.echo(f"saved: {out / 'detector_metrics.json'}, {out / 'detector_metrics.md'}, {out / 'pr_curve.png'}")
 

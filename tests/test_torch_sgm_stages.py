@@ -147,6 +147,20 @@ def test_parabola_leaves_range_ends_integer():
     assert select.parabolic_subpixel(volume, select.winner_takes_all(volume)).item() == 0.0
 
 
+def test_uniqueness_rejects_a_second_minimum_far_away_but_not_the_winners_own_slope():
+    d = torch.arange(12, dtype=torch.float32)
+    single = (d - 4.0).abs() + 1.0                           # one V-shaped minimum at 4
+    double = torch.minimum((d - 4.0).abs(), (d - 9.0).abs() + 0.05) + 1.0  # a rival at 9, 5 % worse
+    volume = torch.stack([single, double], -1).view(1, 12, 1, 2)
+    index = select.winner_takes_all(volume)
+    assert index.flatten().tolist() == [4, 4]
+    unique = select.unique_minimum(volume.clone(), index, 0.1)
+    # the single minimum: its ±1 neighbours (cost 2.0) are ignored, the next (3.0) beats 1.1 * 1.0
+    assert unique.flatten().tolist() == [True, False]
+    assert select.unique_minimum(volume.clone(), index, 0.01).flatten().tolist() == [True, True]
+    assert select.unique_minimum(volume.clone(), index, 2.5).flatten().tolist() == [False, False]
+
+
 def test_right_view_wta_reads_the_volume_along_diagonals():
     rng = torch.Generator().manual_seed(0)
     volume = torch.rand(1, 5, 3, 8, generator=rng)

@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 # Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
-IMPROVED: dict = {"refine_radius": 0, "paths": 8, "p1": 0.08, "p2": 1.3, "search": "coarse_to_fine"}
+IMPROVED: dict = {"refine_radius": 0, "paths": 8, "p1": 0.08, "p2": 1.3, "search": "coarse_to_fine", "uniqueness": 0.1}
 
 
 class TorchSGMParams(BaseModel):
@@ -50,6 +50,9 @@ class TorchSGMParams(BaseModel):
     p2_alpha: float = Field(20.0, ge=0, description="P2 = p2 / (1 + p2_alpha * |edge|)")
     # 4. selection
     subpixel: Literal["parabola", "equiangular"] = "parabola"
+    uniqueness: float = Field(0.0, ge=0, description="a pixel whose best aggregated cost does not beat every "
+                              "disparity more than 1 step away by this share of itself counts as unmatched (and is "
+                              "filled); 0 = off (the seed)")
     # 5. refinement
     lr_tolerance: float = Field(1.0, gt=0)
     fill: Literal["none", "background", "left", "right", "nearest", "four_way"] = Field(

@@ -105,7 +105,7 @@ def coarse_pass(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_di
 def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,
                     p: TorchSGMParams) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 3, H, W) RGB pair in [0, 1] -> (disparity (B, H, W) float32, NaN where still invalid;
-    consistent (B, H, W) bool: pixels that passed the left-right check)."""
+    consistent (B, H, W) bool: pixels that passed the left-right check and, when on, the uniqueness test)."""
     disparities = disparity_range(min_disp, max_disp)
     narrowed = coarse_pass(left, right, min_disp, max_disp, p) if p.search == "coarse_to_fine" else None
     if narrowed is not None:
@@ -121,8 +121,11 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel
     disp = fit(aggregated, index) + disparities[0]
     right_disp = select.right_view_wta(aggregated, disparities)
+    unique = select.unique_minimum(aggregated, index, p.uniqueness) if p.uniqueness > 0 else None
     del aggregated
     consistent = refine.left_right_check(disp, right_disp, p.lr_tolerance)
+    if unique is not None:
+        consistent &= unique
     if narrowed is not None:
         consistent &= ~search.at_narrowed_bound(index, len(disparities), disparities[0] > full[0],
                                                 disparities[-1] < full[-1])

@@ -1,4 +1,4 @@
-"""Disparity selection: winner-takes-all with parabolic sub-pixel interpolation."""
+"""Disparity selection: winner-takes-all with parabolic sub-pixel interpolation, and a uniqueness test."""
 from __future__ import annotations
 
 import torch
@@ -43,6 +43,21 @@ def parabolic_subpixel(volume: torch.Tensor, index: torch.Tensor) -> torch.Tenso
     offset = torch.where(curvature > 0, (c0 - c2) / (2 * curvature.clamp_min(1e-12)), torch.zeros_like(c1))
     offset = _bounded(offset, index, volume.shape[1])
     return index.to(volume.dtype) + offset
+
+
+def unique_minimum(volume: torch.Tensor, index: torch.Tensor, ratio: float) -> torch.Tensor:
+    """Pixels whose lowest cost beats every disparity more than one step away from it by ``ratio`` of
+    itself: second > (1 + ratio) * best. A flat or repetitive surface has several near-equal minima,
+    and SGM picks one of them with no more reason than noise; such a pixel is better filled than trusted.
+
+    (B, D, H, W) cost, (B, H, W) int64 winner -> (B, H, W) bool. **Overwrites** ``volume`` (the three
+    costs around each winner become inf), so that no second volume is needed: call it last."""
+    b, d, h, w = volume.shape
+    best = volume.gather(1, index.unsqueeze(1))[:, 0]
+    for step in (-1, 0, 1):
+        volume.scatter_(1, (index + step).clamp(0, d - 1).unsqueeze(1), float("inf"))
+    second = volume.min(1).values
+    return second > (1.0 + ratio) * best
 
 
 def right_view_wta(volume: torch.Tensor, disparities) -> torch.Tensor:

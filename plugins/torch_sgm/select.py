@@ -52,7 +52,7 @@ def unique_minimum(volume: torch.Tensor, index: torch.Tensor, ratio: float) -> t
 
     (B, D, H, W) cost, (B, H, W) int64 winner -> (B, H, W) bool. **Overwrites** ``volume`` (the three
     costs around each winner become inf), so that no second volume is needed: call it last."""
-    b, d, h, w = volume.shape
+    d = volume.shape[1]
     best = volume.gather(1, index.unsqueeze(1))[:, 0]
     for step in (-1, 0, 1):
         volume.scatter_(1, (index + step).clamp(0, d - 1).unsqueeze(1), float("inf"))

@@ -51,6 +51,27 @@ def write_recipe(path: Path, text: str) -> Path:
     return path
 
 
+NEU_FIXTURES = TESTS / "fixtures" / "neu_val"
+
+
+def neu_fixture_dataset(root: Path) -> Path:
+    """The committed NEU-DET val fixtures as a YOLO dataset under ``root`` (all five in both splits),
+    converted by ``convert_voc`` from a VOC layout; returns the dataset folder."""
+    from plugins.yolov8.voc_to_yolo import convert_voc
+
+    src = root / "voc"
+    (src / "images").mkdir(parents=True)
+    (src / "annotations").mkdir()
+    for image in NEU_FIXTURES.glob("*.jpg"):
+        shutil.copy(image, src / "images")
+        shutil.copy(image.with_suffix(".xml"), src / "annotations")
+    stems = "\n".join(sorted(p.stem for p in NEU_FIXTURES.glob("*.jpg"))) + "\n"
+    for split in ("train", "val"):
+        (src / f"{split}.txt").write_text(stems)
+    convert_voc(src, root / "yolo", {"train": src / "train.txt", "val": src / "val.txt"})
+    return root / "yolo"
+
+
 def cli(*args: str, env_extra: dict | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
     """Run the installed ``inspect`` console script for real, as a user would."""
     env = dict(os.environ, **(env_extra or {}))

@@ -2,32 +2,17 @@
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, cli
+from conftest import ROOT, cli, neu_fixture_dataset
 
-FIXTURES = ROOT / "tests" / "fixtures" / "neu_val"
 WEIGHTS = ROOT / "models" / "yolov8n-neu-det.pt"
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
-    """The five fixture images as a YOLO dataset, made by `inspect data convert-voc`; all five in val."""
-    root = tmp_path_factory.mktemp("neu")
-    voc = root / "voc"
-    (voc / "images").mkdir(parents=True)
-    (voc / "annotations").mkdir()
-    stems = sorted(p.stem for p in FIXTURES.glob("*.jpg"))
-    for stem in stems:
-        shutil.copy(FIXTURES / f"{stem}.jpg", voc / "images")
-        shutil.copy(FIXTURES / f"{stem}.xml", voc / "annotations")
-    (voc / "train.txt").write_text(stems[0] + "\n")
-    (voc / "val.txt").write_text("\n".join(stems) + "\n")
-    out = cli("data", "convert-voc", str(voc), str(root / "yolo"), "--split-files", "train.txt", "val.txt")
-    assert out.returncode == 0, out.stderr
-    return root / "yolo"
+    return neu_fixture_dataset(tmp_path_factory.mktemp("neu"))
 
 
 def test_scores_the_committed_model_at_the_detectors_own_nms_iou(dataset, tmp_path):

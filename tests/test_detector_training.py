@@ -2,35 +2,16 @@
 a run starts from earlier weights, and every epoch's weights are kept when asked."""
 from __future__ import annotations
 
-import shutil
-from pathlib import Path
-
 import yaml
 from click.testing import CliRunner
+from conftest import neu_fixture_dataset
 
 from core.cli import _build
-from plugins.yolov8.voc_to_yolo import convert_voc
 from untrained_yolo import untrained_checkpoint
-
-FIXTURES = Path(__file__).parent / "fixtures" / "neu_val"
-
-
-def _dataset(tmp_path: Path) -> Path:
-    src = tmp_path / "voc"
-    (src / "images").mkdir(parents=True)
-    (src / "annotations").mkdir()
-    for image in FIXTURES.glob("*.jpg"):
-        shutil.copy(image, src / "images")
-        shutil.copy(image.with_suffix(".xml"), src / "annotations")
-    stems = "\n".join(p.stem for p in FIXTURES.glob("*.jpg"))
-    for split in ("train", "val"):
-        (src / f"{split}.txt").write_text(stems)
-    convert_voc(src, tmp_path / "yolo", {"train": src / "train.txt", "val": src / "val.txt"})
-    return tmp_path / "yolo"
 
 
 def test_fine_tune_schedule_reaches_ultralytics_and_keeps_every_epoch(tmp_path):
-    data = _dataset(tmp_path)
+    data = neu_fixture_dataset(tmp_path)
     init = untrained_checkpoint(tmp_path / "init.pt")
     result = CliRunner().invoke(_build(), [
         "train", "detector", "--data", str(data), "--epochs", "2", "--imgsz", "64", "--batch", "4",

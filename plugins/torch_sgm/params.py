@@ -7,7 +7,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 # Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
-IMPROVED: dict = {"refine_radius": 0, "paths": 8, "p1": 0.08, "p2": 1.3, "search": "coarse_to_fine", "uniqueness": 0.1}
+IMPROVED: dict = {"refine_radius": 0, "paths": 8, "p1": 0.08, "p2": 1.3, "search": "coarse_to_fine", "uniqueness": 0.2,
+            "plane_fill": True}
 
 
 class TorchSGMParams(BaseModel):
@@ -64,6 +65,17 @@ class TorchSGMParams(BaseModel):
                                                   "only pixels that failed the LR check, so matched pixels keep "
                                                   "their sub-pixel value")
     median_radius: int = Field(2, ge=0, description="median over filled pixels, 0 = off")
+    plane_fill: bool = Field(False, description="holes inside a region of the left image bounded by colour edges "
+                             "take the robust plane of that region's matched pixels, where it has one")
+    plane_edge: float = Field(0.0025, gt=0, description="finest normalised Sobel magnitude (of [0, 1] "
+                              "intensity) that bounds a region")
+    plane_levels: int = Field(5, ge=1, le=10, description="edge thresholds tried, each twice the last, finest first")
+    plane_samples: int = Field(32, ge=0, description="RANSAC triples per region that start the robust fit; "
+                               "0 = start from plain least squares")
+    plane_sigma: float = Field(1.0, ge=0, description="Gaussian blur before the edges are found, in pixels")
+    plane_min_pixels: int = Field(100, ge=3, description="matched pixels a region needs for a plane")
+    plane_inliers: float = Field(0.6, ge=0, le=1, description="share of a region's matched pixels that must lie "
+                                 "within 1 px of its plane")
     median_scope: Literal["holes", "all"] = Field("holes", description="all: also a final median over every "
                                                   "pixel, which removes isolated mismatches")
     # search

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import aggregate, cost, refine, search, select, sgm
+from plugins.torch_sgm import aggregate, cost, planes, refine, search, select, sgm
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -142,6 +142,10 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         smooth = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
         disp = smooth if p.refine_scope == "all" else torch.where(holes, smooth, disp)
         disp = refine.median_fill(disp, holes, p.median_radius)
+        if p.plane_fill:
+            thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
+            disp = planes.fill_from_planes(disp, raw_disp, consistent, left, thresholds, p.plane_sigma,
+                                           p.plane_min_pixels, p.plane_inliers, p.plane_samples)
         if p.median_scope == "all" and p.median_radius > 0:
             disp = refine.median_filter(disp, p.median_radius)
     disp = disp.clamp(float(min_disp), float(max_disp))

@@ -1,0 +1,161 @@
+"""Slanted-plane filling: regions of the left image bounded by its colour edges, one robust plane per
+region fitted to the region's matched disparities, and that plane for the region's unmatched pixels.
+
+Row-wise filling copies a neighbouring disparity, which is right for a fronto-parallel background but
+wrong across a large textureless slanted surface (a wall, a tabletop), exactly where matching fails
+most. Such a surface is one region between colour edges, and the pixels that did match on it
+describe its plane.
+"""
+from __future__ import annotations
+
+import cv2
+import kornia
+import numpy as np
+import torch
+
+# x and y enter the fit in hundreds of pixels, so that the normal equations stay well conditioned
+_COORD_SCALE = 100.0
+# Tukey's biweight radius per iteration, in disparity pixels: wide first so a bad start cannot lock in
+_TUKEY_RADII = (8.0, 4.0, 8.0 / 3.0, 2.0, 2.0, 2.0)
+# after a RANSAC start the plane is already near the majority; the iterations only refine it
+_RANSAC_RADIUS = 3.0
+_TUKEY_RADII_AFTER_RANSAC = (2.0, 2.0, 2.0)
+_HYPOTHESES_PER_STEP = 16  # RANSAC hypotheses scored at once: bounds the (pixels x hypotheses) buffer
+_VOTERS = 32768  # matched pixels that score the hypotheses; more only refine a count that needs no precision
+
+
+def edge_magnitude(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    """(B, 3, H, W) image in [0, 1] -> (B, H, W): the largest normalised Sobel gradient magnitude over
+    the channels, after a Gaussian blur of ``sigma`` pixels (0 = none) that keeps sensor noise from
+    breaking a flat surface into pieces."""
+    size = 2 * int(round(4 * sigma)) + 1
+    blurred = kornia.filters.gaussian_blur2d(image, (size, size), (sigma, sigma)) if sigma > 0 else image
+    gradient = kornia.filters.spatial_gradient(blurred, normalized=True)  # (B, 3, 2, H, W)
+    return gradient.pow(2).sum(2).sqrt().amax(1)
+
+
+def edge_regions(magnitude: torch.Tensor, threshold: float) -> torch.Tensor:
+    """(B, H, W) ``edge_magnitude`` -> (B, H, W) int64 region labels, 0 on edge pixels (magnitude above
+    ``threshold``). Regions are the 4-connected groups of the other pixels, numbered from 1 across the
+    whole batch so that no two images share a label."""
+    # connected-component labelling is a sequential union-find; OpenCV's does it in milliseconds
+    inner = (magnitude <= threshold).cpu().numpy().astype(np.uint8)
+    labels = np.zeros(inner.shape, np.int64)
+    offset = 0
+    for b in range(inner.shape[0]):
+        count, lab = cv2.connectedComponents(inner[b], connectivity=4, ltype=cv2.CV_32S)
+        labels[b] = np.where(lab > 0, lab + offset, 0)
+        offset += count - 1
+    return torch.from_numpy(labels).to(magnitude.device)
+
+
+def ransac_planes(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torch.Tensor, regions: int,
+                  samples: int, tolerance: float, min_pixels: int = 3, seed: int = 0) -> torch.Tensor:
+    """The plane through three matched pixels that most matched pixels of its region lie within
+    ``tolerance`` of, out of ``samples`` random triples per region (RANSAC, Fischler & Bolles 1981).
+
+    x, y, d (M,) float64 of the matched pixels, index (M,) int64 their region -> (regions, 3) float64
+    coefficients of d = a x + b y + c; NaN for a region with fewer than ``min_pixels`` (at least 3)
+    matched pixels. The triples come from a generator seeded with ``seed``, so that a frame always
+    gives the same planes; at most ``_VOTERS`` pixels, evenly spread over each region, score them."""
+    dev = x.device
+    count = torch.bincount(index, minlength=regions)
+    eligible = count >= max(min_pixels, 3)
+    keep = eligible[index]
+    x, y, d, index = x[keep], y[keep], d[keep], index[keep]
+    best = torch.full((regions, 3), float("nan"), dtype=torch.float64, device=dev)
+    if x.numel() == 0:
+        return best
+    order = torch.argsort(index, stable=True)
+    x, y, d, index = x[order], y[order], d[order], index[order]
+    start = torch.cumsum(torch.where(eligible, count, 0), 0) - torch.where(eligible, count, 0)
+    ids = eligible.nonzero()[:, 0]  # (R,)
+    gen = torch.Generator(device=dev).manual_seed(seed)
+    draw = torch.rand(ids.numel(), samples, 3, generator=gen, device=dev, dtype=torch.float64)
+    pick = start[ids, None, None] + (draw * count[ids, None, None]).long()  # (R, S, 3) into the sorted pixels
+    system = torch.stack([x[pick], y[pick], torch.ones_like(x[pick])], -1)  # (R, S, 3, 3)
+    coeffs, info = torch.linalg.solve_ex(system, d[pick].unsqueeze(-1))
+    coeffs = coeffs[..., 0].float()
+    usable = (info == 0) & torch.isfinite(coeffs).all(-1)
+    step = -(-x.numel() // _VOTERS)
+    # sorted by region, so every step-th pixel samples each region in proportion to its size
+    vx, vy, vd = x[::step].float(), y[::step].float(), d[::step].float()
+    slot = torch.searchsorted(ids, index[::step].contiguous())  # the voter's row among the R regions
+    point = torch.stack([vx, vy, torch.ones_like(vx)], 1)  # (V, 3)
+    votes = torch.zeros(ids.numel(), samples, device=dev)
+    for first in range(0, samples, _HYPOTHESES_PER_STEP):
+        block = coeffs[slot, first: first + _HYPOTHESES_PER_STEP]  # (V, s, 3)
+        close = ((block * point[:, None, :]).sum(-1) - vd[:, None]).abs() < tolerance
+        votes[:, first: first + _HYPOTHESES_PER_STEP].index_add_(0, slot, close.float())
+    votes = torch.where(usable, votes, torch.full_like(votes, -1.0))
+    chosen = coeffs.gather(1, votes.argmax(1)[:, None, None].expand(-1, 1, 3))[:, 0]
+    best[ids] = chosen.double()
+    return best
+
+
+def region_planes(disp: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor, min_pixels: int,
+                  inlier_share: float, tolerance: float = 1.0, samples: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fit d = a x + b y + c to the matched pixels of every region by iteratively reweighted least
+    squares with Tukey's biweight, so that mismatches that passed the checks do not tilt the plane.
+    With ``samples`` > 0 the iterations start from ``ransac_planes`` instead of from plain least
+    squares, which a region with more mismatches than matches would otherwise follow.
+
+    disp (B, H, W) float (any value where not matched), matched (B, H, W) bool, labels (B, H, W) int64
+    from ``edge_regions`` -> (plane disparity (B, H, W) float, supported (B, H, W) bool). A region is
+    supported when it has at least ``min_pixels`` matched pixels and at least ``inlier_share`` of them
+    lie within ``tolerance`` of its plane; label 0 (edges) never is."""
+    b, h, w = disp.shape
+    dev = disp.device
+    ys, xs = torch.meshgrid(torch.arange(h, device=dev, dtype=torch.float64) / _COORD_SCALE,
+                            torch.arange(w, device=dev, dtype=torch.float64) / _COORD_SCALE, indexing="ij")
+    x, y = xs.expand(b, h, w).flatten(), ys.expand(b, h, w).flatten()
+    one = torch.ones_like(x)
+    d = torch.where(matched, disp, torch.zeros_like(disp)).to(torch.float64).flatten()
+    m = matched.flatten().to(torch.float64)
+    index = labels.flatten()
+    k = int(index.max()) + 1 if index.numel() else 1
+    moments = torch.stack([x * x, x * y, x, y * y, y, one, x * d, y * d, d], 1)  # (N, 9)
+    weight, radii = m, _TUKEY_RADII
+    if samples > 0:
+        keep = matched.flatten()
+        start = ransac_planes(x[keep], y[keep], d[keep], index[keep], k, samples, tolerance, min_pixels)
+        residual = (start[index] * torch.stack([x, y, one], 1)).sum(1) - d
+        weight = m * (1 - (residual / _RANSAC_RADIUS).pow(2)).clamp_min(0).pow(2)
+        weight = torch.nan_to_num(weight, nan=0.0)  # a region too small to start from gets no plane
+        radii = _TUKEY_RADII_AFTER_RANSAC
+    for radius in radii:
+        sums = torch.zeros(k, 9, dtype=torch.float64, device=dev).index_add_(0, index, moments * weight[:, None])
+        sxx, sxy, sx, syy, sy, s1, sxd, syd, sd = sums.unbind(1)
+        normal = torch.stack([sxx, sxy, sx, sxy, syy, sy, sx, sy, s1], 1).view(k, 3, 3)
+        normal = normal + 1e-9 * torch.eye(3, dtype=torch.float64, device=dev)
+        coeffs = torch.linalg.solve(normal, torch.stack([sxd, syd, sd], 1).unsqueeze(-1))[..., 0]  # (K, 3)
+        fitted = (coeffs[index] * torch.stack([x, y, one], 1)).sum(1)
+        residual = fitted - d
+        weight = m * (1 - (residual / radius).pow(2)).clamp_min(0).pow(2)
+    count = torch.zeros(k, dtype=torch.float64, device=dev).index_add_(0, index, m)
+    inliers = torch.zeros(k, dtype=torch.float64, device=dev).index_add_(0, index, m * (residual.abs() < tolerance))
+    good = (count >= min_pixels) & (inliers >= inlier_share * count)
+    good[0] = False
+    return fitted.view(b, h, w).to(disp.dtype), good[index].view(b, h, w)
+
+
+def fill_from_planes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor, image: torch.Tensor,
+                     thresholds: list[float], sigma: float, min_pixels: int, inlier_share: float,
+                     samples: int = 0) -> torch.Tensor:
+    """Every pixel that is not ``matched`` takes the plane of its region (``region_planes``) at the
+    first edge threshold, finest first, at which that region is supported; the others keep ``filled``.
+
+    A fine threshold isolates a flat surface from faint edges but breaks textured ones into regions too
+    small to fit; coarser thresholds then give the pixels left over a larger region.
+    filled, disp (B, H, W) float, matched (B, H, W) bool, image (B, 3, H, W) -> (B, H, W)."""
+    magnitude = edge_magnitude(image, sigma)
+    todo = ~matched
+    for threshold in thresholds:
+        if not todo.any():
+            break
+        plane, supported = region_planes(disp, matched, edge_regions(magnitude, threshold), min_pixels,
+                                         inlier_share, samples=samples)
+        use = todo & supported
+        filled = torch.where(use, plane, filled)
+        todo &= ~use
+    return filled

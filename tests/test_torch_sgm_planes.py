@@ -1,0 +1,108 @@
+"""Slanted-plane filling (plugins/torch_sgm/planes.py), one test per stage function."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from plugins.torch_sgm import planes
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+
+def test_edge_regions_split_at_a_colour_step_and_stay_unique_across_the_batch():
+    h, w = 40, 60
+    ramp = torch.linspace(0.2, 0.3, w).expand(h, w)  # a gentle shading is not an edge
+    first = torch.where(torch.arange(w) < 30, ramp, torch.full((h, w), 0.8))
+    image = torch.stack([first.expand(3, h, w), torch.full((3, h, w), 0.5)])
+    labels = planes.edge_regions(planes.edge_magnitude(image, sigma=1.0), threshold=0.01)
+    assert labels.shape == (2, h, w)
+    left_side, right_side = labels[0, :, :25], labels[0, :, 35:]
+    assert left_side.unique().numel() == 1 and right_side.unique().numel() == 1
+    assert left_side[0, 0] != right_side[0, 0] and left_side[0, 0] > 0 and right_side[0, 0] > 0
+    assert (labels[0, :, 29:31] == 0).all()  # the step itself is an edge
+    assert labels[1].unique().tolist() == [3]  # the flat image is one region, numbered after the first's two
+
+
+def slanted(h=50, w=80):
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    return 0.3 * x + 0.1 * y + 20.0
+
+
+def test_region_planes_recover_a_slanted_plane_through_mismatches_and_holes():
+    truth = slanted()
+    gen = torch.Generator().manual_seed(1)
+    matched = torch.rand(truth.shape, generator=gen) < 0.6
+    wrong = matched & (torch.rand(truth.shape, generator=gen) < 0.25)  # a quarter of the matches are off
+    disp = torch.where(wrong, truth + 5 + 15 * torch.rand(truth.shape, generator=gen), truth)
+    labels = torch.ones(1, *truth.shape, dtype=torch.int64)
+    plane, supported = planes.region_planes(disp[None], matched[None], labels, min_pixels=100, inlier_share=0.6)
+    assert supported.all()
+    assert (plane[0] - truth).abs().max() < 0.01
+    # plain least squares would not get there: the mismatches pull it by whole pixels
+    plain = disp[matched].mean() - truth[matched].mean()
+    assert plain > 1.0
+
+
+def test_regions_without_a_plane_too_few_matches_or_on_edges_are_not_supported():
+    h, w = 50, 80
+    truth = slanted(h, w)
+    gen = torch.Generator().manual_seed(2)
+    labels = torch.zeros(1, h, w, dtype=torch.int64)
+    labels[0, :, :30] = 1   # random disparities: no plane explains them
+    labels[0, :, 30:60] = 2  # a plane, but only a few matched pixels
+    # columns 60.. are edge pixels (label 0), fully matched on the plane
+    disp = torch.where(torch.arange(w) < 30, 50 * torch.rand(h, w, generator=gen), truth)
+    matched = torch.ones(h, w, dtype=torch.bool)
+    matched[:, 30:60] = False
+    matched[:2, 30:60] = True  # 60 matched pixels
+    plane, supported = planes.region_planes(disp[None], matched[None], labels, min_pixels=100, inlier_share=0.6)
+    assert not supported.any()
+    _, lenient = planes.region_planes(disp[None], matched[None], labels, min_pixels=50, inlier_share=0.6)
+    assert not lenient[0, :, :30].any() and lenient[0, :, 30:60].all() and not lenient[0, :, 60:].any()
+
+
+def test_fill_from_planes_takes_the_finest_supported_region_and_leaves_the_rest():
+    h, w = 40, 60
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    # left half: a faint step (0.3 -> 0.31) between two slanted surfaces; right half: a strong edge
+    # closes off a third surface that has no matched pixel at all
+    grey = torch.where(x < 15, 0.30, 0.31)
+    grey = torch.where(x >= 30, torch.where(x < 45, 0.9, 0.1), grey)
+    image = grey.expand(1, 3, h, w).contiguous()
+    truth = torch.where(x < 15, 0.2 * x + 10, -0.1 * x + 20)
+    matched = (x % 3 != 0) & (x < 45)
+    matched[:, 28:32] = False
+    filled = torch.full((1, h, w), -1.0)
+    out = planes.fill_from_planes(filled, truth[None], matched[None], image, [0.0025, 0.005, 0.01, 0.02],
+                                  sigma=1.0, min_pixels=50, inlier_share=0.6)[0]
+    holes = ~matched
+    inner = holes & ((x < 12) | ((x > 18) & (x < 26)))  # away from the blurred edges
+    # the faint step splits the two surfaces at the finest threshold, so each keeps its own plane
+    assert (out[inner] - truth[inner]).abs().max() < 1e-3
+    assert (out[matched] == -1).all()  # matched pixels are not touched
+    assert (out[:, 46:] == -1).all()  # a region with no matched pixel has no plane
+
+
+def test_ransac_start_finds_the_plane_when_most_matches_are_wrong():
+    truth = slanted()
+    gen = torch.Generator().manual_seed(3)
+    wrong = torch.rand(truth.shape, generator=gen) < 0.6  # most "matches" sit 2-12 px off the surface
+    disp = torch.where(wrong, truth + 2 + 10 * torch.rand(truth.shape, generator=gen), truth)
+    matched = torch.ones(1, *truth.shape, dtype=torch.bool)
+    labels = torch.ones(1, *truth.shape, dtype=torch.int64)
+    plane, supported = planes.region_planes(disp[None], matched, labels, min_pixels=100, inlier_share=0.3, samples=32)
+    assert supported.all() and (plane[0] - truth).abs().max() < 0.01
+    again, _ = planes.region_planes(disp[None], matched, labels, min_pixels=100, inlier_share=0.3, samples=32)
+    assert torch.equal(plane, again)  # seeded: the same frame always gives the same planes
+    # started from least squares, the iterations settle inside the band of mismatches
+    plain, _ = planes.region_planes(disp[None], matched, labels, min_pixels=100, inlier_share=0.3, samples=0)
+    assert (plain[0] - truth).abs().max() > 1.0
+
+
+def test_ransac_planes_skip_regions_too_small_to_fit():
+    x = torch.arange(10, dtype=torch.float64)
+    index = torch.tensor([1] * 8 + [2] * 2)
+    coeffs = planes.ransac_planes(x / 10, (x % 3) / 10, 2 * x + 1, index, regions=3, samples=8, tolerance=0.5,
+                                  min_pixels=5)
+    assert torch.isnan(coeffs[0]).all() and torch.isnan(coeffs[2]).all()  # no pixels; 2 < 5 pixels
+    assert torch.allclose(coeffs[1], torch.tensor([20.0, 0.0, 1.0], dtype=torch.float64), atol=1e-6)

@@ -59,6 +59,12 @@ def test_regions_without_a_plane_too_few_matches_or_on_edges_are_not_supported()
     assert not supported.any()
     _, lenient = planes.region_planes(disp[None], matched[None], labels, min_pixels=50, inlier_share=0.6)
     assert not lenient[0, :, :30].any() and lenient[0, :, 30:60].all() and not lenient[0, :, 60:].any()
+    # a region with no pixel that wants a plane is not fitted at all
+    wanted = torch.zeros(1, h, w, dtype=torch.bool)
+    wanted[0, 5, 5] = True
+    plane, skipped = planes.region_planes(disp[None], matched[None], labels, min_pixels=50, inlier_share=0.6,
+                                          wanted=wanted)
+    assert not skipped.any() and torch.isnan(plane[0, :, 30:]).all() and torch.isfinite(plane[0, :, :30]).all()
 
 
 def test_fill_from_planes_takes_the_finest_supported_region_and_leaves_the_rest():

@@ -21,6 +21,7 @@ _TUKEY_RADII = (8.0, 4.0, 8.0 / 3.0, 2.0, 2.0, 2.0)
 _RANSAC_RADIUS = 3.0
 _TUKEY_RADII_AFTER_RANSAC = (2.0, 2.0, 2.0)
 _HYPOTHESES_PER_STEP = 16  # RANSAC hypotheses scored at once: bounds the (pixels x hypotheses) buffer
+_FIT_PIXELS = 65536  # matched pixels a frame's planes are fitted to
 _VOTERS = 32768  # matched pixels that score the hypotheses; more only refine a count that needs no precision
 
 
@@ -94,49 +95,73 @@ def ransac_planes(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torc
 
 
 def region_planes(disp: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor, min_pixels: int,
-                  inlier_share: float, tolerance: float = 1.0, samples: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+                  inlier_share: float, tolerance: float = 1.0, samples: int = 0,
+                  wanted: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Fit d = a x + b y + c to the matched pixels of every region by iteratively reweighted least
     squares with Tukey's biweight, so that mismatches that passed the checks do not tilt the plane.
     With ``samples`` > 0 the iterations start from ``ransac_planes`` instead of from plain least
     squares, which a region with more mismatches than matches would otherwise follow.
 
     disp (B, H, W) float (any value where not matched), matched (B, H, W) bool, labels (B, H, W) int64
-    from ``edge_regions`` -> (plane disparity (B, H, W) float, supported (B, H, W) bool). A region is
-    supported when it has at least ``min_pixels`` matched pixels and at least ``inlier_share`` of them
-    lie within ``tolerance`` of its plane; label 0 (edges) never is."""
+    from ``edge_regions`` -> (plane disparity (B, H, W) float, NaN where no plane was fitted;
+    supported (B, H, W) bool). A region is supported when it has at least ``min_pixels`` matched
+    pixels and at least ``inlier_share`` of them lie within ``tolerance`` of its plane; label 0 (edges)
+    never is. With ``wanted`` (B, H, W) bool, only regions holding a wanted pixel are fitted."""
     b, h, w = disp.shape
     dev = disp.device
-    ys, xs = torch.meshgrid(torch.arange(h, device=dev, dtype=torch.float64) / _COORD_SCALE,
-                            torch.arange(w, device=dev, dtype=torch.float64) / _COORD_SCALE, indexing="ij")
-    x, y = xs.expand(b, h, w).flatten(), ys.expand(b, h, w).flatten()
-    one = torch.ones_like(x)
-    d = torch.where(matched, disp, torch.zeros_like(disp)).to(torch.float64).flatten()
-    m = matched.flatten().to(torch.float64)
     index = labels.flatten()
     k = int(index.max()) + 1 if index.numel() else 1
-    moments = torch.stack([x * x, x * y, x, y * y, y, one, x * d, y * d, d], 1)  # (N, 9)
-    weight, radii = m, _TUKEY_RADII
+    count = torch.bincount(index[matched.flatten()], minlength=k)
+    active = count >= min_pixels
+    if wanted is not None:
+        active &= torch.bincount(index[wanted.flatten()], minlength=k) > 0
+    active[0] = False
+    # the fit sees only matched pixels of fitted regions, at most _FIT_PIXELS of them spread evenly
+    # over the frame (raster order): a plane needs no more, and a textured frame is mostly matched
+    at = active[index].nonzero()[:, 0]
+    fit = at[matched.flatten()[at]]
+    fit = fit[:: max(1, -(-fit.numel() // _FIT_PIXELS))]
+    x, y = _coordinates(fit, h, w)
+    d, region = disp.flatten()[fit].to(torch.float64), index[fit]
+    coeffs = _robust_fit(x, y, d, region, k, samples, tolerance)
+    residual = coeffs[region, 0] * x + coeffs[region, 1] * y + coeffs[region, 2] - d
+    inliers = torch.zeros(k, dtype=torch.float64, device=dev).index_add_(0, region, (residual.abs() < tolerance).double())
+    good = active & (inliers >= inlier_share * torch.bincount(region, minlength=k))
+    ax, ay = _coordinates(at, h, w)
+    plane = torch.full((b * h * w,), float("nan"), dtype=disp.dtype, device=dev)
+    c = coeffs[index[at]]
+    plane[at] = (c[:, 0] * ax + c[:, 1] * ay + c[:, 2]).to(disp.dtype)
+    return plane.view(b, h, w), good[labels.flatten()].view(b, h, w)
+
+
+def _coordinates(flat: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat indices into (B, H, W) -> x, y float64 in units of ``_COORD_SCALE`` pixels."""
+    return ((flat % w).to(torch.float64) / _COORD_SCALE,
+            (flat.div(w, rounding_mode="floor") % h).to(torch.float64) / _COORD_SCALE)
+
+
+def _robust_fit(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torch.Tensor, k: int, samples: int,
+                tolerance: float) -> torch.Tensor:
+    """IRLS with Tukey's biweight over the given pixels of each region -> (k, 3) float64 coefficients."""
+    one = torch.ones_like(x)
+    moments = torch.stack([x * x, x * y, x, y * y, y, one, x * d, y * d, d], 1)  # (M, 9)
+    weight, radii = one, _TUKEY_RADII
     if samples > 0:
-        keep = matched.flatten()
-        start = ransac_planes(x[keep], y[keep], d[keep], index[keep], k, samples, tolerance, min_pixels)
+        start = ransac_planes(x, y, d, index, k, samples, tolerance, min_pixels=3)
         residual = (start[index] * torch.stack([x, y, one], 1)).sum(1) - d
-        weight = m * (1 - (residual / _RANSAC_RADIUS).pow(2)).clamp_min(0).pow(2)
+        weight = (1 - (residual / _RANSAC_RADIUS).pow(2)).clamp_min(0).pow(2)
         weight = torch.nan_to_num(weight, nan=0.0)  # a region too small to start from gets no plane
         radii = _TUKEY_RADII_AFTER_RANSAC
-    for radius in radii:
-        sums = torch.zeros(k, 9, dtype=torch.float64, device=dev).index_add_(0, index, moments * weight[:, None])
+    eye = 1e-9 * torch.eye(3, dtype=torch.float64, device=x.device)
+    for radius in radii + (None,):
+        sums = torch.zeros(k, 9, dtype=torch.float64, device=x.device).index_add_(0, index, moments * weight[:, None])
         sxx, sxy, sx, syy, sy, s1, sxd, syd, sd = sums.unbind(1)
-        normal = torch.stack([sxx, sxy, sx, sxy, syy, sy, sx, sy, s1], 1).view(k, 3, 3)
-        normal = normal + 1e-9 * torch.eye(3, dtype=torch.float64, device=dev)
-        coeffs = torch.linalg.solve(normal, torch.stack([sxd, syd, sd], 1).unsqueeze(-1))[..., 0]  # (K, 3)
-        fitted = (coeffs[index] * torch.stack([x, y, one], 1)).sum(1)
-        residual = fitted - d
-        weight = m * (1 - (residual / radius).pow(2)).clamp_min(0).pow(2)
-    count = torch.zeros(k, dtype=torch.float64, device=dev).index_add_(0, index, m)
-    inliers = torch.zeros(k, dtype=torch.float64, device=dev).index_add_(0, index, m * (residual.abs() < tolerance))
-    good = (count >= min_pixels) & (inliers >= inlier_share * count)
-    good[0] = False
-    return fitted.view(b, h, w).to(disp.dtype), good[index].view(b, h, w)
+        normal = torch.stack([sxx, sxy, sx, sxy, syy, sy, sx, sy, s1], 1).view(k, 3, 3) + eye
+        coeffs = torch.linalg.solve(normal, torch.stack([sxd, syd, sd], 1).unsqueeze(-1))[..., 0]  # (k, 3)
+        if radius is not None:
+            residual = (coeffs[index] * torch.stack([x, y, one], 1)).sum(1) - d
+            weight = (1 - (residual / radius).pow(2)).clamp_min(0).pow(2)
+    return coeffs
 
 
 def fill_from_planes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor, image: torch.Tensor,
@@ -154,7 +179,7 @@ def fill_from_planes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Te
         if not todo.any():
             break
         plane, supported = region_planes(disp, matched, edge_regions(magnitude, threshold), min_pixels,
-                                         inlier_share, samples=samples)
+                                         inlier_share, samples=samples, wanted=todo)
         use = todo & supported
         filled = torch.where(use, plane, filled)
         todo &= ~use

@@ -1,5 +1,6 @@
-"""Depth of every labelled defect of the committed sequence, measured with opencv_sgbm, against the
-generator's ground truth. Boxes are the true ones so that this measures stereo + depth alone.
+"""Depth of every labelled defect of the committed sequence, measured with opencv_sgbm (the recipe's
+backend) and with torch_sgm's improved preset, against the generator's ground truth. Boxes are the
+true ones so that this measures stereo + depth alone.
 
 Tolerances with SGBM (5x5 blocks): distance within 1 % and deviation within 1.2 mm (the worst case
 is frame 2's 2.2 mm deep groove only ~15 px wide, read as ~1.2 mm). At ~420 mm one
@@ -24,16 +25,18 @@ from plugins.replay_camera import ReplayCamera, ReplaySettings
 FIXTURE = Path(__file__).resolve().parents[1] / "sim_fixtures" / "steel_plate"
 
 
-@pytest.fixture(scope="module")
-def measured():
+@pytest.fixture(scope="module", params=[("opencv_sgbm", {}), ("torch_sgm", {"preset": "improved"})],
+                ids=["opencv_sgbm", "torch_sgm_improved"])
+def measured(request):
     camera = ReplayCamera(ReplaySettings(path=str(FIXTURE)))
-    sgbm = default_registry().get("stereo", "opencv_sgbm").spec.factory({}, PluginContext())
+    backend, settings = request.param
+    matcher = default_registry().get("stereo", backend).spec.factory(settings, PluginContext(device="cpu"))
     section = StereoSection(working_distance_mm=(300, 600))
     rows = []
     for frame in camera.frames():
         assert isinstance(frame, StereoFrame)
         labels = json.loads(Path(frame.meta["labels"]).read_text())
-        disparity = sgbm.compute(frame.left, frame.right, *disparity_range(section, frame.calib))
+        disparity = matcher.compute(frame.left, frame.right, *disparity_range(section, frame.calib))
         for truth in labels["defects"]:
             m = measure_defect(disparity, Detection(truth["class"], 1.0, tuple(truth["box"])), frame.calib, DepthRule())
             rows.append((frame.frame_id, truth, m))

@@ -134,6 +134,12 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     disp = torch.where(consistent, disp, torch.full_like(disp, float("nan")))
     if p.fill != "none":
         holes = ~consistent
+        if p.plane_fill:
+            # first, so that the holes without a plane are filled from plane pixels as well as matched ones
+            thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
+            disp = planes.fill_from_planes(disp, raw_disp, consistent, left, thresholds, p.plane_sigma,
+                                           p.plane_min_pixels, p.plane_inliers, p.plane_samples)
+            holes = ~torch.isfinite(disp)
         if p.fill == "four_way":
             disp = refine.fill_four_directions(disp, refine.occluded(raw_disp, right_disp, p.lr_tolerance) & holes)
         else:
@@ -142,10 +148,6 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         smooth = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
         disp = smooth if p.refine_scope == "all" else torch.where(holes, smooth, disp)
         disp = refine.median_fill(disp, holes, p.median_radius)
-        if p.plane_fill:
-            thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
-            disp = planes.fill_from_planes(disp, raw_disp, consistent, left, thresholds, p.plane_sigma,
-                                           p.plane_min_pixels, p.plane_inliers, p.plane_samples)
         if p.median_scope == "all" and p.median_radius > 0:
             disp = refine.median_filter(disp, p.median_radius)
     disp = disp.clamp(float(min_disp), float(max_disp))

@@ -246,3 +246,45 @@ def test_median_at_equals_the_median_filter_where_asked():
     assert torch.equal(out[where].nan_to_num(-1), full[where].nan_to_num(-1))
     assert torch.equal(out[~where].nan_to_num(-1), disp[~where].nan_to_num(-1))
     assert refine.median_at(disp, torch.zeros_like(where), 2) is disp
+
+
+def test_weighted_median_moves_a_fattened_disparity_edge_onto_the_colour_edge():
+    # the foreground (columns 0-19, red) carries its disparity 2 px into the grey background
+    image = torch.full((1, 3, 24, 40), 0.5)
+    image[:, :, :, :20] = torch.tensor([0.9, 0.1, 0.1])[:, None, None]
+    disp = torch.full((1, 24, 40), 10.0)
+    disp[:, :, :22] = 30.0
+    out = refine.weighted_median(disp, image, 4, 0.1, 7.0)
+    assert torch.equal(out[:, :, :20], torch.full((1, 24, 20), 30.0))
+    assert torch.equal(out[:, :, 20:], torch.full((1, 24, 20), 10.0))
+    # with colour ignored the plain median keeps the fattened band
+    assert (refine.weighted_median(disp, image, 4, 1e3, 1e3)[:, :, 20:22] == 30.0).all()
+
+
+def test_weighted_median_with_flat_weights_is_the_plain_median_and_radius_zero_is_a_no_op():
+    gen = torch.Generator().manual_seed(3)
+    disp = torch.rand(2, 30, 37, generator=gen) * 50
+    image = torch.rand(2, 3, 30, 37, generator=gen)
+    # 100 pixels per step, so that the chunk loop is exercised as well
+    refine._WEIGHTED_MEDIAN_PIXELS, saved = 100, refine._WEIGHTED_MEDIAN_PIXELS
+    try:
+        flat = refine.weighted_median(disp, image, 2, 1e6, 1e6)
+    finally:
+        refine._WEIGHTED_MEDIAN_PIXELS = saved
+    assert torch.equal(flat, refine.median_filter(disp, 2))
+    assert refine.weighted_median(disp, image, 0, 0.1, 7.0) is disp
+
+
+def test_weighted_median_with_a_jump_threshold_filters_only_windows_that_span_an_edge():
+    gen = torch.Generator().manual_seed(5)
+    disp = 20 + 0.3 * torch.rand(1, 32, 40, generator=gen)  # smooth: every window spans < 0.3 px
+    disp[:, 10:20, 15:25] += 10  # except around this block
+    image = torch.full((1, 3, 32, 40), 0.5)  # one colour: every neighbour counts, so filtering changes a pixel
+    every = refine.weighted_median(disp, image, 3, 0.1, 7.0)
+    edges = refine.weighted_median(disp, image, 3, 0.1, 7.0, jump=1.0)
+    span = torch.zeros_like(disp, dtype=torch.bool)
+    span[:, 7:23, 12:28] = True  # pixels whose 7x7 window reaches the block
+    span[:, 13:17, 18:22] = False  # the block's middle, whose window stays inside it
+    assert torch.equal(edges[span], every[span])
+    assert torch.equal(edges[~span], disp[~span])
+    assert not torch.equal(every[~span], disp[~span])

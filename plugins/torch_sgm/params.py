@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 # Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
 IMPROVED: dict = {"refine_radius": 0, "paths": 8, "p1": 0.08, "p2": 1.3, "search": "coarse_to_fine", "uniqueness": 0.2,
-            "plane_fill": True}
+            "plane_fill": True, "wmf_radius": 4}
 
 
 class TorchSGMParams(BaseModel):
@@ -78,6 +78,15 @@ class TorchSGMParams(BaseModel):
                                  "within 1 px of its plane")
     median_scope: Literal["holes", "all"] = Field("holes", description="all: also a final median over every "
                                                   "pixel, which removes isolated mismatches")
+    wmf_radius: int = Field(0, ge=0, le=10, description="last, a median over every pixel's (2r+1)^2 window "
+                            "weighted by colour similarity and distance, which moves disparity edges onto colour "
+                            "edges; 0 = off (the seed)")
+    wmf_sigma_colour: float = Field(0.1, gt=0, description="colour distance (RGB in [0, 1]) at which a "
+                                    "neighbour's weight falls to 1/e")
+    wmf_sigma_space: float = Field(7.0, gt=0, description="distance in pixels at which a neighbour's weight "
+                                   "falls to 1/e")
+    wmf_jump: float = Field(1.0, ge=0, description="only pixels whose window spans more than this many "
+                            "disparity pixels are filtered; 0 = every pixel")
     # search
     search: Literal["full", "coarse_to_fine"] = Field(
         "full", description="full: every disparity of the range at full resolution; coarse_to_fine: a pass at "

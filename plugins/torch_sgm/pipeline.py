@@ -150,6 +150,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         disp = refine.median_fill(disp, holes, p.median_radius)
         if p.median_scope == "all" and p.median_radius > 0:
             disp = refine.median_filter(disp, p.median_radius)
+        disp = refine.weighted_median(disp, left, p.wmf_radius, p.wmf_sigma_colour, p.wmf_sigma_space,
+                                       p.wmf_jump)
     disp = disp.clamp(float(min_disp), float(max_disp))
     return disp, consistent
 

@@ -288,3 +288,43 @@ def test_weighted_median_with_a_jump_threshold_filters_only_windows_that_span_an
     assert torch.equal(edges[span], every[span])
     assert torch.equal(edges[~span], disp[~span])
     assert not torch.equal(every[~span], disp[~span])
+
+
+def _slanted_plane(h: int, w: int) -> torch.Tensor:
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    return (20 + 0.3 * x + 0.15 * y)[None]
+
+
+def test_local_plane_fit_puts_a_pixel_locked_staircase_back_on_its_slope():
+    plane = _slanted_plane(40, 60)
+    locked = plane.round()  # winner-takes-all's integer steps, up to 0.5 px off
+    image = torch.full((1, 3, 40, 60), 0.5)
+    out = refine.local_plane_fit(locked, image, 3, 0.1, 5.0, 1.0)
+    assert (locked - plane).abs().mean() > 0.2
+    assert (out - plane).abs().mean() < 0.05
+    assert (out - plane).abs().max() < 0.2  # the image border included: outside pixels take no part
+
+
+def test_local_plane_fit_keeps_a_differently_coloured_surface_out_of_the_fit():
+    plane = _slanted_plane(40, 60)
+    image = torch.full((1, 3, 40, 60), 0.5)
+    image[:, :, :, 30:] = torch.tensor([0.9, 0.1, 0.1])[:, None, None]
+    disp = plane.clone()
+    disp[:, :, 30:] += 0.8  # a nearer surface, close enough to pass the disparity tolerance
+    coloured = refine.local_plane_fit(disp, image, 3, 0.1, 5.0, 1.0)
+    blind = refine.local_plane_fit(disp, image, 3, 1e3, 5.0, 1.0)
+    assert (coloured - disp).abs().max() < 1e-3  # each side is an exact plane of its own colour
+    assert (blind - disp)[:, :, 29:31].abs().mean() > 0.1  # without colour the two surfaces blur together
+
+
+def test_local_plane_fit_leaves_exact_planes_and_holes_alone():
+    gen = torch.Generator().manual_seed(7)
+    disp = _slanted_plane(30, 37).repeat(2, 1, 1)
+    disp[1] = 50 - 0.2 * disp[1]
+    disp[0, 12:15, 20:24] = float("nan")
+    image = torch.rand(2, 3, 30, 37, generator=gen)
+    out = refine.local_plane_fit(disp, image, 4, 0.1, 5.0, 1.0)
+    finite = torch.isfinite(disp)
+    assert torch.equal(torch.isfinite(out), finite)
+    assert torch.allclose(out[finite], disp[finite], atol=1e-3)
+    assert refine.local_plane_fit(disp, image, 0, 0.1, 5.0, 1.0) is disp

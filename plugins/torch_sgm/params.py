@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 # Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
 IMPROVED: dict = {"refine_radius": 0, "agg_radius": 2, "paths": 8, "p1": 0.08, "p2": 1.3, "search": "coarse_to_fine",
-                  "uniqueness": 0.2, "plane_fill": True, "wmf_radius": 4}
+                  "uniqueness": 0.2, "plane_fill": True, "wmf_radius": 4, "fit_radius": 3}
 
 
 class TorchSGMParams(BaseModel):
@@ -87,6 +87,14 @@ class TorchSGMParams(BaseModel):
                                    "falls to 1/e")
     wmf_jump: float = Field(1.0, ge=0, description="only pixels whose window spans more than this many "
                             "disparity pixels are filtered; 0 = every pixel")
+    fit_radius: int = Field(0, ge=0, le=10, description="after the weighted median, each pixel takes the plane "
+                            "fitted to its (2r+1)^2 window (weighted like the median, neighbours within "
+                            "fit_tolerance only), which undoes the pull of sub-pixel values towards integers; "
+                            "0 = off (the seed)")
+    fit_sigma_colour: float = Field(0.1, gt=0, description="as wmf_sigma_colour, for the plane fit")
+    fit_sigma_space: float = Field(5.0, gt=0, description="as wmf_sigma_space, for the plane fit")
+    fit_tolerance: float = Field(1.0, gt=0, description="disparity pixels a neighbour may differ by to take "
+                                 "part in the fit, and the most the fit may move a pixel")
     # search
     search: Literal["full", "coarse_to_fine"] = Field(
         "full", description="full: every disparity of the range at full resolution; coarse_to_fine: a pass at "

@@ -152,6 +152,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
             disp = refine.median_filter(disp, p.median_radius)
         disp = refine.weighted_median(disp, left, p.wmf_radius, p.wmf_sigma_colour, p.wmf_sigma_space,
                                        p.wmf_jump)
+        disp = refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space,
+                                      p.fit_tolerance)
     disp = disp.clamp(float(min_disp), float(max_disp))
     return disp, consistent
 

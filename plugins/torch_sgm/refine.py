@@ -179,10 +179,10 @@ def local_plane_fit(disp: torch.Tensor, image: torch.Tensor, radius: int, sigma_
     by weighted least squares, to its (2r+1)^2 window: weighted like ``weighted_median`` by colour
     similarity and distance, and limited to neighbours within ``tolerance`` disparity pixels of the pixel.
 
-    Winner-takes-all over an SGM volume locks disparities to near-integer values (two thirds of the
-    matched Middlebury pixels fall within 0.2 px of an integer), so a slanted surface comes out as a
-    staircase whose steps are half a pixel off at their ends; the plane through the window puts them
-    back on the slope. The tolerance keeps the neighbours across a depth edge out of the fit, and a
+    Winner-takes-all over an SGM volume locks disparities to near-integer values (on Middlebury far
+    more matched pixels end close to a whole pixel than a uniform spread would put there), so a slanted
+    surface comes out as a staircase whose steps are half a pixel off at their ends; the plane through
+    the window puts them back on the slope. The tolerance keeps the neighbours across a depth edge out of the fit, and a
     fit that would move the pixel by more than ``tolerance`` is not used. NaN pixels (and the outside
     of the image) take no part; a NaN pixel stays NaN.
     disp (B, H, W), image (B, C, H, W) -> (B, H, W)."""

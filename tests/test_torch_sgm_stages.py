@@ -83,6 +83,38 @@ def test_guided_filter_keeps_constants_and_guide_edges():
     assert out[0, 1, :, 8].max() < 0.05 and out[0, 1, :, 11].min() > 1.95
 
 
+def test_texture_weight_is_one_on_flat_areas_and_falls_with_contrast():
+    flat = torch.full((2, 1, 12, 16), 0.4)
+    assert torch.allclose(aggregate.texture_weight(flat, 2, 0.02), torch.ones(2, 1, 12, 16))
+    checker = (torch.arange(16)[None, :] + torch.arange(12)[:, None]) % 2
+    weights = [aggregate.texture_weight((0.5 + contrast * (checker - 0.5))[None, None].float(), 2, 0.02)[0, 0, 2:-2, 2:-2]
+               for contrast in (0.01, 0.05, 0.5)]
+    assert weights[0].min() > weights[1].max() and weights[1].min() > weights[2].max()
+    assert weights[2].max() < 1e-3  # strong texture: the narrow aggregation alone
+
+
+@pytest.mark.parametrize("implementation", ["reference", "fast"])
+def test_texture_blend_aggregates_narrowly_on_texture_and_widely_on_flat_areas(implementation):
+    from plugins.torch_sgm.params import TorchSGMParams
+    from plugins.torch_sgm.pipeline import cost_volume, cost_volume_fast
+    volume = cost_volume if implementation == "reference" else cost_volume_fast
+    gen = torch.Generator().manual_seed(0)
+    left = torch.rand(1, 3, 32, 48, generator=gen)
+    left[..., 24:] = 0.5  # the right third of the left image is flat
+    right = torch.rand(1, 3, 32, 48, generator=gen)
+    disparities = list(range(6))
+    # a sharp texture scale, so that the random texture counts as fully textured
+    blended = volume(left, right, disparities, TorchSGMParams(agg_radius=3, agg_detail_radius=0, agg_texture=0.005))
+    narrow = volume(left, right, disparities, TorchSGMParams(agg_radius=0))
+    wide = volume(left, right, disparities, TorchSGMParams(agg_radius=3))
+    assert not torch.allclose(narrow[..., 3:21], wide[..., 3:21], atol=1e-2)  # the check below can fail
+    assert torch.allclose(blended[..., 3:21], narrow[..., 3:21], atol=1e-4)
+    assert torch.allclose(blended[..., 27:], wide[..., 27:], atol=1e-4)
+    # in between, the mix stays within the two aggregations
+    low, high = torch.minimum(narrow, wide) - 1e-5, torch.maximum(narrow, wide) + 1e-5
+    assert ((blended >= low) & (blended <= high)).all()
+
+
 def test_sgm_without_penalties_equals_raw_wta():
     volume = torch.rand(1, 9, 12, 15)
     out = sgm.sgm(volume, 0.0, 0.0, sgm.PATHS_8)

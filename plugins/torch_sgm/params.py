@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 # Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
-IMPROVED: dict = {"refine_radius": 0, "agg_radius": 2, "paths": 8, "p1": 0.08, "p2": 1.3, "search": "coarse_to_fine",
+IMPROVED: dict = {"refine_radius": 0, "agg_radius": 2, "agg_detail_radius": 1, "paths": 8, "p1": 0.08, "p2": 1.3, "search": "coarse_to_fine",
                   "uniqueness": 0.2, "plane_fill": True, "wmf_radius": 4, "fit_radius": 3}
 
 
@@ -44,6 +44,12 @@ class TorchSGMParams(BaseModel):
     # 2. aggregation
     agg_radius: int = Field(3, ge=0)
     agg_eps: float = Field(0.001, gt=0)
+    agg_detail_radius: int = Field(-1, ge=-1, description="guided-filter radius for textured pixels: each "
+                                   "pixel's cost is a mix of this aggregation and agg_radius's, leaning on "
+                                   "agg_radius where the left image is flat; -1 = off, one radius (the seed)")
+    agg_texture: float = Field(0.02, gt=0, description="grey standard deviation over a 5x5 window, in [0, 1] "
+                               "intensity, at which a pixel's cost takes 1/e of agg_radius's aggregation "
+                               "(exp(-std / agg_texture)); only with agg_detail_radius >= 0")
     # 3. SGM
     paths: Literal[4, 8] = 4
     p1: float = Field(0.04, ge=0)

@@ -32,14 +32,29 @@ def cost_volume(left: torch.Tensor, right: torch.Tensor, disparities: list[int],
     offsets = cost.STAR_24 if p.census == "star24" else cost.window_offsets(p.census_rx, p.census_ry)
     features = cost.cost_features(left, right, p.znorm_radius, offsets, p.znorm_eps)
     guide = cost.to_grey(left)
+    weight = texture_weight(guide, p)
     volume = torch.empty(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
     for start in range(0, len(disparities), p.chunk_disparities):
         chunk = disparities[start: start + p.chunk_disparities]
         raw = cost.fused_cost(left, right, chunk, w_ad=p.w_ad, w_census=p.w_census, w_grad=p.w_grad,
                               lam_ad=p.lam_ad, lam_census=p.lam_census, lam_grad=p.lam_grad,
                               znorm_radius=p.znorm_radius, features=features)
-        volume[:, start: start + len(chunk)] = aggregate.guided_filter(guide, raw, p.agg_radius, p.agg_eps)
+        aggregated = aggregate.guided_filter(guide, raw, p.agg_radius, p.agg_eps)
+        if weight is not None:
+            detail = aggregate.guided_filter(guide, raw, p.agg_detail_radius, p.agg_eps).clone()
+            aggregated = aggregate.blend_by_texture(detail, aggregated, weight)
+        volume[:, start: start + len(chunk)] = aggregated
     return volume
+
+
+TEXTURE_RADIUS = 2  # 5x5 windows measure how textured a pixel's neighbourhood is
+
+
+def texture_weight(guide: torch.Tensor, p: TorchSGMParams) -> torch.Tensor | None:
+    """``aggregate.texture_weight`` of the (B, 1, H, W) grey guide, or None with one radius everywhere."""
+    if p.agg_detail_radius < 0:
+        return None
+    return aggregate.texture_weight(guide, TEXTURE_RADIUS, p.agg_texture)
 
 
 FAST_CHUNK = 8  # disparity slices per step of the fast path: its buffers stay small enough to be reused
@@ -50,14 +65,25 @@ def cost_volume_fast(left: torch.Tensor, right: torch.Tensor, disparities: list[
     the disparities of a chunk in one strided view, the guide's statistics computed once."""
     offsets = cost.STAR_24 if p.census == "star24" else cost.window_offsets(p.census_rx, p.census_ry)
     features = cost.cost_features(left, right, p.znorm_radius, offsets, p.znorm_eps)
-    stats = aggregate.guide_statistics(cost.to_grey(left), p.agg_radius, p.agg_eps) if p.agg_radius > 0 else None
+    guide = cost.to_grey(left)
+    stats = aggregate.guide_statistics(guide, p.agg_radius, p.agg_eps) if p.agg_radius > 0 else None
+    weight = texture_weight(guide, p)
+    detail_stats = (aggregate.guide_statistics(guide, p.agg_detail_radius, p.agg_eps)
+                    if weight is not None and p.agg_detail_radius > 0 else None)
     volume = torch.empty(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
     step = min(p.chunk_disparities, FAST_CHUNK)
     for start in range(0, len(disparities), step):
         count = min(step, len(disparities) - start)
         raw = cost.fused_cost_chunk(features, disparities[start], count, w_ad=p.w_ad, w_census=p.w_census,
                                     w_grad=p.w_grad, lam_ad=p.lam_ad, lam_census=p.lam_census, lam_grad=p.lam_grad)
-        volume[:, start: start + count] = raw if stats is None else aggregate.guided_filter_fast(stats, raw, p.agg_radius)
+        # the fast filter overwrites its input, so the narrow aggregation works on a copy
+        detail = None if weight is None else raw.clone()
+        if detail is not None and detail_stats is not None:
+            detail = aggregate.guided_filter_fast(detail_stats, detail, p.agg_detail_radius)
+        aggregated = raw if stats is None else aggregate.guided_filter_fast(stats, raw, p.agg_radius)
+        if detail is not None:
+            aggregated = aggregate.blend_by_texture(detail, aggregated, weight)
+        volume[:, start: start + count] = aggregated
     return volume
 
 

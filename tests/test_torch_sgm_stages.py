@@ -87,8 +87,8 @@ def test_texture_weight_is_one_on_flat_areas_and_falls_with_contrast():
     flat = torch.full((2, 1, 12, 16), 0.4)
     assert torch.allclose(aggregate.texture_weight(flat, 2, 0.02), torch.ones(2, 1, 12, 16))
     checker = (torch.arange(16)[None, :] + torch.arange(12)[:, None]) % 2
-    weights = [aggregate.texture_weight((0.5 + contrast * (checker - 0.5))[None, None].float(), 2, 0.02)[0, 0, 2:-2, 2:-2]
-               for contrast in (0.01, 0.05, 0.5)]
+    images = [(0.5 + contrast * (checker - 0.5))[None, None].float() for contrast in (0.01, 0.05, 0.5)]
+    weights = [aggregate.texture_weight(image, 2, 0.02)[0, 0, 2:-2, 2:-2] for image in images]
     assert weights[0].min() > weights[1].max() and weights[1].min() > weights[2].max()
     assert weights[2].max() < 1e-3  # strong texture: the narrow aggregation alone
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from plugins.torch_sgm.cost import box_counts, box_mean, box_mean_fast
+from plugins.torch_sgm.cost import box_counts, box_mean, box_mean_fast, local_mean_variance
 
 
 def guided_filter(guide: torch.Tensor, src: torch.Tensor, radius: int, eps: float) -> torch.Tensor:
@@ -62,10 +62,8 @@ def texture_weight(guide: torch.Tensor, radius: int, scale: float) -> torch.Tens
     edges that a wide one blurs."""
     # in float32 the running sums leave a variance of ~1e-7 on a flat area, a std that is not small
     # against a scale of 0.02
-    g = guide.double()
-    mean = box_mean(g, radius)
-    std = (box_mean(g * g, radius) - mean * mean).clamp_min(0).sqrt()
-    return torch.exp(-std / scale).to(guide.dtype)
+    _, var = local_mean_variance(guide.double(), radius)
+    return torch.exp(-var.sqrt() / scale).to(guide.dtype)
 
 
 def blend_by_texture(detail: torch.Tensor, wide: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:

@@ -37,11 +37,16 @@ def _box_1d(x: torch.Tensor, radius: int, dim: int) -> torch.Tensor:
     return window / (count if dim == -1 else count.view(-1, 1))
 
 
+def local_mean_variance(x: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``box_mean`` of x and the variance over the same windows (never negative), each shaped as x."""
+    mean = box_mean(x, radius)
+    return mean, (box_mean(x * x, radius) - mean * mean).clamp_min(0)
+
+
 def zero_normalise(image: torch.Tensor, radius: int, eps: float = 1e-3) -> torch.Tensor:
     """Subtract the local mean and divide by the local standard deviation, per channel, so that
     a gain or offset between the two cameras does not change the AD cost."""
-    mean = box_mean(image, radius)
-    var = (box_mean(image * image, radius) - mean * mean).clamp_min(0)
+    mean, var = local_mean_variance(image, radius)
     return (image - mean) / (var.sqrt() + eps)
 
 

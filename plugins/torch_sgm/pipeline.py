@@ -41,8 +41,8 @@ def cost_volume(left: torch.Tensor, right: torch.Tensor, disparities: list[int],
                               znorm_radius=p.znorm_radius, features=features)
         aggregated = aggregate.guided_filter(guide, raw, p.agg_radius, p.agg_eps)
         if weight is not None:
-            # at radius 0 the filter hands back raw itself, which the in-place blend must leave alone
-            detail = aggregate.guided_filter(guide, raw, p.agg_detail_radius, p.agg_eps).clone()
+            # at radius 0 this is raw itself, which the in-place blend may overwrite: nothing reads it after
+            detail = aggregate.guided_filter(guide, raw, p.agg_detail_radius, p.agg_eps)
             aggregated = aggregate.blend_by_texture(detail, aggregated, weight)
         volume[:, start: start + len(chunk)] = aggregated
     return volume

@@ -113,6 +113,13 @@ class TorchSGMParams(BaseModel):
                                    "each end of the range as mismatches")
     coarse_min_coverage: float = Field(0.2, ge=0, le=1, description="below this share of matched coarse "
                                        "pixels the whole range is searched")
+    # rectification
+    align: Literal["none", "affine"] = Field(
+        "none", description="affine: measure how far the right image's rows sit from the left's (Lucas-Kanade "
+        "at the coarse pass's disparities), fit an affine field of vertical offsets over the image and "
+        "resample the right image by it before the full-resolution pass; none: trust the rectification (the "
+        "seed)")
+    align_radius: int = Field(3, ge=1, le=10, description="window radius of the Lucas-Kanade offsets")
     # memory and speed
     chunk_disparities: int = Field(32, ge=1, description="disparity slices built and filtered at once "
                                    "(the fast implementation uses at most 8)")

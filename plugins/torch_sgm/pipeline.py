@@ -6,7 +6,7 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import aggregate, cost, planes, refine, search, select, sgm
+from plugins.torch_sgm import aggregate, align, cost, planes, refine, search, select, sgm
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -106,27 +106,51 @@ def coarse_range(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_d
     """``search: coarse_to_fine``: the disparities ``lo <= d < hi`` that a pass over the whole range at
     1 / ``coarse_factor`` of the resolution finds occupied (see ``search``); None = search everything
     (the image is too small to shrink, or the coarse pass matched too little of it)."""
-    found = coarse_pass(left, right, min_disp, max_disp, p)
+    found = narrowed_search(coarse_pass(left, right, min_disp, max_disp, p), tuple(left.shape[-2:]),
+                            min_disp, max_disp, p)
     return None if found is None else found[0]
 
 
 def coarse_pass(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float, p: TorchSGMParams,
-                ) -> tuple[tuple[int, int], torch.Tensor] | None:
-    """``coarse_range`` and, with it, the (B, H, W) bool pixels that the coarse pass matched outside
-    that range (``search.outside_range``)."""
+                ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The matcher over the whole range at 1 / ``coarse_factor`` of the resolution, without filling:
+    (B, h, w) disparity in coarse pixels (NaN where unmatched) and matched mask; None when the image is
+    too small to shrink."""
     factor = p.coarse_factor
     small_l, small_r = search.downsample(left, factor), search.downsample(right, factor)
     h, w = small_l.shape[-2:]
     if min(h, w) < 8:
         return None
     lo, hi = search.coarse_bounds(min_disp, max_disp, factor, w)
-    coarse = p.model_copy(update={"search": "full", "fill": "none"})
-    disp, matched = compute_tensors(small_l, small_r, lo, hi, coarse)
-    found = search.occupied_range(disp, matched, factor, p.coarse_margin, p.coarse_quantile,
+    coarse = p.model_copy(update={"search": "full", "fill": "none", "align": "none"})
+    return compute_tensors(small_l, small_r, lo, hi, coarse)
+
+
+def narrowed_search(coarse: tuple[torch.Tensor, torch.Tensor] | None, size: tuple[int, int], min_disp: float,
+                    max_disp: float, p: TorchSGMParams) -> tuple[tuple[int, int], torch.Tensor] | None:
+    """``coarse_range`` from a ``coarse_pass`` and, with it, the (B, H, W) bool pixels that the coarse
+    pass matched outside that range (``search.outside_range``)."""
+    if coarse is None:
+        return None
+    disp, matched = coarse
+    found = search.occupied_range(disp, matched, p.coarse_factor, p.coarse_margin, p.coarse_quantile,
                                   p.coarse_min_coverage, min_disp, max_disp)
     if found is None:
         return None
-    return found, search.outside_range(disp, matched, factor, tuple(left.shape[-2:]), *found)
+    return found, search.outside_range(disp, matched, p.coarse_factor, size, *found)
+
+
+def aligned_right(left: torch.Tensor, right: torch.Tensor, coarse: tuple[torch.Tensor, torch.Tensor],
+                  p: TorchSGMParams) -> torch.Tensor:
+    """``align: affine``: the right image resampled along its columns by the affine field of vertical
+    offsets measured against the left image at the coarse pass's disparities (see ``align``)."""
+    h, w = left.shape[-2:]
+    first, matched = align.upsample_disparity(*coarse, p.coarse_factor, (h, w))
+    dy, min_eigen = align.vertical_offsets(left, right, first, p.align_radius)
+    coeffs = align.fit_affine_field(dy, align.reliable_offsets(dy, min_eigen, matched))
+    if not coeffs.any():
+        return right
+    return align.quantise(align.resample_rows(right, align.affine_field(coeffs, h, w)))
 
 
 def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,
@@ -134,7 +158,12 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     """(B, 3, H, W) RGB pair in [0, 1] -> (disparity (B, H, W) float32, NaN where still invalid;
     consistent (B, H, W) bool: pixels that passed the left-right check and, when on, the uniqueness test)."""
     disparities = disparity_range(min_disp, max_disp)
-    narrowed = coarse_pass(left, right, min_disp, max_disp, p) if p.search == "coarse_to_fine" else None
+    wants_coarse = p.search == "coarse_to_fine" or p.align == "affine"
+    coarse = coarse_pass(left, right, min_disp, max_disp, p) if wants_coarse else None
+    if p.align == "affine" and coarse is not None:
+        right = aligned_right(left, right, coarse, p)
+    narrowed = (narrowed_search(coarse, tuple(left.shape[-2:]), min_disp, max_disp, p)
+                if p.search == "coarse_to_fine" else None)
     if narrowed is not None:
         full = disparities
         disparities = list(range(*narrowed[0]))

@@ -3,11 +3,12 @@
 Matching searches along rows, so it assumes rectified images whose corresponding pixels share a row.
 A rectification that is off by a quarter of a pixel already costs the census and gradient terms much of
 their contrast on horizontal edges: in Middlebury's MiddEval3 scenes (which keep the imperfect
-rectification of the 2014 capture) a misalignment of 0.2-0.4 px, constant or growing across the
-image, is common, and a cheap stereo camera whose calibration has drifted shows the same. With a first
-disparity estimate (the coarse pass), the remaining vertical offset of every textured pixel follows
-from Lucas-Kanade; a robust affine fit over the image turns those into a smooth field, and the right
-image is resampled along its columns by that field before the full-resolution pass.
+rectification of the 2014 capture, Scharstein et al., GCPR 2014) a misalignment of 0.2-0.4 px,
+constant or growing across the image, is common, and a stereo camera whose calibration has drifted
+shows the same. With a first disparity estimate (the coarse pass), the remaining vertical offset of
+every textured pixel follows from Lucas-Kanade; a robust affine fit over the image turns those into a
+smooth field, and the right image is resampled along its columns by that field before the
+full-resolution pass.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Vertical alignment (``align: affine``): each stage function on images with a known row offset, then the
+"""Vertical alignment (``align``): each stage function on images with a known row offset, then the
 whole pipeline on a synthetic pair whose rectification is off by a fraction of a pixel."""
 from __future__ import annotations
 
@@ -52,17 +52,24 @@ def test_vertical_offsets_recover_a_known_row_shift_at_a_known_disparity():
     assert abs(float(dy[reliable].median()) - 0.3) < 0.03
 
 
-def test_fit_affine_field_recovers_the_field_despite_a_third_of_outliers():
+@pytest.mark.parametrize("model, truth", [("affine", [0.2, -0.4, 0.1]), ("projective", [0.2, -0.4, 0.1, 0.6, -0.5])])
+def test_fit_row_field_recovers_the_field_despite_a_third_of_outliers(model, truth):
     h, w = 60, 90
-    truth = torch.tensor([[0.2, -0.4, 0.1]], dtype=torch.float64)
-    field = align.affine_field(truth, h, w)
+    truth = torch.tensor([truth], dtype=torch.float64)
+    field = align.row_field(truth, h, w, model)
     noisy = field + 0.02 * torch.randn(1, h, w, generator=torch.Generator().manual_seed(0))
     outliers = torch.rand(1, h, w, generator=torch.Generator().manual_seed(1)) < 0.33
     noisy[outliers] = 1.2
     reliable = torch.ones(1, h, w, dtype=torch.bool)
-    assert torch.allclose(align.fit_affine_field(noisy, reliable), truth, atol=0.02)
+    assert torch.allclose(align.fit_row_field(noisy, reliable, model), truth, atol=0.03)
     # too few reliable pixels: no correction at all
-    assert not align.fit_affine_field(noisy, reliable & False).any()
+    assert not align.fit_row_field(noisy, reliable & False, model).any()
+
+
+def test_row_field_terms_are_centred_on_the_image():
+    # a pure y^2 term is zero on the middle row and reaches a quarter of its coefficient at the edges
+    field = align.row_field(torch.tensor([[0.0, 0.0, 0.0, 0.0, 1.0]], dtype=torch.float64), 101, 7, "projective")
+    assert abs(float(field[0, 50, 3])) < 1e-4 and abs(float(field[0, 0, 0]) - 0.25) < 0.01
 
 
 def test_upsample_disparity_scales_by_the_factor_and_keeps_the_matched_mask():
@@ -83,7 +90,7 @@ def test_align_undoes_a_rectification_that_is_off_by_a_fraction_of_a_row():
     # 0.5 row at the top, 0.1 at the bottom: a slight rotation that a drifted calibration leaves
     ramp = torch.linspace(0.5, 0.1, 128).view(1, 128, 1).expand(1, 128, 192)
     skewed = _misaligned(right, ramp)
-    params = TorchSGMParams(preset="improved", device="cpu", align="affine")
+    params = TorchSGMParams(preset="improved", device="cpu", align="projective")
     tl, tr, ts = (bgr_to_tensor(im, CPU) for im in (left, right, skewed))
     with torch.inference_mode():
         restored = aligned_right(tl, ts, coarse_pass(tl, ts, 0, 32, params), params)
@@ -100,6 +107,7 @@ def test_align_undoes_a_rectification_that_is_off_by_a_fraction_of_a_row():
 def test_align_leaves_a_rectified_pair_as_it_is():
     left, right, gt, nonocc = layered_scene(128, 192, seed=5)
     plain = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="improved", device="cpu", align="none"))[0]
-    aligned = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="improved", device="cpu", align="affine"))[0]
+    aligned = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="improved", device="cpu",
+                                                                   align="projective"))[0]
     assert abs(_bad(aligned, gt, nonocc) - _bad(plain, gt, nonocc)) < 0.005
     assert np.median(np.abs(aligned - plain)) < 0.05

@@ -6,9 +6,9 @@ their contrast on horizontal edges: in Middlebury's MiddEval3 scenes (which keep
 rectification of the 2014 capture, Scharstein et al., GCPR 2014) a misalignment of 0.2-0.4 px,
 constant or growing across the image, is common, and a stereo camera whose calibration has drifted
 shows the same. With a first disparity estimate (the coarse pass), the remaining vertical offset of
-every textured pixel follows from Lucas-Kanade; a robust affine fit over the image turns those into a
-smooth field, and the right image is resampled along its columns by that field before the
-full-resolution pass.
+every textured pixel follows from Lucas-Kanade; a robust fit of an affine or projective model over the
+image turns those into a smooth field, and the right image is resampled along its columns by that
+field before the full-resolution pass.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from plugins.torch_sgm import cost
 
-# Tukey's biweight radius of the affine fit, in pixels: offsets further from the fit are mismatches
+# Tukey's biweight radius of the field's fit, in pixels: offsets further from the fit are mismatches
 _FIT_RADIUS = 0.5
 _FIT_ITERATIONS = 5
 LANCZOS_LOBES = 3
@@ -83,19 +83,31 @@ def reliable_offsets(dy: torch.Tensor, min_eigen: torch.Tensor, matched: torch.T
     return out
 
 
-def fit_affine_field(dy: torch.Tensor, reliable: torch.Tensor, min_pixels: int = 100) -> torch.Tensor:
-    """Robust least-squares fit of dy = a (x / W - 1/2) + b (y / H - 1/2) + c over the reliable pixels
-    (Tukey's biweight, ``_FIT_RADIUS``), so that wrong first disparities do not tilt it.
+def field_terms(x: torch.Tensor, y: torch.Tensor, model: str) -> torch.Tensor:
+    """The basis of a row-offset field at x, y (any shape, in units of the image's width and height,
+    centred): (..., 3) 1, x, y for ``affine``; (..., 5) with x y and y² added for ``projective``, the
+    vertical component of a small relative rotation of the two cameras (pitch adds 1 + y², yaw x y,
+    roll x) and of a difference in focal length (y), to first order."""
+    base = [x, y, torch.ones_like(x)]
+    if model == "projective":
+        base += [x * y, y * y]
+    return torch.stack(base, -1)
 
-    dy (B, H, W), reliable (B, H, W) bool -> (B, 3) float64 (a, b, c); zeros (no correction) for an
+
+def fit_row_field(dy: torch.Tensor, reliable: torch.Tensor, model: str = "affine",
+                  min_pixels: int = 100) -> torch.Tensor:
+    """Robust least-squares fit of dy to ``field_terms`` over the reliable pixels (Tukey's biweight,
+    ``_FIT_RADIUS``), so that wrong first disparities do not tilt it.
+
+    dy (B, H, W), reliable (B, H, W) bool -> (B, K) float64 coefficients; zeros (no correction) for an
     image with fewer than ``min_pixels`` reliable pixels."""
     b, h, w = dy.shape
-    out = torch.zeros(b, 3, dtype=torch.float64, device=dy.device)
+    out = torch.zeros(b, 5 if model == "projective" else 3, dtype=torch.float64, device=dy.device)
     for i in range(b):
         ys, xs = torch.nonzero(reliable[i], as_tuple=True)
         if ys.numel() < min_pixels:
             continue
-        design = torch.stack([xs / w - 0.5, ys / h - 0.5, torch.ones_like(xs, dtype=torch.float64)], 1).double()
+        design = field_terms(xs.double() / w - 0.5, ys.double() / h - 0.5, model)
         target = dy[i][reliable[i]].double()
         weight = torch.ones_like(target)
         for _ in range(_FIT_ITERATIONS):
@@ -107,12 +119,12 @@ def fit_affine_field(dy: torch.Tensor, reliable: torch.Tensor, min_pixels: int =
     return out
 
 
-def affine_field(coeffs: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """(B, 3) ``fit_affine_field`` coefficients -> (B, H, W) float32 row offsets."""
+def row_field(coeffs: torch.Tensor, h: int, w: int, model: str = "affine") -> torch.Tensor:
+    """(B, K) ``fit_row_field`` coefficients -> (B, H, W) float32 row offsets."""
     ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=coeffs.device),
                             torch.arange(w, dtype=torch.float64, device=coeffs.device), indexing="ij")
-    a, b, c = (coeffs[:, k, None, None] for k in range(3))
-    return (a * (xs / w - 0.5) + b * (ys / h - 0.5) + c).float()
+    terms = field_terms(xs / w - 0.5, ys / h - 0.5, model)  # (H, W, K)
+    return (terms[None] * coeffs[:, None, None, :]).sum(-1).float()
 
 
 def lanczos(t: torch.Tensor, lobes: int = LANCZOS_LOBES) -> torch.Tensor:

@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 # Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
 IMPROVED: dict = {"refine_radius": 0, "agg_radius": 2, "agg_detail_radius": 1, "paths": 8, "p1": 0.08, "p2": 1.3,
                   "search": "coarse_to_fine", "uniqueness": 0.2, "plane_fill": True, "wmf_radius": 4, "fit_radius": 3,
-                  "align": "affine"}
+                  "align": "projective"}
 
 
 class TorchSGMParams(BaseModel):
@@ -115,11 +115,11 @@ class TorchSGMParams(BaseModel):
     coarse_min_coverage: float = Field(0.2, ge=0, le=1, description="below this share of matched coarse "
                                        "pixels the whole range is searched")
     # rectification
-    align: Literal["none", "affine"] = Field(
-        "none", description="affine: measure how far the right image's rows sit from the left's (Lucas-Kanade "
-        "at the coarse pass's disparities), fit an affine field of vertical offsets over the image and "
-        "resample the right image by it before the full-resolution pass; none: trust the rectification (the "
-        "seed)")
+    align: Literal["none", "affine", "projective"] = Field(
+        "none", description="measure how far the right image's rows sit from the left's (Lucas-Kanade at the "
+        "coarse pass's disparities), fit a field of vertical offsets over the image (affine: 1, x, y; "
+        "projective: also x y and y^2, as a small relative rotation of the cameras gives) and resample the "
+        "right image by it before the full-resolution pass; none: trust the rectification (the seed)")
     align_radius: int = Field(3, ge=1, le=10, description="window radius of the Lucas-Kanade offsets")
     # memory and speed
     chunk_disparities: int = Field(32, ge=1, description="disparity slices built and filtered at once "

@@ -142,15 +142,15 @@ def narrowed_search(coarse: tuple[torch.Tensor, torch.Tensor] | None, size: tupl
 
 def aligned_right(left: torch.Tensor, right: torch.Tensor, coarse: tuple[torch.Tensor, torch.Tensor],
                   p: TorchSGMParams) -> torch.Tensor:
-    """``align: affine``: the right image resampled along its columns by the affine field of vertical
-    offsets measured against the left image at the coarse pass's disparities (see ``align``)."""
+    """``align: affine`` or ``projective``: the right image resampled along its columns by the field of
+    vertical offsets measured against the left image at the coarse pass's disparities (see ``align``)."""
     h, w = left.shape[-2:]
     first, matched = align.upsample_disparity(*coarse, p.coarse_factor, (h, w))
     dy, min_eigen = align.vertical_offsets(left, right, first, p.align_radius)
-    coeffs = align.fit_affine_field(dy, align.reliable_offsets(dy, min_eigen, matched))
+    coeffs = align.fit_row_field(dy, align.reliable_offsets(dy, min_eigen, matched), p.align)
     if not coeffs.any():
         return right
-    return align.quantise(align.resample_rows(right, align.affine_field(coeffs, h, w)))
+    return align.quantise(align.resample_rows(right, align.row_field(coeffs, h, w, p.align)))
 
 
 def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,
@@ -158,9 +158,9 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     """(B, 3, H, W) RGB pair in [0, 1] -> (disparity (B, H, W) float32, NaN where still invalid;
     consistent (B, H, W) bool: pixels that passed the left-right check and, when on, the uniqueness test)."""
     disparities = disparity_range(min_disp, max_disp)
-    wants_coarse = p.search == "coarse_to_fine" or p.align == "affine"
+    wants_coarse = p.search == "coarse_to_fine" or p.align != "none"
     coarse = coarse_pass(left, right, min_disp, max_disp, p) if wants_coarse else None
-    if p.align == "affine" and coarse is not None:
+    if p.align != "none" and coarse is not None:
         right = aligned_right(left, right, coarse, p)
     narrowed = (narrowed_search(coarse, tuple(left.shape[-2:]), min_disp, max_disp, p)
                 if p.search == "coarse_to_fine" else None)

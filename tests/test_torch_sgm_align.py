@@ -31,7 +31,7 @@ def test_resample_rows_moves_by_whole_rows_exactly_and_interpolates_a_smooth_sig
     field = torch.full((1, 12, 5), 2.0)
     assert torch.allclose(align.resample_rows(image, field)[..., :10, :], image[..., 2:, :], atol=1e-6)
     assert torch.allclose(align.resample_rows(image, torch.zeros(1, 12, 5)), image, atol=1e-6)
-    # a sinusoid of period 6 rows, sampled half a row down: bilinear loses a quarter of its amplitude
+    # a sinusoid of period 6 rows, sampled half a row down: bilinear would lose 13 % of its amplitude (cos 30°)
     rows = torch.arange(40.0)
     wave = torch.sin(2 * torch.pi * rows / 6).view(1, 1, 40, 1).expand(1, 1, 40, 3).contiguous()
     shifted = align.resample_rows(wave, torch.full((1, 40, 3), 0.5))[0, 0, 5:-5, 0]
@@ -87,7 +87,7 @@ def _bad(disp: np.ndarray, gt: np.ndarray, nonocc: np.ndarray) -> float:
 
 def test_align_undoes_a_rectification_that_is_off_by_a_fraction_of_a_row():
     left, right, gt, nonocc = layered_scene(128, 192, seed=2)
-    # 0.5 row at the top, 0.1 at the bottom: a slight rotation that a drifted calibration leaves
+    # 0.5 row at the top, 0.1 at the bottom: an offset that grows across the image, as a drifted calibration leaves
     ramp = torch.linspace(0.5, 0.1, 128).view(1, 128, 1).expand(1, 128, 192)
     skewed = _misaligned(right, ramp)
     params = TorchSGMParams(preset="improved", device="cpu", align="projective")

@@ -40,8 +40,9 @@ def _sample(grey: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tenso
 
 def vertical_offsets(left: torch.Tensor, right: torch.Tensor, disparity: torch.Tensor, radius: int = 3,
                      iterations: int = 6, max_offset: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-pixel (dx, dy) such that left(x, y) ~ right(x - disparity + dx, y + dy) over a
-    (2 radius + 1)^2 window, by Lucas-Kanade (translation) iterations.
+    """Per-pixel row offset dy such that left(x, y) ~ right(x - disparity + dx, y + dy) over a
+    (2 radius + 1)^2 window, by Lucas-Kanade (translation) iterations; dx, which absorbs the error of the
+    first disparity, is solved for as well and dropped.
 
     left, right (B, 3, H, W) in [0, 1]; disparity (B, H, W) float, a first estimate that may be off by a
     pixel or two (finite everywhere) -> dy (B, H, W) and the smaller eigenvalue of each window's
@@ -136,7 +137,8 @@ def resample_rows(image: torch.Tensor, field: torch.Tensor, lobes: int = LANCZOS
     """(B, C, H, W) image, (B, H, W) offsets -> (B, C, H, W): pixel (x, y) takes the image at row
     y + field along its own column, interpolated with a Lanczos kernel (rows clamped at the border).
     A bilinear sample at a half-pixel offset averages two rows; the blur it adds to one image and not the
-    other costs more Bad-1.0 than a small misalignment, and Lanczos keeps the texture sharp."""
+    other cost up to a point of Bad-1.0 on Middlebury (docs/benchmarks.md), and Lanczos keeps the
+    texture sharp."""
     b, ch, h, w = image.shape
     y = torch.arange(h, dtype=field.dtype, device=field.device)[:, None] + field
     base = y.floor()

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from plugins.torch_sgm import cost
+from plugins.torch_sgm import cost, planes
 
 # Tukey's biweight radius of the field's fit, in pixels: offsets further from the fit are mismatches
 _FIT_RADIUS = 0.5
@@ -115,7 +115,7 @@ def fit_row_field(dy: torch.Tensor, reliable: torch.Tensor, model: str = "affine
             root = weight.sqrt()[:, None]
             coeffs = torch.linalg.lstsq(design * root, target[:, None] * root).solution[:, 0]
             residual = design @ coeffs - target
-            weight = (1 - (residual / _FIT_RADIUS).pow(2)).clamp_min(0).pow(2)
+            weight = planes.tukey_weight(residual, _FIT_RADIUS)
         out[i] = coeffs
     return out
 

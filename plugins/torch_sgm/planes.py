@@ -140,6 +140,12 @@ def _coordinates(flat: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torc
             (flat.div(w, rounding_mode="floor") % h).to(torch.float64) / _COORD_SCALE)
 
 
+def tukey_weight(residual: torch.Tensor, radius: float) -> torch.Tensor:
+    """Tukey's biweight (1 - (r / radius)^2)^2, 0 beyond ``radius``: the weight of each residual in
+    iteratively reweighted least squares. NaN residuals give NaN."""
+    return (1 - (residual / radius).pow(2)).clamp_min(0).pow(2)
+
+
 def _robust_fit(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torch.Tensor, k: int, samples: int,
                 tolerance: float) -> torch.Tensor:
     """IRLS with Tukey's biweight over the given pixels of each region -> (k, 3) float64 coefficients."""
@@ -149,7 +155,7 @@ def _robust_fit(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torch.
     if samples > 0:
         start = ransac_planes(x, y, d, index, k, samples, tolerance, min_pixels=3)
         residual = (start[index] * torch.stack([x, y, one], 1)).sum(1) - d
-        weight = (1 - (residual / _RANSAC_RADIUS).pow(2)).clamp_min(0).pow(2)
+        weight = tukey_weight(residual, _RANSAC_RADIUS)
         weight = torch.nan_to_num(weight, nan=0.0)  # a region too small to start from gets no plane
         radii = _TUKEY_RADII_AFTER_RANSAC
     eye = 1e-9 * torch.eye(3, dtype=torch.float64, device=x.device)
@@ -160,7 +166,7 @@ def _robust_fit(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torch.
         coeffs = torch.linalg.solve(normal, torch.stack([sxd, syd, sd], 1).unsqueeze(-1))[..., 0]  # (k, 3)
         if radius is not None:
             residual = (coeffs[index] * torch.stack([x, y, one], 1)).sum(1) - d
-            weight = (1 - (residual / radius).pow(2)).clamp_min(0).pow(2)
+            weight = tukey_weight(residual, radius)
     return coeffs
 
 

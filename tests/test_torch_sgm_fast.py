@@ -80,6 +80,17 @@ def test_sgm_fast_equals_sgm(paths):
     assert torch.allclose(sgm.sgm_fast(volume, 0.1, 0.5, paths), sgm.sgm(volume, 0.1, 0.5, paths), atol=1e-5)
 
 
+@pytest.mark.parametrize("paths", [sgm.PATHS_4, sgm.PATHS_8])
+def test_sgm_fast_equals_sgm_with_one_p2_map_per_path(paths):
+    torch.manual_seed(1)
+    volume = torch.rand(2, 7, 11, 13)
+    p2 = torch.rand(2, len(paths), 11, 13) + 0.3
+    ref = sgm.sgm(volume, 0.1, p2, paths)
+    assert torch.allclose(sgm.sgm_fast(volume, 0.1, p2, paths), ref, atol=1e-5)
+    # each map must reach its own path: the same maps in another order give another sum
+    assert not torch.allclose(sgm.sgm_fast(volume, 0.1, p2.flip(1), paths), ref, atol=1e-3)
+
+
 def test_sgm_fast_falls_back_for_one_sided_paths():
     volume, p2 = torch.rand(1, 5, 6, 7), torch.rand(1, 6, 7)
     one_way = ((0, 1), (1, 0))

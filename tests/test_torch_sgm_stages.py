@@ -151,6 +151,17 @@ def test_each_path_matches_the_per_pixel_recurrence(direction):
     assert np.allclose(got, _reference_path(volume, 0.1, p2, *direction), atol=1e-5)
 
 
+def test_per_path_p2_maps_each_reach_their_own_path():
+    rng = np.random.default_rng(2)
+    volume = rng.random((6, 7, 9)).astype(np.float32)
+    p2 = (0.3 + rng.random((8, 7, 9))).astype(np.float32)
+    got = sgm.sgm(torch.from_numpy(volume)[None], 0.1, torch.from_numpy(p2)[None], sgm.PATHS_8)[0].numpy()
+    want = sum(_reference_path(volume, 0.1, p2[k], *path) for k, path in enumerate(sgm.PATHS_8))
+    assert np.allclose(got, want, atol=1e-4)
+    with pytest.raises(ValueError, match="4 P2 maps for 8 paths"):
+        sgm.sgm(torch.from_numpy(volume)[None], 0.1, torch.from_numpy(p2[:4])[None], sgm.PATHS_8)
+
+
 def test_sgm_overrules_an_isolated_wrong_minimum():
     volume = torch.ones(1, 8, 9, 9)
     volume[:, 3] = 0.0
@@ -164,6 +175,29 @@ def test_adaptive_p2_drops_at_edges_but_not_below_p1():
     edge = torch.tensor([[[0.0, 0.05, 10.0]]])
     p2 = sgm.adaptive_p2(edge, 0.65, 20.0, 0.04)
     assert torch.allclose(p2, torch.tensor([[[0.65, 0.325, 0.04]]]))
+
+
+def test_path_p2_drops_only_for_paths_that_cross_an_edge():
+    grey = torch.zeros(1, 5, 8)
+    grey[..., 4:] = 0.5  # a vertical edge between columns 3 and 4
+    p2 = sgm.path_p2(grey, sgm.PATHS_8, 0.65, 20.0, 0.04)  # (1, 8, 5, 8)
+    across = sgm.PATHS_8.index((0, 1))  # left to right: column 4's predecessor is column 3
+    along = sgm.PATHS_8.index((1, 0))
+    diagonal = sgm.PATHS_8.index((1, 1))
+    assert torch.allclose(p2[0, across, :, 4], torch.full((5,), 0.65 / 11))
+    assert torch.allclose(p2[0, diagonal, 1:, 4], torch.full((4,), 0.65 / 11))
+    assert torch.allclose(p2[0, along], torch.full((5, 8), 0.65))  # running along the edge: no drop
+    assert torch.allclose(p2[0, across, :, 3], torch.full((5,), 0.65))  # the step lies behind column 4
+    opposite = sgm.PATHS_8.index((0, -1))  # right to left: column 3's predecessor is column 4
+    assert torch.allclose(p2[0, opposite, :, 3], torch.full((5,), 0.65 / 11))
+    # the magnitude version lowers P2 for every path through the edge, the one along it as well
+    assert torch.all(sgm.adaptive_p2(edge_of(grey), 0.65, 20.0, 0.04)[0, :, 3:5] < 0.65)
+    assert torch.allclose(sgm.path_p2(grey * 100, sgm.PATHS_4, 0.65, 20.0, 0.04).amin(), torch.tensor(0.04))
+
+
+def edge_of(grey):
+    from plugins.torch_sgm.pipeline import edge_strength
+    return edge_strength(grey.unsqueeze(1).expand(-1, 3, -1, -1))
 
 
 def test_parabola_finds_the_subpixel_minimum():

@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 # Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
 IMPROVED: dict = {"refine_radius": 0, "agg_radius": 2, "agg_detail_radius": 1, "paths": 8, "p1": 0.08, "p2": 1.3,
                   "search": "coarse_to_fine", "uniqueness": 0.2, "plane_fill": True, "wmf_radius": 4, "fit_radius": 3,
-                  "align": "projective"}
+                  "align": "projective", "p2_edge": "path", "p2_alpha": 40.0}
 
 
 class TorchSGMParams(BaseModel):
@@ -56,6 +56,10 @@ class TorchSGMParams(BaseModel):
     p1: float = Field(0.04, ge=0)
     p2: float = Field(0.65, ge=0)
     p2_alpha: float = Field(20.0, ge=0, description="P2 = p2 / (1 + p2_alpha * |edge|)")
+    p2_edge: Literal["magnitude", "path"] = Field(
+        "magnitude", description="the |edge| that lowers P2: magnitude = the grey image's Sobel gradient "
+        "magnitude at the pixel, one P2 for every path (the seed); path = the grey step from the pixel's "
+        "predecessor on each path, so P2 drops only for the paths that cross an edge")
     # 4. selection
     subpixel: Literal["parabola", "equiangular"] = "parabola"
     uniqueness: float = Field(0.0, ge=0, description="a pixel whose best aggregated cost does not beat every "

@@ -169,8 +169,11 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         disparities = list(range(*narrowed[0]))
     fast = p.implementation == "fast"
     volume = (cost_volume_fast if fast else cost_volume)(left, right, disparities, p)
-    penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
     paths = sgm.PATHS_8 if p.paths == 8 else sgm.PATHS_4
+    if p.p2_edge == "path":
+        penalty = sgm.path_p2(cost.to_grey(left)[:, 0], paths, p.p2, p.p2_alpha, p.p1)
+    else:
+        penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
     aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
     del volume
     index = select.winner_takes_all(aggregated)

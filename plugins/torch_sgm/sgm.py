@@ -18,6 +18,21 @@ def adaptive_p2(edge: torch.Tensor, p2: float, alpha: float, p1: float) -> torch
     return (p2 / (1.0 + alpha * edge.abs())).clamp_min(p1)
 
 
+def path_p2(grey: torch.Tensor, paths, p2: float, alpha: float, p1: float) -> torch.Tensor:
+    """One P2 map per path: p2 / (1 + alpha * |I(p) - I(p - r)|) for each direction r = (dy, dx) in
+    ``paths``, never below P1 (Hirschmueller, PAMI 2008, adapts P2 to this intensity step).
+
+    A gradient magnitude lowers P2 for every path through an edge pixel, so a path running along a
+    shelf's edge may jump at every step, while the same edge does not tell a path that crosses it
+    more than one that follows it. The step to the path's predecessor lowers P2 only where the path
+    crosses the edge. grey (B, H, W) -> (B, len(paths), H, W); a pixel without a predecessor inside the
+    image compares with itself (its path restarts there anyway)."""
+    h, w = grey.shape[-2:]
+    padded = F.pad(grey.unsqueeze(1), (1, 1, 1, 1), mode="replicate")[:, 0]
+    steps = [(grey - padded[:, 1 - dy: 1 - dy + h, 1 - dx: 1 - dx + w]).abs() for dy, dx in paths]
+    return (p2 / (1.0 + alpha * torch.stack(steps, 1))).clamp_min(p1)
+
+
 def _shift_cross(prev: torch.Tensor, dy: int) -> tuple[torch.Tensor, torch.Tensor | None]:
     """prev (B, D, X) seen one row further along a diagonal path; also the rows lacking a predecessor."""
     if dy == 0:
@@ -68,27 +83,36 @@ def walk(cost: torch.Tensor, p1: float, p2: torch.Tensor, step: int, cross: int,
         prev = current
 
 
+def _per_path(p2: torch.Tensor | float, cost: torch.Tensor, paths) -> dict:
+    """A scalar, (B, H, W) or per-path (B, len(paths), H, W) P2 -> {path: (B, H, W) map}."""
+    if not torch.is_tensor(p2):
+        p2 = torch.full((cost.shape[0], *cost.shape[-2:]), float(p2), dtype=cost.dtype, device=cost.device)
+    if p2.dim() == 3:
+        return {path: p2 for path in paths}
+    if p2.shape[1] != len(paths):
+        raise ValueError(f"{p2.shape[1]} P2 maps for {len(paths)} paths")
+    return {path: p2[:, k] for k, path in enumerate(paths)}
+
+
 def sgm(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=PATHS_4) -> torch.Tensor:
     """cost: (B, D, H, W) -> (B, D, H, W) sum of the path costs over ``paths`` (directions (dy, dx)).
-    p2: scalar or (B, H, W).
+    p2: scalar, (B, H, W), or (B, len(paths), H, W) with one map per path (``path_p2``).
 
     Paths with dx != 0 walk the columns, all rows at once; vertical paths walk the rows. Each group
     works on a transposed contiguous copy; peak memory is about four volumes."""
-    if not torch.is_tensor(p2):
-        p2 = torch.full((cost.shape[0], *cost.shape[-2:]), float(p2), dtype=cost.dtype, device=cost.device)
+    penalty = _per_path(p2, cost, paths)
     by_columns = [(dy, dx) for dy, dx in paths if dx]
     by_rows = [(dy, dx) for dy, dx in paths if not dx]
     cost_c = cost.permute(0, 3, 1, 2).contiguous()  # (B, W, D, H)
     out_c = torch.zeros_like(cost_c)
-    p2_c = p2.transpose(1, 2).contiguous()
     for dy, dx in by_columns:
-        walk(cost_c, p1, p2_c, dx, dy, out_c)
+        walk(cost_c, p1, penalty[dy, dx].transpose(1, 2).contiguous(), dx, dy, out_c)
     del cost_c
     if by_rows:
         cost_r = cost.permute(0, 2, 1, 3).contiguous()  # (B, H, D, W)
         out_r = torch.zeros_like(cost_r)
-        for dy, _ in by_rows:
-            walk(cost_r, p1, p2, dy, 0, out_r)
+        for dy, dx in by_rows:
+            walk(cost_r, p1, penalty[dy, dx], dy, 0, out_r)
         del cost_r
         out_c += out_r.permute(0, 3, 2, 1)
         del out_r
@@ -104,7 +128,8 @@ def sgm(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=PATHS_4) 
 
 def _walk_both(cost: torch.Tensor, p1: float, p2: torch.Tensor, crosses: tuple[int, ...], out: torch.Tensor) -> None:
     """Add to ``out`` the path costs of walking dim 1 forwards and backwards, once per predecessor
-    offset in ``crosses`` along X. cost, out: (B, N, D, X), views allowed; p2: (B, N, X)."""
+    offset in ``crosses`` along X. cost, out: (B, N, D, X), views allowed; p2: (2, len(crosses), B, N, X),
+    the forward walks' maps first (expanded views allowed)."""
     b, n, d, x = cost.shape
     g = len(crosses)
     bufs = [torch.empty(2, g, b, d, x, dtype=cost.dtype, device=cost.device) for _ in range(2)]
@@ -134,7 +159,7 @@ def _walk_both(cost: torch.Tensor, p1: float, p2: torch.Tensor, crosses: tuple[i
                 torch.minimum(cur[..., 1:, :], cur[..., :-1, :], out=pair).add_(p1)
                 torch.minimum(cur[..., 1:, :], pair, out=cur[..., 1:, :])
                 torch.minimum(cur[..., :-1, :], pair, out=cur[..., :-1, :])
-            step_p2 = torch.stack((p2[:, i], p2[:, j])).view(2, 1, b, 1, x)
+            step_p2 = torch.stack((p2[0, :, :, i], p2[1, :, :, j])).view(2, g, b, 1, x)
             torch.minimum(cur, step_p2, out=cur).add_(c)
         for k in range(g):
             out[:, i].add_(cur[0, k])
@@ -154,25 +179,28 @@ def _to_columns(cost: torch.Tensor) -> torch.Tensor:
 
 def sgm_fast(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=PATHS_4) -> torch.Tensor:
     """``sgm`` (the reference) for path sets that hold every direction with its opposite (PATHS_4,
-    PATHS_8). cost: (B, D, H, W) -> (B, D, H, W); p2: scalar or (B, H, W)."""
-    if not torch.is_tensor(p2):
-        p2 = torch.full((cost.shape[0], *cost.shape[-2:]), float(p2), dtype=cost.dtype, device=cost.device)
+    PATHS_8). cost: (B, D, H, W) -> (B, D, H, W); p2 as for ``sgm``."""
     if set(paths) not in (set(PATHS_4), set(PATHS_8)):
         # the walks below pair each direction with its mirror image of the same row step; other
         # sets (say only the two main diagonals) go to the reference
         return sgm(cost, p1, p2, paths)
+    penalty = _per_path(p2, cost, paths)
     crosses = tuple(sorted({dy for dy, dx in paths if dx == 1}, key=abs))
     out = torch.zeros_like(cost)
     if any(dx == 0 for _, dx in paths):
         # Vertical paths step along H: each step's (B, D, W) slice is D rows of W contiguous values,
-        # so they walk the volume as it is, through a (B, H, D, W) view.
-        _walk_both(cost.permute(0, 2, 1, 3), p1, p2, (0,), out.permute(0, 2, 1, 3))
+        # so they walk the volume as it is, through a (B, H, D, W) view. Walking forwards the
+        # predecessor is the row above: direction (1, 0).
+        rows = torch.stack([penalty[1, 0], penalty[-1, 0]]).unsqueeze(1)  # (2, 1, B, H, W)
+        _walk_both(cost.permute(0, 2, 1, 3), p1, rows, (0,), out.permute(0, 2, 1, 3))
     if crosses:
         # Horizontal and diagonal paths step along W: a column slice would touch a cache line per
         # value, so they walk a transposed copy.
         cost_c = _to_columns(cost)  # (B, W, D, H)
         out_c = torch.zeros_like(cost_c)
-        _walk_both(cost_c, p1, p2.transpose(1, 2).contiguous(), crosses, out_c)
+        # walking forwards with cross dy the predecessor is (y - dy, x - 1): direction (dy, 1)
+        columns = torch.stack([torch.stack([penalty[dy, step] for dy in crosses]) for step in (1, -1)])
+        _walk_both(cost_c, p1, columns.transpose(-1, -2).contiguous(), crosses, out_c)
         del cost_c
         for k in range(cost.shape[1]):
             out[:, k].add_(out_c[:, :, k].transpose(-1, -2))

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from plugins.torch_sgm import aggregate, cost, refine, select, sgm
-from plugins.torch_sgm.pipeline import bgr_to_tensor
+from plugins.torch_sgm.params import TorchSGMParams
+from plugins.torch_sgm.pipeline import bgr_to_tensor, cost_volume, cost_volume_fast, edge_strength
 from plugins.torch_sgm.synthetic import fronto_parallel
 
 
@@ -95,8 +96,6 @@ def test_texture_weight_is_one_on_flat_areas_and_falls_with_contrast():
 
 @pytest.mark.parametrize("implementation", ["reference", "fast"])
 def test_texture_blend_aggregates_narrowly_on_texture_and_widely_on_flat_areas(implementation):
-    from plugins.torch_sgm.params import TorchSGMParams
-    from plugins.torch_sgm.pipeline import cost_volume, cost_volume_fast
     volume = cost_volume if implementation == "reference" else cost_volume_fast
     gen = torch.Generator().manual_seed(0)
     left = torch.rand(1, 3, 32, 48, generator=gen)
@@ -191,13 +190,9 @@ def test_path_p2_drops_only_for_paths_that_cross_an_edge():
     opposite = sgm.PATHS_8.index((0, -1))  # right to left: column 3's predecessor is column 4
     assert torch.allclose(p2[0, opposite, :, 3], torch.full((5,), 0.65 / 11))
     # the magnitude version lowers P2 for every path through the edge, the one along it as well
-    assert torch.all(sgm.adaptive_p2(edge_of(grey), 0.65, 20.0, 0.04)[0, :, 3:5] < 0.65)
+    magnitude = edge_strength(grey.unsqueeze(1).expand(-1, 3, -1, -1))
+    assert torch.all(sgm.adaptive_p2(magnitude, 0.65, 20.0, 0.04)[0, :, 3:5] < 0.65)
     assert torch.allclose(sgm.path_p2(grey * 100, sgm.PATHS_4, 0.65, 20.0, 0.04).amin(), torch.tensor(0.04))
-
-
-def edge_of(grey):
-    from plugins.torch_sgm.pipeline import edge_strength
-    return edge_strength(grey.unsqueeze(1).expand(-1, 3, -1, -1))
 
 
 def test_parabola_finds_the_subpixel_minimum():

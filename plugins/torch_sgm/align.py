@@ -103,7 +103,8 @@ def fit_row_field(dy: torch.Tensor, reliable: torch.Tensor, model: str = "affine
     dy (B, H, W), reliable (B, H, W) bool -> (B, K) float64 coefficients; zeros (no correction) for an
     image with fewer than ``min_pixels`` reliable pixels."""
     b, h, w = dy.shape
-    out = torch.zeros(b, 5 if model == "projective" else 3, dtype=torch.float64, device=dy.device)
+    none = torch.zeros(0, dtype=torch.float64, device=dy.device)
+    out = torch.zeros(b, field_terms(none, none, model).shape[-1], dtype=torch.float64, device=dy.device)
     for i in range(b):
         ys, xs = torch.nonzero(reliable[i], as_tuple=True)
         if ys.numel() < min_pixels:

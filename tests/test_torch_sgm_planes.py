@@ -89,6 +89,31 @@ def test_fill_from_planes_takes_the_finest_supported_region_and_leaves_the_rest(
     assert (out[:, 46:] == -1).all()  # a region with no matched pixel has no plane
 
 
+def test_planes_and_slopes_give_each_supported_region_its_row_slope():
+    h, w = 40, 60
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    grey = torch.where(x < 30, 0.3, 0.8)
+    image = grey.expand(1, 3, h, w).contiguous()
+    truth = torch.where(x < 30, 0.25 * x + 0.1 * y + 10, -0.5 * x + 40)
+    matched = (x % 3 != 0) & (x < 50)
+    filled, slope = planes.planes_and_slopes(torch.full((1, h, w), -1.0), truth[None], matched[None], image,
+                                             [0.01], sigma=1.0, min_pixels=50, inlier_share=0.6)
+    assert torch.equal(filled, planes.fill_from_planes(torch.full((1, h, w), -1.0), truth[None], matched[None],
+                                                       image, [0.01], sigma=1.0, min_pixels=50, inlier_share=0.6))
+    left, right = x < 26, (x > 34) & (x < 58)  # inside each region, away from the blurred edge
+    # matched pixels get their region's slope too: a filler reads it from the hole's neighbours
+    assert (slope[0][left] - 0.25).abs().max() < 1e-3
+    assert (slope[0][right] + 0.5).abs().max() < 1e-3
+
+
+def test_row_slope_steps_within_a_region_only():
+    plane = torch.tensor([[[1.0, 2.0, 3.0, 10.0, 10.5, 7.0]]])
+    labels = torch.tensor([[[1, 1, 1, 2, 2, 3]]])
+    slope = planes.row_slope(plane, labels)[0, 0]
+    assert slope[:5].tolist() == [1.0, 1.0, 1.0, 0.5, 0.5]  # a region's last pixel takes the step before it
+    assert torch.isnan(slope[5])  # alone in its region on this row
+
+
 def test_ransac_start_finds_the_plane_when_most_matches_are_wrong():
     truth = slanted()
     gen = torch.Generator().manual_seed(3)

@@ -250,6 +250,44 @@ def test_background_filling_takes_the_farther_side():
     assert refine.fill_horizontal(disp, "left").tolist() == [[[9.0, 9.0, 9.0, 9.0, 3.0, 3.0]]]
 
 
+def test_filling_with_slopes_carries_each_side_along_its_surface():
+    nan = float("nan")
+    # a wall slanting by 0.5 per pixel with a hole at the row's start and one in the middle; the
+    # right side of the middle hole is a nearer, fronto-parallel box (slope 0)
+    disp = torch.tensor([[[nan, nan, 11.0, 11.5, 12.0, nan, nan, 30.0, 30.0]]])
+    slope = torch.tensor([[[nan, nan, 0.5, 0.5, 0.5, nan, nan, 0.0, 0.0]]])
+    filled = refine.fill_horizontal(disp, "background", slope)
+    assert filled.tolist() == [[[10.0, 10.5, 11.0, 11.5, 12.0, 12.5, 13.0, 30.0, 30.0]]]
+    # without slopes (or where a side has none) the side's value is copied, as before
+    assert refine.fill_horizontal(disp, "background")[0, 0, :2].tolist() == [11.0, 11.0]
+    no_slope = torch.full_like(slope, nan)
+    assert torch.equal(refine.fill_horizontal(disp, "background", no_slope), refine.fill_horizontal(disp))
+
+
+def test_out_of_view_drops_a_border_match_that_its_own_surface_could_not_see():
+    # one region, a wall at disparity 20 from column 20 on; columns 0-3 matched 0 and 1, which
+    # the wall (d = 20 > x) cannot have: their match would lie left of the right image
+    w = 40
+    disp = torch.full((1, 2, w), 20.0)
+    disp[:, :, :4] = torch.tensor([0.0, 0.0, 1.0, 0.0])
+    matched = torch.zeros(1, 2, w, dtype=torch.bool)
+    matched[:, :, :4] = True
+    matched[:, :, 20:] = True
+    labels = torch.ones(1, 2, w, dtype=torch.int64)
+    # row 1: an edge at column 10 separates the border pixels from the wall (a nearer object's
+    # boundary), so a small disparity there is plausible and is kept
+    labels[0, 1, 10:] = 2
+    suspect = refine.out_of_view(disp, matched, labels)
+    assert suspect[0, 0].nonzero()[:, 0].tolist() == [0, 1, 2, 3]
+    assert not suspect[0, 1].any()
+    # a slanted wall d = 15 + 0.2 x comes into view at x = 18.75: its matches from there on, the
+    # first ones included, are kept
+    xs = torch.arange(w, dtype=torch.float32)
+    wall = (15 + 0.2 * xs).view(1, 1, w)
+    seen = (xs >= 19).view(1, 1, w)
+    assert not refine.out_of_view(wall, seen, labels[:, :1]).any()
+
+
 def test_median_fill_leaves_no_hole_and_removes_streaks():
     disp = torch.full((1, 9, 9), 4.0)
     disp[0, 4, 2:7] = 9.0  # a streak from row-wise filling

@@ -9,7 +9,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 # Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
 IMPROVED: dict = {"refine_radius": 0, "agg_radius": 2, "agg_detail_radius": 1, "paths": 8, "p1": 0.08, "p2": 1.3,
                   "search": "coarse_to_fine", "uniqueness": 0.3, "plane_fill": True, "wmf_radius": 4, "fit_radius": 3,
-                  "align": "projective", "p2_edge": "path", "p2_alpha": 40.0}
+                  "align": "projective", "p2_edge": "path", "p2_alpha": 40.0, "view_check_edge": 0.01,
+                  "fill_slope": True}
 
 
 class TorchSGMParams(BaseModel):
@@ -87,6 +88,12 @@ class TorchSGMParams(BaseModel):
     plane_min_pixels: int = Field(100, ge=3, description="matched pixels a region needs for a plane")
     plane_inliers: float = Field(0.6, ge=0, le=1, description="share of a region's matched pixels that must lie "
                                  "within 1 px of its plane")
+    view_check_edge: float = Field(0.0, ge=0, description="before filling, drop the matches near the left border "
+                                   "whose surface, carried from the trusted matches to their right within a region "
+                                   "bounded by edges above this normalised Sobel magnitude, would have its match left "
+                                   "of the right image (refine.out_of_view); 0 = off (the seed)")
+    fill_slope: bool = Field(False, description="the row-wise filling carries each side's plane slope into the hole "
+                             "(with plane_fill) instead of copying its value; off = the seed")
     median_scope: Literal["holes", "all"] = Field("holes", description="all: also a final median over every "
                                                   "pixel, which removes isolated mismatches")
     wmf_radius: int = Field(0, ge=0, le=10, description="last, a median over every pixel's (2r+1)^2 window "

@@ -190,19 +190,23 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
                                                 disparities[-1] < full[-1])
         consistent &= ~narrowed[1]
     raw_disp = disp
+    if p.fill != "none" and p.view_check_edge > 0:
+        labels = planes.edge_regions(planes.edge_magnitude(left, p.plane_sigma), p.view_check_edge)
+        consistent = consistent & ~refine.out_of_view(raw_disp, consistent, labels)
     disp = torch.where(consistent, disp, torch.full_like(disp, float("nan")))
     if p.fill != "none":
         holes = ~consistent
+        slope = None
         if p.plane_fill:
             # first, so that the holes without a plane are filled from plane pixels as well as matched ones
             thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
-            disp = planes.fill_from_planes(disp, raw_disp, consistent, left, thresholds, p.plane_sigma,
-                                           p.plane_min_pixels, p.plane_inliers, p.plane_samples)
+            disp, slope = planes.planes_and_slopes(disp, raw_disp, consistent, left, thresholds, p.plane_sigma,
+                                                   p.plane_min_pixels, p.plane_inliers, p.plane_samples)
             holes = ~torch.isfinite(disp)
         if p.fill == "four_way":
             disp = refine.fill_four_directions(disp, refine.occluded(raw_disp, right_disp, p.lr_tolerance) & holes)
         else:
-            disp = refine.fill_horizontal(disp, p.fill)
+            disp = refine.fill_horizontal(disp, p.fill, slope if p.fill_slope else None)
         disp = refine.median_fill(disp, holes, 0)  # the guided filter needs a hole-free map
         smooth = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
         disp = smooth if p.refine_scope == "all" else torch.where(holes, smooth, disp)

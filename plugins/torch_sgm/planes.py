@@ -179,14 +179,39 @@ def fill_from_planes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Te
     A fine threshold isolates a flat surface from faint edges but breaks textured ones into regions too
     small to fit; coarser thresholds then give the pixels left over a larger region.
     filled, disp (B, H, W) float, matched (B, H, W) bool, image (B, 3, H, W) -> (B, H, W)."""
+    return planes_and_slopes(filled, disp, matched, image, thresholds, sigma, min_pixels, inlier_share, samples)[0]
+
+
+def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor, image: torch.Tensor,
+                      thresholds: list[float], sigma: float, min_pixels: int, inlier_share: float,
+                      samples: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``fill_from_planes`` and, from the same fits, (B, H, W) float: the horizontal slope (disparity
+    per pixel along the row) of the plane of every pixel's region, matched pixels included, at the
+    finest threshold at which a fitted region holding it is supported; NaN elsewhere. A row-wise filler
+    carries a neighbour's slope into the holes next to it (``refine.fill_horizontal``)."""
     magnitude = edge_magnitude(image, sigma)
     todo = ~matched
+    slope = torch.full_like(disp, float("nan"))
     for threshold in thresholds:
         if not todo.any():
             break
-        plane, supported = region_planes(disp, matched, edge_regions(magnitude, threshold), min_pixels,
-                                         inlier_share, samples=samples, wanted=todo)
+        labels = edge_regions(magnitude, threshold)
+        plane, supported = region_planes(disp, matched, labels, min_pixels, inlier_share, samples=samples,
+                                         wanted=todo)
+        found = supported & ~torch.isfinite(slope)
+        slope = torch.where(found, row_slope(plane, labels), slope)
         use = todo & supported
         filled = torch.where(use, plane, filled)
         todo &= ~use
-    return filled
+    return filled, slope
+
+
+def row_slope(plane: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) plane disparity and region labels -> (B, H, W) its step to the next pixel of the row,
+    or from the previous one at a region's right end; NaN for a pixel alone on its row in its region."""
+    nan = torch.full_like(plane[..., :1], float("nan"))
+    step = plane[..., 1:] - plane[..., :-1]
+    same = labels[..., 1:] == labels[..., :-1]
+    ahead = torch.cat([torch.where(same, step, nan), nan], -1)
+    behind = torch.cat([nan, torch.where(same, step, nan)], -1)
+    return torch.where(torch.isfinite(ahead), ahead, behind)

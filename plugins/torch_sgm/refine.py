@@ -48,24 +48,38 @@ def fill_four_directions(disp: torch.Tensor, occlusion: torch.Tensor) -> torch.T
 
 def _nearest_valid(disp: torch.Tensor, reverse: bool) -> torch.Tensor:
     """For every pixel, the value of the nearest valid pixel to its left (or right when reverse)."""
-    if reverse:
-        return _nearest_valid(disp.flip(-1), False).flip(-1)
+    return _nearest_valid_at(disp, reverse)[0]
+
+
+def _nearest_valid_at(disp: torch.Tensor, reverse: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """``_nearest_valid`` and that pixel's column (int64; -1, or W when reverse, where there is none)."""
     w = disp.shape[-1]
+    if reverse:
+        value, column = _nearest_valid_at(disp.flip(-1), False)
+        return value.flip(-1), (w - 1 - column).flip(-1)
     idx = torch.arange(w, device=disp.device).expand_as(disp)
     idx = torch.where(torch.isfinite(disp), idx, torch.full_like(idx, -1))
     last = idx.cummax(-1).values
     value = disp.gather(-1, last.clamp_min(0))
-    return torch.where(last >= 0, value, torch.full_like(value, float("nan")))
+    return torch.where(last >= 0, value, torch.full_like(value, float("nan"))), last
 
 
-def fill_horizontal(disp: torch.Tensor, mode: str = "background") -> torch.Tensor:
+def fill_horizontal(disp: torch.Tensor, mode: str = "background", slope: torch.Tensor | None = None) -> torch.Tensor:
     """Fill each hole from the nearest valid pixels on its row.
 
     background: the smaller disparity of the two sides, because holes after the LR check are mostly
     occlusions, which belong to the farther surface; left / right: that side only; nearest: the
-    closer side. A side that has no valid pixel gives way to the other."""
-    left = _nearest_valid(disp, False)
-    right = _nearest_valid(disp, True)
+    closer side. A side that has no valid pixel gives way to the other.
+    With ``slope`` (B, H, W), a side's value is carried into the hole along its surface: value + slope x
+    distance, where its slope is finite (``planes.planes_and_slopes``); a slanted wall beside a hole
+    goes on slanting instead of stopping at the hole's edge."""
+    left, li = _nearest_valid_at(disp, False)
+    right, ri = _nearest_valid_at(disp, True)
+    if slope is not None:
+        w = disp.shape[-1]
+        x = torch.arange(w, device=disp.device).expand_as(disp)
+        left = left + slope.gather(-1, li.clamp(0, w - 1)).nan_to_num(0.0) * (x - li)
+        right = right - slope.gather(-1, ri.clamp(0, w - 1)).nan_to_num(0.0) * (ri - x)
     if mode == "background":
         fill = torch.fmin(left, right)
     elif mode == "left":
@@ -83,6 +97,33 @@ def fill_horizontal(disp: torch.Tensor, mode: str = "background") -> torch.Tenso
     else:
         raise ValueError(f"unknown fill mode {mode!r}")
     return torch.where(torch.isfinite(disp), disp, fill)
+
+
+def out_of_view(disp: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Matched pixels whose true match likely lies left of the right image, so that what they matched
+    is a guess: (B, H, W) bool.
+
+    A pixel at column x with disparity d sees its match at x - d; near the left border a surface with
+    d > x has none, and the matcher takes some small disparity there that can pass the checks (a
+    saturated wall at the border of Vintage matches 0) and then feeds the filling of the holes beside
+    it. Each row is walked from the right; a matched pixel is suspect when x is less than the disparity
+    of the last trusted match to its right in the same region of ``labels`` (``planes.edge_regions``),
+    i.e. when that surface, carried to the pixel, would be out of view. A region boundary between them
+    (a nearer object to the right) keeps the pixel: a background match beside it is plausible.
+    disp (B, H, W) float, matched (B, H, W) bool, labels (B, H, W) int64."""
+    b, h, w = disp.shape
+    reference = torch.full((b, h), float("nan"), dtype=disp.dtype, device=disp.device)
+    region = torch.full((b, h), -1, dtype=labels.dtype, device=disp.device)
+    suspect = torch.zeros_like(matched)
+    # sequential along the row (the reference moves only at trusted pixels), vectorised over rows
+    for x in range(w - 1, -1, -1):
+        here = matched[:, :, x]
+        bad = here & (reference > x) & (labels[:, :, x] == region)
+        suspect[:, :, x] = bad
+        trusted = here & ~bad
+        reference = torch.where(trusted, disp[:, :, x], reference)
+        region = torch.where(trusted, labels[:, :, x], region)
+    return suspect
 
 
 def guided_refine(disp: torch.Tensor, guide: torch.Tensor, radius: int, eps: float) -> torch.Tensor:

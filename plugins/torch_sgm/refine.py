@@ -73,11 +73,11 @@ def fill_horizontal(disp: torch.Tensor, mode: str = "background", slope: torch.T
     With ``slope`` (B, H, W), a side's value is carried into the hole along its surface: value + slope x
     distance, where its slope is finite (``planes.planes_and_slopes``); a slanted wall beside a hole
     goes on slanting instead of stopping at the hole's edge."""
+    w = disp.shape[-1]
+    x = torch.arange(w, device=disp.device).expand_as(disp)
     left, li = _nearest_valid_at(disp, False)
     right, ri = _nearest_valid_at(disp, True)
     if slope is not None:
-        w = disp.shape[-1]
-        x = torch.arange(w, device=disp.device).expand_as(disp)
         left = left + slope.gather(-1, li.clamp(0, w - 1)).nan_to_num(0.0) * (x - li)
         right = right - slope.gather(-1, ri.clamp(0, w - 1)).nan_to_num(0.0) * (ri - x)
     if mode == "background":
@@ -87,12 +87,8 @@ def fill_horizontal(disp: torch.Tensor, mode: str = "background", slope: torch.T
     elif mode == "right":
         fill = torch.where(torch.isfinite(right), right, left)
     elif mode == "nearest":
-        w = disp.shape[-1]
-        idx = torch.arange(w, device=disp.device).expand_as(disp)
-        valid = torch.isfinite(disp)
-        li = torch.where(valid, idx, torch.full_like(idx, -w)).cummax(-1).values
-        ri = torch.where(valid, idx, torch.full_like(idx, 2 * w)).flip(-1).cummin(-1).values.flip(-1)
-        fill = torch.where((idx - li) <= (ri - idx), left, right)
+        # a missing side (column -1 or W) may look nearer; its NaN then gives way to the other side
+        fill = torch.where((x - li) <= (ri - x), left, right)
         fill = torch.where(torch.isfinite(fill), fill, torch.fmax(left, right))
     else:
         raise ValueError(f"unknown fill mode {mode!r}")

@@ -96,8 +96,9 @@ def test_planes_and_slopes_give_each_supported_region_its_row_slope():
     image = grey.expand(1, 3, h, w).contiguous()
     truth = torch.where(x < 30, 0.25 * x + 0.1 * y + 10, -0.5 * x + 40)
     matched = (x % 3 != 0) & (x < 50)
-    filled, slope = planes.planes_and_slopes(torch.full((1, h, w), -1.0), truth[None], matched[None], image,
-                                             [0.01], sigma=1.0, min_pixels=50, inlier_share=0.6)
+    filled, slope = planes.planes_and_slopes(torch.full((1, h, w), -1.0), truth[None], matched[None],
+                                             planes.edge_magnitude(image, 1.0), [0.01], min_pixels=50,
+                                             inlier_share=0.6)
     assert torch.equal(filled, planes.fill_from_planes(torch.full((1, h, w), -1.0), truth[None], matched[None],
                                                        image, [0.01], sigma=1.0, min_pixels=50, inlier_share=0.6))
     left, right = x < 26, (x > 34) & (x < 58)  # inside each region, away from the blurred edge

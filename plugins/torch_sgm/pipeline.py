@@ -190,8 +190,11 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
                                                 disparities[-1] < full[-1])
         consistent &= ~narrowed[1]
     raw_disp = disp
+    # the edges bound the regions of both the out-of-view check and the plane filling
+    edges = (planes.edge_magnitude(left, p.plane_sigma)
+             if p.fill != "none" and (p.view_check_edge > 0 or p.plane_fill) else None)
     if p.fill != "none" and p.view_check_edge > 0:
-        labels = planes.edge_regions(planes.edge_magnitude(left, p.plane_sigma), p.view_check_edge)
+        labels = planes.edge_regions(edges, p.view_check_edge)
         consistent = consistent & ~refine.out_of_view(raw_disp, consistent, labels)
     disp = torch.where(consistent, disp, torch.full_like(disp, float("nan")))
     if p.fill != "none":
@@ -200,7 +203,7 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         if p.plane_fill:
             # first, so that the holes without a plane are filled from plane pixels as well as matched ones
             thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
-            disp, slope = planes.planes_and_slopes(disp, raw_disp, consistent, left, thresholds, p.plane_sigma,
+            disp, slope = planes.planes_and_slopes(disp, raw_disp, consistent, edges, thresholds,
                                                    p.plane_min_pixels, p.plane_inliers, p.plane_samples)
             holes = ~torch.isfinite(disp)
         if p.fill == "four_way":

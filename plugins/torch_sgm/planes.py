@@ -179,17 +179,19 @@ def fill_from_planes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Te
     A fine threshold isolates a flat surface from faint edges but breaks textured ones into regions too
     small to fit; coarser thresholds then give the pixels left over a larger region.
     filled, disp (B, H, W) float, matched (B, H, W) bool, image (B, 3, H, W) -> (B, H, W)."""
-    return planes_and_slopes(filled, disp, matched, image, thresholds, sigma, min_pixels, inlier_share, samples)[0]
+    return planes_and_slopes(filled, disp, matched, edge_magnitude(image, sigma), thresholds, min_pixels,
+                             inlier_share, samples)[0]
 
 
-def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor, image: torch.Tensor,
-                      thresholds: list[float], sigma: float, min_pixels: int, inlier_share: float,
+def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor, magnitude: torch.Tensor,
+                      thresholds: list[float], min_pixels: int, inlier_share: float,
                       samples: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """``fill_from_planes`` and, from the same fits, (B, H, W) float: the horizontal slope (disparity
-    per pixel along the row) of the plane of every pixel's region, matched pixels included, at the
-    finest threshold at which a fitted region holding it is supported; NaN elsewhere. A row-wise filler
-    carries a neighbour's slope into the holes next to it (``refine.fill_horizontal``)."""
-    magnitude = edge_magnitude(image, sigma)
+    """``fill_from_planes`` from the image's (B, H, W) ``edge_magnitude`` (which a caller that also
+    needs the regions for something else computes once) and, from the same fits, (B, H, W) float: the
+    horizontal slope (disparity per pixel along the row) of the plane of every pixel's region, matched
+    pixels included, at the finest threshold at which a fitted region holding it is supported; NaN
+    elsewhere. A row-wise filler carries a neighbour's slope into the holes next to it
+    (``refine.fill_horizontal``)."""
     todo = ~matched
     slope = torch.full_like(disp, float("nan"))
     for threshold in thresholds:

@@ -138,3 +138,61 @@ def test_ransac_planes_skip_regions_too_small_to_fit():
                                   min_pixels=5)
     assert torch.isnan(coeffs[0]).all() and torch.isnan(coeffs[2]).all()  # no pixels; 2 < 5 pixels
     assert torch.allclose(coeffs[1], torch.tensor([20.0, 0.0, 1.0], dtype=torch.float64), atol=1e-6)
+
+
+def local_scene(h=40, w=90):
+    """Three regions of one slanted surface: columns 0-29 unmatched, with winners on the plane at every
+    other pixel (the rest scattered), 30-59 unmatched with only scattered winners, 60-89 winners on the
+    plane but half the region matched."""
+    truth = slanted(h, w)
+    gen = torch.Generator().manual_seed(4)
+    labels = torch.full((1, h, w), 3, dtype=torch.int64)
+    labels[0, :, :60] = 2
+    labels[0, :, :30] = 1
+    x = torch.arange(w).expand(h, w)
+    noise = truth + 3 + 20 * torch.rand(h, w, generator=gen)  # winners that agree with nothing
+    local = torch.where(((x % 2 == 0) & (x < 30)) | (x >= 60), truth, noise)
+    matched = torch.zeros(1, h, w, dtype=torch.bool)
+    matched[0, :, 60:] = x[:, 60:] % 2 == 0
+    return truth, local[None], matched, labels
+
+
+def test_local_planes_need_dense_agreeing_winners_in_a_region_that_did_not_match():
+    truth, local, matched, labels = local_scene()
+    plane, supported = planes.local_planes(local, matched, labels, min_pixels=100, inlier_share=0.3, density=0.18,
+                                           max_matched=0.25, samples=32)
+    assert supported[0, :, :30].all() and (plane[0, :, :30] - truth[:, :30]).abs().max() < 0.01
+    assert not supported[0, :, 30:60].any()  # scattered winners make no plane
+    assert not supported[0, :, 60:].any()  # half matched: its matches decide, not the winners
+    _, lenient = planes.local_planes(local, matched, labels, 100, 0.3, 0.18, max_matched=0.6, samples=32)
+    assert lenient[0, :, 60:].all()
+    # half the winners agree: enough at density 0.18, not at 0.6
+    _, strict = planes.local_planes(local, matched, labels, 100, 0.3, density=0.6, max_matched=0.25, samples=32)
+    assert not strict[0, :, :30].any()
+    # NaN winners (failed their left-right check) neither vote nor count as inliers
+    hidden = local.clone()
+    hidden[0, :, :30] = torch.where(torch.arange(30) % 2 == 0, float("nan"), local[0, :, :30])
+    _, gone = planes.local_planes(hidden, matched, labels, 100, 0.3, 0.18, 0.25, samples=32)
+    assert not gone[0, :, :30].any()
+
+
+def test_planes_and_slopes_use_local_winners_only_where_matches_give_no_plane():
+    h, w = 40, 60
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    image = torch.where(x < 30, 0.3, 0.8).expand(1, 3, h, w).contiguous()
+    truth = torch.where(x < 30, 0.25 * x + 0.1 * y + 10, -0.2 * x + 40)
+    # the left region matched on its plane; the right one only on two rows, too few for a plane (100)
+    matched = (x < 30) & (x % 3 != 0) | (y < 2)
+    # the winners before SGM: on the plane in both regions (an offset on the left shows which plane won)
+    local = torch.where(x < 30, truth + 5, truth)
+    filled, slope = planes.planes_and_slopes(torch.full((1, h, w), -1.0), truth[None], matched[None],
+                                             planes.edge_magnitude(image, 1.0), [0.01], min_pixels=100,
+                                             inlier_share=0.6, samples=32, local=local[None])
+    left, right = (x < 26) & ~matched, (x > 34) & ~matched
+    assert (filled[0][left] - truth[left]).abs().max() < 1e-3  # its matches' plane, not the winners'
+    assert (filled[0][right] - truth[right]).abs().max() < 1e-3
+    assert (slope[0][(x > 34) & (x < 58)] + 0.2).abs().max() < 1e-3
+    without, _ = planes.planes_and_slopes(torch.full((1, h, w), -1.0), truth[None], matched[None],
+                                          planes.edge_magnitude(image, 1.0), [0.01], min_pixels=100,
+                                          inlier_share=0.6, samples=32)
+    assert (without[0][right] == -1).all()

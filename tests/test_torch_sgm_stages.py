@@ -233,6 +233,19 @@ def test_right_view_wta_reads_the_volume_along_diagonals():
         assert np.isnan(expected) and torch.isnan(got[0, 1, x]) or got[0, 1, x].item() == expected
 
 
+def test_local_winners_keep_the_raw_minimum_where_both_views_agree():
+    # a pair shifted by 3 px: the cost is lowest at d = 3 everywhere but one pixel, whose own minimum
+    # at d = 5 the right view does not confirm: right x = 4 sees left x = 7 at d = 3 at a lower cost
+    disparities = [1, 2, 3, 4, 5, 6]
+    volume = torch.ones(1, 6, 2, 12)
+    volume[:, 2] = 0.1
+    volume[0, :, 0, 9] = torch.tensor([1.0, 1.0, 0.5, 1.0, 0.15, 1.0])
+    got = select.local_winners(volume, disparities, lr_tolerance=1.0)
+    assert torch.isnan(got[0, :, :3]).all()  # x - 3 leaves the right image
+    assert (got[0, 1, 3:] == 3).all() and (got[0, 0, 3:9] == 3).all() and (got[0, 0, 10:] == 3).all()
+    assert torch.isnan(got[0, 0, 9])
+
+
 def test_left_right_check_rejects_inconsistent_pixels():
     left = torch.full((1, 1, 10), 2.0)
     right = torch.full((1, 1, 10), 2.0)

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 IMPROVED: dict = {"refine_radius": 0, "agg_radius": 2, "agg_detail_radius": 1, "paths": 8, "p1": 0.08, "p2": 1.3,
                   "search": "coarse_to_fine", "uniqueness": 0.3, "plane_fill": True, "wmf_radius": 4, "fit_radius": 3,
                   "align": "projective", "p2_edge": "path", "p2_alpha": 40.0, "view_check_edge": 0.01,
-                  "fill_slope": True}
+                  "fill_slope": True, "plane_local": True}
 
 
 class TorchSGMParams(BaseModel):
@@ -88,6 +88,15 @@ class TorchSGMParams(BaseModel):
     plane_min_pixels: int = Field(100, ge=3, description="matched pixels a region needs for a plane")
     plane_inliers: float = Field(0.6, ge=0, le=1, description="share of a region's matched pixels that must lie "
                                  "within 1 px of its plane")
+    plane_local: bool = Field(False, description="with plane_fill, a region that its matched pixels give no plane "
+                              "and of which fewer than plane_local_max_matched matched takes the robust plane of "
+                              "the winners of the cost before SGM that pass their own left-right check, where "
+                              "plane_local_inliers of them lie within 1 px of it and those cover plane_local_density "
+                              "of the region (a textureless tabletop that SGM gives its neighbour's disparity); "
+                              "off = the seed")
+    plane_local_inliers: float = Field(0.3, ge=0, le=1)
+    plane_local_density: float = Field(0.18, ge=0, le=1)
+    plane_local_max_matched: float = Field(0.25, ge=0, le=1)
     view_check_edge: float = Field(0.0, ge=0, description="before filling, drop the matches near the left border "
                                    "whose surface, carried from the trusted matches to their right within a region "
                                    "bounded by edges above this normalised Sobel magnitude, would have its match left "

@@ -174,6 +174,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         penalty = sgm.path_p2(cost.to_grey(left)[:, 0], paths, p.p2, p.p2_alpha, p.p1)
     else:
         penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
+    local = (select.local_winners(volume, disparities, p.lr_tolerance)
+             if p.fill != "none" and p.plane_fill and p.plane_local else None)
     aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
     del volume
     index = select.winner_takes_all(aggregated)
@@ -203,8 +205,9 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         if p.plane_fill:
             # first, so that the holes without a plane are filled from plane pixels as well as matched ones
             thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
-            disp, slope = planes.planes_and_slopes(disp, raw_disp, consistent, edges, thresholds,
-                                                   p.plane_min_pixels, p.plane_inliers, p.plane_samples)
+            disp, slope = planes.planes_and_slopes(
+                disp, raw_disp, consistent, edges, thresholds, p.plane_min_pixels, p.plane_inliers, p.plane_samples,
+                local, (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched))
             holes = ~torch.isfinite(disp)
         if p.fill == "four_way":
             disp = refine.fill_four_directions(disp, refine.occluded(raw_disp, right_disp, p.lr_tolerance) & holes)

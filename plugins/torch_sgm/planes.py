@@ -185,13 +185,19 @@ def fill_from_planes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Te
 
 def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor, magnitude: torch.Tensor,
                       thresholds: list[float], min_pixels: int, inlier_share: float,
-                      samples: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+                      samples: int = 0, local: torch.Tensor | None = None,
+                      local_test: tuple[float, float, float] = (0.3, 0.18, 0.25),
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
     """``fill_from_planes`` from the image's (B, H, W) ``edge_magnitude`` (which a caller that also
     needs the regions for something else computes once) and, from the same fits, (B, H, W) float: the
     horizontal slope (disparity per pixel along the row) of the plane of every pixel's region, matched
     pixels included, at the finest threshold at which a fitted region holding it is supported; NaN
     elsewhere. A row-wise filler carries a neighbour's slope into the holes next to it
-    (``refine.fill_horizontal``)."""
+    (``refine.fill_horizontal``).
+
+    With ``local`` (B, H, W), the winners of the cost before SGM (``select.local_winners``, NaN where
+    not trusted), a region that its matched pixels give no plane may take ``local_planes``' plane
+    instead, ``local_test`` being its (inlier_share, density, max_matched)."""
     todo = ~matched
     slope = torch.full_like(disp, float("nan"))
     for threshold in thresholds:
@@ -200,12 +206,41 @@ def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.T
         labels = edge_regions(magnitude, threshold)
         plane, supported = region_planes(disp, matched, labels, min_pixels, inlier_share, samples=samples,
                                          wanted=todo)
+        if local is not None:
+            extra, backed = local_planes(local, matched, labels, min_pixels, *local_test, samples=samples,
+                                         wanted=todo & ~supported)
+            plane = torch.where(supported, plane, extra)
+            supported = supported | backed
         found = supported & ~torch.isfinite(slope)
         slope = torch.where(found, row_slope(plane, labels), slope)
         use = todo & supported
         filled = torch.where(use, plane, filled)
         todo &= ~use
     return filled, slope
+
+
+def local_planes(local: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor, min_pixels: int,
+                 inlier_share: float, density: float, max_matched: float, samples: int = 0,
+                 wanted: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``region_planes`` fitted to the winners of the cost before SGM (``select.local_winners``) of every
+    pixel of a region, for a region where matching failed.
+
+    Those winners are noisy: a region is supported only when at least ``inlier_share`` of its finite
+    winners lie within 1 px of the plane, and those inliers cover at least ``density`` of the region, so
+    that a few winners agreeing by chance do not make a plane. Where ``max_matched`` or more of the
+    region's pixels matched, its matches already say what it is; a region that still has no plane of
+    its own then holds several surfaces, and the winners' plane would be one of them.
+    local (B, H, W) float, NaN where not trusted; matched (B, H, W) bool; labels from ``edge_regions``
+    -> (plane disparity (B, H, W), NaN where not fitted; supported (B, H, W) bool)."""
+    finite = torch.isfinite(local)
+    plane, supported = region_planes(local, finite, labels, min_pixels, inlier_share, samples=samples, wanted=wanted)
+    index = labels.flatten()
+    k = int(index.max()) + 1 if index.numel() else 1
+    size = torch.bincount(index, minlength=k).clamp_min(1).double()
+    inliers = (finite & ((local - plane).abs() < 1.0)).flatten()
+    dense = torch.bincount(index[inliers], minlength=k) >= density * size
+    unmatched = torch.bincount(index[matched.flatten()], minlength=k) < max_matched * size
+    return plane, supported & (dense & unmatched)[index].view_as(supported)
 
 
 def row_slope(plane: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import torch
 
+from plugins.torch_sgm.refine import left_right_check
+
 
 def winner_takes_all(volume: torch.Tensor) -> torch.Tensor:
     """(B, D, H, W) cost -> (B, H, W) int64 index of the lowest cost (the first of equal ones)."""
@@ -77,3 +79,19 @@ def right_view_wta(volume: torch.Tensor, disparities) -> torch.Tensor:
         best[..., dst] = torch.where(better, src, best[..., dst])
         disp[..., dst] = torch.where(better, torch.full_like(src, float(d)), disp[..., dst])
     return disp
+
+
+def local_winners(volume: torch.Tensor, disparities, lr_tolerance: float = 1.0) -> torch.Tensor:
+    """The winners of the cost before SGM, where they pass their own left-right check.
+
+    SGM carries a disparity across a textureless surface from whatever borders it, so on a flat tabletop
+    its winners agree with each other and the checks pass them, but they belong to the surface beside
+    it. The locally aggregated cost is noisy there instead of biased: its winners scatter, and those on
+    the faint texture the surface has still lie on its plane (``planes.local_planes`` fits them).
+    (B, D, H, W) cost over ``disparities`` (consecutive integers) -> (B, H, W) float32 disparity, parabolic
+    sub-pixel, NaN where the right view's winner (read off the same volume) disagrees by more than
+    ``lr_tolerance``."""
+    index = winner_takes_all(volume)
+    disp = parabolic_subpixel(volume, index) + disparities[0]
+    consistent = left_right_check(disp, right_view_wta(volume, disparities), lr_tolerance)
+    return torch.where(consistent, disp, torch.full_like(disp, float("nan")))

@@ -232,15 +232,17 @@ def local_planes(local: torch.Tensor, matched: torch.Tensor, labels: torch.Tenso
     its own then holds several surfaces, and the winners' plane would be one of them.
     local (B, H, W) float, NaN where not trusted; matched (B, H, W) bool; labels from ``edge_regions``
     -> (plane disparity (B, H, W), NaN where not fitted; supported (B, H, W) bool)."""
-    finite = torch.isfinite(local)
-    plane, supported = region_planes(local, finite, labels, min_pixels, inlier_share, samples=samples, wanted=wanted)
     index = labels.flatten()
     k = int(index.max()) + 1 if index.numel() else 1
     size = torch.bincount(index, minlength=k).clamp_min(1).double()
+    # tested before the fit, so that the large many-surface regions of a textured frame cost nothing
+    unmatched = (torch.bincount(index[matched.flatten()], minlength=k) < max_matched * size)[index].view_as(matched)
+    wanted = unmatched if wanted is None else wanted & unmatched
+    finite = torch.isfinite(local)
+    plane, supported = region_planes(local, finite, labels, min_pixels, inlier_share, samples=samples, wanted=wanted)
     inliers = (finite & ((local - plane).abs() < 1.0)).flatten()
     dense = torch.bincount(index[inliers], minlength=k) >= density * size
-    unmatched = torch.bincount(index[matched.flatten()], minlength=k) < max_matched * size
-    return plane, supported & (dense & unmatched)[index].view_as(supported)
+    return plane, supported & dense[index].view_as(supported)
 
 
 def row_slope(plane: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:

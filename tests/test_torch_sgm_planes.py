@@ -187,7 +187,8 @@ def test_planes_and_slopes_use_local_winners_only_where_matches_give_no_plane():
     local = torch.where(x < 30, truth + 5, truth)
     filled, slope = planes.planes_and_slopes(torch.full((1, h, w), -1.0), truth[None], matched[None],
                                              planes.edge_magnitude(image, 1.0), [0.01], min_pixels=100,
-                                             inlier_share=0.6, samples=32, local=local[None])
+                                             inlier_share=0.6, samples=32, local=local[None],
+                                             local_test=(0.3, 0.18, 0.25))
     left, right = (x < 26) & ~matched, (x > 34) & ~matched
     assert (filled[0][left] - truth[left]).abs().max() < 1e-3  # its matches' plane, not the winners'
     assert (filled[0][right] - truth[right]).abs().max() < 1e-3
@@ -196,3 +197,6 @@ def test_planes_and_slopes_use_local_winners_only_where_matches_give_no_plane():
                                           planes.edge_magnitude(image, 1.0), [0.01], min_pixels=100,
                                           inlier_share=0.6, samples=32)
     assert (without[0][right] == -1).all()
+    with pytest.raises(ValueError, match="local_test"):
+        planes.planes_and_slopes(torch.full((1, h, w), -1.0), truth[None], matched[None],
+                                 planes.edge_magnitude(image, 1.0), [0.01], 100, 0.6, 32, local[None])

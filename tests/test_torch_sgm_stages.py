@@ -246,6 +246,24 @@ def test_local_winners_keep_the_raw_minimum_where_both_views_agree():
     assert torch.isnan(got[0, 0, 9])
 
 
+def test_checked_winners_refine_the_winner_and_leave_the_volume_for_the_uniqueness_test():
+    # every pixel's cost is a parabola with its minimum at d = 3.25, except one pixel whose minimum at
+    # d = 5 the right view does not confirm (as in the test above)
+    disparities = [1, 2, 3, 4, 5, 6]
+    d = torch.tensor(disparities, dtype=torch.float32).view(1, 6, 1, 1)
+    volume = ((d - 3.25) ** 2).expand(1, 6, 2, 12).contiguous()
+    volume[0, :, 0, 9] = torch.tensor([1.0, 1.0, 0.5, 1.0, 0.15, 1.0])
+    before = volume.clone()
+    disp, index, right_disp, consistent = select.checked_winners(volume, disparities, 1.0)
+    assert torch.equal(volume, before)
+    assert index[0, 1, 5] == 2 and index[0, 0, 9] == 4
+    assert torch.allclose(disp[0, 1], torch.full((12,), 3.25))  # a parabola's vertex is found exactly
+    assert not consistent[0, 0, 9] and consistent[0, 1, 3:].all() and not consistent[0, :, :3].any()
+    assert torch.equal(consistent, refine.left_right_check(disp, right_disp, 1.0))
+    _, _, _, equiangular = select.checked_winners(volume, disparities, 1.0, select.equiangular_subpixel)
+    assert torch.equal(equiangular, consistent)
+
+
 def test_left_right_check_rejects_inconsistent_pixels():
     left = torch.full((1, 1, 10), 2.0)
     right = torch.full((1, 1, 10), 2.0)

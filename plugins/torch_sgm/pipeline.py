@@ -178,15 +178,11 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
              if p.fill != "none" and p.plane_fill and p.plane_local else None)
     aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
     del volume
-    index = select.winner_takes_all(aggregated)
     fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel
-    disp = fit(aggregated, index) + disparities[0]
-    right_disp = select.right_view_wta(aggregated, disparities)
-    unique = select.unique_minimum(aggregated, index, p.uniqueness) if p.uniqueness > 0 else None
+    disp, index, right_disp, consistent = select.checked_winners(aggregated, disparities, p.lr_tolerance, fit)
+    if p.uniqueness > 0:
+        consistent &= select.unique_minimum(aggregated, index, p.uniqueness)
     del aggregated
-    consistent = refine.left_right_check(disp, right_disp, p.lr_tolerance)
-    if unique is not None:
-        consistent &= unique
     if narrowed is not None:
         consistent &= ~search.at_narrowed_bound(index, len(disparities), disparities[0] > full[0],
                                                 disparities[-1] < full[-1])

@@ -186,7 +186,7 @@ def fill_from_planes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Te
 def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor, magnitude: torch.Tensor,
                       thresholds: list[float], min_pixels: int, inlier_share: float,
                       samples: int = 0, local: torch.Tensor | None = None,
-                      local_test: tuple[float, float, float] = (0.3, 0.18, 0.25),
+                      local_test: tuple[float, float, float] | None = None,
                       ) -> tuple[torch.Tensor, torch.Tensor]:
     """``fill_from_planes`` from the image's (B, H, W) ``edge_magnitude`` (which a caller that also
     needs the regions for something else computes once) and, from the same fits, (B, H, W) float: the
@@ -198,6 +198,8 @@ def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.T
     With ``local`` (B, H, W), the winners of the cost before SGM (``select.local_winners``, NaN where
     not trusted), a region that its matched pixels give no plane may take ``local_planes``' plane
     instead, ``local_test`` being its (inlier_share, density, max_matched)."""
+    if local is not None and local_test is None:
+        raise ValueError("planes_and_slopes: local winners given without their local_test")
     todo = ~matched
     slope = torch.full_like(disp, float("nan"))
     for threshold in thresholds:

@@ -81,6 +81,21 @@ def right_view_wta(volume: torch.Tensor, disparities) -> torch.Tensor:
     return disp
 
 
+def checked_winners(volume: torch.Tensor, disparities, lr_tolerance: float, fit=parabolic_subpixel,
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Winner-takes-all of both views read off one volume, and the left-right check between them.
+
+    (B, D, H, W) cost over ``disparities`` (consecutive integers) -> (disparity (B, H, W) float32, refined
+    by ``fit`` (``parabolic_subpixel`` or ``equiangular_subpixel``); its index (B, H, W) int64 into the
+    volume; the right view's disparity (``right_view_wta``); consistent (B, H, W) bool, the pixels that
+    ``left_right_check`` passes within ``lr_tolerance``). Leaves ``volume`` as it was, so that
+    ``unique_minimum`` may still be called on it afterwards."""
+    index = winner_takes_all(volume)
+    disp = fit(volume, index) + disparities[0]
+    right_disp = right_view_wta(volume, disparities)
+    return disp, index, right_disp, left_right_check(disp, right_disp, lr_tolerance)
+
+
 def local_winners(volume: torch.Tensor, disparities, lr_tolerance: float = 1.0) -> torch.Tensor:
     """The winners of the cost before SGM, where they pass their own left-right check.
 
@@ -91,7 +106,5 @@ def local_winners(volume: torch.Tensor, disparities, lr_tolerance: float = 1.0) 
     (B, D, H, W) cost over ``disparities`` (consecutive integers) -> (B, H, W) float32 disparity, parabolic
     sub-pixel, NaN where the right view's winner (read off the same volume) disagrees by more than
     ``lr_tolerance``."""
-    index = winner_takes_all(volume)
-    disp = parabolic_subpixel(volume, index) + disparities[0]
-    consistent = left_right_check(disp, right_view_wta(volume, disparities), lr_tolerance)
+    disp, _, _, consistent = checked_winners(volume, disparities, lr_tolerance)
     return torch.where(consistent, disp, torch.full_like(disp, float("nan")))

@@ -223,15 +223,15 @@ def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.T
 
 def local_planes(local: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor, min_pixels: int,
                  inlier_share: float, density: float, max_matched: float, samples: int = 0,
-                 wanted: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                 wanted: torch.Tensor | None = None, tolerance: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
     """``region_planes`` fitted to the winners of the cost before SGM (``select.local_winners``) of every
     pixel of a region, for a region where matching failed.
 
     Those winners are noisy: a region is supported only when at least ``inlier_share`` of its finite
-    winners lie within 1 px of the plane, and those inliers cover at least ``density`` of the region, so
-    that a few winners agreeing by chance do not make a plane. Where ``max_matched`` or more of the
-    region's pixels matched, its matches already say what it is; a region that still has no plane of
-    its own then holds several surfaces, and the winners' plane would be one of them.
+    winners lie within ``tolerance`` of the plane, and those inliers cover at least ``density`` of the
+    region, so that a few winners agreeing by chance do not make a plane. Where ``max_matched`` or more
+    of the region's pixels matched, its matches already say what it is; a region that still has no plane
+    of its own then holds several surfaces, and the winners' plane would be one of them.
     local (B, H, W) float, NaN where not trusted; matched (B, H, W) bool; labels from ``edge_regions``
     -> (plane disparity (B, H, W), NaN where not fitted; supported (B, H, W) bool)."""
     index = labels.flatten()
@@ -241,8 +241,9 @@ def local_planes(local: torch.Tensor, matched: torch.Tensor, labels: torch.Tenso
     unmatched = (torch.bincount(index[matched.flatten()], minlength=k) < max_matched * size)[index].view_as(matched)
     wanted = unmatched if wanted is None else wanted & unmatched
     finite = torch.isfinite(local)
-    plane, supported = region_planes(local, finite, labels, min_pixels, inlier_share, samples=samples, wanted=wanted)
-    inliers = (finite & ((local - plane).abs() < 1.0)).flatten()
+    plane, supported = region_planes(local, finite, labels, min_pixels, inlier_share, tolerance, samples, wanted)
+    # inliers by region_planes' own criterion, but counted against the whole region
+    inliers = (finite & ((local - plane).abs() < tolerance)).flatten()
     dense = torch.bincount(index[inliers], minlength=k) >= density * size
     return plane, supported & dense[index].view_as(supported)
 

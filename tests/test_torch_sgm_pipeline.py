@@ -14,7 +14,8 @@ from core.contracts import PluginContext, StereoBackend
 from core.registry import Registry
 from core.stereo_eval import score
 from plugins.torch_sgm import plugin as torch_sgm_plugin
-from plugins.torch_sgm.pipeline import TorchSGMParams, bgr_to_tensor, compute_disparity, cost_volume
+from plugins.torch_sgm.pipeline import (TorchSGMParams, bgr_to_tensor, compute_disparity, cost_volume,
+                                        right_view_map)
 from plugins.torch_sgm.synthetic import fronto_parallel, layered_scene
 
 
@@ -113,3 +114,25 @@ def test_improved_preset_beats_the_seed_on_a_held_out_synthetic_pair():
     seed_bad = score(seed[0], gt, nonocc, seed[1])["dense"]["bad1.0"]
     improved_bad = score(improved[0], gt, nonocc, improved[1])["dense"]["bad1.0"]
     assert improved_bad < 0.5 * seed_bad
+
+
+def test_right_view_map_is_the_right_images_disparity():
+    left, right, _, _ = fronto_parallel(48, 96, 7.4, seed=3)
+    dev = torch.device("cpu")
+    with torch.inference_mode():
+        mirrored = right_view_map(bgr_to_tensor(left, dev), bgr_to_tensor(right, dev), 0, 24,
+                                  TorchSGMParams(preset="improved"))
+    inner = mirrored[0, 4:-4, 4:-12]  # the right image's last columns see beyond the left one
+    assert mirrored.shape == (1, 48, 96) and (inner - 7.4).abs().median() < 0.25
+
+
+def test_two_view_choice_improves_held_out_synthetic_pairs():
+    # Not Middlebury scenes: slanted planes, a depth edge and occlusions from the generator.
+    for seed in (3, 5):
+        left, right, gt, nonocc = layered_scene(seed=seed)
+        bad = []
+        for two_view in (False, True):
+            disp, _ = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="improved", two_view=two_view),
+                                        device="cpu")
+            bad.append(score(disp, gt, nonocc)["dense"]["bad1.0"])
+        assert bad[1] < bad[0]

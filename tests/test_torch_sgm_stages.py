@@ -458,3 +458,42 @@ def test_local_plane_fit_leaves_exact_planes_and_holes_alone():
     assert torch.equal(torch.isfinite(out), finite)
     assert torch.allclose(out[finite], disp[finite], atol=1e-3)
     assert refine.local_plane_fit(disp, image, 0, 0.1, 5.0, 1.0) is disp
+
+
+def _square_scene(fattening: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A background at 10 px with a square at 20 px (left columns 20-39, rows 10-29): the right view's
+    exact map, and a left map whose square is fattened by ``fattening`` px to its right."""
+    right = torch.full((1, 40, 64), 10.0)
+    right[0, 10:30, 0:20] = 20.0
+    left = torch.full((1, 40, 64), 10.0)
+    left[0, 10:30, 20:40 + fattening] = 20.0
+    return left, right
+
+
+def test_view_mismatch_measures_the_disagreement_and_is_inf_out_of_view():
+    left, right = _square_scene(3)
+    miss = refine.view_mismatch(left, right)
+    assert torch.isinf(miss[0, 0, :10]).all()  # x - 10 < 0
+    assert (miss[0, 10:30, 20:40] == 0).all() and (miss[0, 10:30, 40:43] == 10).all()
+    assert torch.isinf(refine.view_mismatch(torch.full((1, 1, 4), float("nan")), right[:, :1, :4])).all()
+
+
+def test_two_view_choice_gives_a_fattened_edge_back_to_the_background():
+    left, right = _square_scene(3)
+    chosen = refine.two_view_choice(left, right, reach=6, tolerance=1.0, iterations=1)
+    assert (chosen[0, 10:30, 40:43] == 10).all()
+    assert torch.equal(chosen[0, 10:30, 20:40], left[0, 10:30, 20:40])  # what the right view confirms stays
+    truth, _ = _square_scene(0)
+    assert torch.equal(chosen[:, :, 10:], truth[:, :, 10:])
+
+
+def test_two_view_choice_keeps_a_value_no_neighbour_can_replace_and_iterates_to_reach_further():
+    left, right = _square_scene(10)  # columns 40-49 wrong, the nearest right background 10 px away
+    once = refine.two_view_choice(left, right, reach=4, tolerance=1.0, iterations=1)
+    # rows more than 4 px inside the square have no confirmed value within reach of columns 40-45
+    assert (once[0, 10:30, 46:50] == 10).all() and (once[0, 14:26, 40:46] == 20).all()
+    more = refine.two_view_choice(left, right, reach=4, tolerance=1.0, iterations=3)
+    assert (more[0, 10:30, 40:50] == 10).all()
+    # a right map that confirms nothing changes nothing
+    nothing = refine.two_view_choice(left, torch.full_like(right, 50.0), reach=4, tolerance=1.0)
+    assert torch.equal(nothing, left)

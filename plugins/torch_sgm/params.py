@@ -122,6 +122,13 @@ class TorchSGMParams(BaseModel):
     fit_sigma_space: float = Field(5.0, gt=0, description="as wmf_sigma_space, for the plane fit")
     fit_tolerance: float = Field(1.0, gt=0, description="disparity pixels a neighbour may differ by to take "
                                  "part in the fit, and the most the fit may move a pixel")
+    two_view: bool = Field(False, description="last, the whole pipeline again with the right image as "
+                           "reference; left pixels that its map contradicts by more than lr_tolerance take "
+                           "a neighbour's value that it confirms (refine.two_view_choice). Twice the time; "
+                           "off = the seed")
+    two_view_reach: int = Field(16, ge=2, le=64, description="the farthest neighbour, in pixels left, right, "
+                                "above and below (every second pixel), whose value two_view may take")
+    two_view_iterations: int = Field(4, ge=1, le=16, description="rounds of two_view's choice")
     # search
     search: Literal["full", "coarse_to_fine"] = Field(
         "full", description="full: every disparity of the range at full resolution; coarse_to_fine: a pass at "

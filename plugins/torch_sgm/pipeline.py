@@ -158,6 +158,7 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     """(B, 3, H, W) RGB pair in [0, 1] -> (disparity (B, H, W) float32, NaN where still invalid;
     consistent (B, H, W) bool: pixels that passed the left-right check and, when on, the uniqueness test)."""
     disparities = disparity_range(min_disp, max_disp)
+    given_right = right  # the right view's own run aligns the left image to it, not to the aligned one
     wants_coarse = p.search == "coarse_to_fine" or p.align != "none"
     coarse = coarse_pass(left, right, min_disp, max_disp, p) if wants_coarse else None
     if p.align != "none" and coarse is not None:
@@ -220,7 +221,19 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         disp = refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space,
                                       p.fit_tolerance)
     disp = disp.clamp(float(min_disp), float(max_disp))
+    if p.two_view and p.fill != "none":
+        disp = refine.two_view_choice(disp, right_view_map(left, given_right, min_disp, max_disp, p), p.two_view_reach,
+                                      p.lr_tolerance, p.two_view_iterations)
     return disp, consistent
+
+
+def right_view_map(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,
+                   p: TorchSGMParams) -> torch.Tensor:
+    """The filled disparity map of the right view: the pipeline on the mirrored pair, whose left image
+    is the mirrored right one, mirrored back. (B, H, W), positive disparities."""
+    mirrored, _ = compute_tensors(torch.flip(right, (-1,)), torch.flip(left, (-1,)), min_disp, max_disp,
+                                  p.model_copy(update={"two_view": False}))
+    return torch.flip(mirrored, (-1,))
 
 
 def compute_disparity(left: np.ndarray, right: np.ndarray, min_disp: float, max_disp: float,

@@ -10,12 +10,7 @@ from plugins.torch_sgm.aggregate import guided_filter
 def left_right_check(left_disp: torch.Tensor, right_disp: torch.Tensor, tolerance: float = 1.0) -> torch.Tensor:
     """Keep a left pixel only where the right image's disparity at x - d agrees within ``tolerance``.
     Occlusions and mismatches fail the check. (B, H, W) x2 -> (B, H, W) bool valid."""
-    w = left_disp.shape[-1]
-    x = torch.arange(w, device=left_disp.device, dtype=left_disp.dtype)
-    target = torch.round(x - left_disp.nan_to_num(0.0))
-    inside = (target >= 0) & (target <= w - 1) & torch.isfinite(left_disp)
-    seen = right_disp.gather(-1, target.clamp(0, w - 1).long())
-    return inside & ((left_disp - seen).abs() <= tolerance)
+    return view_mismatch(left_disp, right_disp) <= tolerance  # NaN and inf compare False
 
 
 def occluded(left_disp: torch.Tensor, right_disp: torch.Tensor, tolerance: float = 1.0) -> torch.Tensor:
@@ -253,3 +248,45 @@ def local_plane_fit(disp: torch.Tensor, image: torch.Tensor, radius: int, sigma_
     shift = solution[..., 2, 0].to(disp.dtype)  # the plane at u = v = 0, relative to d(p)
     usable = (info == 0) & torch.isfinite(shift) & (shift.abs() <= tolerance)
     return torch.where(usable, disp + shift, disp)
+
+
+def _shifted(disp: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
+    """(B, H, W) -> the value of the pixel (y + dy, x + dx) at (y, x); NaN where that lies outside."""
+    h, w = disp.shape[-2:]
+    out = torch.full_like(disp, float("nan"))
+    out[:, max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)] = \
+        disp[:, max(0, dy):h - max(0, -dy), max(0, dx):w - max(0, -dx)]
+    return out
+
+
+def view_mismatch(left_disp: torch.Tensor, right_disp: torch.Tensor) -> torch.Tensor:
+    """|d - right_disp(x - d)| for every left pixel, inf where x - d leaves the right image or d is NaN:
+    how far the two views' maps disagree about the point the left pixel sees. (B, H, W) x2 -> (B, H, W)."""
+    w = left_disp.shape[-1]
+    x = torch.arange(w, device=left_disp.device, dtype=left_disp.dtype)
+    target = torch.round(x - left_disp.nan_to_num(0.0))
+    inside = (target >= 0) & (target <= w - 1) & torch.isfinite(left_disp)
+    seen = right_disp.gather(-1, target.clamp(0, w - 1).long())
+    return torch.where(inside, (left_disp - seen).abs(), torch.full_like(left_disp, float("inf")))
+
+
+def two_view_choice(disp: torch.Tensor, right_disp: torch.Tensor, reach: int, tolerance: float = 1.0,
+                    iterations: int = 4) -> torch.Tensor:
+    """Let every pixel of the left map that the right view's map contradicts take a neighbour's value
+    that it confirms. disp, right_disp: (B, H, W) filled maps of the left view and of the right view (the
+    pipeline run with the right image as reference), both positive. -> (B, H, W).
+
+    A pixel whose disparity d misses the right map at x - d by more than ``tolerance`` takes, among the
+    values of the pixels 2, 4, ..., ``reach`` px to its left, right, above and below, the one that misses
+    least, if that one is within ``tolerance``; otherwise it keeps d. Repeated ``iterations`` times, so
+    that a confirmed value travels further than ``reach``. Unlike the left-right check on the matches,
+    this compares the two filled maps, so it also reaches the holes and the edges that the filling got
+    wrong in one view only."""
+    offsets = [(0, 0)] + [o for s in range(2, reach + 1, 2) for o in ((0, -s), (0, s), (-s, 0), (s, 0))]
+    for _ in range(iterations):
+        candidates = torch.stack([_shifted(disp, dy, dx) for dy, dx in offsets])  # (K, B, H, W)
+        misses = torch.stack([view_mismatch(c, right_disp) for c in candidates]).nan_to_num(float("inf"))
+        best = misses.argmin(0, keepdim=True)
+        take = (misses[0] > tolerance) & (misses.gather(0, best)[0] <= tolerance)
+        disp = torch.where(take, candidates.gather(0, best)[0], disp)
+    return disp

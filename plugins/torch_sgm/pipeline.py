@@ -222,8 +222,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
                                       p.fit_tolerance)
     disp = disp.clamp(float(min_disp), float(max_disp))
     if p.two_view and p.fill != "none":
-        disp = refine.two_view_choice(disp, right_view_map(left, given_right, min_disp, max_disp, p), p.two_view_reach,
-                                      p.lr_tolerance, p.two_view_iterations)
+        right_map = right_view_map(left, given_right, min_disp, max_disp, p)
+        disp = refine.two_view_choice(disp, right_map, p.two_view_reach, p.lr_tolerance, p.two_view_iterations)
     return disp, consistent
 
 

@@ -16,11 +16,17 @@ def left_right_check(left_disp: torch.Tensor, right_disp: torch.Tensor, toleranc
 def occluded(left_disp: torch.Tensor, right_disp: torch.Tensor, tolerance: float = 1.0) -> torch.Tensor:
     """Pixels that fail the LR check because something nearer hides them in the right view: there
     the right image saw a larger disparity. (B, H, W) -> bool. The rest of the failures are mismatches."""
+    target, seen = _seen_by_right(left_disp, right_disp)
+    return (target < 0) | (seen.nan_to_num(-1.0) > left_disp + tolerance)
+
+
+def _seen_by_right(left_disp: torch.Tensor, right_disp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, H, W) x2 -> (the right image's column x - d, rounded, unclamped; the right map's value there,
+    read at the nearest column inside the image). A NaN d reads column x."""
     w = left_disp.shape[-1]
     x = torch.arange(w, device=left_disp.device, dtype=left_disp.dtype)
     target = torch.round(x - left_disp.nan_to_num(0.0))
-    seen = right_disp.gather(-1, target.clamp(0, w - 1).long())
-    return (target < 0) | (seen.nan_to_num(-1.0) > left_disp + tolerance)
+    return target, right_disp.gather(-1, target.clamp(0, w - 1).long())
 
 
 def fill_four_directions(disp: torch.Tensor, occlusion: torch.Tensor) -> torch.Tensor:
@@ -262,11 +268,8 @@ def _shifted(disp: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
 def view_mismatch(left_disp: torch.Tensor, right_disp: torch.Tensor) -> torch.Tensor:
     """|d - right_disp(x - d)| for every left pixel, inf where x - d leaves the right image or d is NaN:
     how far the two views' maps disagree about the point the left pixel sees. (B, H, W) x2 -> (B, H, W)."""
-    w = left_disp.shape[-1]
-    x = torch.arange(w, device=left_disp.device, dtype=left_disp.dtype)
-    target = torch.round(x - left_disp.nan_to_num(0.0))
-    inside = (target >= 0) & (target <= w - 1) & torch.isfinite(left_disp)
-    seen = right_disp.gather(-1, target.clamp(0, w - 1).long())
+    target, seen = _seen_by_right(left_disp, right_disp)
+    inside = (target >= 0) & (target <= left_disp.shape[-1] - 1) & torch.isfinite(left_disp)
     return torch.where(inside, (left_disp - seen).abs(), torch.full_like(left_disp, float("inf")))
 
 

@@ -14,6 +14,7 @@ from core.contracts import PluginContext, StereoBackend
 from core.registry import Registry
 from core.stereo_eval import score
 from plugins.torch_sgm import plugin as torch_sgm_plugin
+from plugins.torch_sgm import refine
 from plugins.torch_sgm.pipeline import (TorchSGMParams, bgr_to_tensor, compute_disparity, cost_volume,
                                         right_view_map)
 from plugins.torch_sgm.synthetic import fronto_parallel, layered_scene
@@ -126,13 +127,22 @@ def test_right_view_map_is_the_right_images_disparity():
     assert mirrored.shape == (1, 48, 96) and (inner - 7.4).abs().median() < 0.25
 
 
-def test_two_view_choice_improves_held_out_synthetic_pairs():
+def test_two_view_improves_held_out_synthetic_pairs_and_its_average_sharpens_the_choice():
     # Not Middlebury scenes: slanted planes, a depth edge and occlusions from the generator.
+    dev = torch.device("cpu")
+    preset = TorchSGMParams(preset="improved")
     for seed in (3, 5):
         left, right, gt, nonocc = layered_scene(seed=seed)
-        bad = []
-        for two_view in (False, True):
-            disp, _ = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="improved", two_view=two_view),
-                                        device="cpu")
-            bad.append(score(disp, gt, nonocc)["dense"]["bad1.0"])
-        assert bad[1] < bad[0]
+        alone, _ = compute_disparity(left, right, 0, 32, preset, device="cpu")
+        both, _ = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="improved", two_view=True),
+                                    device="cpu")
+        # the choice by itself, without the plane fit and the average that follow it in the pipeline
+        with torch.inference_mode():
+            right_map = right_view_map(bgr_to_tensor(left, dev), bgr_to_tensor(right, dev), 0, 32, preset)
+            chosen = refine.two_view_choice(torch.from_numpy(alone)[None], right_map, preset.two_view_reach,
+                                            preset.lr_tolerance, preset.two_view_iterations)[0].numpy()
+        alone, chosen, both = (score(d, gt, nonocc)["dense"] for d in (alone, chosen, both))
+        assert both["bad1.0"] < alone["bad1.0"]
+        assert chosen["bad1.0"] < alone["bad1.0"]
+        # where the two views agree their mean is closer to the truth than the left view's value
+        assert both["bad0.5"] < chosen["bad0.5"] and both["avgerr"] < chosen["avgerr"]

@@ -497,3 +497,29 @@ def test_two_view_choice_keeps_a_value_no_neighbour_can_replace_and_iterates_to_
     # a right map that confirms nothing changes nothing
     nothing = refine.two_view_choice(left, torch.full_like(right, 50.0), reach=4, tolerance=1.0)
     assert torch.equal(nothing, left)
+
+
+def test_right_view_at_interpolates_the_right_map_between_columns():
+    right = torch.arange(10.0).view(1, 1, 10).repeat(1, 2, 1) * 0.5 + 3.0  # a slanted right map
+    left = torch.tensor([[[2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5],
+                          [0.0, 1.0, float("nan"), 20.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]]])
+    seen = refine.right_view_at(left, right)
+    # column x - 2.5: halfway between two right pixels, so halfway between their values
+    assert torch.allclose(seen[0, 0, 3:], 3.0 + 0.5 * (torch.arange(3.0, 10.0) - 2.5))
+    assert torch.isnan(seen[0, 0, :3]).all()  # x - 2.5 < 0
+    assert torch.allclose(seen[0, 1, [0, 1, 4]], torch.tensor([3.0, 3.0, 5.0]))
+    assert torch.isnan(seen[0, 1, 2:4]).all()  # a NaN disparity, and a column left of the image
+    assert seen[0, 1, 9] == 7.5  # the last column itself, with no neighbour to its right
+
+
+def test_two_view_average_halves_opposite_errors_and_keeps_the_disagreements():
+    _, right = _square_scene(0)
+    left = torch.full((1, 40, 64), 10.0)
+    left[0, 10:30, 20:40] = 20.0
+    left[0, 0:5] += 0.6   # the two maps 0.6 px apart: within the tolerance
+    left[0, 35:40] += 3.0  # 3 px apart: the right map does not see the same point
+    averaged = refine.two_view_average(left, right, tolerance=1.0)
+    assert torch.allclose(averaged[0, 0:5, 20:], torch.full((5, 44), 10.3))
+    assert torch.equal(averaged[0, 35:40], left[0, 35:40])
+    assert torch.equal(averaged[0, 10:30, 20:40], left[0, 10:30, 20:40])  # agreeing exactly: unchanged
+    assert torch.equal(averaged[0, :, :10], left[0, :, :10])  # x - d out of the image: the left value

@@ -220,10 +220,15 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
                                        p.wmf_jump)
         disp = refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space,
                                       p.fit_tolerance)
-    disp = disp.clamp(float(min_disp), float(max_disp))
     if p.two_view and p.fill != "none":
         right_map = right_view_map(left, given_right, min_disp, max_disp, p)
-        disp = refine.two_view_choice(disp, right_map, p.two_view_reach, p.lr_tolerance, p.two_view_iterations)
+        disp = refine.two_view_choice(disp.clamp(float(min_disp), float(max_disp)), right_map, p.two_view_reach,
+                                      p.lr_tolerance, p.two_view_iterations)
+        # a value the choice took is a neighbour's, up to reach px away, so off a slanted surface's slope
+        disp = refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space,
+                                      p.fit_tolerance)
+        disp = refine.two_view_average(disp, right_map, p.lr_tolerance)
+    disp = disp.clamp(float(min_disp), float(max_disp))
     return disp, consistent
 
 

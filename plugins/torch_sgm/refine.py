@@ -293,3 +293,28 @@ def two_view_choice(disp: torch.Tensor, right_disp: torch.Tensor, reach: int, to
         take = (misses[0] > tolerance) & (misses.gather(0, best)[0] <= tolerance)
         disp = torch.where(take, candidates.gather(0, best)[0], disp)
     return disp
+
+
+def right_view_at(left_disp: torch.Tensor, right_disp: torch.Tensor) -> torch.Tensor:
+    """The right map read at x - d, linearly interpolated between its two neighbouring columns: the
+    right view's disparity of the point each left pixel sees. NaN where x - d leaves the image or d is
+    NaN. (B, H, W) x2 -> (B, H, W)."""
+    w = left_disp.shape[-1]
+    column = torch.arange(w, device=left_disp.device, dtype=left_disp.dtype) - left_disp
+    inside = (column >= 0) & (column <= w - 1)  # NaN compares False
+    column = torch.where(inside, column, torch.zeros_like(column))
+    lo = column.floor().long()
+    frac = column - lo
+    hi = (lo + 1).clamp(max=w - 1)  # frac is 0 where lo is the last column
+    value = right_disp.gather(-1, lo) * (1 - frac) + right_disp.gather(-1, hi) * frac
+    return torch.where(inside, value, torch.full_like(value, float("nan")))
+
+
+def two_view_average(disp: torch.Tensor, right_disp: torch.Tensor, tolerance: float = 1.0) -> torch.Tensor:
+    """Where the two views' maps agree within ``tolerance`` about the point a left pixel sees, the
+    mean of the two: each view's map went through its own matching and filling, so where both found
+    the same surface their sub-pixel errors partly cancel. Elsewhere the left value stays.
+    (B, H, W) x2 -> (B, H, W)."""
+    seen = right_view_at(disp, right_disp)
+    agree = (seen - disp).abs() <= tolerance  # NaN compares False
+    return torch.where(agree, (disp + seen) / 2, disp)

@@ -144,5 +144,5 @@ def test_two_view_improves_held_out_synthetic_pairs_and_its_average_sharpens_the
         alone, chosen, both = (score(d, gt, nonocc)["dense"] for d in (alone, chosen, both))
         assert both["bad1.0"] < alone["bad1.0"]
         assert chosen["bad1.0"] < alone["bad1.0"]
-        # where the two views agree their mean is closer to the truth than the left view's value
+        # the plane fit and the mean of the two views that follow the choice bring it closer to the truth
         assert both["bad0.5"] < chosen["bad0.5"] and both["avgerr"] < chosen["avgerr"]

@@ -512,7 +512,7 @@ def test_right_view_at_interpolates_the_right_map_between_columns():
     assert seen[0, 1, 9] == 7.5  # the last column itself, with no neighbour to its right
 
 
-def test_two_view_average_halves_opposite_errors_and_keeps_the_disagreements():
+def test_two_view_average_halves_a_disagreement_within_tolerance_and_keeps_larger_ones():
     _, right = _square_scene(0)
     left = torch.full((1, 40, 64), 10.0)
     left[0, 10:30, 20:40] = 20.0

@@ -513,9 +513,7 @@ def test_right_view_at_interpolates_the_right_map_between_columns():
 
 
 def test_two_view_average_halves_a_disagreement_within_tolerance_and_keeps_larger_ones():
-    _, right = _square_scene(0)
-    left = torch.full((1, 40, 64), 10.0)
-    left[0, 10:30, 20:40] = 20.0
+    left, right = _square_scene(0)
     left[0, 0:5] += 0.6   # the two maps 0.6 px apart: within the tolerance
     left[0, 35:40] += 3.0  # 3 px apart: the right map does not see the same point
     averaged = refine.two_view_average(left, right, tolerance=1.0)

@@ -112,12 +112,20 @@ def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings,
     matcher = make_backend(backend, _parse_settings(settings), device)
     import time
 
+    # A backend that holds a CUDA device reports its peak there (the 8 GB bound of issue 3 is per map).
+    on_gpu = str(getattr(matcher, "device", "")).startswith("cuda")
+    if on_gpu:
+        import torch
+
+        torch.cuda.reset_peak_memory_stats()
     start = time.perf_counter()
     disp = np.asarray(matcher.compute(left_img, right_img, min_disp, max_disp), np.float32)
     seconds = time.perf_counter() - start
     valid = np.isfinite(disp)
+    gpu = torch.cuda.max_memory_allocated() / 2**20 if on_gpu else None
     click.echo(f"{backend}: {disp.shape[1]}x{disp.shape[0]}, disparities {min_disp:g}..{max_disp:g}, "
-               f"{100 * valid.mean():.1f}% valid, {seconds:.2f} s")
+               f"{100 * valid.mean():.1f}% valid, {seconds:.2f} s"
+               + (f", peak GPU memory {gpu:.0f} MiB" if gpu is not None else ""))
     if out:
         try:
             write_pfm(out, disp)

@@ -126,6 +126,9 @@ def test_ransac_start_finds_the_plane_when_most_matches_are_wrong():
     assert supported.all() and (plane[0] - truth).abs().max() < 0.01
     again, _ = planes.region_planes(disp[None], matched, labels, min_pixels=100, inlier_share=0.3, samples=32)
     assert torch.equal(plane, again)  # seeded: the same frame always gives the same planes
+    reseeded, _ = planes.region_planes(disp[None], matched, labels, min_pixels=100, inlier_share=0.3, samples=32,
+                                       seed=1)
+    assert (reseeded[0] - truth).abs().max() < 0.01  # other triples, the same plane
     # started from least squares, the iterations settle inside the band of mismatches
     plain, _ = planes.region_planes(disp[None], matched, labels, min_pixels=100, inlier_share=0.3, samples=0)
     assert (plain[0] - truth).abs().max() > 1.0
@@ -138,6 +141,19 @@ def test_ransac_planes_skip_regions_too_small_to_fit():
                                   min_pixels=5)
     assert torch.isnan(coeffs[0]).all() and torch.isnan(coeffs[2]).all()  # no pixels; 2 < 5 pixels
     assert torch.allclose(coeffs[1], torch.tensor([20.0, 0.0, 1.0], dtype=torch.float64), atol=1e-6)
+
+
+def test_ransac_seed_chooses_the_triples():
+    x = torch.arange(40, dtype=torch.float64)
+    index = torch.ones(40, dtype=torch.int64)
+    d = torch.where(x % 2 == 0, 2 * x + 1, -x + 30)  # two planes share the region: one triple picks one
+
+    def once(seed):
+        return planes.ransac_planes(x / 10, (x % 3) / 10, d, index, regions=2, samples=1, tolerance=0.5, seed=seed)
+
+    draws = [once(seed)[1] for seed in range(6)]
+    assert torch.equal(once(0)[1], draws[0])
+    assert len({tuple(c.tolist()) for c in draws}) > 1
 
 
 def local_scene(h=40, w=90):

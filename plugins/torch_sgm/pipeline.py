@@ -204,7 +204,7 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
             thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
             disp, slope = planes.planes_and_slopes(
                 disp, raw_disp, consistent, edges, thresholds, p.plane_min_pixels, p.plane_inliers, p.plane_samples,
-                local, (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched))
+                local, (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched), p.plane_seed)
             holes = ~torch.isfinite(disp)
         if p.fill == "four_way":
             disp = refine.fill_four_directions(disp, refine.occluded(raw_disp, right_disp, p.lr_tolerance) & holes)

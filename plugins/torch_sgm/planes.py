@@ -99,11 +99,12 @@ def ransac_planes(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torc
 
 def region_planes(disp: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor, min_pixels: int,
                   inlier_share: float, tolerance: float = 1.0, samples: int = 0,
-                  wanted: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                  wanted: torch.Tensor | None = None, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Fit d = a x + b y + c to the matched pixels of every region by iteratively reweighted least
     squares with Tukey's biweight, so that mismatches that passed the checks do not tilt the plane.
     With ``samples`` > 0 the iterations start from ``ransac_planes`` instead of from plain least
-    squares, which a region with more mismatches than matches would otherwise follow.
+    squares, which a region with more mismatches than matches would otherwise follow; ``seed`` seeds
+    its triples.
 
     disp (B, H, W) float (any value where not matched), matched (B, H, W) bool, labels (B, H, W) int64
     from ``edge_regions`` -> (plane disparity (B, H, W) float, NaN where no plane was fitted;
@@ -126,7 +127,7 @@ def region_planes(disp: torch.Tensor, matched: torch.Tensor, labels: torch.Tenso
     fit = fit[:: max(1, -(-fit.numel() // _FIT_PIXELS))]
     x, y = _coordinates(fit, h, w)
     d, region = disp.flatten()[fit].to(torch.float64), index[fit]
-    coeffs = _robust_fit(x, y, d, region, k, samples, tolerance)
+    coeffs = _robust_fit(x, y, d, region, k, samples, tolerance, seed)
     residual = coeffs[region, 0] * x + coeffs[region, 1] * y + coeffs[region, 2] - d
     inliers = torch.zeros(k, dtype=torch.float64, device=dev).index_add_(0, region, (residual.abs() < tolerance).double())
     good = active & (inliers >= inlier_share * torch.bincount(region, minlength=k))
@@ -150,13 +151,13 @@ def tukey_weight(residual: torch.Tensor, radius: float) -> torch.Tensor:
 
 
 def _robust_fit(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torch.Tensor, k: int, samples: int,
-                tolerance: float) -> torch.Tensor:
+                tolerance: float, seed: int = 0) -> torch.Tensor:
     """IRLS with Tukey's biweight over the given pixels of each region -> (k, 3) float64 coefficients."""
     one = torch.ones_like(x)
     moments = torch.stack([x * x, x * y, x, y * y, y, one, x * d, y * d, d], 1)  # (M, 9)
     weight, radii = one, _TUKEY_RADII
     if samples > 0:
-        start = ransac_planes(x, y, d, index, k, samples, tolerance, min_pixels=3)
+        start = ransac_planes(x, y, d, index, k, samples, tolerance, min_pixels=3, seed=seed)
         residual = (start[index] * torch.stack([x, y, one], 1)).sum(1) - d
         weight = tukey_weight(residual, _RANSAC_RADIUS)
         weight = torch.nan_to_num(weight, nan=0.0)  # a region too small to start from gets no plane
@@ -189,7 +190,7 @@ def fill_from_planes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Te
 def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor, magnitude: torch.Tensor,
                       thresholds: list[float], min_pixels: int, inlier_share: float,
                       samples: int = 0, local: torch.Tensor | None = None,
-                      local_test: tuple[float, float, float] | None = None,
+                      local_test: tuple[float, float, float] | None = None, seed: int = 0,
                       ) -> tuple[torch.Tensor, torch.Tensor]:
     """``fill_from_planes`` from the image's (B, H, W) ``edge_magnitude`` (which a caller that also
     needs the regions for something else computes once) and, from the same fits, (B, H, W) float: the
@@ -200,7 +201,7 @@ def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.T
 
     With ``local`` (B, H, W), the winners of the cost before SGM (``select.local_winners``, NaN where
     not trusted), a region that its matched pixels give no plane may take ``local_planes``' plane
-    instead, ``local_test`` being its (inlier_share, density, max_matched)."""
+    instead, ``local_test`` being its (inlier_share, density, max_matched). ``seed`` seeds RANSAC."""
     if local is not None and local_test is None:
         raise ValueError("planes_and_slopes: local winners given without their local_test")
     todo = ~matched
@@ -210,10 +211,10 @@ def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.T
             break
         labels = edge_regions(magnitude, threshold)
         plane, supported = region_planes(disp, matched, labels, min_pixels, inlier_share, samples=samples,
-                                         wanted=todo)
+                                         wanted=todo, seed=seed)
         if local is not None:
             extra, backed = local_planes(local, matched, labels, min_pixels, *local_test, samples=samples,
-                                         wanted=todo & ~supported)
+                                         wanted=todo & ~supported, seed=seed)
             plane = torch.where(supported, plane, extra)
             supported = supported | backed
         found = supported & ~torch.isfinite(slope)
@@ -226,7 +227,8 @@ def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.T
 
 def local_planes(local: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor, min_pixels: int,
                  inlier_share: float, density: float, max_matched: float, samples: int = 0,
-                 wanted: torch.Tensor | None = None, tolerance: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+                 wanted: torch.Tensor | None = None, tolerance: float = 1.0,
+                 seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """``region_planes`` fitted to the winners of the cost before SGM (``select.local_winners``) of every
     pixel of a region, for a region where matching failed.
 
@@ -244,7 +246,8 @@ def local_planes(local: torch.Tensor, matched: torch.Tensor, labels: torch.Tenso
     unmatched = (torch.bincount(index[matched.flatten()], minlength=k) < max_matched * size)[index].view_as(matched)
     wanted = unmatched if wanted is None else wanted & unmatched
     finite = torch.isfinite(local)
-    plane, supported = region_planes(local, finite, labels, min_pixels, inlier_share, tolerance, samples, wanted)
+    plane, supported = region_planes(local, finite, labels, min_pixels, inlier_share, tolerance, samples, wanted,
+                                     seed)
     # inliers by region_planes' own criterion, but counted against the whole region
     inliers = (finite & ((local - plane).abs() < tolerance)).flatten()
     dense = torch.bincount(index[inliers], minlength=k) >= density * size

@@ -57,9 +57,9 @@ def ransac_planes(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torc
 
     x, y, d (M,) float64 of the matched pixels, index (M,) int64 their region -> (regions, 3) float64
     coefficients of d = a x + b y + c; NaN for a region with fewer than ``min_pixels`` (at least 3)
-    matched pixels. The triples come from a generator seeded with ``seed``, so that a frame always
-    gives the same planes, on any device; at most ``_VOTERS`` pixels, evenly spread over each region,
-    score them."""
+    matched pixels. The triples come from a CPU generator seeded with ``seed``, so that a frame always
+    gives the same planes, and the same triples on any device; at most ``_VOTERS`` pixels, evenly
+    spread over each region, score them."""
     dev = x.device
     count = torch.bincount(index, minlength=regions)
     eligible = count >= max(min_pixels, 3)
@@ -72,8 +72,8 @@ def ransac_planes(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torc
     x, y, d, index = x[order], y[order], d[order], index[order]
     start = torch.cumsum(torch.where(eligible, count, 0), 0) - torch.where(eligible, count, 0)
     ids = eligible.nonzero()[:, 0]  # (R,)
-    # Drawn on the CPU: CUDA's generator gives another stream for the same seed, and the planes (so the
-    # map) must not depend on the device.
+    # Drawn on the CPU: CUDA's generator gives another stream for the same seed, and other triples
+    # moved the Middlebury score on CUDA by a quarter point (docs/benchmarks.md, On CUDA).
     gen = torch.Generator().manual_seed(seed)
     draw = torch.rand(ids.numel(), samples, 3, generator=gen, dtype=torch.float64).to(dev)
     pick = start[ids, None, None] + (draw * count[ids, None, None]).long()  # (R, S, 3) into the sorted pixels

@@ -146,7 +146,7 @@ def test_ransac_planes_skip_regions_too_small_to_fit():
 def test_ransac_seed_chooses_the_triples():
     x = torch.arange(40, dtype=torch.float64)
     index = torch.ones(40, dtype=torch.int64)
-    d = torch.where(x % 2 == 0, 2 * x + 1, -x + 30)  # two planes share the region: one triple picks one
+    d = torch.where(x % 2 == 0, 2 * x + 1, -x + 30)  # two planes interleave: each seed's one triple spans another
 
     def once(seed):
         return planes.ransac_planes(x / 10, (x % 3) / 10, d, index, regions=2, samples=1, tolerance=0.5, seed=seed)

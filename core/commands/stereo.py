@@ -112,7 +112,7 @@ def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings,
     matcher = make_backend(backend, _parse_settings(settings), device)
     import time
 
-    # A backend that holds a CUDA device reports its peak there (the 8 GB bound of issue 3 is per map).
+    # A backend that holds a CUDA device also reports the peak GPU memory of this one map.
     on_gpu = str(getattr(matcher, "device", "")).startswith("cuda")
     if on_gpu:
         import torch

@@ -289,8 +289,8 @@ def two_view_choice(disp: torch.Tensor, right_disp: torch.Tensor, reach: int, to
     for _ in range(iterations):
         candidates = torch.stack([_shifted(disp, dy, dx) for dy, dx in offsets])  # (K, B, H, W)
         misses = torch.stack([view_mismatch(c, right_disp) for c in candidates]).nan_to_num(float("inf"))
-        best = misses.argmin(0, keepdim=True)
-        take = (misses[0] > tolerance) & (misses.gather(0, best)[0] <= tolerance)
+        least, best = misses.min(0, keepdim=True)
+        take = (misses[0] > tolerance) & (least[0] <= tolerance)
         disp = torch.where(take, candidates.gather(0, best)[0], disp)
     return disp
 

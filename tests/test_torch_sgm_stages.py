@@ -499,6 +499,20 @@ def test_two_view_choice_keeps_a_value_no_neighbour_can_replace_and_iterates_to_
     assert torch.equal(nothing, left)
 
 
+def test_two_view_choice_takes_the_confirmed_value_closest_to_the_contradicted_one():
+    left = torch.full((1, 1, 40), 30.0)
+    left[0, 0, 28], left[0, 0, 30], left[0, 0, 32] = 12.2, 14.0, 10.0
+    right = torch.full((1, 1, 40), 50.0)
+    right[0, 0, 16] = 5.0    # seen from column 30 at 14: contradicted
+    right[0, 0, 18] = 11.5   # at 12.2 (the left neighbour's value): confirmed, 0.7 px off
+    right[0, 0, 20] = 10.0   # at 10 (the right neighbour's value): confirmed exactly
+    chosen = refine.two_view_choice(left, right, reach=2, tolerance=1.0, iterations=1)
+    # the least change the right view accepts, not the value it confirms best
+    assert chosen[0, 0, 30] == pytest.approx(12.2)
+    right[0, 0, 18] = 50.0  # now only 10 is confirmed
+    assert refine.two_view_choice(left, right, reach=2, tolerance=1.0, iterations=1)[0, 0, 30] == 10.0
+
+
 def test_right_view_at_interpolates_the_right_map_between_columns():
     right = torch.arange(10.0).view(1, 1, 10).repeat(1, 2, 1) * 0.5 + 3.0  # a slanted right map
     left = torch.tensor([[[2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5],

@@ -126,12 +126,13 @@ class TorchSGMParams(BaseModel):
                                  "part in the fit, and the most the fit may move a pixel")
     two_view: bool = Field(False, description="last, the whole pipeline again with the right image as "
                            "reference; left pixels that its map contradicts by more than lr_tolerance take "
-                           "a neighbour's value that it confirms (refine.two_view_choice), the plane fit of "
-                           "fit_radius runs again, and where the two maps agree within lr_tolerance the pixel "
-                           "takes their mean (refine.two_view_average). Twice the time; off = the seed")
+                           "the closest neighbouring value that it confirms (refine.two_view_choice), the plane "
+                           "fit of fit_radius runs again, where the two maps agree within lr_tolerance the pixel "
+                           "takes their mean (refine.two_view_average), and the plane fit runs once more. Twice "
+                           "the time; off = the seed")
     two_view_reach: int = Field(16, ge=2, le=64, description="the farthest neighbour, in pixels left, right, "
                                 "above and below (every second pixel), whose value two_view may take")
-    two_view_iterations: int = Field(4, ge=1, le=16, description="rounds of two_view's choice")
+    two_view_iterations: int = Field(2, ge=1, le=16, description="rounds of two_view's choice")
     # search
     search: Literal["full", "coarse_to_fine"] = Field(
         "full", description="full: every disparity of the range at full resolution; coarse_to_fine: a pass at "

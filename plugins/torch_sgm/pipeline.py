@@ -228,6 +228,9 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         disp = refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space,
                                       p.fit_tolerance)
         disp = refine.two_view_average(disp, right_map, p.lr_tolerance)
+        # the mean mixes the two views' sub-pixel values pixel by pixel: put back on the local planes
+        disp = refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space,
+                                      p.fit_tolerance)
     disp = disp.clamp(float(min_disp), float(max_disp))
     return disp, consistent
 

@@ -136,7 +136,7 @@ def test_two_view_improves_held_out_synthetic_pairs_and_its_average_sharpens_the
         alone, _ = compute_disparity(left, right, 0, 32, preset, device="cpu")
         both, _ = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="improved", two_view=True),
                                     device="cpu")
-        # the choice by itself, without the plane fit and the average that follow it in the pipeline
+        # the choice by itself, without the plane fits and the average that follow it in the pipeline
         with torch.inference_mode():
             right_map = right_view_map(bgr_to_tensor(left, dev), bgr_to_tensor(right, dev), 0, 32, preset)
             chosen = refine.two_view_choice(torch.from_numpy(alone)[None], right_map, preset.two_view_reach,
@@ -144,5 +144,5 @@ def test_two_view_improves_held_out_synthetic_pairs_and_its_average_sharpens_the
         alone, chosen, both = (score(d, gt, nonocc)["dense"] for d in (alone, chosen, both))
         assert both["bad1.0"] < alone["bad1.0"]
         assert chosen["bad1.0"] < alone["bad1.0"]
-        # the plane fit and the mean of the two views that follow the choice bring it closer to the truth
+        # the plane fits and the mean of the two views that follow the choice bring it closer to the truth
         assert both["bad0.5"] < chosen["bad0.5"] and both["avgerr"] < chosen["avgerr"]

@@ -156,6 +156,22 @@ def test_ransac_seed_chooses_the_triples():
     assert len({tuple(c.tolist()) for c in draws}) > 1
 
 
+def test_ransac_prefers_the_plane_its_inliers_lie_closest_to():
+    # 45 % of the pixels lie exactly on one plane, 55 % up to 0.8 px off another 10 px away: more
+    # pixels lie within 1 px of the second, but the first fits its pixels far better
+    gen = torch.Generator().manual_seed(5)
+    n = 400
+    x, y = torch.rand(n, generator=gen, dtype=torch.float64), torch.rand(n, generator=gen, dtype=torch.float64)
+    exact = torch.arange(n) < 180
+    d = torch.where(exact, 3 * x + 2 * y + 20, -2 * x + y + 30 + 1.6 * (torch.rand(n, generator=gen,
+                                                                                   dtype=torch.float64) - 0.5))
+    index = torch.ones(n, dtype=torch.int64)
+    coeffs = planes.ransac_planes(x, y, d, index, regions=2, samples=64, tolerance=1.0)
+    assert torch.allclose(coeffs[1], torch.tensor([3.0, 2.0, 20.0], dtype=torch.float64), atol=1e-4)
+    near = ((coeffs[1, 0] * x + coeffs[1, 1] * y + coeffs[1, 2] - d).abs() < 1).sum()
+    assert near == 180  # a count of inliers would have preferred a plane of the other 220 pixels
+
+
 def local_scene(h=40, w=90):
     """Three regions of one slanted surface: columns 0-29 unmatched, with winners on the plane at every
     other pixel (the rest scattered), 30-59 unmatched with only scattered winners, 60-89 winners on the

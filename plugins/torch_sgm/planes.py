@@ -52,8 +52,10 @@ def edge_regions(magnitude: torch.Tensor, threshold: float) -> torch.Tensor:
 
 def ransac_planes(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torch.Tensor, regions: int,
                   samples: int, tolerance: float, min_pixels: int = 3, seed: int = 0) -> torch.Tensor:
-    """The plane through three matched pixels that most matched pixels of its region lie within
-    ``tolerance`` of, out of ``samples`` random triples per region (RANSAC, Fischler & Bolles 1981).
+    """The plane through three matched pixels that the matched pixels of its region lie closest to,
+    out of ``samples`` random triples per region (RANSAC, Fischler & Bolles 1981). Each pixel within
+    ``tolerance`` of a plane votes 1 - (residual / tolerance)^2 for it, the others nothing: MSAC's
+    truncated quadratic loss (Torr & Zisserman 2000) instead of a count of inliers.
 
     x, y, d (M,) float64 of the matched pixels, index (M,) int64 their region -> (regions, 3) float64
     coefficients of d = a x + b y + c; NaN for a region with fewer than ``min_pixels`` (at least 3)
@@ -89,8 +91,11 @@ def ransac_planes(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torc
     votes = torch.zeros(ids.numel(), samples, device=dev)
     for first in range(0, samples, _HYPOTHESES_PER_STEP):
         block = coeffs[slot, first: first + _HYPOTHESES_PER_STEP]  # (V, s, 3)
-        close = ((block * point[:, None, :]).sum(-1) - vd[:, None]).abs() < tolerance
-        votes[:, first: first + _HYPOTHESES_PER_STEP].index_add_(0, slot, close.float())
+        residual = (block * point[:, None, :]).sum(-1) - vd[:, None]
+        # MSAC: an inlier's vote shrinks with its squared residual, so that of two planes with as many
+        # inliers the one they lie closer to wins (a count flips between them from one draw to the next)
+        vote = (1 - (residual / tolerance).pow(2)).clamp_min(0).nan_to_num(0.0)
+        votes[:, first: first + _HYPOTHESES_PER_STEP].index_add_(0, slot, vote)
     votes = torch.where(usable, votes, torch.full_like(votes, -1.0))
     chosen = coeffs.gather(1, votes.argmax(1)[:, None, None].expand(-1, 1, 3))[:, 0]
     best[ids] = chosen.double()

@@ -157,7 +157,7 @@ def test_ransac_seed_chooses_the_triples():
 
 
 def test_ransac_prefers_the_plane_its_inliers_lie_closest_to():
-    # 45 % of the pixels lie exactly on one plane, 55 % up to 0.8 px off another 10 px away: more
+    # 45 % of the pixels lie exactly on one plane, 55 % up to 0.8 px off another 4-10 px away: more
     # pixels lie within 1 px of the second, but the first fits its pixels far better
     gen = torch.Generator().manual_seed(5)
     n = 400

@@ -288,14 +288,14 @@ def two_view_choice(disp: torch.Tensor, right_disp: torch.Tensor, reach: int, to
     Repeated ``iterations`` times, so that a confirmed value travels further than ``reach``. Unlike the
     left-right check on the matches, this compares the two filled maps, so it also reaches the holes and
     the edges that the filling got wrong in one view only."""
-    offsets = [(0, 0)] + [o for s in range(2, reach + 1, 2) for o in ((0, -s), (0, s), (-s, 0), (s, 0))]
+    offsets = [o for s in range(2, reach + 1, 2) for o in ((0, -s), (0, s), (-s, 0), (s, 0))]
     for _ in range(iterations):
         candidates = torch.stack([_shifted(disp, dy, dx) for dy, dx in offsets])  # (K, B, H, W)
         confirmed = torch.stack([view_mismatch(c, right_disp) <= tolerance for c in candidates])
         change = torch.where(confirmed, (candidates - disp).abs(), torch.full_like(candidates, float("inf")))
-        least, best = change[1:].min(0, keepdim=True)  # ties: the nearest offset, listed first
-        take = ~confirmed[0] & torch.isfinite(least[0])
-        disp = torch.where(take, candidates[1:].gather(0, best)[0], disp)
+        least, best = change.min(0, keepdim=True)  # ties: the nearest offset, listed first
+        take = ~(view_mismatch(disp, right_disp) <= tolerance) & torch.isfinite(least[0])
+        disp = torch.where(take, candidates.gather(0, best)[0], disp)
     return disp
 
 

@@ -218,21 +218,23 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
             disp = refine.median_filter(disp, p.median_radius)
         disp = refine.weighted_median(disp, left, p.wmf_radius, p.wmf_sigma_colour, p.wmf_sigma_space,
                                        p.wmf_jump)
-        disp = refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space,
-                                      p.fit_tolerance)
+        disp = plane_fit(disp, left, p)
     if p.two_view and p.fill != "none":
         right_map = right_view_map(left, given_right, min_disp, max_disp, p)
         disp = refine.two_view_choice(disp.clamp(float(min_disp), float(max_disp)), right_map, p.two_view_reach,
                                       p.lr_tolerance, p.two_view_iterations)
         # a value the choice took is a neighbour's, up to reach px away, so off a slanted surface's slope
-        disp = refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space,
-                                      p.fit_tolerance)
+        disp = plane_fit(disp, left, p)
         disp = refine.two_view_average(disp, right_map, p.lr_tolerance)
         # the mean mixes the two views' sub-pixel values pixel by pixel: put back on the local planes
-        disp = refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space,
-                                      p.fit_tolerance)
+        disp = plane_fit(disp, left, p)
     disp = disp.clamp(float(min_disp), float(max_disp))
     return disp, consistent
+
+
+def plane_fit(disp: torch.Tensor, left: torch.Tensor, p: TorchSGMParams) -> torch.Tensor:
+    """``refine.local_plane_fit`` of the (B, H, W) map with the settings' radius, weights and tolerance."""
+    return refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space, p.fit_tolerance)
 
 
 def right_view_map(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,

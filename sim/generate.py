@@ -37,6 +37,26 @@ DEFECT_SCALE = (0.6, 1.2)  # NEU px -> WVGA frame px
 MAX_SIDE_PX, MIN_SIDE_PX = 150.0, 18.0  # at WVGA
 EDGE_MARGIN_PX = 24.0  # box to image border: room for the ring the deviation is fitted on
 GAP_PX = 24.0  # between defects
+RAISED_CLASSES = tuple(c for c in NEU_CLASSES if CLASS_SHAPES[c][2])
+
+
+@dataclass(frozen=True)
+class EvalRanges:
+    """What an evaluation set varies, each drawn uniformly per frame or per defect. ``None`` keeps the
+    demo plan's draw for that quantity (``FRAME_PLAN``, sizes from the appearance, jittered distance).
+
+    With ``depth_mm`` every frame carries ``defects_per_frame`` defects of a depth in that range (signed:
+    + below the surface, - raised; a range across zero draws both), so the set concentrates where the
+    decision is hard instead of on the plan's sound and clear-cut plates."""
+
+    distance_mm: tuple[float, float] | None = None
+    defect_px: tuple[float, float] | None = None  # each side of the box, in frame pixels
+    depth_mm: tuple[float, float] | None = None
+    defects_per_frame: tuple[int, int] = (1, 3)
+
+    @property
+    def plans_defects(self) -> bool:
+        return self.depth_mm is not None
 
 
 def zed_calibration(width: int = 672, height: int = 376) -> Calibration:
@@ -63,18 +83,21 @@ class FrameSpec:
     tilt_deg: float
     yaw_deg: float
     requests: list[tuple[str, float]]  # (class, signed design depth)
+    sizes_px: list[tuple[float, float]] | None = None  # (width, height) of each request's box, or from its appearance
 
 
-def plan_frame(rng, index: int, distance_mm: float, tilt_deg: float, jitter: bool, decks) -> FrameSpec:
-    all_deck, deep_deck = decks
-    if jitter:
+def plan_frame(rng, index: int, distance_mm: float, tilt_deg: float, jitter: bool, decks,
+               ranges: EvalRanges = EvalRanges()) -> FrameSpec:
+    all_deck, deep_deck = decks[:2]
+    if ranges.distance_mm is not None:
+        distance = rng.uniform(*ranges.distance_mm)
+    elif jitter:
         distance = distance_mm + rng.uniform(-20.0, 50.0)
-        tilt = tilt_deg + rng.uniform(-5.0, 3.0)
-        if tilt_deg >= 0:  # 0..8 deg around the default 5; the sign of the tilt is kept
-            tilt = max(tilt, 0.0)
-        yaw = rng.uniform(-2.0, 2.0)
     else:
-        distance, tilt, yaw = distance_mm, tilt_deg, 0.0
+        distance = distance_mm
+    tilt, yaw = _jittered_pose(rng, tilt_deg) if jitter else (tilt_deg, 0.0)
+    if ranges.plans_defects:
+        return _planned_defects(rng, float(distance), float(tilt), float(yaw), decks, ranges)
     kind = FRAME_PLAN[index % len(FRAME_PLAN)]
     reqs: list[tuple[str, float]] = []
 
@@ -94,7 +117,30 @@ def plan_frame(rng, index: int, distance_mm: float, tilt_deg: float, jitter: boo
     elif kind == "mixed":
         shallow()
         deep()
-    return FrameSpec(float(distance), float(tilt), float(yaw), reqs)
+    return FrameSpec(float(distance), float(tilt), float(yaw), reqs, _sizes(rng, ranges, len(reqs)))
+
+
+def _jittered_pose(rng, tilt_deg: float) -> tuple[float, float]:
+    tilt = tilt_deg + rng.uniform(-5.0, 3.0)
+    if tilt_deg >= 0:  # 0..8 deg around the default 5; the sign of the tilt is kept
+        tilt = max(tilt, 0.0)
+    return tilt, rng.uniform(-2.0, 2.0)
+
+
+def _sizes(rng, ranges: EvalRanges, count: int) -> list[tuple[float, float]] | None:
+    if ranges.defect_px is None:
+        return None
+    return [(float(rng.uniform(*ranges.defect_px)), float(rng.uniform(*ranges.defect_px))) for _ in range(count)]
+
+
+def _planned_defects(rng, distance: float, tilt: float, yaw: float, decks, ranges: EvalRanges) -> FrameSpec:
+    """An evaluation frame: ``defects_per_frame`` defects, each of a depth drawn from ``depth_mm``."""
+    below, raised = decks[1], decks[2]
+    reqs = []
+    for _ in range(int(rng.integers(ranges.defects_per_frame[0], ranges.defects_per_frame[1] + 1))):
+        depth = float(rng.uniform(*ranges.depth_mm))
+        reqs.append(((raised if depth < 0 else below).draw(), depth))
+    return FrameSpec(distance, tilt, yaw, reqs, _sizes(rng, ranges, len(reqs)))
 
 
 def _appearance(rng, cls: str, crops: NeuCrops | None, scale_px: float):
@@ -120,7 +166,7 @@ def _appearance(rng, cls: str, crops: NeuCrops | None, scale_px: float):
     return patch, pbox, "synthetic", 0.5  # stand-in patches are drawn at 2x the frame size
 
 
-def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None) -> Scene:
+def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, texture_contrast: float = 1.0) -> Scene:
     z0 = spec.distance_mm
     e1, e2, n = plate_axes(spec.tilt_deg, spec.yaw_deg)
     p0 = np.array([0.0, 0.0, z0])
@@ -139,7 +185,7 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
     pad = 6 * texel
     s0, s1, t0, t1 = min(ss) - pad, max(ss) + pad, min(ts) - pad, max(ts) + pad
     shape = (int(np.ceil((t1 - t0) / texel)) + 1, int(np.ceil((s1 - s0) / texel)) + 1)
-    albedo = steel_albedo(rng, shape, texel)
+    albedo = steel_albedo(rng, shape, texel, texture_contrast)
     belt = belt_albedo(rng, shape, texel)
     height = np.zeros(shape, np.float32)
 
@@ -171,9 +217,11 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
     scale_px = calib.width / ZED_WVGA["width"]
     mm_per_px = z0 / calib.focal_px
     placed: list[Defect] = []
-    for cls, depth in spec.requests:
+    for i, (cls, depth) in enumerate(spec.requests):
         patch, pbox, source, k = _appearance(rng, cls, crops, scale_px)
         bw, bh = (pbox[2] - pbox[0]) * k, (pbox[3] - pbox[1]) * k  # frame px
+        if spec.sizes_px is not None:  # the appearance is stretched over the footprint (_paste)
+            bw, bh = spec.sizes_px[i]
         a, b = bw / 2 * mm_per_px, bh / 2 * mm_per_px / np.cos(np.radians(spec.tilt_deg))
         # room for the ring measure_defect fits the surface on (3 + 12 px, not scaled)
         margin = max(EDGE_MARGIN_PX * scale_px, 16.0)
@@ -260,9 +308,10 @@ def quantise_disparity(disparity: np.ndarray) -> np.ndarray:
     return (np.clip(np.round(disparity.astype(np.float64) * 256.0), 0, 65535) / 256.0).astype(np.float32)
 
 
-def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, frame_id: str, ss: int = 2):
+def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, frame_id: str, ss: int = 2,
+                 texture_contrast: float = 1.0):
     """(left, right, gt disparity (quantised), labels dict, scene)."""
-    scene = build_scene(rng, calib, spec, crops)
+    scene = build_scene(rng, calib, spec, crops, texture_contrast)
     left, right, disparity, hits = render_pair(scene, rng, ss=ss)
     gt = quantise_disparity(disparity)
     defects = []
@@ -286,6 +335,10 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
         "tilt_deg": round(spec.tilt_deg, 3),
         "yaw_deg": round(spec.yaw_deg, 3),
         "plate_fills_view": scene.plate_s_range is None,
+        # what the depth evaluation's noise floor needs: the grey-level noise added to each eye
+        "sensor": {"noise_sigma": round(scene.sensor.noise_sigma, 4), "right_gain": round(scene.sensor.right_gain, 4),
+                   "right_offset": round(scene.sensor.right_offset, 4)},
+        "texture_contrast": texture_contrast,
         "defects": defects,
     }
     return left, right, gt, labels, scene
@@ -304,14 +357,17 @@ def generate_sequence(
     supersample: int = 2,
     image_format: str = "png",
     log=None,
+    ranges: EvalRanges = EvalRanges(),
+    texture_contrast: float = 1.0,
 ) -> list[dict]:
     """Write a sequence folder; returns the labels of every frame. ``neu_det=None`` uses the
-    synthetic stand-in defect appearance."""
+    synthetic stand-in defect appearance. ``ranges`` and ``texture_contrast`` make an evaluation set;
+    left at their defaults, the draws (and so the files) are those of the demo plan."""
     out = Path(out)
     crops = NeuCrops(Path(neu_det)) if neu_det is not None else None
     calib = zed_calibration(width, height)
     rng = np.random.default_rng(seed)
-    decks = (_Deck(NEU_CLASSES, rng), _Deck(BELOW_CLASSES, rng))
+    decks = (_Deck(NEU_CLASSES, rng), _Deck(BELOW_CLASSES, rng), _Deck(RAISED_CLASSES, rng))
     write_calibration(out, {
         "focal_px": calib.focal_px, "baseline_mm": calib.baseline_mm, "cx": calib.cx, "cy": calib.cy,
         "width": calib.width, "height": calib.height, "doffs": 0.0,
@@ -322,8 +378,9 @@ def generate_sequence(
     for i in range(frames):
         t_start = time.perf_counter()
         frame_id = f"{i:06d}"
-        spec = plan_frame(rng, i, distance_mm, tilt_deg, jitter, decks)
-        left, right, gt, labels, _ = render_frame(rng, calib, spec, crops, frame_id, ss=supersample)
+        spec = plan_frame(rng, i, distance_mm, tilt_deg, jitter, decks, ranges)
+        left, right, gt, labels, _ = render_frame(rng, calib, spec, crops, frame_id, ss=supersample,
+                                                  texture_contrast=texture_contrast)
         if image_format == "png":
             write_frame(out, frame_id, left, right, gt, labels)
         else:  # high-quality JPEG for the eyes, the rest as write_frame does it

@@ -31,9 +31,10 @@ def _coarse_noise(rng: np.random.Generator, shape: tuple[int, int], cell: float)
     return out / std if std > 0 else out
 
 
-def steel_albedo(rng: np.random.Generator, shape: tuple[int, int], texel_mm: float) -> np.ndarray:
+def steel_albedo(rng: np.random.Generator, shape: tuple[int, int], texel_mm: float, contrast: float = 1.0) -> np.ndarray:
     """Rolled/brushed steel, grey ~125: streaks along the plate's t axis (rolling direction),
-    fine isotropic grain (what stereo matches on), mill-scale mottling and a few stains."""
+    fine isotropic grain (what stereo matches on), mill-scale mottling and a few stains.
+    ``contrast`` scales every variation about the mean (below 1: polished, low-texture metal)."""
     t = texel_mm
     streaks = _blur_noise(rng, shape, sx=0.35 / t, sy=8.0 / t)
     grain = _blur_noise(rng, shape, sx=0.6 / t, sy=0.6 / t)
@@ -41,6 +42,8 @@ def steel_albedo(rng: np.random.Generator, shape: tuple[int, int], texel_mm: flo
     mottle = _coarse_noise(rng, shape, cell=60.0 / t)
     stains = np.clip(_coarse_noise(rng, shape, cell=25.0 / t) - 1.6, 0, None)
     albedo = PLATE_MEAN + 9.0 * streaks + 8.0 * grain + 6.0 * medium + 12.0 * mottle - 25.0 * stains
+    if contrast != 1.0:
+        albedo = PLATE_MEAN + contrast * (albedo - PLATE_MEAN)
     return albedo.astype(np.float32)
 
 

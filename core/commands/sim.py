@@ -48,11 +48,40 @@ def register(cli: click.Group) -> None:
                   help="Replace the frames of an existing sequence in OUT (otherwise that is an error).")
     @click.option("--supersample", default=2, show_default=True, type=click.IntRange(1, 4),
                   help="Rays per pixel along each axis (anti-aliasing).")
+    @click.option("--distance-range-mm", nargs=2, type=float, default=None, metavar="NEAR FAR",
+                  help="Evaluation set: plate distance drawn uniformly per frame (instead of --distance-mm).")
+    @click.option("--defect-size-px", nargs=2, type=float, default=None, metavar="MIN MAX",
+                  help="Evaluation set: each side of every defect's box drawn uniformly, in frame pixels.")
+    @click.option("--depth-range-mm", nargs=2, type=float, default=None, metavar="MIN MAX",
+                  help="Evaluation set: every frame carries defects (see --defects-per-frame) whose depth is drawn "
+                       "uniformly (+ below the surface, - raised), instead of the demo's plan of sound, shallow and "
+                       "deep plates.")
+    @click.option("--defects-per-frame", nargs=2, type=click.IntRange(1, 6), default=(1, 3), show_default=True,
+                  metavar="MIN MAX", help="With --depth-range-mm: defects per frame, drawn uniformly.")
+    @click.option("--texture-contrast", default=1.0, show_default=True, type=click.FloatRange(0.05, 3.0),
+                  help="Scale of the plate texture's variation (0.3: polished, low-texture metal).")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
-                 image_format, overwrite, supersample) -> None:
-        """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/."""
-        from sim.generate import generate_sequence
+                 image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
+                 defects_per_frame, texture_contrast) -> None:
+        """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
+
+        The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
+        options make an evaluation set for ``inspect eval depth``."""
+        from sim.generate import EvalRanges, generate_sequence
         from sim.neu_crops import NeuDetError
+
+        for name, pair, low in (("--distance-range-mm", distance_range_mm, 100.0), ("--defect-size-px", defect_size_px, 4.0),
+                                ("--depth-range-mm", depth_range_mm, None), ("--defects-per-frame", defects_per_frame, 1)):
+            if pair is None:
+                continue
+            if pair[0] > pair[1]:
+                click.echo(f"error: {name}: MIN {pair[0]:g} is larger than MAX {pair[1]:g}", err=True)
+                raise SystemExit(2)
+            if low is not None and pair[0] < low:
+                click.echo(f"error: {name}: {pair[0]:g} is below the smallest allowed, {low:g}", err=True)
+                raise SystemExit(2)
+        ranges = EvalRanges(distance_mm=distance_range_mm, defect_px=defect_size_px, depth_mm=depth_range_mm,
+                            defects_per_frame=tuple(defects_per_frame))
 
         if not synthetic_defects and not Path(neu_det).is_dir():
             click.echo(f"error: NEU-DET folder not found: {neu_det} (give --neu-det DIR or --synthetic-defects)", err=True)
@@ -68,7 +97,8 @@ def register(cli: click.Group) -> None:
             generate_sequence(
                 out, frames=frames, seed=seed, distance_mm=distance_mm, tilt_deg=tilt_deg,
                 neu_det=None if synthetic_defects else neu_det, width=width, height=height, jitter=jitter,
-                supersample=supersample, image_format=image_format, log=click.echo,
+                supersample=supersample, image_format=image_format, log=click.echo, ranges=ranges,
+                texture_contrast=texture_contrast,
             )
         except NeuDetError as exc:
             click.echo(f"error: {exc}", err=True)

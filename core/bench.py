@@ -29,7 +29,7 @@ import cv2
 
 from core.contracts import PluginContext
 from core.decision import decide
-from core.depth import DepthRule, measure_defect
+from core.depth import DepthRule, measure_frame
 from core.engine import compute_disparity, disparity_range, frame_disparity, resolve_device
 from core.recipe import LoadedRecipe
 from core.registry import Registry
@@ -84,7 +84,7 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
     if versus and stereo is not None:
         reference = registry.get("stereo", backend).spec.factory({**settings, **versus}, ctx)
     compare = stereo is not None and (region != "full" or bool(versus))
-    rule = DepthRule(**recipe.depth.model_dump())
+    rule = DepthRule.from_section(recipe.depth)
     section = recipe.stereo.model_copy(update={"region": region})
     diffs = {"defects": 0, "distance_mm": 0.0, "deviation_mm": 0.0, "availability_differs": 0}
     camera_spec = registry.get("camera", recipe.camera.plugin).spec
@@ -113,7 +113,7 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
                 if stereo is not None and (region == "full" or detections):
                     disparity = frame_disparity(stereo, frame, section, detections, rule)
                     t["stereo"] = time.perf_counter()
-                    measurements = [measure_defect(disparity, d, frame.calib, rule) for d in detections]
+                    measurements = measure_frame(disparity, detections, frame, rule)
                     t["depth"] = time.perf_counter()
                 else:
                     t["stereo"] = t["depth"] = t["detection"]
@@ -156,8 +156,7 @@ def _compare_to_full(diffs: dict[str, Any], stereo: Any, frame: StereoFrame, sec
                      measurements) -> None:
     """Each defect's depth against the same box measured on this frame's full-frame disparity."""
     reference = frame_disparity(stereo, frame, section.model_copy(update={"region": "full"}), detections, rule)
-    for det, m in zip(detections, measurements):
-        ref = measure_defect(reference, det, frame.calib, rule)
+    for det, m, ref in zip(detections, measurements, measure_frame(reference, detections, frame, rule)):
         diffs["defects"] += 1
         for key in ("distance_mm", "deviation_mm"):
             a, b = getattr(ref, key), getattr(m, key)

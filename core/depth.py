@@ -1,9 +1,20 @@
-"""Depth per defect from a disparity map: distance, deviation from the surrounding surface.
+"""Depth per defect: distance, deviation from the surrounding surface, and their uncertainties.
 
-Distance follows the seed: the median of the valid disparities inside the defect's region,
-``Z = f*B / (median(d) + doffs)``. Deviation goes one step further: a plane is fitted robustly
-to the valid disparities in a ring around the box, and the defect's pixels are measured
-against it along the plane's 3D normal.
+Two methods (the recipe's ``depth.method``):
+
+- ``surface`` (the default): the surrounding surface and the defect's offset from it are fitted to
+  the grey levels of the rectified pair (``core.surface_fit``), starting from the backend's disparity.
+  Every pixel of the ring and of the region contributes, so the deviation is good to a few hundredths
+  of a disparity pixel where a per-pixel matcher is off by tenths; its uncertainty comes from the fit.
+- ``disparity``: the backend's disparity map alone, the reference the first is compared against.
+  Distance follows the seed: the median of the valid disparities inside the defect's region,
+  ``Z = f*B / (median(d) + doffs)``; a plane is fitted robustly to the valid disparities in a ring
+  around the box, and the defect's pixels are measured against it along the plane's 3D normal. Its
+  uncertainty is the expected resolution ``Z^2 / (f*B) * disparity_noise_px`` (times sqrt 2 for the
+  deviation, a difference of two surfaces).
+
+Both methods share the checks that make a deviation meaningful: enough valid disparities in the
+region, a ring around the box on one surface (``worst_side``).
 
 Why fit in disparity space: a 3D plane seen by a rectified pinhole pair is exactly a plane in
 (u, v, d), so the fit is linear. From ``a*u + b*v + c = d + doffs = f*B/Z`` it follows that
@@ -13,12 +24,13 @@ A point seen at pixel (u, v) with disparity d lies at signed distance
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
+from dataclasses import dataclass, fields
+from typing import Any, Literal
 
 import numpy as np
 
-from core.types import Calibration, DefectMeasurement, Detection
+from core import surface_fit
+from core.types import Calibration, DefectMeasurement, Detection, StereoFrame
 
 
 @dataclass(frozen=True)
@@ -40,6 +52,14 @@ class DepthRule:
     min_plane_inliers: float = 0.6
     plane_tolerance_px: float = 1.0
     disparity_noise_px: float = 0.25
+    method: Literal["surface", "disparity"] = "surface"
+
+    @classmethod
+    def from_section(cls, section: Any, **changes: Any) -> DepthRule:
+        """The rule of a recipe's ``depth`` section (its keys that are not measurement settings left out)."""
+        values = section.model_dump() if hasattr(section, "model_dump") else dict(section)
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in {**values, **changes}.items() if k in names})
 
 
 @dataclass(frozen=True)
@@ -170,12 +190,33 @@ def worst_side(
     return f"only {shares[name]:.0%} of its {name} side fits", shares[name]
 
 
+def region_weights(box: tuple[float, float, float, float], clipped: tuple[int, int, int, int]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels of the integer rectangle ``clipped`` with each one's area inside the float ``box``:
+    (u, v, weight), 1-D. A narrow box cut to whole pixels would take in a share of the defect's walls."""
+    x0, y0, x1, y1 = clipped
+    vv, uu = np.mgrid[y0:y1, x0:x1]
+    uu, vv = uu.ravel(), vv.ravel()
+    fx0, fy0, fx1, fy1 = box
+    wx = np.clip(np.minimum(uu + 1, fx1) - np.maximum(uu, fx0), 0.0, 1.0)
+    wy = np.clip(np.minimum(vv + 1, fy1) - np.maximum(vv, fy0), 0.0, 1.0)
+    return uu, vv, wx * wy
+
+
 def measure_defect(
-    disparity: np.ndarray, detection: Detection, calib: Calibration, rule: DepthRule = DepthRule()
+    disparity: np.ndarray, detection: Detection, calib: Calibration, rule: DepthRule = DepthRule(),
+    pair: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> DefectMeasurement:
-    """Distance and deviation of one detection. disparity: HxW float, NaN/inf/0 = invalid."""
+    """Distance and deviation of one detection, with their standard uncertainties.
+
+    disparity: HxW float, NaN/inf/0 = invalid. pair: the rectified (left, right) HxW float32 grey
+    images (``surface_fit.to_grey``), needed by ``method: surface``; without it the backend's
+    disparity alone is used (``method: disparity``)."""
     shape = disparity.shape
-    x0, y0, x1, y1 = _clip_box(roi_box(detection.box, rule), shape)
+    if pair is not None and (pair[0].shape != shape or pair[1].shape != shape):
+        raise ValueError(f"measure_defect: images {pair[0].shape} / {pair[1].shape} and disparity {shape} differ")
+    inner = roi_box(detection.box, rule)
+    x0, y0, x1, y1 = _clip_box(inner, shape)
     region = disparity[y0:y1, x0:x1]
     total = region.size
     valid = valid_mask(region, calib.doffs)
@@ -193,7 +234,8 @@ def measure_defect(
     bw, bh = detection.width, detection.height
     area = bw * bh * (distance / calib.focal_px) ** 2
 
-    ring = ring_mask(shape, detection.box, rule.ring_gap_px, rule.ring_width_px) & valid_mask(disparity, calib.doffs)
+    ring_all = ring_mask(shape, detection.box, rule.ring_gap_px, rule.ring_width_px)
+    ring = ring_all & valid_mask(disparity, calib.doffs)
     rv, ru = np.nonzero(ring)
     plane = None
     if ru.size >= rule.min_ring_points:
@@ -205,6 +247,7 @@ def measure_defect(
         return DefectMeasurement(
             detection, distance, None, valid_fraction, resolution, area,
             note=f"deviation unavailable: {ru.size} valid surface points around the box, {rule.min_ring_points} needed",
+            distance_sigma_mm=resolution,
         )
     how, share = worst_side(plane, ru, rv, disparity[ring] + calib.doffs, _clip_box(detection.box, shape), rule.plane_tolerance_px)
     if share < rule.min_plane_inliers:
@@ -212,8 +255,89 @@ def measure_defect(
             detection, distance, None, valid_fraction, resolution, area,
             note=f"deviation unavailable: {how}" if "outside the image" in how else
             f"deviation unavailable: the surface around the box is not one plane ({how}, {rule.min_plane_inliers:.0%} needed)",
+            distance_sigma_mm=resolution,
         )
     vv, uu = np.nonzero(valid)
     d_plane = plane((uu + x0).astype(np.float64), (vv + y0).astype(np.float64))
     deviation = fb * (d_plane / d_defect - 1.0) / plane.normal_length(calib)
-    return DefectMeasurement(detection, distance, float(np.median(deviation)), valid_fraction, resolution, area)
+    reference = DefectMeasurement(detection, distance, float(np.median(deviation)), valid_fraction, resolution, area,
+                                  distance_sigma_mm=resolution, deviation_sigma_mm=float(np.sqrt(2.0) * resolution))
+    if rule.method == "disparity" or pair is None:
+        return reference
+    return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, inner, (x0, y0, x1, y1),
+                                d_plane - d_defect, reference)
+
+
+def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, inner, clipped, offsets,
+                         reference: DefectMeasurement) -> DefectMeasurement:
+    """``method: surface``: the ring's plane and the defect's offset fitted to the images, from the backend's
+    plane and median offset. Falls back to ``reference`` (saying so) where the fit does not settle."""
+    # the ring less the pixels the backend puts on another surface (the belt, a neighbouring defect);
+    # pixels it left unmatched stay: the fit does not need their disparity
+    other = valid_mask(disparity, calib.doffs) & ring_all
+    rv, ru = np.nonzero(other)
+    off_plane = np.abs(plane(ru.astype(np.float64), rv.astype(np.float64)) - (disparity[rv, ru] + calib.doffs)) \
+        > rule.plane_tolerance_px
+    ring = ring_all.copy()
+    ring[rv[off_plane], ru[off_plane]] = False
+    ring_v, ring_u = np.nonzero(ring)
+    uu, vv, weights = region_weights(inner, clipped)
+    shift = (plane.a, plane.b, plane.c - calib.doffs)  # the plane of disparities without doffs
+    seen = uu - (shift[0] * uu + shift[1] * vv + shift[2]) >= 2  # the right image holds the point
+    if np.sum(weights * seen) < 0.5 * np.sum(weights):
+        # the backend's disparities there are its hole filling: no measurement of either kind
+        return DefectMeasurement(
+            detection, reference.distance_mm, None, reference.valid_fraction, reference.depth_resolution_mm,
+            reference.area_mm2, note=f"deviation unavailable: the right camera does not see the region "
+            f"({np.sum(weights * seen) / np.sum(weights):.0%} of it in its view)",
+            distance_sigma_mm=reference.distance_sigma_mm, method="surface")
+    start = -float(np.median(offsets))
+    left, right = pair
+    fit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)
+    if fit is None:
+        return _fallback(reference, "the surface fit did not settle")
+    offsets_px, sds, centres = surface_fit.cell_offsets(left, right, fit, (uu, vv), weights)
+    cells = surface_fit.robust_offset(offsets_px, sds, fit.delta)
+    cov = fit.covariance
+    c = fit.c + calib.doffs  # the surrounding surface's disparity at the region's centre
+    if np.isfinite(cells.variance):
+        d, var_d = c + cells.delta, cells.variance
+    else:
+        d, var_d = c + fit.delta, cov[0, 0] + cov[3, 3] + 2 * cov[0, 3]
+    # The region may hold about a pixel of the defect's wall that the fit cannot tell from its floor
+    # (the wall facing the camera is seen broad, the other foreshortened): a share of 1 / w of a region
+    # w pixels across, and so of the offset. Measured on the evaluation sets (docs/benchmarks.md).
+    var_d += ((d - c) / max(min(inner[2] - inner[0], inner[3] - inner[1]), 1.0)) ** 2
+    # and a floor that is not flat over the region (the box cut through a wall) widens it by how much
+    var_d += surface_fit.unevenness_variance(offsets_px, sds, centres)
+    if d <= 0 or c <= 0:
+        return _fallback(reference, "the surface fit gave no disparity in front of the camera")
+    a, b = fit.slopes
+    u0, v0 = fit.centre
+    n = Plane(a, b, c - a * u0 - b * v0).normal_length(calib)
+    fb = calib.focal_px * calib.baseline_mm
+    # deviation = fb (c / d - 1) / |n|: c from the ring, d from the defect's own pixels
+    deviation = fb * (c / d - 1.0) / n
+    deviation_sigma = float(np.sqrt((fb / (d * n)) ** 2 * cov[0, 0] + (fb * c / (d * d * n)) ** 2 * var_d))
+    distance = fb / d
+    return DefectMeasurement(
+        detection, float(distance), float(deviation), reference.valid_fraction, reference.depth_resolution_mm,
+        reference.area_mm2 * (distance / reference.distance_mm) ** 2,
+        distance_sigma_mm=float(fb / d**2 * np.sqrt(var_d)), deviation_sigma_mm=deviation_sigma, method="surface",
+    )
+
+
+def _fallback(reference: DefectMeasurement, why: str) -> DefectMeasurement:
+    reference.note = f"{why}; measured from the disparity map alone"
+    return reference
+
+
+def measure_frame(disparity: np.ndarray, detections: list[Detection], frame: StereoFrame,
+                  rule: DepthRule = DepthRule()) -> list[DefectMeasurement]:
+    """``measure_defect`` for every detection of a frame (its pair converted to grey once)."""
+    if not detections:
+        return []
+    pair = None
+    if rule.method == "surface":
+        pair = (surface_fit.to_grey(frame.left), surface_fit.to_grey(frame.right))
+    return [measure_defect(disparity, d, frame.calib, rule, pair) for d in detections]

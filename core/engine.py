@@ -21,7 +21,7 @@ import numpy as np
 from core.annotate import annotate
 from core.contracts import PluginContext
 from core.decision import decide, error_verdict
-from core.depth import DepthRule, measure_defect
+from core.depth import DepthRule, measure_frame
 from core.recipe import LoadedRecipe
 from core.recipe.schema import StereoSection
 from core.registry import Registry, default_registry
@@ -184,7 +184,7 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
             timings["stereo"] = time.perf_counter() - t0
             stage = "depth"
             t0 = time.perf_counter()
-            measurements = [measure_defect(disparity, d, item.calib, rule) for d in detections]
+            measurements = measure_frame(disparity, detections, item, rule)
             timings["depth"] = time.perf_counter() - t0
         stage = "decision"
         verdict, per_defect = decide(measurements, recipe.decision)
@@ -298,7 +298,7 @@ def run(
     pipeline = build_pipeline(loaded, registry, device)
     store = ResultsStore(loaded.resolve(recipe.results.path))
     run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path))
-    rule = DepthRule(**recipe.depth.model_dump())
+    rule = DepthRule.from_section(recipe.depth)
     counts: Counter = Counter()
     alarms: list[Alarm] = []
     stage_seconds: Counter = Counter()

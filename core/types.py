@@ -98,8 +98,10 @@ class Detection:
 class DefectMeasurement:
     """What depth says about one detection. ``None`` means "not available" and says why in ``note``.
 
-    deviation_mm: how far the defect's median surface lies below (+) or above (-) the plane
-    fitted to the surrounding plate surface, measured along that plane's normal.
+    deviation_mm: how far the defect's surface lies below (+) or above (-) the surface around it,
+    measured along that surface's normal. ``*_sigma_mm``: the standard uncertainty of each (one
+    standard deviation, from the fit that measured it). ``method``: ``surface`` (fitted to the images
+    themselves, ``core.surface_fit``) or ``disparity`` (from the stereo backend's map alone).
     """
 
     detection: Detection
@@ -109,17 +111,35 @@ class DefectMeasurement:
     depth_resolution_mm: float | None
     area_mm2: float | None
     note: str = ""
+    distance_sigma_mm: float | None = None
+    deviation_sigma_mm: float | None = None
+    method: str = "disparity"
 
     def quantity(self, name: str) -> float | None:
         if name == "confidence":
             return self.detection.confidence
         return getattr(self, name)
 
+    def uncertainty(self, name: str) -> float | None:
+        """The standard uncertainty of ``quantity(name)``; 0 for the detector's confidence (it is exact
+        as given), None where the quantity or its uncertainty is unavailable."""
+        if name == "confidence":
+            return 0.0
+        if name == "area_mm2":  # the area goes with Z^2 at a fixed box in pixels
+            if self.area_mm2 is None or self.distance_mm is None or self.distance_sigma_mm is None:
+                return None
+            return 2.0 * self.area_mm2 * self.distance_sigma_mm / self.distance_mm
+        return {"distance_mm": self.distance_sigma_mm, "deviation_mm": self.deviation_sigma_mm}.get(name)
+
 
 class Status(str, enum.Enum):
+    """A part's (or a defect's) outcome. FLAG: the measurement could not prove the part in or out of
+    its limits and the recipe asks for a manual check; the part is diverted like a reject."""
+
     PASS = "PASS"
     REJECT = "REJECT"
     ERROR = "ERROR"
+    FLAG = "FLAG"
 
     @property
     def rejects(self) -> bool:

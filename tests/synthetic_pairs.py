@@ -29,6 +29,9 @@ def _texture(seed: int, size: int = 1024) -> np.ndarray:
     noise = rng.random((size, size)).astype(np.float32)
     tex = sum(cv2.resize(cv2.resize(noise, (size // s, size // s), interpolation=cv2.INTER_AREA), (size, size)) * w
               for s, w in ((1, 0.35), (4, 0.35), (16, 0.3)))
+    # as a lens would: texel-sized noise sampled at ~2 texels per pixel otherwise aliases, and the two
+    # eyes, sampling it at other phases, would not see the same pattern
+    tex = cv2.GaussianBlur(tex, (0, 0), 1.0)
     return np.clip(40 + 180 * (tex - tex.min()) / (tex.max() - tex.min()), 0, 255).astype(np.float32)
 
 
@@ -79,3 +82,46 @@ def render(calib: Calibration, distance_mm: float, tilt_deg: float = 0.0, pits: 
         if origin_x == 0.0:
             disparity = (f * b / p[..., 2]).astype(np.float32)
     return images[0], images[1], disparity
+
+
+def step_pair(width: int = 160, height: int = 120, plane: tuple[float, float, float] = (0.02, -0.01, 40.0),
+              step_box: tuple[int, int, int, int] | None = (60, 45, 100, 75), step_px: float = -0.3,
+              noise: float = 1.5, contrast: float = 30.0, gain: float = 1.05, offset: float = 3.0, seed: int = 0):
+    """A textured plane d = a*u + b*v + c (disparity px) with a flat-bottomed step of ``step_px`` inside
+    ``step_box`` (x0, y0, x1, y1 in left pixels; negative = farther, a pit), as a rectified pair of grey
+    HxW float32 images with the exact left disparity (HxW float64).
+
+    The texture is a sum of random sinusoids below the Nyquist frequency on the surface, so both eyes
+    sample one pattern, band-limited to a quarter cycle per pixel: the left pixel u sees surface coordinate s = u, the right pixel x
+    the point with x = s - d(s). The right eye has another exposure (gain, offset); both get noise."""
+    rng = np.random.default_rng(seed)
+    k = 40
+    fu = rng.uniform(-0.25, 0.25, k) * 2 * np.pi  # well below Nyquist: interpolation is nearly exact there
+    fv = rng.uniform(-0.25, 0.25, k) * 2 * np.pi
+    ph = rng.uniform(0, 2 * np.pi, k)
+    amp = contrast / np.sqrt(k) * rng.uniform(0.5, 1.5, k)
+
+    def texture(s: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return 120.0 + np.sum(amp[:, None, None] * np.sin(fu[:, None, None] * s + fv[:, None, None] * t + ph[:, None, None]),
+                              axis=0)
+
+    a, b, c = plane
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    disparity = a * u + b * v + c
+    inside = np.zeros((height, width), bool)
+    if step_box is not None:
+        x0, y0, x1, y1 = step_box
+        inside[y0:y1, x0:x1] = True
+        disparity = disparity + step_px * inside
+    left = texture(u, v)
+    # right pixel x, row v: the surface point s with s - d(s) = x, on the plane or on the step's floor
+    s_plane = (u + b * v + c) / (1 - a)
+    s_step = (u + b * v + c + step_px) / (1 - a)
+    on_step = np.zeros_like(inside)
+    if step_box is not None:
+        on_step = (s_step >= x0) & (s_step < x1) & (v >= y0) & (v < y1)
+    s = np.where(on_step, s_step, s_plane)
+    right = gain * texture(s, v) + offset
+    left = left + rng.normal(0, noise, left.shape)
+    right = right + rng.normal(0, noise, right.shape)
+    return left.astype(np.float32), right.astype(np.float32), disparity

@@ -1,0 +1,552 @@
+"""Sub-pixel surfaces by direct image alignment: the ring's plane and the defect's offset from it.
+
+A rectified pair sees a plane as ``I_L(u, v) = g * I_R(u - d(u, v), v) + o`` with ``d`` linear in
+(u, v) and (g, o) the exposure difference between the eyes. Fitting ``d`` to the grey levels of every
+pixel of a region (Gauss-Newton, as in Lucas-Kanade) instead of to per-pixel disparities averages the
+sensor noise over all of them: the standard deviation of the region's disparity falls as
+``sigma_noise * sqrt(2) / sqrt(sum I_x^2)``, a few hundredths of a pixel over a few thousand pixels
+of rolled steel, where a per-pixel matcher is off by a tenth or more.
+
+The model, fitted over the ring around a box and the defect's region inside it::
+
+    d(u, v) = c + a * (u - u0) + b * (v - v0) + delta * m(u, v)
+    I_L(u, v) = (g + g_u * (u - u0) + g_v * (v - v0) + g_m * m) * I_R(u - d(u, v), v) + o + o_m * m
+
+``m`` is 1 on the defect's region, 0 on the ring; (u0, v0) the region's centre, so ``c`` is the
+surrounding surface's disparity there and ``delta`` the defect's offset from it. The gain varies over
+the ring because both eyes' vignetting differs at pixels ``d`` apart; the defect has an exposure of its
+own because its walls reflect the light differently towards each eye. Both images are high-passed
+first (what varies more slowly than ``HIGH_PASS_SIGMA`` is sheen, not texture), saturated pixels are
+left out and residuals are weighted with Huber's function.
+
+Steps (``fit_surface``): the ring alone, coarse to fine, from the backend's plane; the defect's offset
+by a search of the robust cost at full resolution (a narrow region, blurred, is mostly its ring);
+both together. Then ``robust_offset`` re-estimates ``delta`` from the offsets of small cells of the
+region, combined with Tukey's weights, so that cells on a wall or a glint do not pull it, and widens
+its uncertainty by the cells' Birge ratio where they scatter more than their own noise says.
+
+Uncertainties come from the fit: the M-estimator's sandwich covariance, inflated where neighbouring
+residuals are correlated (the right image is interpolated; a JPEG has blocks).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+SATURATED = (3.0, 252.0)  # grey levels outside which a pixel carries no usable gradient
+HIGH_PASS_SIGMA = 10.0  # px
+BLUR_SIGMAS = (2.0, 1.0)  # the ring's levels before the joint fit on the images as they are
+ITERATIONS = (6, 6)
+JOINT_ITERATIONS = 10
+TOLERANCE_PX = 5e-4  # disparity steps below this end the fit: a tenth of the smallest uncertainty seen
+HUBER_K = 1.345  # 95 % efficiency for Gaussian noise
+TUKEY_K = 4.685  # likewise
+CLUSTER_PX = 4  # blocks over which residuals may be correlated
+CELL_PX = 4  # cells of the defect's region whose offsets are combined robustly
+RING_CELL_PX = 6  # cells of the ring that are kept or left out together
+SEARCH_STEP_PX = 0.05
+PARAMS = ("c", "a", "b", "delta", "g", "g_u", "g_v", "o", "g_m", "o_m")
+RING = [0, 1, 2, 4, 5, 6, 7]
+ALL = list(range(len(PARAMS)))
+
+
+@dataclass(frozen=True)
+class SurfaceFit:
+    """The fitted parameters (``PARAMS``, see the module docstring), their covariance and what the fit saw."""
+
+    params: np.ndarray  # (10,)
+    covariance: np.ndarray  # (10, 10)
+    centre: tuple[float, float]  # (u0, v0), px
+    ring_pixels: int
+    defect_pixels: int
+    residual_sigma: float  # grey levels of the high-passed images, robust
+    inflation: float  # covariance factor for correlated residuals (>= 1)
+    converged: bool
+
+    @property
+    def c(self) -> float:
+        return float(self.params[0])
+
+    @property
+    def slopes(self) -> tuple[float, float]:
+        return float(self.params[1]), float(self.params[2])
+
+    @property
+    def delta(self) -> float:
+        return float(self.params[3])
+
+
+@dataclass(frozen=True)
+class RobustOffset:
+    """The defect's offset from the ring's plane from its cells: ``delta`` (px), its variance given the
+    plane (px^2, Birge ratio included), the number of cells and the sum of their final weights."""
+
+    delta: float
+    variance: float
+    cells: int
+    weight: float
+    birge: float
+
+
+def to_grey(image: np.ndarray) -> np.ndarray:
+    """HxWx3 BGR (or HxW) uint8 -> HxW float32 grey levels."""
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.shape[2] == 3 else image[..., 0]
+    return image.astype(np.float32)
+
+
+def high_pass(image: np.ndarray, sigma: float = HIGH_PASS_SIGMA) -> np.ndarray:
+    """HxW float32 -> the image less its Gaussian blur: the texture without the slowly varying light."""
+    return image - cv2.GaussianBlur(image, (0, 0), sigma)
+
+
+def gradient_x(image: np.ndarray) -> np.ndarray:
+    """HxW -> HxW central difference along the rows (0 in the first and last column)."""
+    g = np.zeros_like(image)
+    g[:, 1:-1] = 0.5 * (image[:, 2:] - image[:, :-2])
+    return g
+
+
+def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bicubic samples of an HxW float32 image at float positions (1-D arrays); NaN where the kernel
+    (x - 1 .. x + 2, likewise y) leaves the image.
+
+    The border is replicated and the NaN set afterwards: with a NaN border value OpenCV's cubic remap
+    turns whole groups of 8 samples NaN when one of them is near the border (and every sample of a
+    map shorter than 8)."""
+    x32, y32 = x.astype(np.float32), y.astype(np.float32)
+    out = cv2.remap(image, x32[None, :], y32[None, :], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)[0]
+    h, w = image.shape
+    inside = (x32 >= 1) & (x32 <= w - 3) & (y32 >= 1) & (y32 <= h - 3)
+    return np.where(inside, out, np.nan).astype(np.float32)
+
+
+def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
+    return image if sigma <= 0 else cv2.GaussianBlur(image, (0, 0), sigma)
+
+
+def _huber_weights(r: np.ndarray, scale: float) -> np.ndarray:
+    k = HUBER_K * scale
+    a = np.abs(r)
+    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
+
+
+def _huber_cost(r: np.ndarray, scale: float) -> np.ndarray:
+    a, k = np.abs(r), HUBER_K * scale
+    return np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))
+
+
+def _robust_scale(r: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(r - np.median(r)))) or 1e-3
+
+
+class _Problem:
+    """The pixels of one fit and the images they are read from (high-passed), with the model's residuals."""
+
+    def __init__(self, left, right, ring, defect, prior, raw_left, raw_right, centre):
+        self.u = np.concatenate([ring[0], defect[0]]).astype(np.float64)
+        self.v = np.concatenate([ring[1], defect[1]]).astype(np.float64)
+        self.m = np.concatenate([np.zeros(len(ring[0])), np.ones(len(defect[0]))])
+        self.ui, self.vi = self.u.astype(np.intp), self.v.astype(np.intp)
+        self.du, self.dv = self.u - centre[0], self.v - centre[1]
+        self.prior = prior
+        self.left, self.right, self.raw_left, self.raw_right = left, right, raw_left, raw_right
+        grey = raw_left[self.vi, self.ui]
+        self.usable = (grey > SATURATED[0]) & (grey < SATURATED[1]) & (prior > 0)
+        # the right image's saturated pixels: a sample that reads one is not usable
+        self.right_saturated = (raw_right <= SATURATED[0]) | (raw_right >= SATURATED[1])
+        self.J = np.empty((len(self.u), len(PARAMS)))
+        self.level(0.0)
+
+    def level(self, sigma: float) -> None:
+        """Read the images blurred by ``sigma`` from now on (0: as they are)."""
+        self.L, self.R = _blurred(self.left, sigma), _blurred(self.right, sigma)
+        self.Rx = gradient_x(self.R)
+        self.lvals = self.L[self.vi, self.ui]
+
+
+    def residuals(self, theta):
+        """(residuals, Jacobian rows (N, 10), usable) at ``theta`` on the current level's images."""
+        d = theta[0] + theta[1] * self.du + theta[2] * self.dv + theta[3] * self.m
+        x = self.u - d
+        rv, gx = sample(self.R, x, self.v), sample(self.Rx, x, self.v)
+        ok = self.usable & np.isfinite(rv) & np.isfinite(gx)
+        column = np.clip(np.rint(x), 0, self.R.shape[1] - 1).astype(np.intp)
+        ok &= ~self.right_saturated[self.vi, column]
+        gain = theta[4] + theta[5] * self.du + theta[6] * self.dv + theta[8] * self.m
+        r = self.lvals - gain * rv - theta[7] - theta[9] * self.m
+        J, m = self.J, self.m
+        J[:, 0] = gain * gx  # d r / d disparity
+        J[:, 1] = J[:, 0] * self.du
+        J[:, 2] = J[:, 0] * self.dv
+        J[:, 3] = J[:, 0] * m
+        J[:, 4] = -rv
+        J[:, 5] = -rv * self.du
+        J[:, 6] = -rv * self.dv
+        J[:, 7] = -1.0
+        J[:, 8] = -rv * m
+        J[:, 9] = -m
+        return r, J, ok
+
+    def gauss_newton(self, theta, free, iterations, select, tolerance):
+        """Huber-weighted Gauss-Newton on the parameters ``free`` over the pixels ``select``:
+        (theta, moved less than ``tolerance`` px in disparity at the end), or (None, False)."""
+        for _ in range(iterations):
+            r, J, ok = self.residuals(theta)
+            ok &= select
+            if ok.sum() < len(free) + 2:
+                return None, False
+            r, J = r[ok], J[ok][:, free]
+            w = _huber_weights(r, _robust_scale(r)) * self.prior[ok]
+            try:
+                step = np.linalg.solve((J * w[:, None]).T @ J, -(J * w[:, None]).T @ r)
+            except np.linalg.LinAlgError:
+                return None, False
+            if not np.all(np.isfinite(step)):
+                return None, False
+            theta = theta.copy()
+            theta[free] += step
+            moves = [abs(step[i]) for i, f in enumerate(free) if f in (0, 3)]
+            if max(moves, default=0.0) < tolerance:
+                return theta, True
+        return theta, False
+
+
+def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.ndarray],
+                defect: tuple[np.ndarray, np.ndarray], plane: tuple[float, float, float],
+                delta0: float = 0.0, defect_weights: np.ndarray | None = None,
+                search_px: float = 1.5) -> SurfaceFit | None:
+    """Fit the ring's disparity plane and the defect's offset to the grey levels of a rectified pair.
+
+    left, right: HxW float32 grey images of the same shape. ring, defect: (u, v) integer pixel
+    coordinates (1-D arrays) of the surrounding surface and of the defect's region. defect_weights:
+    (len(defect[0]),) each defect pixel's share of the region (its area inside a region whose border
+    cuts pixels), 1 if not given. plane: the starting plane ``d = a * u + b * v + c`` of the ring in
+    image coordinates (disparity px, without doffs). delta0: the defect's starting offset, searched
+    ``search_px`` either side. None when too few usable pixels remain or the fit does not settle.
+    """
+    if left.shape != right.shape or left.ndim != 2:
+        raise ValueError(f"fit_surface: left {left.shape} and right {right.shape} must be the same HxW")
+    if len(ring[0]) != len(ring[1]) or len(defect[0]) != len(defect[1]):
+        raise ValueError("fit_surface: ring and defect are (u, v) pairs of equal length")
+    if len(defect[0]) == 0 or len(ring[0]) < 10:
+        return None
+    wd = np.ones(len(defect[0])) if defect_weights is None else np.asarray(defect_weights, dtype=np.float64)
+    if wd.shape != (len(defect[0]),):
+        raise ValueError(f"fit_surface: defect_weights {wd.shape} must have one weight per defect pixel")
+    if wd.sum() <= 0:
+        return None
+    prior = np.concatenate([np.ones(len(ring[0])), wd])
+    centre = (float(np.average(defect[0], weights=wd)), float(np.average(defect[1], weights=wd)))
+    a0, b0, c_img = plane
+    theta = np.array([a0 * centre[0] + b0 * centre[1] + c_img, a0, b0, delta0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    (x0, y0), left, right = _window(left, right, ring, defect, theta, search_px)
+    ring = (ring[0] - x0, ring[1] - y0)
+    defect = (defect[0] - x0, defect[1] - y0)
+    local = (centre[0] - x0, centre[1] - y0)
+    p = _Problem(high_pass(left), high_pass(right), ring, defect, prior, left, right, local)
+    on_ring = p.m == 0
+    for level, (sigma, iterations) in enumerate(zip(BLUR_SIGMAS, ITERATIONS)):
+        p.level(sigma)
+        if level == 0:
+            theta[[4, 7]] = _exposure(p, theta)
+        # the coarse levels only bring the start into the fine level's reach
+        theta, _ = p.gauss_newton(theta, RING, iterations, on_ring, 4 * TOLERANCE_PX)
+        if theta is None:
+            return None
+    p.level(0.0)
+    theta = _ring_consensus(p, theta)
+    ring_prior = prior.copy()
+    prior[on_ring] *= _ring_cell_weights(p, theta)
+    theta[3] = _search_offset(p, theta, delta0 - search_px, delta0 + search_px)
+    searched = theta[3]
+    theta, converged = p.gauss_newton(theta, ALL, JOINT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
+    if theta is None or abs(theta[3] - searched) > 0.5:  # left the searched minimum: not one surface
+        return None
+    prior[on_ring] = ring_prior[on_ring] * _ring_cell_weights(p, theta)
+    theta, converged = p.gauss_newton(theta, ALL, JOINT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
+    if theta is None:
+        return None
+    r, J, ok = p.residuals(theta)
+    r, J = r[ok], J[ok]
+    h, w = _huber_weights(r, _robust_scale(r)), prior[ok]
+    try:
+        inv = np.linalg.inv((J * (h * w)[:, None]).T @ J)
+    except np.linalg.LinAlgError:
+        return None
+    if not (np.all(np.isfinite(inv)) and np.all(np.diag(inv) > 0)):
+        return None
+    covariance, inflation = _covariance(J, r, h, w, p.ui[ok], p.vi[ok], inv)
+    return SurfaceFit(theta, covariance, centre, int((ok & on_ring).sum()), int((ok & ~on_ring).sum()),
+                      _robust_scale(r), inflation, converged)
+
+
+WINDOW_MARGIN_PX = int(3 * HIGH_PASS_SIGMA) + 8  # the filters' reach, the blur's and the interpolation's
+
+
+def _window(left, right, ring, defect, theta, search_px):
+    """The rows and columns a fit reads, cut from both images: (top-left corner, left crop, right crop).
+    The right image is read up to the largest disparity to the left of the pixels."""
+    u = np.concatenate([ring[0], defect[0]])
+    v = np.concatenate([ring[1], defect[1]])
+    h, w = left.shape
+    reach = abs(theta[0]) + abs(theta[1]) * (u.max() - u.min()) + abs(theta[2]) * (v.max() - v.min()) \
+        + abs(theta[3]) + search_px + 2
+    x0 = max(0, int(u.min() - reach) - WINDOW_MARGIN_PX)
+    x1 = min(w, int(u.max()) + 1 + WINDOW_MARGIN_PX)
+    y0 = max(0, int(v.min()) - WINDOW_MARGIN_PX)
+    y1 = min(h, int(v.max()) + 1 + WINDOW_MARGIN_PX)
+    return (x0, y0), left[y0:y1, x0:x1], right[y0:y1, x0:x1]
+
+
+CONSENSUS_SAMPLES = 64
+CONSENSUS_SIGMAS = 3.0
+CONSENSUS_GAIN = 0.05  # share of the ring's cells that must come to agree (noise alone moves it ~0.04)
+
+
+def _ring_cells(p: _Problem, theta: np.ndarray):
+    """The ring's RING_CELL_PX cells' disparity offsets from the plane of ``theta`` (one Gauss-Newton step),
+    their standard deviations and centres relative to the region's: (cell of each ring pixel, usable
+    ring pixels, offsets, sds, du, dv)."""
+    ring = p.m == 0
+    r, J, ok = p.residuals(theta)
+    r, j, ok = r[ring], J[ring, 0], ok[ring] & (p.prior[ring] > 0)
+    scale = _robust_scale(r[ok])
+    h = np.where(ok, _huber_weights(r, scale), 0.0)
+    cell = np.unique((p.vi[ring] // RING_CELL_PX) * 100_000 + p.ui[ring] // RING_CELL_PX, return_inverse=True)[1]
+    k = cell.max() + 1
+    info = np.bincount(cell, h * j * j, minlength=k)
+    offset = -np.bincount(cell, h * j * r, minlength=k) / np.maximum(info, 1e-12)
+    sd = np.where(info > 0, scale / np.sqrt(np.maximum(info, 1e-12)), np.inf)
+    count = np.maximum(np.bincount(cell, minlength=k), 1)
+    du = np.bincount(cell, p.du[ring], minlength=k) / count
+    dv = np.bincount(cell, p.dv[ring], minlength=k) / count
+    return cell, ok, offset, sd, du, dv
+
+
+def _ring_consensus(p: _Problem, theta: np.ndarray) -> np.ndarray:
+    """``theta`` with the ring's plane moved to the one most of its cells agree on (MSAC over triples of
+    cells, deterministic): where part of the ring lies on another surface, a fit to all of it tilts
+    between the two until no cell stands out."""
+    _, _, offset, sd, du, dv = _ring_cells(p, theta)
+    good = np.isfinite(sd)
+    if good.sum() < 6:
+        return theta
+    e, s, x, y = offset[good], sd[good], du[good], dv[good]
+    design = np.stack([np.ones_like(x), x, y], axis=1)
+    rng = np.random.default_rng(0)
+    best, best_cost = np.zeros(3), np.inf
+    for triple in rng.integers(0, len(e), size=(CONSENSUS_SAMPLES, 3)):
+        try:
+            plane = np.linalg.solve(design[triple], e[triple])
+        except np.linalg.LinAlgError:
+            continue
+        z2 = ((design @ plane - e) / s) ** 2
+        cost = float(np.sum(np.minimum(z2, CONSENSUS_SIGMAS**2)))
+        if cost < best_cost:
+            best, best_cost = plane, cost
+    inliers = np.abs(design @ best - e) <= CONSENSUS_SIGMAS * s
+    # noisy cells let some triple beat the fitted plane by chance: move only for a clearly larger consensus
+    if inliers.mean() - (np.abs(e) <= CONSENSUS_SIGMAS * s).mean() < CONSENSUS_GAIN:
+        return theta
+    w = 1.0 / (s[inliers] ** 2)
+    try:
+        best = np.linalg.solve((design[inliers] * w[:, None]).T @ design[inliers], (design[inliers] * w[:, None]).T @ e[inliers])
+    except np.linalg.LinAlgError:
+        pass
+    theta = theta.copy()
+    theta[[0, 1, 2]] += best
+    return theta
+
+
+def _ring_cell_weights(p: _Problem, theta: np.ndarray) -> np.ndarray:
+    """Tukey's weight of each ring pixel's RING_CELL_PX cell, from the cell's own disparity offset from the
+    plane (one Gauss-Newton step from ``theta``) in units of its standard deviation. A cell on another
+    surface (a defect's wall the box cut through, a neighbouring defect, the belt within a pixel) or
+    where the eyes see the light differently (a sheen, a highlight) stands out of the others and drops.
+    Returns (ring pixels,) weights in [0, 1], 0 for pixels the fit cannot use."""
+    cell, ok, offset, sd, _, _ = _ring_cells(p, theta)
+    z = np.where(np.isfinite(sd), offset / (TUKEY_K * sd), np.inf)
+    weight = np.where(np.abs(z) < 1, (1 - z * z) ** 2, 0.0)
+    return np.where(ok, weight[cell], 0.0)
+
+
+def _exposure(p: _Problem, theta: np.ndarray) -> tuple[float, float]:
+    """Gain and offset of the ring by least squares at the starting disparities."""
+    ring = p.m == 0
+    d = theta[0] + theta[1] * p.du[ring] + theta[2] * p.dv[ring]
+    rv = sample(p.R, p.u[ring] - d, p.v[ring])
+    lv = p.lvals[ring]
+    ok = np.isfinite(rv)
+    if ok.sum() < 3 or np.std(rv[ok]) < 1e-6:
+        return 1.0, 0.0
+    g, o = np.polyfit(rv[ok], lv[ok], 1)
+    return float(g), float(o)
+
+
+def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> float:
+    """The defect's offset in [lo, hi] with the least Huber cost over its pixels, the ring's parameters held
+    (steps of SEARCH_STEP_PX, refined by the parabola through the least cost and its neighbours)."""
+    r_ring, _, ok_ring = p.residuals(theta)
+    ok_ring &= p.m == 0
+    scale = _robust_scale(r_ring[ok_ring])
+    sel = p.usable & (p.m == 1)
+    if not sel.any():
+        return float(theta[3])
+    u, v, w = p.u[sel], p.v[sel], p.prior[sel]
+    base = theta[0] + theta[1] * p.du[sel] + theta[2] * p.dv[sel]
+    gain = theta[4] + theta[5] * p.du[sel] + theta[6] * p.dv[sel] + theta[8]
+    lv = p.lvals[sel]
+    candidates = np.arange(lo, hi + SEARCH_STEP_PX / 2, SEARCH_STEP_PX)
+    costs = np.empty(len(candidates))
+    for i, delta in enumerate(candidates):
+        rv = sample(p.R, u - base - delta, v)
+        r = np.where(np.isfinite(rv), lv - gain * rv - theta[7] - theta[9], 0.0)
+        costs[i] = float(np.sum(w * _huber_cost(r, scale)))
+    best = int(np.argmin(costs))
+    if 0 < best < len(candidates) - 1:
+        c0, c1, c2 = costs[best - 1: best + 2]
+        curvature = c0 - 2 * c1 + c2
+        if curvature > 0:
+            return float(candidates[best] + 0.5 * SEARCH_STEP_PX * (c0 - c2) / curvature)
+    return float(candidates[best])
+
+
+def _covariance(J: np.ndarray, r: np.ndarray, h: np.ndarray, p: np.ndarray, u: np.ndarray, v: np.ndarray,
+                inv: np.ndarray) -> tuple[np.ndarray, float]:
+    """The parameters' covariance and its inflation for correlated residuals.
+
+    The M-estimator's sandwich ``A^-1 B A^-1`` with ``A = sum p h J J^T`` (p: the pixel's share, h: its
+    Huber weight) and ``B = s^2 sum (p h)^2 J J^T``, ``s^2`` the variance of the weighted residuals
+    (independent pixels with one noise level). Pixels in the same CLUSTER_PX block may be correlated:
+    the same sandwich with the block sums of the scores ``p h r J`` measures by how much, for the
+    surface's disparity ``c`` (the ring gives enough blocks to tell), and that factor (never below 1)
+    scales the whole covariance.
+    """
+    ph = p * h
+    dof = max(float(p.sum()) - J.shape[1], 1.0)
+    s2 = float(np.sum(p * (h * r) ** 2) / dof)
+    model = inv @ ((J * (ph * ph)[:, None]).T @ J) @ inv * s2
+    keys = (v // CLUSTER_PX) * 100_000 + (u // CLUSTER_PX)
+    groups = np.unique(keys, return_inverse=True)[1]
+    g = np.zeros((groups.max() + 1, J.shape[1]))
+    np.add.at(g, groups, J * (ph * r)[:, None])
+    clustered = inv @ (g.T @ g) @ inv
+    inflation = max(1.0, float(clustered[0, 0] / model[0, 0])) if model[0, 0] > 0 else 1.0
+    return model * inflation, inflation
+
+
+def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],
+                 weights: np.ndarray | None = None, cell_px: int = CELL_PX, iterations: int = 8,
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each ``cell_px`` square cell's own offset from the fitted plane, the fit's plane and exposure held.
+
+    left, right: HxW float32 grey images (as given to ``fit_surface``); defect and weights as there.
+    Returns (offsets (K,), standard deviations (K,), inf for a cell with no gradient, centres (K, 2) as
+    (u, v) px), K the cells the region's pixels fall in, by Gauss-Newton per cell on the high-passed images."""
+    th = fit.params
+    (x0, y0), left, right = _window(left, right, defect, defect, th, 1.0)
+    u, v = (defect[0] - x0).astype(np.float64), (defect[1] - y0).astype(np.float64)
+    rows, cols = defect[1] - y0, defect[0] - x0
+    p = np.ones(len(u)) if weights is None else np.asarray(weights, dtype=np.float64)
+    L, R = high_pass(left), high_pass(right)
+    Rx = gradient_x(R)
+    cell = np.unique((defect[1] // cell_px) * 100_000 + defect[0] // cell_px, return_inverse=True)[1]
+    k = cell.max() + 1
+    du, dv = u - (fit.centre[0] - x0), v - (fit.centre[1] - y0)
+    plane = th[0] + th[1] * du + th[2] * dv
+    gain = th[4] + th[5] * du + th[6] * dv + th[8]
+    lv = L[rows, cols].astype(np.float64)
+    offsets = np.full(k, fit.delta)
+    j = np.zeros(len(u))
+    for _ in range(iterations):
+        x = u - plane - offsets[cell]
+        rv, gx = sample(R, x, v), sample(Rx, x, v)
+        ok = np.isfinite(rv) & np.isfinite(gx) & (p > 0)
+        r = np.where(ok, lv - gain * rv - th[7] - th[9], 0.0)
+        j = np.where(ok, gain * gx, 0.0)
+        h = _huber_weights(r, fit.residual_sigma) * p
+        num = np.bincount(cell, h * j * r, minlength=k)
+        den = np.bincount(cell, h * j * j, minlength=k)
+        step = np.where(den > 0, -num / np.maximum(den, 1e-12), 0.0)
+        offsets = offsets + np.clip(step, -0.5, 0.5)
+        if np.all(np.abs(step) < 1e-4):
+            break
+    info = np.bincount(cell, p * j * j, minlength=k)
+    sd = np.full(k, np.inf)
+    has = info > 0
+    sd[has] = np.sqrt(fit.residual_sigma**2 * fit.inflation / info[has])
+    count = np.maximum(np.bincount(cell, minlength=k), 1)
+    centres = np.stack([np.bincount(cell, defect[0], minlength=k) / count,
+                        np.bincount(cell, defect[1], minlength=k) / count], axis=1)
+    return offsets, sd, centres
+
+
+def robust_offset(offsets: np.ndarray, sds: np.ndarray, start: float, iterations: int = 20) -> RobustOffset:
+    """Tukey's M-estimate of the cells' common offset, from ``start``, cutting at TUKEY_K times each cell's
+    standard deviation times the cells' robust spread in those units (at least 1).
+
+    offsets, sds: (K,) each cell's offset and standard deviation. The variance is that of the weighted
+    mean with the final weights held, times the Birge ratio (the weighted scatter of the kept cells
+    about the estimate over what their standard deviations predict) where that exceeds 1."""
+    if offsets.shape != sds.shape or offsets.ndim != 1:
+        raise ValueError(f"robust_offset: offsets {offsets.shape} and sds {sds.shape} must be the same (K,)")
+    ok = np.isfinite(sds) & (sds > 0)
+    x, s = offsets[ok], sds[ok]
+    if x.size == 0:
+        return RobustOffset(start, np.inf, 0, 0.0, 1.0)
+    mu, w = start, np.ones_like(x)
+    for _ in range(iterations):
+        # cells that scatter more than their noise says widen the cut, or good cells would be cut too
+        spread = max(1.0, float(1.4826 * np.median(np.abs(x - mu) / s)))
+        z = (x - mu) / (TUKEY_K * s * spread)
+        w = np.where(np.abs(z) < 1, (1 - z * z) ** 2, 0.0)
+        if w.sum() <= 0:
+            w = np.ones_like(x)
+        precision = w / (s * s)
+        new = float(np.sum(precision * x) / np.sum(precision))
+        done = abs(new - mu) < 1e-6
+        mu = new
+        if done:
+            break
+    precision = w / (s * s)
+    alpha = precision / precision.sum()
+    variance = float(np.sum(alpha * alpha * s * s))
+    kept = w > 0
+    birge = 1.0
+    if kept.sum() >= 2:
+        birge = max(1.0, float(np.sum(w[kept] * ((x[kept] - mu) / s[kept]) ** 2) / (w[kept].sum() - 1 + 1e-12)))
+    return RobustOffset(mu, variance * birge, int(x.size), float(w.sum()), birge)
+
+
+def unevenness_variance(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, z: float = 2.0) -> float:
+    """How much the defect's offset varies over its region beyond what the cells' noise explains, as a
+    variance (px^2) to add to the offset's: a plane is fitted to the cells' offsets (weights 1 / sd^2),
+    and each of its two slopes adds its spread over the region (the rms of a linear ramp over the cells)
+    where it is more than ``z`` of its own standard deviations from 0 (those from the cells' scatter about
+    the plane where it exceeds their sds); 0 for a flat floor.
+
+    offsets, sds: (K,) as ``cell_offsets`` gives them; centres: (K, 2) their (u, v)."""
+    ok = np.isfinite(sds) & (sds > 0)
+    if ok.sum() < 4:
+        return 0.0
+    x, s, c = offsets[ok], sds[ok], centres[ok]
+    w = 1.0 / (s * s)
+    du, dv = c[:, 0] - np.average(c[:, 0], weights=w), c[:, 1] - np.average(c[:, 1], weights=w)
+    design = np.stack([np.ones_like(x), du, dv], axis=1)
+    normal = (design * w[:, None]).T @ design
+    try:
+        cov = np.linalg.inv(normal)
+    except np.linalg.LinAlgError:
+        return 0.0
+    beta = cov @ ((design * w[:, None]).T @ x)
+    # the slopes' uncertainty from the cells' own scatter about the plane where that is the larger
+    chi2 = float(np.sum(w * (x - design @ beta) ** 2) / (len(x) - 3))
+    cov = cov * max(1.0, chi2)
+    excess = 0.0
+    for i, spread in ((1, du), (2, dv)):
+        if cov[i, i] > 0 and abs(beta[i]) > z * np.sqrt(cov[i, i]):
+            excess += (beta[i] ** 2 - z * z * cov[i, i]) * float(np.mean(spread * spread))
+    return float(excess)

@@ -1,0 +1,151 @@
+"""``core.surface_fit`` on exact synthetic pairs: a textured tilted plane with a flat-bottomed step."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from synthetic_pairs import step_pair
+
+from core import surface_fit as sf
+from core.depth import ring_mask
+
+PLANE = (0.02, -0.01, 40.0)
+BOX = (60, 45, 100, 75)
+
+
+def _regions(box=BOX, inner=(68, 51, 92, 69), shape=(120, 160)):
+    rv, ru = np.nonzero(ring_mask(shape, box, 3, 12))
+    vv, uu = np.mgrid[inner[1]:inner[3], inner[0]:inner[2]]
+    return (ru, rv), (uu.ravel(), vv.ravel())
+
+
+def _plane_at(u, v, plane=PLANE):
+    return plane[0] * u + plane[1] * v + plane[2]
+
+
+def _floor(left, pixels, noise):
+    gx = sf.gradient_x(left)
+    return noise * math.sqrt(2) / math.sqrt(float(np.sum(gx[pixels[1], pixels[0]] ** 2)))
+
+
+class TestHighPass:
+    def test_removes_what_varies_slowly_and_keeps_the_shape(self):
+        v, u = np.mgrid[0:80, 0:100].astype(np.float32)
+        ramp = 100 + 0.5 * u + 0.2 * v
+        out = sf.high_pass(ramp)
+        assert out.shape == ramp.shape and out.dtype == np.float32
+        assert np.abs(out[20:60, 20:80]).max() < 0.5  # a ramp is light, not texture
+
+    def test_keeps_fine_texture(self):
+        texture = np.random.default_rng(0).normal(0, 10, (80, 100)).astype(np.float32)
+        assert np.corrcoef(sf.high_pass(texture + 50).ravel(), texture.ravel())[0, 1] > 0.95
+
+
+class TestSample:
+    def test_a_sample_whose_kernel_leaves_the_image_is_nan_and_no_other(self):
+        image = np.arange(100, dtype=np.float32).reshape(10, 10)
+        out = sf.sample(image, np.array([1.0, 0.5, 4.25, 7.0, 7.5]), np.array([5.0, 5.0, 2.0, 5.0, 5.0]))
+        assert out[0] == pytest.approx(51.0) and math.isnan(out[1]) and out[2] == pytest.approx(24.25, abs=0.1)
+        assert out[3] == pytest.approx(57.0) and math.isnan(out[4])
+
+
+class TestFitSurface:
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_recovers_the_plane_and_the_step_within_their_uncertainty(self, seed):
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=seed)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, (PLANE[0], PLANE[1], PLANE[2] + 0.4), -0.1)
+        assert fit is not None and fit.converged
+        u0, v0 = fit.centre
+        sd_c, sd_delta = math.sqrt(fit.covariance[0, 0]), math.sqrt(fit.covariance[3, 3])
+        assert abs(fit.c - _plane_at(u0, v0)) <= 3 * sd_c
+        # within 3 sigma and the high-pass's pull of a few percent of the step (module docstring)
+        assert abs(fit.delta - (-0.3)) <= 3 * sd_delta + 0.015
+        assert fit.slopes == pytest.approx(PLANE[:2], abs=0.002)
+        assert fit.params[4] == pytest.approx(1 / 1.05, abs=0.02)  # the right eye's exposure
+
+    def test_uncertainty_is_near_the_noise_floor(self):
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, noise=1.5, seed=3)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
+        floor = math.hypot(_floor(left, ring, 1.5), _floor(left, defect, 1.5))
+        sd_delta = math.sqrt(fit.covariance[3, 3])
+        assert 0.8 * floor <= sd_delta <= 2.0 * floor
+
+    def test_a_start_a_pixel_off_still_finds_the_surface(self):
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.5, seed=4)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, (PLANE[0], PLANE[1], PLANE[2] - 1.0), 0.8)
+        u0, v0 = fit.centre
+        assert fit.c == pytest.approx(_plane_at(u0, v0), abs=0.02)
+        assert fit.delta == pytest.approx(-0.5, abs=0.05)
+
+    def test_a_part_of_the_ring_on_another_surface_is_left_out(self):
+        # the ring's right side lies on a second, deeper step: a box cut through a neighbouring defect
+        left, right, _ = step_pair(plane=PLANE, step_box=(101, 30, 130, 90), step_px=-0.4, seed=5)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
+        u0, v0 = fit.centre
+        assert abs(fit.c - _plane_at(u0, v0)) < 0.02  # a blend of both would be ~0.07 px off
+        assert abs(fit.delta) < 0.03  # and the region inside is on the plane
+
+    def test_shape_checks(self):
+        left, right, _ = step_pair()
+        ring, defect = _regions()
+        with pytest.raises(ValueError, match="same HxW"):
+            sf.fit_surface(left, right[:, :-1], ring, defect, PLANE)
+        with pytest.raises(ValueError, match="equal length"):
+            sf.fit_surface(left, right, (ring[0], ring[1][:-1]), defect, PLANE)
+        with pytest.raises(ValueError, match="one weight per defect pixel"):
+            sf.fit_surface(left, right, ring, defect, PLANE, 0.0, np.ones(3))
+
+    def test_nothing_to_fit_is_none(self):
+        left, right, _ = step_pair()
+        ring, _ = _regions()
+        assert sf.fit_surface(left, right, ring, (np.array([], int), np.array([], int)), PLANE) is None
+        assert sf.fit_surface(left, right, (ring[0][:5], ring[1][:5]), _regions()[1], PLANE) is None
+
+
+class TestCellOffsets:
+    def test_each_cell_sees_the_step(self):
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=6)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
+        offsets, sds, centres = sf.cell_offsets(left, right, fit, defect)
+        assert offsets.shape == sds.shape == (centres.shape[0],) and centres.shape[1] == 2
+        assert np.all(np.isfinite(sds)) and np.median(np.abs(offsets + 0.3) / sds) < 1.5
+
+
+class TestRobustOffset:
+    def test_cells_off_by_much_more_than_their_noise_do_not_pull(self):
+        offsets = np.r_[np.full(30, -0.30), np.full(8, 0.20)]  # a quarter of the cells on a wall
+        sds = np.full(38, 0.02)
+        result = sf.robust_offset(offsets + np.random.default_rng(0).normal(0, 0.02, 38), sds, -0.2)
+        assert result.delta == pytest.approx(-0.30, abs=0.01)
+        assert result.weight < 31
+
+    def test_scatter_beyond_the_cells_noise_widens_the_uncertainty(self):
+        rng = np.random.default_rng(1)
+        sds = np.full(40, 0.02)
+        calm = sf.robust_offset(-0.3 + rng.normal(0, 0.02, 40), sds, -0.3)
+        wild = sf.robust_offset(-0.3 + rng.normal(0, 0.06, 40), sds, -0.3)
+        assert calm.birge < 1.6 < wild.birge
+        assert wild.variance > 4 * calm.variance
+
+    def test_shape_check(self):
+        with pytest.raises(ValueError, match="same"):
+            sf.robust_offset(np.zeros(3), np.ones(4), 0.0)
+
+
+class TestUnevennessVariance:
+    def test_a_flat_floor_adds_nothing_a_slanted_one_its_spread(self):
+        v, u = np.mgrid[0:6, 0:8].astype(float)
+        centres = np.stack([4 * u.ravel(), 4 * v.ravel()], axis=1)
+        sds = np.full(48, 0.02)
+        rng = np.random.default_rng(2)
+        flat = -0.3 + rng.normal(0, 0.02, 48)
+        assert sf.unevenness_variance(flat, sds, centres) < 0.02**2 / 4
+        ramp = flat + 0.01 * (centres[:, 0] - centres[:, 0].mean())  # a wall across the region
+        spread = float(np.std(0.01 * centres[:, 0]))
+        assert sf.unevenness_variance(ramp, sds, centres) == pytest.approx(spread**2, rel=0.3)

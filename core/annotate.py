@@ -6,7 +6,8 @@ import numpy as np
 
 from core.types import DefectMeasurement, PartResult, Status
 
-_COLOURS = {Status.PASS: (60, 180, 60), Status.REJECT: (40, 40, 230), Status.ERROR: (0, 165, 255)}
+_COLOURS = {Status.PASS: (60, 180, 60), Status.REJECT: (40, 40, 230), Status.ERROR: (0, 165, 255),
+            Status.FLAG: (216, 91, 142)}
 
 
 def _fmt(value: float | None, unit: str) -> str:

@@ -13,7 +13,7 @@ from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
 
-from core.types import Alarm, Detection, FrameError, OutputEvent, PartResult, StereoFrame
+from core.types import Alarm, Calibration, Detection, FrameError, OutputEvent, PartResult, StereoFrame
 
 PluginKind = Literal["camera", "stereo", "detector", "output"]
 PLUGIN_KINDS: tuple[PluginKind, ...] = ("camera", "stereo", "detector", "output")
@@ -76,3 +76,6 @@ class PluginSpec:
     factory: Callable[[dict[str, Any], PluginContext], Any]
     description: str = ""
     settings_model: type | None = None  # a pydantic model; unknown keys are rejected when given
+    # Optional, cameras: the rectified geometry the camera will deliver, from its settings alone (no
+    # device opened), so that ``inspect validate`` can tell what depth the recipe can resolve.
+    calibration: Callable[[dict[str, Any], PluginContext], Calibration] | None = None

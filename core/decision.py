@@ -1,8 +1,17 @@
-"""PASS / REJECT / ERROR from the recipe's rules.
+"""PASS / REJECT / FLAG / ERROR from the recipe's rules, with guard bands (ISO 14253-1).
 
-A part passes only if every defect passes every rule that covers it AND every measurement
-those rules need is available. A missing measurement is an ERROR (the part could not be
-inspected), which rejects the part like a REJECT does but is counted apart.
+A rule ``quantity op threshold`` names when a defect is out of tolerance. Every measurement comes
+with a standard uncertainty u; the guard band is ``coverage_factor * u`` (2u by default, about 95 %
+for a normal error). A rule's outcome is
+
+- REJECT when the measurement is beyond the limit by more than the band (non-conformance proven),
+- PASS when it is inside by more than the band (conformance proven),
+- otherwise undecided, resolved by the recipe's ``uncertain``: reject (the default), pass, or flag
+  (a FLAG part is diverted for a manual check), always with the reason recorded.
+
+A part passes only if every defect passes every rule that covers it AND every measurement those
+rules need is available. A missing measurement is an ERROR (the part could not be inspected), which
+rejects the part like a REJECT does but is counted apart. Precedence: ERROR, REJECT, FLAG, PASS.
 """
 from __future__ import annotations
 
@@ -12,10 +21,24 @@ from core.recipe.schema import DecisionSection, Rule
 from core.types import DefectMeasurement, Status, Verdict
 
 _OPS = {">": operator.gt, ">=": operator.ge, "<": operator.lt, "<=": operator.le}
+_PRECEDENCE = (Status.ERROR, Status.REJECT, Status.FLAG, Status.PASS)
+_UNCERTAIN = {"reject": Status.REJECT, "pass": Status.PASS, "flag": Status.FLAG}
 
 
 def rule_applies(rule: Rule, class_name: str) -> bool:
     return rule.class_ in ("any", class_name)
+
+
+def conformance(value: float, band: float, op: str, threshold: float) -> str:
+    """``beyond`` (the rule's condition holds even at the far end of the band), ``inside`` (it fails
+    even at the near end) or ``undecided``."""
+    test = _OPS[op]
+    toward_reject = -band if op in (">", ">=") else band  # the end of the band that is least out of tolerance
+    if test(value + toward_reject, threshold):
+        return "beyond"
+    if not test(value - toward_reject, threshold):
+        return "inside"
+    return "undecided"
 
 
 def judge_defect(m: DefectMeasurement, decision: DecisionSection) -> tuple[Status, list[str]]:
@@ -26,32 +49,39 @@ def judge_defect(m: DefectMeasurement, decision: DecisionSection) -> tuple[Statu
         if decision.reject_unruled_defects:
             return Status.REJECT, [f"{label}: no rule covers this class and unruled defects are rejected"]
         return Status.PASS, []
-    status, reasons = Status.PASS, []
+    outcomes, reasons = [], []
     for rule in rules:
         value = m.quantity(rule.quantity)
         if value is None:
-            status = Status.ERROR
+            outcomes.append(Status.ERROR)
             why = m.note or f"{rule.quantity} unavailable"
             reasons.append(f"{label}: rule '{rule.describe()}' needs {rule.quantity}, {why}")
-        elif _OPS[rule.op](value, rule.threshold):
-            if status is not Status.ERROR:
-                status = Status.REJECT
-            reasons.append(f"{label}: {rule.quantity} {value:.2f} {rule.op} {rule.threshold:g} (rule '{rule.describe()}')")
-    return status, reasons
+            continue
+        sigma = m.uncertainty(rule.quantity) or 0.0
+        band = decision.coverage_factor * sigma
+        shown = f"{rule.quantity} {value:.2f}" + (f" ± {band:.2f}" if band > 0 else "")
+        state = conformance(value, band, rule.op, rule.threshold)
+        if state == "beyond":
+            outcomes.append(Status.REJECT)
+            reasons.append(f"{label}: {shown} {rule.op} {rule.threshold:g} (rule '{rule.describe()}')")
+        elif state == "undecided":
+            outcome = _UNCERTAIN[decision.uncertain]
+            outcomes.append(outcome)
+            reasons.append(f"{label}: {shown} straddles {rule.threshold:g}, conformance not proven "
+                           f"(rule '{rule.describe()}', uncertain: {decision.uncertain})")
+    return _worst(outcomes), reasons
+
+
+def _worst(statuses) -> Status:
+    present = set(statuses)
+    return next((s for s in _PRECEDENCE if s in present), Status.PASS)
 
 
 def decide(measurements: list[DefectMeasurement], decision: DecisionSection) -> tuple[Verdict, list[tuple[Status, list[str]]]]:
     """The part's verdict and each defect's (status, reasons)."""
     per_defect = [judge_defect(m, decision) for m in measurements]
-    statuses = {s for s, _ in per_defect}
-    if Status.ERROR in statuses:
-        overall = Status.ERROR
-    elif Status.REJECT in statuses:
-        overall = Status.REJECT
-    else:
-        overall = Status.PASS
     reasons = [r for _, rs in per_defect for r in rs]
-    return Verdict(overall, reasons), per_defect
+    return Verdict(_worst(s for s, _ in per_defect), reasons), per_defect
 
 
 def error_verdict(message: str) -> Verdict:

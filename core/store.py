@@ -28,6 +28,7 @@ CREATE TABLE IF NOT EXISTS runs (
     passed INTEGER DEFAULT 0,
     rejected INTEGER DEFAULT 0,
     errors INTEGER DEFAULT 0,
+    flagged INTEGER DEFAULT 0,
     alarms INTEGER DEFAULT 0,
     fps REAL,
     exit_code INTEGER
@@ -57,7 +58,10 @@ CREATE TABLE IF NOT EXISTS defects (
     area_mm2 REAL,
     verdict TEXT NOT NULL,
     reasons TEXT NOT NULL,
-    note TEXT
+    note TEXT,
+    distance_sigma_mm REAL,
+    deviation_sigma_mm REAL,
+    depth_method TEXT
 );
 CREATE TABLE IF NOT EXISTS output_events (
     id INTEGER PRIMARY KEY,
@@ -82,6 +86,20 @@ CREATE INDEX IF NOT EXISTS parts_run ON parts(run_id);
 CREATE INDEX IF NOT EXISTS parts_part_id ON parts(part_id);
 CREATE INDEX IF NOT EXISTS defects_part ON defects(part_row);
 """
+# Columns added after the first release, added to an older store when it is opened for writing.
+ADDED_COLUMNS = (
+    ("runs", "flagged", "INTEGER DEFAULT 0"),
+    ("defects", "distance_sigma_mm", "REAL"),
+    ("defects", "deviation_sigma_mm", "REAL"),
+    ("defects", "depth_method", "TEXT"),
+)
+
+
+def _add_missing_columns(db: sqlite3.Connection) -> None:
+    for table, column, kind in ADDED_COLUMNS:
+        present = {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
+        if column not in present:
+            db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
 
 
 def db_path(location: Path) -> Path:
@@ -98,6 +116,7 @@ class ResultsStore:
         # FULL: a decided part survives a power cut, not only a crash of this process.
         self.db.execute("PRAGMA synchronous=FULL")
         self.db.executescript(SCHEMA)
+        _add_missing_columns(self.db)
         self.db.commit()
 
     @property
@@ -125,10 +144,11 @@ class ResultsStore:
                 d = m.detection
                 self.db.execute(
                     "INSERT INTO defects (part_row, class, confidence, x0, y0, x1, y1, distance_mm, deviation_mm,"
-                    " valid_fraction, depth_resolution_mm, area_mm2, verdict, reasons, note)"
-                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    " valid_fraction, depth_resolution_mm, area_mm2, verdict, reasons, note, distance_sigma_mm,"
+                    " deviation_sigma_mm, depth_method) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                     (row, d.class_name, d.confidence, *d.box, m.distance_mm, m.deviation_mm, m.valid_fraction,
-                     m.depth_resolution_mm, m.area_mm2, status.value, json.dumps(reasons), m.note),
+                     m.depth_resolution_mm, m.area_mm2, status.value, json.dumps(reasons), m.note,
+                     m.distance_sigma_mm, m.deviation_sigma_mm, m.method),
                 )
         return row
 
@@ -152,9 +172,10 @@ class ResultsStore:
     def finish_run(self, run_id: int, counts: Counter, alarms: int, fps: float, exit_code: int) -> None:
         with self.db:
             self.db.execute(
-                "UPDATE runs SET finished=?, parts=?, passed=?, rejected=?, errors=?, alarms=?, fps=?, exit_code=? WHERE id=?",
+                "UPDATE runs SET finished=?, parts=?, passed=?, rejected=?, errors=?, flagged=?, alarms=?, fps=?,"
+                " exit_code=? WHERE id=?",
                 (time.time(), sum(counts.values()), counts[Status.PASS], counts[Status.REJECT], counts[Status.ERROR],
-                 alarms, fps, exit_code, run_id),
+                 counts[Status.FLAG], alarms, fps, exit_code, run_id),
             )
 
     def close(self) -> None:
@@ -188,6 +209,7 @@ def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
         "passed": verdicts.get("PASS", 0),
         "rejected": verdicts.get("REJECT", 0),
         "errors": verdicts.get("ERROR", 0),
+        "flagged": verdicts.get("FLAG", 0),
         "yield_percent": round(100.0 * verdicts.get("PASS", 0) / parts, 1) if parts else None,
         "defects_per_class": {c: dict(v) for c, v in sorted(per_class.items())},
         "alarms": alarms,
@@ -197,7 +219,7 @@ def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
 CSV_COLUMNS = [
     "run_id", "part_id", "frame_id", "time", "part_verdict", "part_reasons", "error", "class", "confidence",
     "x0", "y0", "x1", "y1", "distance_mm", "deviation_mm", "valid_fraction", "depth_resolution_mm", "area_mm2",
-    "defect_verdict", "defect_reasons",
+    "defect_verdict", "defect_reasons", "distance_sigma_mm", "deviation_sigma_mm", "depth_method",
 ]
 
 
@@ -209,10 +231,18 @@ def csv_rows(db: sqlite3.Connection, run_id: int | None = None, verdict: str | N
     rows = db.execute(
         "SELECT p.run_id, p.part_id, p.frame_id, p.time, p.verdict, p.reasons, p.error, d.class, d.confidence,"
         " d.x0, d.y0, d.x1, d.y1, d.distance_mm, d.deviation_mm, d.valid_fraction, d.depth_resolution_mm,"
-        f" d.area_mm2, d.verdict, d.reasons FROM parts p LEFT JOIN defects d ON d.part_row = p.id {where} ORDER BY p.id, d.id",
+        f" d.area_mm2, d.verdict, d.reasons, {_added(db, 'defects', 'd')}"
+        f" FROM parts p LEFT JOIN defects d ON d.part_row = p.id {where} ORDER BY p.id, d.id",
         args,
     ).fetchall()
     return [tuple(r) for r in rows]
+
+
+def _added(db: sqlite3.Connection, table: str, alias: str) -> str:
+    """The columns ADDED_COLUMNS gives ``table``, as a select list: NULL for each that a store made by an
+    older version (opened read-only, so not migrated) lacks."""
+    present = {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
+    return ", ".join(f"{alias}.{c}" if c in present else "NULL" for t, c, _ in ADDED_COLUMNS if t == table)
 
 
 def part_filter(run_id: int | None, verdict: str | None, defect_class: str | None) -> tuple[str, list]:

@@ -113,6 +113,11 @@ def _factory(settings: dict, ctx: PluginContext) -> ReplayCamera:
     return ReplayCamera(ReplaySettings.model_validate(settings, context={"recipe_dir": ctx.recipe_dir}))
 
 
+def _calibration(settings: dict, ctx: PluginContext) -> Calibration:
+    folder = Path(ReplaySettings.model_validate(settings, context={"recipe_dir": ctx.recipe_dir}).path)
+    return calibration_from_dict(seq.read_calibration(folder))
+
+
 @hookimpl
 def stereo_inspect_cameras() -> list[PluginSpec]:
     return [
@@ -122,5 +127,6 @@ def stereo_inspect_cameras() -> list[PluginSpec]:
             factory=_factory,
             settings_model=ReplaySettings,
             description="plays a recorded or synthetic sequence folder (left/, right/, calib.yaml)",
+            calibration=_calibration,
         )
     ]

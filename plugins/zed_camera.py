@@ -130,6 +130,16 @@ def _factory(settings: dict, ctx: PluginContext) -> ZedCamera:
         raise ValueError(str(exc)) from None
 
 
+def _calibration(settings: dict, ctx: PluginContext) -> Calibration:
+    s = ZedSettings.model_validate(settings, context={"recipe_dir": ctx.recipe_dir})
+    if s.calibration is None:  # the SDK reads it from the camera once it is open
+        raise ValueError("the ZED's geometry is known only once the SDK has opened it (give calibration)")
+    try:
+        return Calibration(**StereoRectifier(read_conf(s.calibration, s.resolution), alpha=s.rectify_alpha).as_dict())
+    except CalibrationError as exc:
+        raise ValueError(str(exc)) from None
+
+
 @hookimpl
 def stereo_inspect_cameras() -> list[PluginSpec]:
     return [
@@ -139,6 +149,7 @@ def stereo_inspect_cameras() -> list[PluginSpec]:
             factory=_factory,
             settings_model=ZedSettings,
             description="Stereolabs ZED over UVC (OpenCV) rectified with its SN<serial>.conf, or through pyzed.sl",
+            calibration=_calibration,
         )
     ]
 

@@ -8,7 +8,7 @@ import click
 
 from core.types import Alarm, OutputEvent, Status
 
-_STYLE = {Status.PASS: "green", Status.REJECT: "bold red", Status.ERROR: "bold yellow"}
+_STYLE = {Status.PASS: "green", Status.REJECT: "bold red", Status.ERROR: "bold yellow", Status.FLAG: "bold magenta"}
 
 
 def fail(message: str, code: int = 2) -> None:
@@ -31,14 +31,24 @@ def _fmt(value: float | None, unit: str, signed: bool = False) -> str:
     return f"{value:+.2f}{unit}" if signed else f"{value:.1f}{unit}"
 
 
+def _with_sigma(value: float | None, sigma: float | None, unit: str, signed: bool = False) -> str:
+    text = _fmt(value, unit, signed)
+    if value is None or sigma is None:
+        return text
+    return text[: -len(unit)] + (f"±{sigma:.2f}" if signed else f"±{sigma:.1f}") + unit
+
+
 def part_line(outcome) -> str:
+    """One line per part: each defect's class, confidence, distance and deviation with their standard
+    uncertainties (± u), then what decided the verdict."""
     part = outcome.part
     defects = "; ".join(
-        f"{m.detection.class_name} {m.detection.confidence:.2f} Z={_fmt(m.distance_mm, 'mm')} dev={_fmt(m.deviation_mm, 'mm', True)}"
+        f"{m.detection.class_name} {m.detection.confidence:.2f} Z={_with_sigma(m.distance_mm, m.distance_sigma_mm, 'mm')}"
+        f" dev={_with_sigma(m.deviation_mm, m.deviation_sigma_mm, 'mm', True)}"
         for m in part.measurements
     ) or "no defect"
     line = f"{part.part_id} frame {part.frame_id} {part.verdict.status.value:<6} {defects}"
-    if part.verdict.status.rejects and part.verdict.reasons:
+    if part.verdict.reasons:  # a PASS can have reasons too: a rule it passed undecided (uncertain: pass)
         line += "  <- " + " | ".join(part.verdict.reasons)
     return line
 
@@ -122,6 +132,7 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
     c = summary.counts
     console.print(
         f"parts {sum(c.values())}  passed {c[Status.PASS]}  rejected {c[Status.REJECT]}  errors {c[Status.ERROR]}  "
+        + (f"flagged {c[Status.FLAG]}  " if c[Status.FLAG] else "") +
         f"alarms {len(summary.alarms)}  {summary.fps:.2f} frames/s  ({summary.frames} frames in {summary.elapsed_s:.1f} s)",
         style="bold", markup=False,
     )
@@ -176,6 +187,26 @@ def validate_command(recipe: Path, overrides: tuple[str, ...]) -> None:
         f"{recipe}: ok (recipe {r.name!r}, camera {r.camera.plugin}, stereo {r.stereo.backend}, detector {r.detector.plugin}, "
         f"{len(r.decision.rules)} rules, outputs {', '.join(o.plugin for o in r.outputs) or 'none'})"
     )
+    for line in _depth_warnings(loaded):
+        click.echo(line, err=True)
+
+
+def _depth_warnings(loaded) -> list[str]:
+    """Rules the camera cannot resolve at the working distance (``core.resolution``), from the geometry
+    the camera plugin states without opening the device; a line saying so where it states none."""
+    from core.contracts import PluginContext
+    from core.registry import default_registry
+    from core.resolution import resolution_warnings
+
+    spec = default_registry().get("camera", loaded.recipe.camera.plugin).spec
+    if spec.calibration is None:
+        return [f"{loaded.where(('camera',))}: camera: note: plugin {loaded.recipe.camera.plugin} gives no geometry "
+                "before it runs, so whether the rules' limits can be resolved was not checked"]
+    try:
+        calib = spec.calibration(loaded.plugin_settings["camera"], PluginContext(recipe_dir=loaded.directory))
+    except Exception as exc:  # the camera's own reason, e.g. no calibration file
+        return [f"{loaded.where(('camera',))}: camera: note: resolution not checked: {exc}"]
+    return resolution_warnings(loaded, calib)
 
 
 @click.command("plugins")
@@ -207,7 +238,9 @@ def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> 
     runs = db.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
     click.echo(f"{store.db_path(results)}: {runs} run(s){'' if run_id is None else f', run {run_id}'}")
     yield_text = "n/a" if s["yield_percent"] is None else f"{s['yield_percent']:.1f}%"
-    click.echo(f"parts {s['parts']}  passed {s['passed']}  rejected {s['rejected']}  errors {s['errors']}  yield {yield_text}  alarms {s['alarms']}")
+    flagged = f"  flagged {s['flagged']}" if s["flagged"] else ""
+    click.echo(f"parts {s['parts']}  passed {s['passed']}  rejected {s['rejected']}  errors {s['errors']}{flagged}  "
+               f"yield {yield_text}  alarms {s['alarms']}")
     if s["defects_per_class"]:
         click.echo("defects per class (by defect verdict):")
         for cls, by_verdict in s["defects_per_class"].items():

@@ -57,6 +57,14 @@ class LoadedRecipe:
     path: Path
     text_hash: str
     plugin_settings: dict[str, Any] = field(default_factory=dict)  # "camera", "stereo", "detector", "outputs.N"
+    lines: dict[KeyPath, int] = field(default_factory=dict)  # 1-based line of every key of the file
+
+    def where(self, key: KeyPath) -> str:
+        """``file:line`` of the key, or of the nearest key above it that the file has."""
+        for n in range(len(key), 0, -1):
+            if tuple(key[:n]) in self.lines:
+                return f"{self.path}:{self.lines[tuple(key[:n])]}"
+        return str(self.path)
 
     @property
     def directory(self) -> Path:
@@ -184,6 +192,7 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
         recipe=recipe,
         path=path.resolve(),
         text_hash=hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16],
+        lines=lines,
     )
     registry = registry or default_registry()
     context = {"recipe_dir": loaded.directory}

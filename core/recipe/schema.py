@@ -82,6 +82,12 @@ class DepthSection(Section):
     min_plane_inliers: float = Field(0.6, gt=0.0, le=1.0)
     plane_tolerance_px: float = Field(1.0, gt=0.0)
     disparity_noise_px: float = Field(0.25, gt=0.0)
+    # surface: fit the surfaces to the images themselves (sub-pixel, with an uncertainty from the fit);
+    # disparity: from the stereo backend's map alone (the reference, docs/benchmarks.md compares them)
+    method: Literal["surface", "disparity"] = "surface"
+    # The standard uncertainty of a deviation, in disparity pixels, that ``inspect validate`` plans with
+    # when it checks that the working distance can resolve each rule's limit (docs/benchmarks.md).
+    planning_sigma_px: float = Field(0.04, gt=0.0, le=2.0)
 
 
 class Rule(Section):
@@ -103,6 +109,12 @@ class DecisionSection(Section):
     rules: list[Rule] = Field(default_factory=list)
     # A defect the detector finds but no rule covers: pass it (the default) or reject it.
     reject_unruled_defects: bool = False
+    # ISO 14253-1: a rule rejects when the measurement is beyond its limit by more than the guard band
+    # (coverage_factor x the measurement's standard uncertainty) and passes when it is inside by more;
+    # in between, conformance is proven neither way and the part is rejected, passed or flagged for a
+    # manual check as ``uncertain`` says.
+    uncertain: Literal["reject", "pass", "flag"] = "reject"
+    coverage_factor: float = Field(2.0, ge=0.0, le=5.0)
 
 
 class ResultsSection(Section):

@@ -29,7 +29,7 @@ from core.view.feed import LiveFeed, encode_jpeg
 from core.view.queries import StoreReader, counters
 
 STATIC = Path(__file__).parent / "static"
-VerdictName = Literal["PASS", "REJECT", "ERROR"]
+VerdictName = Literal["PASS", "REJECT", "ERROR", "FLAG"]
 
 
 def create_app(results: Path, feed: LiveFeed | None = None, *, token: str | None = None,

@@ -53,7 +53,8 @@ class StoreReader:
                 return counters({}, {}, 0)
             s = store.summary(db, run_id)
         rejects = {cls: by.get("REJECT", 0) for cls, by in s["defects_per_class"].items()}
-        return counters({"PASS": s["passed"], "REJECT": s["rejected"], "ERROR": s["errors"]}, rejects, s["alarms"])
+        return counters({"PASS": s["passed"], "REJECT": s["rejected"], "ERROR": s["errors"], "FLAG": s["flagged"]},
+                        rejects, s["alarms"])
 
     def alarm_count(self, run_id: int | None) -> int:
         with self._db() as db:
@@ -62,7 +63,7 @@ class StoreReader:
             return db.execute("SELECT COUNT(*) FROM alarms WHERE run_id = ?", (run_id,)).fetchone()[0]
 
     def filmstrip(self, run_id: int | None, length: int = FILMSTRIP_LENGTH) -> list[dict]:
-        """The run's last rejected parts (REJECT and ERROR), newest first."""
+        """The run's last parts that did not pass (REJECT, FLAG and ERROR), newest first."""
         with self._db() as db:
             if db is None or run_id is None:
                 return []
@@ -147,6 +148,7 @@ def counters(verdicts: dict[str, int], rejects_per_class: dict[str, int], alarms
         "passed": verdicts.get("PASS", 0),
         "rejected": verdicts.get("REJECT", 0),
         "errors": verdicts.get("ERROR", 0),
+        "flagged": verdicts.get("FLAG", 0),
         "yield_percent": round(100.0 * verdicts.get("PASS", 0) / parts, 1) if parts else None,
         "rejects_per_class": {cls: n for cls, n in sorted(rejects_per_class.items()) if n},
         "alarms": alarms,

@@ -18,6 +18,9 @@ function el(tag, attrs = {}, ...children) {
 
 const fmt = (v, digits = 2, signed = false) =>
   v === null || v === undefined ? "n/a" : (signed && v > 0 ? "+" : "") + Number(v).toFixed(digits);
+// a measurement with its standard uncertainty u, as the store keeps it
+const withSigma = (v, u, digits, signed = false) =>
+  fmt(v, digits, signed) + (v === null || v === undefined || u === null || u === undefined ? "" : ` ± ${Number(u).toFixed(digits)}`);
 const clock = (t) => new Date(t * 1000).toLocaleTimeString();
 
 async function getJSON(url) {
@@ -72,6 +75,7 @@ function render(s) {
   $("count-passed").textContent = c.passed;
   $("count-rejected").textContent = c.rejected;
   $("count-errors").textContent = c.errors;
+  $("count-flagged").textContent = c.flagged;
   $("count-yield").textContent = c.yield_percent === null ? "–" : `${c.yield_percent.toFixed(1)} %`;
   $("count-fps").textContent = s.fps === null ? "–" : s.fps.toFixed(1);
   const perClass = $("per-class");
@@ -221,8 +225,8 @@ async function openDetail(partId) {
   img.onerror = () => { img.hidden = true; };
   img.src = p.image_url;
   $("detail-defects").tBodies[0].replaceChildren(...p.defects.map((d) => el("tr", {},
-    el("td", {}, d.class), el("td", {}, fmt(d.confidence)), el("td", {}, fmt(d.distance_mm, 1)),
-    el("td", {}, fmt(d.deviation_mm, 2, true)), el("td", {}, `${Math.round(100 * d.valid_fraction)} %`),
+    el("td", {}, d.class), el("td", {}, fmt(d.confidence)), el("td", {}, withSigma(d.distance_mm, d.distance_sigma_mm, 1)),
+    el("td", {}, withSigma(d.deviation_mm, d.deviation_sigma_mm, 2, true)), el("td", {}, `${Math.round(100 * d.valid_fraction)} %`),
     el("td", { class: d.verdict }, d.verdict), el("td", {}, [...d.reasons, d.note].filter(Boolean).join(" | ")))));
   $("detail-events").replaceChildren(...p.output_events.map((e) =>
     el("div", { class: "muted" }, `${clock(e.time)} ${e.output}: ${e.command} → ${e.outcome} ${e.detail || ""}`)));

@@ -5,9 +5,9 @@ import sys
 
 import click
 
-from core.commands import bench, hardware, inspection, sim, stereo, view
+from core.commands import bench, depth, hardware, inspection, sim, stereo, view
 
-BUILTIN_COMMAND_MODULES = (inspection, bench, stereo, hardware, sim, view)
+BUILTIN_COMMAND_MODULES = (inspection, bench, stereo, depth, hardware, sim, view)
 
 
 @click.group()
@@ -18,7 +18,7 @@ def cli() -> None:
 
 @cli.group("eval")
 def eval_group() -> None:
-    """Evaluate a stereo backend or a detector on a benchmark."""
+    """Evaluate a stereo backend, depth or a detector on a benchmark."""
 
 
 @cli.group("train")

@@ -1,0 +1,99 @@
+"""``inspect eval depth``: distance and deviation errors against a labelled sequence's truth."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command("depth")
+@click.argument("sequences", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--recipe", default=Path("recipes/steel_plate.yaml"), type=click.Path(path_type=Path), show_default=True,
+              help="stereo, depth and decision settings come from here (its camera is not used)")
+@click.option("--backend", default=None, help="stereo backend instead of the recipe's (with its default settings)")
+@click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE",
+              help="override a recipe value, e.g. depth.method=disparity or stereo.settings.preset=seed (repeatable)")
+@click.option("--out", type=click.Path(path_type=Path), default=Path("runs/depth_eval"), show_default=True)
+@click.option("--figure/--no-figure", default=True, show_default=True, help="save error against distance and width")
+@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or auto (torch_sgm)")
+@click.option("--threads", type=click.IntRange(1), default=None, help="torch and OpenCV CPU threads")
+@click.option("--quiet", is_flag=True, help="no line per defect")
+def eval_depth_command(sequences, recipe, backend, overrides, out, figure, device, threads, quiet):
+    """The engine's stereo and depth on labelled SEQUENCES (folders of `inspect sim generate`) with the
+    true boxes: distance and deviation errors (median, p90, max), measured ÷ true, the physical floor,
+    the calibration of the reported uncertainty and the decisions at the recipe's rules, for the
+    recipe's depth method and for the backend's disparity alone. Saves JSON, Markdown and a figure."""
+    import platform
+
+    from core import depth_eval as ev
+    from core.commands.inspection import _load, fail
+    from core.contracts import PluginContext
+    from core.engine import resolve_device
+    from core.registry import default_registry
+    from drivers.sequence_folder import SequenceError
+    from plugins.replay_camera import ReplayCamera, ReplaySettings
+
+    overrides = list(overrides)
+    if backend is not None:
+        overrides += [f"stereo.backend={backend}", "stereo.settings={}"]
+    for folder in sequences:
+        if not folder.is_dir():
+            fail(f"{folder}: not a sequence folder")
+    loaded = _load(recipe, tuple(overrides))
+    if threads:
+        import cv2
+        import torch
+
+        torch.set_num_threads(threads)
+        cv2.setNumThreads(threads)
+    registry = default_registry()
+    ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, device=resolve_device(device))
+    stereo = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(loaded.plugin_settings["stereo"], ctx)
+    rows, timings = [], []
+    import json
+
+    for folder in sequences:
+        try:
+            camera = ReplayCamera(ReplaySettings(path=str(folder.resolve())))
+        except (SequenceError, ValueError) as exc:
+            fail(f"{folder}: {exc}")
+        for frame in camera.frames():
+            if not hasattr(frame, "left"):
+                fail(f"{folder}: frame {frame.frame_id}: {frame.message}")
+            if "labels" not in frame.meta:
+                fail(f"{folder}: frame {frame.frame_id} has no labels/{frame.frame_id}.json (the truth to compare with)")
+            try:
+                labels = json.loads(Path(frame.meta["labels"]).read_text())
+            except (OSError, ValueError) as exc:
+                fail(f"{frame.meta['labels']}: unreadable labels ({exc})")
+            new = ev.evaluate_frame(frame, labels, loaded, stereo, folder.name, timings)
+            rows += new
+            if not quiet:
+                for r in new:
+                    dev = "n/a" if r.deviation_mm is None else f"{r.deviation_mm:+.3f}±{r.deviation_sigma_mm or 0:.3f}"
+                    click.echo(f"{folder.name} {r.frame_id} {r.cls:<16} Z {r.true_distance_mm:6.1f} true {r.true_deviation_mm:+.3f} "
+                               f"measured {dev} mm ({r.status}; disparity alone "
+                               f"{'n/a' if r.reference_deviation_mm is None else f'{r.reference_deviation_mm:+.3f}'}, "
+                               f"{r.reference_status}){'  ' + r.note if r.note else ''}")
+    if not rows:
+        fail("no labelled defect with a true deviation in " + ", ".join(str(s) for s in sequences))
+    import torch
+
+    from core.bench import machine
+
+    m = machine()
+    meta = {"recipe": str(loaded.path.name), "backend": loaded.recipe.stereo.backend,
+            "settings": loaded.plugin_settings["stereo"], "method": loaded.recipe.depth.method,
+            "uncertain": loaded.recipe.decision.uncertain, "coverage_factor": loaded.recipe.decision.coverage_factor,
+            "machine": f"{m['cpu']}, {m['cores']} cores, {torch.get_num_threads()} torch threads"
+                       + (f", GPU {m['gpu']}" if "gpu" in m and ctx.device.startswith("cuda") else ""),
+            "python": platform.python_version()}
+    body = ev.report(rows, meta, sum(timings) / len(timings) if timings else None)
+    written = ev.save(body, rows, out, figure)
+    click.echo("")
+    click.echo(ev.markdown(body))
+    click.echo("wrote " + ", ".join(str(p) for p in written))
+
+
+def register(cli: click.Group) -> None:
+    cli.commands["eval"].add_command(eval_depth_command, "depth")

@@ -1,0 +1,331 @@
+"""``inspect eval depth``: the engine's stereo and depth on labelled sequences, against their truth.
+
+For every labelled defect of every frame the engine's own stages run as on the line (the recipe's
+stereo backend, region and range; ``core.depth.measure_frame``; ``core.decision``) with the true box
+as the detection, so the figures measure stereo and depth alone. Each defect is measured twice on
+the same disparity: with the recipe's ``depth.method`` and with ``disparity`` (the backend alone),
+the reference.
+
+The physical floor of a defect is what any estimator fitting the two surfaces to that pair could
+reach: the disparity standard deviation ``sigma_noise * sqrt(2) / sqrt(sum I_x^2)`` over the
+defect's region and over its ring (I_x the left image's horizontal gradient, sigma_noise the sensor
+noise the generator added, from the labels), the two combined in quadrature and converted to mm at
+the defect's distance (``Z^2 / (f * B)`` mm per px). The median and p90 of |error| such an estimator
+would show are the quantiles of the mixture of the defects' normal errors.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from core.decision import judge_defect
+from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
+from core.engine import frame_disparity
+from core.recipe import LoadedRecipe
+from core.surface_fit import gradient_x, to_grey
+from core.types import Detection, DefectMeasurement, Status, StereoFrame
+
+CLEAR_CUT_MM = 0.3  # a defect whose true value is at least this far from every limit is clear-cut
+NARROW_PX = 30.0  # boxes narrower than this count as narrow defects
+MIN_RATIO_MM = 0.3  # measured / true only for defects at least this deep
+
+
+@dataclass
+class DefectRow:
+    """One labelled defect: its truth, both measurements, its floor and the decisions."""
+
+    sequence: str
+    frame_id: str
+    cls: str
+    box: tuple[float, float, float, float]
+    true_distance_mm: float
+    true_deviation_mm: float
+    floor_mm: float | None
+    method: str = ""
+    distance_mm: float | None = None
+    deviation_mm: float | None = None
+    distance_sigma_mm: float | None = None
+    deviation_sigma_mm: float | None = None
+    reference_distance_mm: float | None = None
+    reference_deviation_mm: float | None = None
+    note: str = ""
+    true_status: str = ""
+    status: str = ""
+    reference_status: str = ""
+    proven: str = ""  # PASS, REJECT (proven beyond the guard band), undecided, or ERROR
+    reference_proven: str = ""
+    clear_cut: bool = False
+
+    @property
+    def width_px(self) -> float:
+        return min(self.box[2] - self.box[0], self.box[3] - self.box[1])
+
+
+@dataclass
+class Summary:
+    defects: int
+    measured: int
+    deviation_error_mm: dict[str, float] = field(default_factory=dict)  # median, p90, max
+    distance_error_mm: dict[str, float] = field(default_factory=dict)
+    distance_error_percent: dict[str, float] = field(default_factory=dict)
+    ratio_median: float | None = None
+    narrow_ratio_median: float | None = None
+    floor_mm: dict[str, float] = field(default_factory=dict)  # median, p90 of |error| at the floor
+    error_over_floor: dict[str, float] = field(default_factory=dict)
+    within_2_sigma: float | None = None
+    sigma_over_floor_median: float | None = None
+    # true outcome -> what the measurement proved (PASS, REJECT, undecided, ERROR) -> count
+    confusion: dict[str, dict[str, int]] = field(default_factory=dict)
+    clear_cut_wrong: int = 0
+    clear_cut_wrong_beyond_2_sigma: int = 0
+    clear_cut_silent_pass: int = 0
+
+
+def floor_px(grey: np.ndarray, mask: np.ndarray, noise_sigma: float) -> float:
+    """The disparity standard deviation of a region at the noise floor: sigma * sqrt(2) / sqrt(sum I_x^2)."""
+    energy = float(np.sum(gradient_x(grey)[mask] ** 2))
+    return noise_sigma * math.sqrt(2.0) / math.sqrt(energy) if energy > 0 else math.inf
+
+
+def defect_floor_mm(grey: np.ndarray, box, calib, rule: DepthRule, noise_sigma: float, distance_mm: float) -> float:
+    """The floor of one defect's deviation, in mm (module docstring)."""
+    shape = grey.shape
+    region = np.zeros(shape, bool)
+    x0, y0, x1, y1 = _clip_box(roi_box(box, rule), shape)
+    region[y0:y1, x0:x1] = True
+    ring = ring_mask(shape, box, rule.ring_gap_px, rule.ring_width_px)
+    sigma_px = math.hypot(floor_px(grey, region, noise_sigma), floor_px(grey, ring, noise_sigma))
+    return sigma_px * distance_mm**2 / (calib.focal_px * calib.baseline_mm)
+
+
+def true_measurement(detection: Detection, truth: dict) -> DefectMeasurement:
+    """The labels as a measurement without uncertainty, for the decision the truth calls for."""
+    return DefectMeasurement(detection, truth["distance_mm"], truth["deviation_mm"], 1.0, 0.0, None,
+                             distance_sigma_mm=0.0, deviation_sigma_mm=0.0, method="truth")
+
+
+def clear_cut(truth: dict, recipe) -> bool:
+    """True when the defect's true value is at least CLEAR_CUT_MM from every depth limit that applies to it."""
+    for rule in recipe.decision.rules:
+        if rule.class_ not in ("any", truth["class"]) or rule.quantity not in ("deviation_mm", "distance_mm"):
+            continue
+        value = truth[rule.quantity]
+        if value is None or abs(value - rule.threshold) < CLEAR_CUT_MM:
+            return False
+    return True
+
+
+def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backend, sequence: str,
+                   timings: list[float]) -> list[DefectRow]:
+    """Every labelled defect of one frame (defects whose truth has no deviation are skipped)."""
+    recipe = loaded.recipe
+    rule = DepthRule.from_section(recipe.depth)
+    reference_rule = DepthRule.from_section(recipe.depth, method="disparity")
+    truths = [t for t in labels["defects"] if t.get("deviation_mm") is not None and t.get("distance_mm") is not None]
+    if not truths:
+        return []
+    detections = [Detection(t["class"], 1.0, tuple(float(v) for v in t["box"])) for t in truths]
+    disparity = frame_disparity(backend, frame, recipe.stereo, detections, rule)
+    start = time.perf_counter()
+    measured = measure_frame(disparity, detections, frame, rule)
+    timings.append((time.perf_counter() - start) / len(detections))
+    reference = measure_frame(disparity, detections, frame, reference_rule)
+    grey = to_grey(frame.left)
+    noise = (labels.get("sensor") or {}).get("noise_sigma")
+    # judged with uncertain: flag, a FLAG is a measurement that proved neither side of a limit
+    undecided_as_flag = recipe.decision.model_copy(update={"uncertain": "flag"})
+    rows = []
+    for det, truth, m, ref in zip(detections, truths, measured, reference):
+        floor = None if noise is None else defect_floor_mm(grey, det.box, frame.calib, rule, noise, truth["distance_mm"])
+        rows.append(DefectRow(
+            sequence, frame.frame_id, truth["class"], det.box, truth["distance_mm"], truth["deviation_mm"], floor,
+            m.method, m.distance_mm, m.deviation_mm, m.distance_sigma_mm, m.deviation_sigma_mm,
+            ref.distance_mm, ref.deviation_mm, m.note,
+            true_status=judge_defect(true_measurement(det, truth), recipe.decision)[0].value,
+            status=judge_defect(m, recipe.decision)[0].value,
+            reference_status=judge_defect(ref, recipe.decision)[0].value,
+            proven=_proven(judge_defect(m, undecided_as_flag)[0]),
+            reference_proven=_proven(judge_defect(ref, undecided_as_flag)[0]),
+            clear_cut=clear_cut(truth, recipe),
+        ))
+    return rows
+
+
+def _proven(status: Status) -> str:
+    return "undecided" if status is Status.FLAG else status.value
+
+
+def _stats(values) -> dict[str, float]:
+    a = np.asarray(list(values), dtype=np.float64)
+    if a.size == 0:
+        return {}
+    return {"median": float(np.median(a)), "p90": float(np.percentile(a, 90)), "max": float(a.max())}
+
+
+def mixture_quantile(sigmas: np.ndarray, q: float) -> float:
+    """The q-quantile of |e| when e is normal with one of ``sigmas`` (each equally likely)."""
+    from math import erf
+
+    sigmas = sigmas[np.isfinite(sigmas) & (sigmas > 0)]
+    if sigmas.size == 0:
+        return math.nan
+
+    def cdf(x: float) -> float:
+        return float(np.mean([erf(x / (s * math.sqrt(2.0))) for s in sigmas]))
+
+    lo, hi = 0.0, 10.0 * float(sigmas.max())
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if cdf(mid) < q else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
+    """The figures of a set of rows, for the measurement (or, ``reference``, for the backend alone)."""
+    dev = "reference_deviation_mm" if reference else "deviation_mm"
+    dist = "reference_distance_mm" if reference else "distance_mm"
+    ok = [r for r in rows if getattr(r, dev) is not None]
+    s = Summary(len(rows), len(ok))
+    s.deviation_error_mm = _stats(abs(getattr(r, dev) - r.true_deviation_mm) for r in ok)
+    with_distance = [r for r in rows if getattr(r, dist) is not None]
+    s.distance_error_mm = _stats(abs(getattr(r, dist) - r.true_distance_mm) for r in with_distance)
+    s.distance_error_percent = _stats(100 * abs(getattr(r, dist) - r.true_distance_mm) / r.true_distance_mm
+                                      for r in with_distance)
+    deep = [r for r in ok if abs(r.true_deviation_mm) >= MIN_RATIO_MM]
+    if deep:
+        s.ratio_median = float(np.median([getattr(r, dev) / r.true_deviation_mm for r in deep]))
+    narrow = [r for r in deep if r.width_px < NARROW_PX]
+    if narrow:
+        s.narrow_ratio_median = float(np.median([getattr(r, dev) / r.true_deviation_mm for r in narrow]))
+    floors = np.array([r.floor_mm for r in rows if r.floor_mm is not None], dtype=np.float64)
+    if floors.size:
+        s.floor_mm = {"median": mixture_quantile(floors, 0.5), "p90": mixture_quantile(floors, 0.9)}
+        if s.deviation_error_mm:
+            s.error_over_floor = {k: s.deviation_error_mm[k] / s.floor_mm[k] for k in ("median", "p90")
+                                  if s.floor_mm.get(k)}
+    if not reference:
+        sig = [r for r in ok if r.deviation_sigma_mm]
+        if sig:
+            s.within_2_sigma = float(np.mean([abs(r.deviation_mm - r.true_deviation_mm) <= 2 * r.deviation_sigma_mm
+                                              for r in sig]))
+            with_floor = [r for r in sig if r.floor_mm]
+            if with_floor:
+                s.sigma_over_floor_median = float(np.median([r.deviation_sigma_mm / r.floor_mm for r in with_floor]))
+    for r in rows:
+        proven = r.reference_proven if reference else r.proven
+        s.confusion.setdefault(r.true_status, {}).setdefault(proven, 0)
+        s.confusion[r.true_status][proven] += 1
+        # undecided ones go as the recipe's uncertain says: that is the decision working, not a wrong side
+        if not r.clear_cut or proven not in (Status.PASS.value, Status.REJECT.value) or proven == r.true_status:
+            continue
+        s.clear_cut_wrong += 1
+        if proven == Status.PASS.value:
+            s.clear_cut_silent_pass += 1
+        sigma = None if reference else r.deviation_sigma_mm
+        value = getattr(r, dev)
+        if value is not None and (sigma is None or abs(value - r.true_deviation_mm) > 2 * sigma):
+            s.clear_cut_wrong_beyond_2_sigma += 1
+    return s
+
+
+def report(rows: list[DefectRow], meta: dict[str, Any], seconds_per_defect: float | None) -> dict[str, Any]:
+    """The JSON report: settings, per sequence and pooled summaries (measurement and reference), rows."""
+    sequences = sorted({r.sequence for r in rows})
+    body: dict[str, Any] = {**meta, "seconds_per_defect": seconds_per_defect, "sequences": {}}
+    for name in sequences:
+        part = [r for r in rows if r.sequence == name]
+        body["sequences"][name] = {"measurement": asdict(summarise(part)), "reference": asdict(summarise(part, True))}
+    body["all"] = {"measurement": asdict(summarise(rows)), "reference": asdict(summarise(rows, True))}
+    body["rows"] = [{**asdict(r), "width_px": r.width_px} for r in rows]
+    return body
+
+
+def _fmt3(d: dict, keys=("median", "p90", "max"), digits: int = 3) -> str:
+    return " / ".join(f"{d[k]:.{digits}f}" for k in keys if k in d) if d else "n/a"
+
+
+def _opt(v: float | None, digits: int = 2) -> str:
+    return "n/a" if v is None else f"{v:.{digits}f}"
+
+
+def _percent(v: float | None) -> str:
+    return "n/a" if v is None else f"{100 * v:.0f} %"
+
+
+def markdown(body: dict[str, Any]) -> str:
+    """The report as Markdown: one table row per sequence and the pooled row, measurement and reference."""
+    lines = [
+        f"Recipe `{body['recipe']}`, backend `{body['backend']}`, depth method `{body['method']}`; machine: {body['machine']}",
+        "",
+        "| sequence | method | defects (measured) | deviation error mm, median / p90 / max | floor mm, median / p90 "
+        "| error ÷ floor, median / p90 | measured ÷ true (narrow) | within ±2σ | σ ÷ floor | distance error, median % of Z "
+        "| clear-cut on the wrong side (silent PASS) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    items = [*body["sequences"].items(), ("all", body["all"])]
+    for name, entry in items:
+        for label, key in ((body["method"], "measurement"), ("disparity (reference)", "reference")):
+            s = entry[key]
+            lines.append(
+                f"| {name} | {label} | {s['defects']} ({s['measured']}) | {_fmt3(s['deviation_error_mm'])} | "
+                f"{_fmt3(s['floor_mm'], ('median', 'p90'))} | {_fmt3(s['error_over_floor'], ('median', 'p90'), 2)} | "
+                f"{_opt(s['ratio_median'])} ({_opt(s['narrow_ratio_median'])}) | "
+                f"{_percent(s['within_2_sigma'])} | "
+                f"{_opt(s['sigma_over_floor_median'])} | {_opt(s['distance_error_percent'].get('median'), 3)} | "
+                f"{s['clear_cut_wrong']} ({s['clear_cut_silent_pass']}) |")
+    lines += ["", "Decisions at the recipe's rules, all sequences: the true outcome against what the measurement proved "
+              f"(undecided: within the guard band, resolved by the recipe's uncertain: {body['uncertain']}):", ""]
+    confusion = body["all"]["measurement"]["confusion"]
+    outcomes = sorted({o for row in confusion.values() for o in row} | set(confusion))
+    lines.append("| true \\ measured | " + " | ".join(outcomes) + " |")
+    lines.append("|---|" + "---|" * len(outcomes))
+    for truth in sorted(confusion):
+        lines.append(f"| {truth} | " + " | ".join(str(confusion[truth].get(o, 0)) for o in outcomes) + " |")
+    if body.get("seconds_per_defect") is not None:
+        lines += ["", f"Depth per defect ({body['method']}): {1000 * body['seconds_per_defect']:.1f} ms on this machine."]
+    return "\n".join(lines) + "\n"
+
+
+def figure(rows: list[DefectRow], path: Path) -> None:
+    """|deviation error| against distance and against defect width, with each defect's floor."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = [r for r in rows if r.deviation_mm is not None]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    for ax, key, label in ((axes[0], lambda r: r.true_distance_mm, "distance mm"),
+                           (axes[1], lambda r: r.width_px, "defect width px (shorter side of the box)")):
+        ax.scatter([key(r) for r in ok], [abs(r.deviation_mm - r.true_deviation_mm) for r in ok], s=14,
+                   label=f"{rows[0].method if rows else ''} |error|")
+        ref = [r for r in rows if r.reference_deviation_mm is not None]
+        ax.scatter([key(r) for r in ref], [abs(r.reference_deviation_mm - r.true_deviation_mm) for r in ref], s=10,
+                   marker="x", alpha=0.6, label="disparity alone |error|")
+        fl = [r for r in rows if r.floor_mm is not None]
+        ax.scatter([key(r) for r in fl], [r.floor_mm for r in fl], s=10, marker="_", c="k", label="floor (1 σ)")
+        ax.set_xlabel(label)
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("|deviation error| mm")
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def save(body: dict[str, Any], rows: list[DefectRow], out: Path, with_figure: bool = True) -> list[Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "depth_eval.json", out / "depth_eval.md"]
+    written[0].write_text(json.dumps(body, indent=1, default=float))
+    written[1].write_text(markdown(body))
+    if with_figure and rows:
+        figure(rows, out / "depth_eval.png")
+        written.append(out / "depth_eval.png")
+    return written

@@ -61,7 +61,8 @@ def test_bench_versus_compares_depth_with_other_settings_of_the_backend(tmp_path
     assert versus["defects"] >= 2 and versus["availability_differs"] == 0
     assert versus["distance_mm"] < 0.05 and versus["deviation_mm"] < 0.05
     assert "depth vs full frame with search=full" in (tmp_path / "bench-wvga-cpu.md").read_text()
-    bad = cli("bench", "--recipe", recipe, "--backends", "opencv_sgbm", "--versus", "search=full", "--out", str(tmp_path))
+    bad = cli("bench", "--recipe", recipe, "--backends", "opencv_sgbm", "--set", "stereo.backend=opencv_sgbm",
+              "--versus", "search=full", "--out", str(tmp_path))
     assert bad.returncode == 2 and "--versus: search: Extra inputs are not permitted" in bad.stderr
     bad = cli("bench", "--recipe", recipe, "--backends", "none", "--versus", "search=full", "--out", str(tmp_path))
     assert bad.returncode == 2 and "which --backends leaves out" in bad.stderr

@@ -55,7 +55,8 @@ def test_demo_runs_and_summarises(demo):
     assert len(lines) == 10
     for line in lines:
         if "no defect" not in line:
-            assert re.search(r"Z=\d+\.\dmm dev=[+-]\d+\.\d\dmm", line), line
+            # each defect's distance and deviation with its standard uncertainty
+            assert re.search(r"Z=\d+\.\d±\d+\.\dmm dev=[+-]\d+\.\d\d±\d+\.\d\dmm", line), line
 
 
 def test_every_reject_pulses_the_plc_coil(demo):

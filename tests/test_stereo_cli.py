@@ -136,7 +136,8 @@ def test_eval_selects_scenes_and_passes_settings(tmp_path):
     data = json.loads((out / "stereo_eval.json").read_text())
     rows = data["backends"]["torch_sgm"]["scenes"]
     assert [r["scene"] for r in rows] == ["SceneB"] and rows[0]["invalid"] > 0
-    assert data["meta"]["backends"]["torch_sgm"] == {"fill": "none"}
+    # torch_sgm's best single map (two_view) unless the settings say otherwise
+    assert data["meta"]["backends"]["torch_sgm"] == {"two_view": True, "fill": "none"}
     assert not (out / "stereo_eval.png").exists()
 
 

@@ -18,8 +18,8 @@ pytestmark = [pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a 
               pytest.mark.usefixtures("torch_one_thread")]
 
 SETTINGS = {
-    "seed": {},
-    "seed-reference": {"implementation": "reference"},
+    "seed": {"preset": "seed"},
+    "seed-reference": {"preset": "seed", "implementation": "reference"},
     "improved": {"preset": "improved"},
     "improved-two-view": {"preset": "improved", "two_view": True},
     "improved-full-search": {"preset": "improved", "search": "full"},

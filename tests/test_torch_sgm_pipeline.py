@@ -25,7 +25,7 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 def test_fronto_parallel_pair_is_recovered_to_subpixel_accuracy():
     left, right, gt, nonocc = fronto_parallel(64, 96, 7.4, seed=2)
-    disp, consistent = compute_disparity(left, right, 0, 24, device="cpu")
+    disp, consistent = compute_disparity(left, right, 0, 24, TorchSGMParams(preset="seed"), device="cpu")
     inner = nonocc.copy()
     inner[:, :4] = inner[:, -4:] = inner[:4] = inner[-4:] = False
     err = np.abs(disp - gt)[inner]
@@ -36,7 +36,7 @@ def test_fronto_parallel_pair_is_recovered_to_subpixel_accuracy():
 def test_layered_scene_with_occlusions_scores_well():
     # Held out from any tuning on Middlebury: slanted planes, a depth edge, occlusions.
     left, right, gt, nonocc = layered_scene(seed=5)
-    disp, consistent = compute_disparity(left, right, 0, 32, device="cpu")
+    disp, consistent = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="seed"), device="cpu")
     s = score(disp, gt, nonocc, consistent)
     assert s["dense"]["bad1.0"] < 12.0
     assert s["invalid"] == 0.0  # filling leaves a dense map
@@ -46,14 +46,14 @@ def test_layered_scene_with_occlusions_scores_well():
 def test_chunked_cost_volume_equals_unchunked():
     left, right, _, _ = layered_scene(48, 64, seed=1)
     lt, rt = bgr_to_tensor(left, torch.device("cpu")), bgr_to_tensor(right, torch.device("cpu"))
-    whole = cost_volume(lt, rt, list(range(20)), TorchSGMParams(chunk_disparities=64))
-    chunked = cost_volume(lt, rt, list(range(20)), TorchSGMParams(chunk_disparities=3))
+    whole = cost_volume(lt, rt, list(range(20)), TorchSGMParams(preset="seed", chunk_disparities=64))
+    chunked = cost_volume(lt, rt, list(range(20)), TorchSGMParams(preset="seed", chunk_disparities=3))
     assert torch.allclose(whole, chunked, atol=1e-6)
 
 
 def test_output_respects_the_disparity_range_and_min_offset():
     left, right, gt, _ = fronto_parallel(40, 80, 12.0, seed=4)
-    disp, _ = compute_disparity(left, right, 8, 20, device="cpu")
+    disp, _ = compute_disparity(left, right, 8, 20, TorchSGMParams(preset="seed"), device="cpu")
     assert disp.dtype == np.float32 and disp.shape == (40, 80)
     assert np.nanmin(disp) >= 8 and np.nanmax(disp) <= 20
     assert np.median(np.abs(disp - 12.0)) < 0.3
@@ -61,7 +61,7 @@ def test_output_respects_the_disparity_range_and_min_offset():
 
 def test_without_filling_invalid_pixels_are_nan():
     left, right, gt, nonocc = layered_scene(seed=6)
-    disp, consistent = compute_disparity(left, right, 0, 32, TorchSGMParams(fill="none"), device="cpu")
+    disp, consistent = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="seed", fill="none"), device="cpu")
     assert np.array_equal(np.isfinite(disp), consistent)
     assert 0 < (~consistent).sum() < consistent.size * 0.3
 
@@ -83,10 +83,10 @@ def test_registered_through_the_hook_and_the_entry_point():
 
 def test_settings_reject_unknown_keys_and_bad_values():
     with pytest.raises(ValidationError):
-        TorchSGMParams(p3=1.0)
+        TorchSGMParams(preset="seed", p3=1.0)
     with pytest.raises(ValidationError):
-        TorchSGMParams(paths=6)
-    assert TorchSGMParams().model_dump()["w_census"] == 0.60
+        TorchSGMParams(preset="seed", paths=6)
+    assert TorchSGMParams(preset="seed").model_dump()["w_census"] == 0.60
 
 
 def test_auto_device_follows_the_engine_and_falls_back_to_cpu():
@@ -101,16 +101,21 @@ def test_improved_preset_changes_defaults_but_explicit_settings_win():
 
     improved = TorchSGMParams(preset="improved")
     assert IMPROVED and all(getattr(improved, k) == v for k, v in IMPROVED.items())
-    assert improved != TorchSGMParams()
+    assert improved != TorchSGMParams(preset="seed")
     key = next(iter(IMPROVED))
-    assert getattr(TorchSGMParams(preset="improved", **{key: TorchSGMParams().model_dump()[key]}), key) \
-        == TorchSGMParams().model_dump()[key]
+    assert getattr(TorchSGMParams(preset="improved", **{key: TorchSGMParams(preset="seed").model_dump()[key]}), key) \
+        == TorchSGMParams(preset="seed").model_dump()[key]
+
+
+def test_the_default_is_the_improved_preset():
+    assert TorchSGMParams() == TorchSGMParams(preset="improved")
+    assert TorchSGMParams(paths=4).paths == 4 and TorchSGMParams(paths=4).p2_edge == "path"  # the preset's, not the seed's
 
 
 def test_improved_preset_beats_the_seed_on_a_held_out_synthetic_pair():
     # Not a Middlebury scene: guards the Middlebury-measured changes against overfitting.
     left, right, gt, nonocc = layered_scene(seed=11)
-    seed = compute_disparity(left, right, 0, 32, TorchSGMParams(), device="cpu")
+    seed = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="seed"), device="cpu")
     improved = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="improved"), device="cpu")
     seed_bad = score(seed[0], gt, nonocc, seed[1])["dense"]["bad1.0"]
     improved_bad = score(improved[0], gt, nonocc, improved[1])["dense"]["bad1.0"]

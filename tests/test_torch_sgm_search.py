@@ -60,7 +60,7 @@ def _plate(seed=4):
 
 def test_coarse_pass_narrows_the_search_to_the_scene():
     left, right, gt, _ = _plate()
-    p = TorchSGMParams(search="coarse_to_fine")
+    p = TorchSGMParams(preset="seed", search="coarse_to_fine")
     dev = torch.device("cpu")
     with torch.inference_mode():
         lo, hi = coarse_range(bgr_to_tensor(left, dev), bgr_to_tensor(right, dev), 0, 96, p)
@@ -70,8 +70,8 @@ def test_coarse_pass_narrows_the_search_to_the_scene():
 
 def test_coarse_to_fine_gives_the_full_search_result_on_the_scene():
     left, right, gt, nonocc = _plate()
-    full, full_ok = compute_disparity(left, right, 0, 96, TorchSGMParams(), device="cpu")
-    fast, fast_ok = compute_disparity(left, right, 0, 96, TorchSGMParams(search="coarse_to_fine"), device="cpu")
+    full, full_ok = compute_disparity(left, right, 0, 96, TorchSGMParams(preset="seed"), device="cpu")
+    fast, fast_ok = compute_disparity(left, right, 0, 96, TorchSGMParams(preset="seed", search="coarse_to_fine"), device="cpu")
     inner = nonocc & full_ok
     inner[:, :8] = inner[:, -8:] = inner[:6] = inner[-6:] = False
     diff = np.abs(full - fast)[inner]
@@ -84,8 +84,8 @@ def test_a_surface_outside_the_narrowed_range_is_reported_unmatched():
     # the nearer box is a sixth of the image: a 0.2 quantile drops it from the narrowed range
     left, right, gt, _ = layered_scene(96, 192, seed=5)
     box = gt > 12
-    full, full_ok = compute_disparity(left, right, 0, 32, TorchSGMParams(), device="cpu")
-    p = TorchSGMParams(search="coarse_to_fine", coarse_quantile=0.2, coarse_margin=2.0)
+    full, full_ok = compute_disparity(left, right, 0, 32, TorchSGMParams(preset="seed"), device="cpu")
+    p = TorchSGMParams(preset="seed", search="coarse_to_fine", coarse_quantile=0.2, coarse_margin=2.0)
     disp, matched = compute_disparity(left, right, 0, 32, p, device="cpu")
     assert (np.abs(full - gt)[box] < 1).mean() > 0.75  # the full search sees the box
     assert (np.abs(disp - gt)[box] < 1).mean() == 0.0  # the narrowed one cannot ...
@@ -97,9 +97,9 @@ def test_a_surface_outside_the_narrowed_range_is_reported_unmatched():
 
 def test_a_tiny_image_falls_back_to_the_full_search():
     left, right, _, _ = fronto_parallel(24, 40, 5.0, seed=1)
-    p = TorchSGMParams(search="coarse_to_fine")
+    p = TorchSGMParams(preset="seed", search="coarse_to_fine")
     dev = torch.device("cpu")
     assert coarse_range(bgr_to_tensor(left, dev), bgr_to_tensor(right, dev), 0, 16, p) is None
     a, _ = compute_disparity(left, right, 0, 16, p, device="cpu")
-    b, _ = compute_disparity(left, right, 0, 16, TorchSGMParams(), device="cpu")
+    b, _ = compute_disparity(left, right, 0, 16, TorchSGMParams(preset="seed"), device="cpu")
     assert np.array_equal(a, b)

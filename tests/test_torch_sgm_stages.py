@@ -103,9 +103,9 @@ def test_texture_blend_aggregates_narrowly_on_texture_and_widely_on_flat_areas(i
     right = torch.rand(1, 3, 32, 48, generator=gen)
     disparities = list(range(6))
     # a sharp texture scale, so that the random texture counts as fully textured
-    blended = volume(left, right, disparities, TorchSGMParams(agg_radius=3, agg_detail_radius=0, agg_texture=0.005))
-    narrow = volume(left, right, disparities, TorchSGMParams(agg_radius=0))
-    wide = volume(left, right, disparities, TorchSGMParams(agg_radius=3))
+    blended = volume(left, right, disparities, TorchSGMParams(preset="seed", agg_radius=3, agg_detail_radius=0, agg_texture=0.005))
+    narrow = volume(left, right, disparities, TorchSGMParams(preset="seed", agg_radius=0))
+    wide = volume(left, right, disparities, TorchSGMParams(preset="seed", agg_radius=3))
     assert not torch.allclose(narrow[..., 3:21], wide[..., 3:21], atol=1e-2)  # the check below can fail
     assert torch.allclose(blended[..., 3:21], narrow[..., 3:21], atol=1e-4)
     assert torch.allclose(blended[..., 27:], wide[..., 27:], atol=1e-4)

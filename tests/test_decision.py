@@ -1,6 +1,8 @@
 from __future__ import annotations
 
-from core.decision import decide
+import pytest
+
+from core.decision import decide, judge_defect
 from core.recipe.schema import DecisionSection
 from core.types import DefectMeasurement, Detection, Status
 
@@ -58,3 +60,75 @@ def test_confidence_rule():
     section = DecisionSection.model_validate({"rules": [{"class": "any", "quantity": "confidence", "op": ">=", "threshold": 0.5}]})
     assert decide([_m(conf=0.6)], section)[0].status is Status.REJECT
     assert decide([_m(conf=0.4)], section)[0].status is Status.PASS
+
+
+def _u(cls="pit", deviation=1.2, sigma=0.1):
+    m = _m(cls=cls, deviation=deviation)
+    m.deviation_sigma_mm = sigma
+    return m
+
+
+def _section(uncertain="reject", op=">", threshold=1.0, k=2.0):
+    return DecisionSection.model_validate({"uncertain": uncertain, "coverage_factor": k, "rules": [
+        {"class": "any", "quantity": "deviation_mm", "op": op, "threshold": threshold}]})
+
+
+# (op, value, sigma, expected with uncertain: reject): the guard band is 2 sigma either side of the limit 1.0
+GUARD_BAND_TABLE = [
+    (">", 1.25, 0.1, Status.REJECT),  # beyond by more than the band: non-conformance proven
+    (">", 1.15, 0.1, "undecided"),
+    (">", 0.95, 0.1, "undecided"),
+    (">", 0.75, 0.1, Status.PASS),  # inside by more than the band: conformance proven
+    (">", 1.50, 0.4, "undecided"),  # the same value is undecided with a larger uncertainty
+    (">=", 1.20, 0.1, Status.REJECT),  # exactly the band away: >= holds at the band's end
+    (">", 1.20, 0.1, "undecided"),  # ... > does not
+    ("<", 0.75, 0.1, Status.REJECT),  # "shallower than 1 mm" rules mirror it
+    ("<", 1.25, 0.1, Status.PASS),
+    ("<", 0.95, 0.1, "undecided"),
+    ("<=", 0.80, 0.1, Status.REJECT),
+    (">", 1.05, 0.0, Status.REJECT),  # no uncertainty: the plain comparison
+    (">", 1.00, 0.0, Status.PASS),
+]
+
+
+@pytest.mark.parametrize("op,value,sigma,expected", GUARD_BAND_TABLE)
+def test_guard_band_table(op, value, sigma, expected):
+    status, reasons = judge_defect(_u(deviation=value, sigma=sigma), _section(op=op))
+    if expected == "undecided":
+        assert status is Status.REJECT and "conformance not proven" in reasons[0] and "uncertain: reject" in reasons[0]
+        assert judge_defect(_u(deviation=value, sigma=sigma), _section("pass", op))[0] is Status.PASS
+        assert judge_defect(_u(deviation=value, sigma=sigma), _section("flag", op))[0] is Status.FLAG
+    else:
+        assert status is expected
+        for uncertain in ("pass", "flag"):  # proven outcomes do not depend on the uncertain choice
+            assert judge_defect(_u(deviation=value, sigma=sigma), _section(uncertain, op))[0] is expected
+
+
+def test_an_undecided_pass_keeps_its_reason_and_shows_the_band():
+    verdict, _ = decide([_u(deviation=0.95, sigma=0.1)], _section("pass"))
+    assert verdict.status is Status.PASS
+    assert verdict.reasons == ["pit (0.80): deviation_mm 0.95 ± 0.20 straddles 1, conformance not proven "
+                               "(rule 'any deviation_mm > 1', uncertain: pass)"]
+
+
+def test_coverage_factor_sets_the_band():
+    assert judge_defect(_u(deviation=1.15, sigma=0.1), _section(k=1.0))[0] is Status.REJECT
+    assert judge_defect(_u(deviation=1.15, sigma=0.1), _section("pass", k=2.0))[0] is Status.PASS
+
+
+def test_precedence_error_reject_flag_pass():
+    flagged = _u(deviation=1.05, sigma=0.1)
+    section = _section("flag")
+    assert decide([flagged, _u(deviation=0.2, sigma=0.1)], section)[0].status is Status.FLAG
+    assert decide([flagged, _u(deviation=2.0, sigma=0.1)], section)[0].status is Status.REJECT
+    assert decide([flagged, _m(deviation=None)], section)[0].status is Status.ERROR
+    assert Status.FLAG.rejects  # a part to check is diverted, never passed
+
+
+def test_area_and_confidence_uncertainty():
+    m = _u(deviation=0.1, sigma=0.05)
+    m.distance_sigma_mm = 2.0  # 0.5 % of 400 mm: the area (~Z^2) is known to 1 %
+    assert m.uncertainty("area_mm2") == pytest.approx(1.0)
+    assert m.uncertainty("confidence") == 0.0
+    m.distance_sigma_mm = None
+    assert m.uncertainty("area_mm2") is None

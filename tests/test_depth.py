@@ -1,6 +1,7 @@
 """Depth per defect against exact geometry."""
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from synthetic_pairs import Pit, calib_for, render
@@ -107,3 +108,55 @@ def test_box_in_a_corner_is_measured_from_two_sides():
     _, _, disparity = render(CALIB, 400.0, 5.0, [Pit(20, 20, 24.0, 2.0)])
     m = _measure(disparity, box=(0.0, 0.0, 40.0, 40.0))
     assert m.deviation_mm is not None and 0.5 < m.deviation_mm < 2.0
+
+
+# -- method: surface (the images themselves) ------------------------------------------------------
+
+def _grey(image):
+    from core.surface_fit import to_grey
+
+    return to_grey(image)
+
+
+def _surface(left, right, disparity, box=BOX, **rule):
+    return measure_defect(disparity, Detection("pit", 0.9, box), CALIB, DepthRule(**rule), (_grey(left), _grey(right)))
+
+
+@pytest.mark.parametrize("tilt", [0.0, 8.0])
+def test_surface_method_on_a_flat_plate_from_a_whole_pixel_backend(tilt):
+    left, right, disparity = render(CALIB, 400.0, tilt)
+    coarse = np.round(disparity)  # a matcher that knows the disparity to a pixel only
+    m = _surface(left, right, coarse)
+    assert m.method == "surface" and m.note == ""
+    assert m.deviation_sigma_mm < 0.1 and abs(m.deviation_mm) <= 3 * m.deviation_sigma_mm
+    assert m.distance_mm == pytest.approx(400.0, abs=3 * m.distance_sigma_mm + 0.05)
+    reference = _measure(coarse)
+    assert reference.method == "disparity" and abs(reference.distance_mm - 400) > abs(m.distance_mm - 400)
+
+
+def test_surface_method_measures_a_pit_that_the_backend_blurs():
+    left, right, disparity = render(CALIB, 420.0, 6.0, [Pit(160, 96, 25.0, 3.0)])
+    truth = _measure(disparity)  # the platform's definition on the exact disparity
+    blurred = cv2.blur(np.round(disparity * 4) / 4, (9, 9))  # a quarter-pixel matcher with 9x9 windows
+    m = _surface(left, right, blurred)
+    assert abs(m.deviation_mm - truth.deviation_mm) <= 3 * m.deviation_sigma_mm + 0.05
+    assert abs(m.deviation_mm - truth.deviation_mm) < abs(_measure(blurred).deviation_mm - truth.deviation_mm)
+
+
+def test_surface_method_without_the_pair_is_the_reference():
+    left, right, disparity = render(CALIB, 400.0, 4.0, [Pit(160, 96, 25.0, 2.0)])
+    assert measure_defect(disparity, Detection("pit", 0.9, BOX), CALIB, DepthRule()) == _measure(disparity)
+    assert _surface(left, right, disparity, method="disparity") == _measure(disparity)
+
+
+def test_a_region_the_right_camera_does_not_see_has_no_deviation():
+    left, right, disparity = render(CALIB, 400.0, 0.0)  # disparity ~105 px
+    m = _surface(left, right, np.round(disparity), box=(30.0, 70.0, 70.0, 110.0))
+    assert m.deviation_mm is None and "right camera does not see the region" in m.note
+    assert m.distance_mm is not None
+
+
+def test_surface_method_checks_the_pair_against_the_map():
+    left, right, disparity = render(CALIB, 400.0)
+    with pytest.raises(ValueError, match="differ"):
+        measure_defect(disparity, Detection("pit", 0.9, BOX), CALIB, DepthRule(), (_grey(left)[:, 1:], _grey(right)))

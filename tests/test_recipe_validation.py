@@ -138,3 +138,24 @@ def test_missing_calibration_is_one_line_exit_2(recipe_dir):
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.count("\n") == 1 and "camera: replay:" in result.stderr
     assert "calib.yaml: calibration file missing" in result.stderr
+
+
+def test_validate_warns_where_the_working_distance_cannot_resolve_a_limit(recipe_dir):
+    far = GOOD.replace("max_disparity: 64", "working_distance_mm: [300, 900]")
+    path = write_recipe(recipe_dir / "far.yaml", far)
+    result = cli("validate", str(path))
+    assert result.returncode == 0 and result.stdout.startswith(f"{path}: ok")
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1
+    # the rule's own line, the distance, the guard band, and what would resolve it
+    assert lines[0].startswith(f"{path.resolve()}:13: decision.rules.0: warning: rule 'any deviation_mm > 1': at 900 mm")
+    assert re.search(r"resolved at \d+ mm or closer, with a [\d.]+x longer focal length .* or a \d+ mm baseline", lines[0])
+    near = write_recipe(recipe_dir / "near.yaml", GOOD.replace("max_disparity: 64", "working_distance_mm: [300, 450]"))
+    assert cli("validate", str(near)).stderr == ""
+
+
+def test_the_demo_recipe_resolves_its_limits():
+    from conftest import ROOT
+
+    result = cli("validate", str(ROOT / "recipes" / "steel_plate.yaml"))
+    assert result.returncode == 0 and result.stderr == ""

@@ -55,3 +55,29 @@ def test_report_csv_of_one_run(results, tmp_path):
     assert out.returncode == 0, out.stderr
     rows = list(csv.DictReader(target.open()))
     assert len(rows) == 3 and {r["run_id"] for r in rows} == {"2"}
+
+
+def test_a_store_of_an_older_version_is_read_and_migrated(tmp_path):
+    import sqlite3
+
+    from core import store
+
+    old_schema = store.SCHEMA.replace("    flagged INTEGER DEFAULT 0,\n", "").replace(
+        ",\n    distance_sigma_mm REAL,\n    deviation_sigma_mm REAL,\n    depth_method TEXT", "")
+    db = sqlite3.connect(tmp_path / "results.db")
+    db.executescript(old_schema)
+    db.execute("INSERT INTO runs (recipe_name, recipe_hash, recipe_path, started) VALUES ('old', 'h', 'p', 0)")
+    db.execute("INSERT INTO parts (run_id, part_id, frame_id, frame_index, time, verdict, reasons) "
+               "VALUES (1, 'R1-000000', '000000', 0, 0, 'REJECT', '[]')")
+    db.execute("INSERT INTO defects (part_row, class, confidence, distance_mm, deviation_mm, verdict, reasons) "
+               "VALUES (1, 'pit', 0.9, 400, 1.5, 'REJECT', '[]')")
+    db.commit()
+    db.close()
+    readonly = store.open_readonly(tmp_path)
+    rows = store.csv_rows(readonly, 1)  # read as it is: the new columns come back empty
+    assert rows[0][-3:] == (None, None, None) and len(rows[0]) == len(store.CSV_COLUMNS)
+    readonly.close()
+    writer = store.ResultsStore(tmp_path)  # opened for writing, it gains them
+    columns = {row[1] for row in writer.db.execute("PRAGMA table_info(defects)")}
+    assert {"distance_sigma_mm", "deviation_sigma_mm", "depth_method"} <= columns
+    writer.close()

@@ -55,3 +55,23 @@ def test_existing_sequence_needs_overwrite(tmp_path):
     frames = list_frames(out)
     assert [(f.frame_id, f.left.suffix) for f in frames] == [("000000", ".jpg")]
     assert sorted(p.name for p in (out / "labels").iterdir()) == ["000000.json"]
+
+
+def test_evaluation_set_options(tmp_path):
+    out = tmp_path / "eval"
+    result = CliRunner().invoke(_build(), [
+        "sim", "generate", str(out), "--frames", "2", "--synthetic-defects", "--width", "224", "--height", "126",
+        "--distance-range-mm", "380", "460", "--defect-size-px", "8", "16", "--depth-range-mm", "0.3", "2.5",
+        "--texture-contrast", "0.3", "--supersample", "1",
+    ])
+    assert result.exit_code == 0, result.output
+    for f in list_frames(out):
+        labels = json.loads(f.labels.read_text())
+        assert 380 <= labels["distance_mm"] <= 460 and labels["texture_contrast"] == 0.3 and labels["defects"]
+
+
+def test_a_reversed_range_is_a_one_line_error(tmp_path):
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects",
+                                           "--depth-range-mm", "2", "1"])
+    assert result.exit_code == 2 and result.output.startswith("error: --depth-range-mm: MIN 2 is larger than MAX 1")
+    assert not (tmp_path / "x").exists()

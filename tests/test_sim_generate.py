@@ -185,3 +185,40 @@ def test_rays_land_on_the_heightfield():
         err = np.abs((p - scene.p0) @ scene.n - h)[hits.on_plate]
         assert err.max() < 1e-3
         assert (np.abs(h) > 0.5).any()  # the defects are in view
+
+
+def test_evaluation_ranges_are_respected(tmp_path):
+    from sim.generate import EvalRanges
+
+    ranges = EvalRanges(distance_mm=(350.0, 650.0), defect_px=(20.0, 40.0), depth_mm=(0.5, 1.5), defects_per_frame=(1, 2))
+    labels = generate_sequence(tmp_path / "eval", frames=4, seed=8, width=336, height=188, ranges=ranges, supersample=1)
+    for lab in labels:
+        assert 350.0 <= lab["distance_mm"] <= 650.0
+        assert 1 <= len(lab["defects"]) <= 2 and lab["sensor"]["noise_sigma"] > 0
+        for d in lab["defects"]:
+            assert 0.5 <= d["design_depth_mm"] <= 1.5 and d["class"] in BELOW_CLASSES
+            x0, y0, x1, y1 = d["box"]
+            # the box is the footprint's projection: within a few pixels of the drawn size
+            assert 20.0 - 3 <= x1 - x0 <= 40.0 + 3 and 20.0 - 3 <= y1 - y0 <= 40.0 * 1.2 + 3
+
+
+def test_texture_contrast_flattens_the_plate_and_the_default_plan_is_unchanged(tmp_path):
+    calib = zed_calibration(W, H)
+    spec = FrameSpec(400.0, 0.0, 0.0, [])
+    low = build_scene(np.random.default_rng(3), calib, spec, None, texture_contrast=0.3)
+    base = build_scene(np.random.default_rng(3), calib, spec, None)
+    assert np.std(low.albedo) == pytest.approx(0.3 * np.std(base.albedo), rel=0.02)
+    assert np.array_equal(base.albedo, build_scene(np.random.default_rng(3), calib, spec, None, texture_contrast=1.0).albedo)
+    # no range given: the demo's plan, draw for draw
+    plain = plan_frame(np.random.default_rng(5), 2, 400.0, 5.0, True, (_Deck(NEU_CLASSES, np.random.default_rng(0)),
+                                                                       _Deck(BELOW_CLASSES, np.random.default_rng(1))))
+    assert plain.sizes_px is None and [c for c, _ in plain.requests] and plain.requests[0][1] >= 1.8
+
+
+def test_raised_depths_draw_raised_classes(tmp_path):
+    from sim.generate import RAISED_CLASSES, EvalRanges
+
+    rng = np.random.default_rng(4)
+    decks = (_Deck(NEU_CLASSES, rng), _Deck(BELOW_CLASSES, rng), _Deck(RAISED_CLASSES, rng))
+    spec = plan_frame(rng, 0, 400.0, 5.0, False, decks, EvalRanges(depth_mm=(-1.0, -0.5), defects_per_frame=(3, 3)))
+    assert len(spec.requests) == 3 and all(c in RAISED_CLASSES and -1.0 <= d <= -0.5 for c, d in spec.requests)

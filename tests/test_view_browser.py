@@ -126,6 +126,7 @@ def test_live_page_follows_the_run_and_opens_a_reject(tmp_path, plane_sequence, 
         assert "rejected by" in page.inner_text("#detail-rule") and "deeper than 1.5 mm" in page.inner_text("#detail-rule")
         defect_row = page.inner_text("#detail-defects tbody tr")
         assert "pit" in defect_row and "REJECT" in defect_row
+        assert re.search(r"\+\d+\.\d\d ± \d+\.\d\d", defect_row), defect_row  # the deviation with its uncertainty
         page.keyboard.press("Escape")
         # the run ends with every plate counted
         page.wait_for_function("() => document.getElementById('run-state').textContent.includes('finished')", timeout=60000)

@@ -1,0 +1,108 @@
+"""``inspect eval depth`` on the committed evaluation sequences, and the figures it is made of."""
+from __future__ import annotations
+
+import json
+import math
+import re
+import shutil
+
+import numpy as np
+import pytest
+from conftest import ROOT, cli
+
+from core import depth_eval as ev
+
+TEXTURED = ROOT / "sim_fixtures" / "plates_textured"
+LOW_TEXTURE = ROOT / "sim_fixtures" / "plates_low_texture"
+RANGE = "stereo.working_distance_mm=[300,700]"  # the sequences span 350-650 mm; the demo recipe 350-500
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory):
+    out = tmp_path_factory.mktemp("depth_eval")
+    result = cli("eval", "depth", str(TEXTURED), str(LOW_TEXTURE), "--set", RANGE, "--out", str(out), "--threads", "1")
+    return result, out
+
+
+def test_writes_json_markdown_and_figure(evaluated):
+    result, out = evaluated
+    assert result.returncode == 0, result.stderr
+    body = json.loads((out / "depth_eval.json").read_text())
+    assert set(body["sequences"]) == {"plates_textured", "plates_low_texture"}
+    assert body["method"] == "surface" and body["backend"] == "torch_sgm" and "cores" in body["machine"]
+    assert (out / "depth_eval.png").stat().st_size > 10_000
+    table = (out / "depth_eval.md").read_text()
+    assert "| all | surface |" in table and "| all | disparity (reference) |" in table and "true \\ measured" in table
+    assert table in result.stdout
+    # one line per defect: truth, measurement with its uncertainty, both decisions
+    lines = [line for line in result.stdout.splitlines() if re.match(r"plates_\w+ \d{6} ", line)]
+    assert len(lines) == len(body["rows"]) == 11 and all(" true " in line and "measured" in line for line in lines)
+
+
+def test_the_surface_fit_beats_the_backend_alone_and_states_its_uncertainty(evaluated):
+    _, out = evaluated
+    body = json.loads((out / "depth_eval.json").read_text())
+    surface, reference = body["all"]["measurement"], body["all"]["reference"]
+    assert surface["measured"] == surface["defects"] == 11
+    assert surface["deviation_error_mm"]["median"] < 0.5 * reference["deviation_error_mm"]["median"]
+    assert surface["deviation_error_mm"]["p90"] < 0.6 * reference["deviation_error_mm"]["p90"]
+    assert surface["distance_error_percent"]["median"] < 0.05
+    assert 0.85 <= surface["ratio_median"] <= 1.15
+    assert surface["within_2_sigma"] >= 0.7  # 11 defects: the suite's check, not the benchmark (docs/benchmarks.md)
+    assert surface["clear_cut_wrong"] == 0
+    rows = body["rows"]
+    assert all(r["floor_mm"] > 0 and r["deviation_sigma_mm"] > 0 for r in rows)
+    assert sum(sum(by.values()) for by in surface["confusion"].values()) == len(rows)
+
+
+def test_a_sequence_without_labels_is_a_one_line_error(tmp_path):
+    copy = tmp_path / "seq"
+    shutil.copytree(TEXTURED, copy)
+    shutil.rmtree(copy / "labels")
+    result = cli("eval", "depth", str(copy), "--out", str(tmp_path / "out"))
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "labels/000000.json" in lines[0]
+    assert cli("eval", "depth", str(tmp_path / "nowhere")).returncode == 2
+
+
+class TestFloor:
+    def test_the_floor_falls_with_the_gradient_energy(self):
+        rng = np.random.default_rng(0)
+        grey = rng.normal(100, 10, (40, 60)).astype(np.float32)
+        mask = np.zeros(grey.shape, bool)
+        mask[10:20, 10:30] = True
+        gx = 0.5 * (grey[:, 2:] - grey[:, :-2])
+        expected = 2.0 * math.sqrt(2) / math.sqrt(float(np.sum(gx[10:20, 9:29] ** 2)))
+        assert ev.floor_px(grey, mask, 2.0) == pytest.approx(expected, rel=1e-5)
+        assert ev.floor_px(2 * grey, mask, 2.0) == pytest.approx(expected / 2, rel=1e-5)
+        assert ev.floor_px(np.full((40, 60), 5.0, np.float32), mask, 2.0) == math.inf
+
+
+class TestMixtureQuantile:
+    def test_one_sigma_gives_the_half_normal_quantiles(self):
+        assert ev.mixture_quantile(np.full(5, 2.0), 0.5) == pytest.approx(2.0 * 0.6745, rel=1e-3)
+        assert ev.mixture_quantile(np.full(5, 2.0), 0.9) == pytest.approx(2.0 * 1.6449, rel=1e-3)
+
+    def test_a_mixture_lies_between_its_parts(self):
+        q = ev.mixture_quantile(np.array([1.0, 3.0]), 0.5)
+        assert 0.6745 < q < 3 * 0.6745
+
+
+class TestSummarise:
+    def _row(self, true, measured, sigma, proven, true_status, clear_cut=True, floor=0.05):
+        return ev.DefectRow("s", "000000", "pit", (0, 0, 40, 40), 400.0, true, floor, "surface", 400.0, measured, 0.1,
+                            sigma, 400.0, measured, "", true_status, proven, proven, proven, proven, clear_cut)
+
+    def test_wrong_sides_count_only_proven_outcomes_of_clear_cut_defects(self):
+        rows = [
+            self._row(1.5, 1.45, 0.05, "REJECT", "REJECT"),
+            self._row(1.5, 0.6, 0.05, "PASS", "REJECT"),  # a silent pass, far beyond 2 sigma
+            self._row(1.5, 1.1, 0.1, "undecided", "REJECT"),  # the recipe's uncertain choice decides: no fault
+            self._row(1.1, 0.7, 0.05, "PASS", "REJECT", clear_cut=False),  # near the limit: not clear-cut
+        ]
+        s = ev.summarise(rows)
+        assert (s.clear_cut_wrong, s.clear_cut_silent_pass, s.clear_cut_wrong_beyond_2_sigma) == (1, 1, 1)
+        assert s.confusion == {"REJECT": {"REJECT": 1, "PASS": 2, "undecided": 1}}
+        assert s.within_2_sigma == pytest.approx(0.25)  # only the first error is within 2 sigma
+        assert s.ratio_median == pytest.approx(np.median([1.45 / 1.5, 0.6 / 1.5, 1.1 / 1.5, 0.7 / 1.1]))

@@ -27,7 +27,7 @@ class CameraSection(PluginRef):
 
 
 class StereoSection(Section):
-    backend: str = Field("opencv_sgbm", min_length=1)
+    backend: str = Field("torch_sgm", min_length=1)
     settings: dict[str, Any] = Field(default_factory=dict)
     min_disparity: float | None = Field(None, ge=0)
     max_disparity: float | None = Field(None, gt=0)

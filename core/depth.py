@@ -115,6 +115,9 @@ def ring_mask(shape: tuple[int, int], box: tuple[float, float, float, float], ga
     return mask
 
 
+SCORED_POINTS = 1024
+
+
 def fit_plane_robust(
     u: np.ndarray, v: np.ndarray, d: np.ndarray, tolerance: float = 1.0, trials: int = 128, seed: int = 0
 ) -> Plane | None:
@@ -129,6 +132,8 @@ def fit_plane_robust(
         return None
     rng = np.random.default_rng(seed)
     picks = rng.integers(0, n, size=(trials, 3))
+    # hypotheses are scored on a fixed sample of the points (all of them refine the winner below)
+    scored = np.sort(rng.choice(n, SCORED_POINTS, replace=False)) if n > SCORED_POINTS else slice(None)
     systems = np.stack([u[picks], v[picks], np.ones((trials, 3))], axis=-1)
     solvable = np.abs(np.linalg.det(systems)) > 1e-6
     if not solvable.any():
@@ -137,8 +142,10 @@ def fit_plane_robust(
     # Elementwise, not ``candidates @ design.T``: a matrix product goes to the multi-threaded BLAS,
     # whose threads keep spinning after it returns and slow the detector running next (35 -> 10 ms
     # of depth per frame and detection back to its own speed on a 2-core machine, docs/benchmarks.md).
-    inliers = np.abs(candidates[:, :1] * u + candidates[:, 1:2] * v + candidates[:, 2:3] - d) <= tolerance
-    keep = inliers[np.argmax(inliers.sum(axis=1))]
+    inliers = np.abs(candidates[:, :1] * u[scored] + candidates[:, 1:2] * v[scored] + candidates[:, 2:3] - d[scored]) \
+        <= tolerance
+    best = candidates[np.argmax(inliers.sum(axis=1))]
+    keep = np.abs(best[0] * u + best[1] * v + best[2] - d) <= tolerance
     coeffs = None
     for _ in range(3):
         if keep.sum() < 3:
@@ -176,8 +183,13 @@ def worst_side(
 ) -> tuple[str, float]:
     """How the worst side of the box's ring fits the plane (a phrase for the note) and the share
     of it that fits. Fewer than two sides in view count as not fitting."""
-    x0, y0, x1, y1 = box
     on_plane = np.abs(plane(u.astype(np.float64), v.astype(np.float64)) - d) <= tolerance
+    return worst_side_of(on_plane, u, v, box)
+
+
+def worst_side_of(on_plane: np.ndarray, u: np.ndarray, v: np.ndarray, box: tuple[int, int, int, int]) -> tuple[str, float]:
+    """``worst_side`` from each ring pixel's verdict (``on_plane``, bool) whatever decided it."""
+    x0, y0, x1, y1 = box
     top, bottom = v < y0, v >= y1
     sides = {"top": top, "bottom": bottom, "left": ~top & ~bottom & (u < x0), "right": ~top & ~bottom & (u >= x1)}
     shares = {name: float(on_plane[m].mean()) for name, m in sides.items() if m.sum() >= 10}
@@ -250,7 +262,10 @@ def measure_defect(
             distance_sigma_mm=resolution,
         )
     how, share = worst_side(plane, ru, rv, disparity[ring] + calib.doffs, _clip_box(detection.box, shape), rule.plane_tolerance_px)
-    if share < rule.min_plane_inliers:
+    surface = rule.method == "surface" and pair is not None
+    # the surface fit judges the ring from the images itself (below); the backend's judgement only where
+    # the ring is not in view, or for the reference
+    if share < rule.min_plane_inliers and (not surface or "outside the image" in how):
         return DefectMeasurement(
             detection, distance, None, valid_fraction, resolution, area,
             note=f"deviation unavailable: {how}" if "outside the image" in how else
@@ -262,8 +277,12 @@ def measure_defect(
     deviation = fb * (d_plane / d_defect - 1.0) / plane.normal_length(calib)
     reference = DefectMeasurement(detection, distance, float(np.median(deviation)), valid_fraction, resolution, area,
                                   distance_sigma_mm=resolution, deviation_sigma_mm=float(np.sqrt(2.0) * resolution))
-    if rule.method == "disparity" or pair is None:
+    if not surface:
         return reference
+    if share < rule.min_plane_inliers:  # should the fit not settle, the backend's map cannot stand in
+        reference = DefectMeasurement(detection, distance, None, valid_fraction, resolution, area,
+                                      note=f"the surface around the box is not one plane ({how}, "
+                                      f"{rule.min_plane_inliers:.0%} needed)", distance_sigma_mm=resolution)
     return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, inner, (x0, y0, x1, y1),
                                 d_plane - d_defect, reference)
 
@@ -296,6 +315,18 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     fit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)
     if fit is None:
         return _fallback(reference, "the surface fit did not settle")
+    # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a
+    # sheen upsets only the cells, the crop's edge only the backend's map there
+    backend_agrees = valid_mask(disparity, calib.doffs)[ring_v, ring_u] & (np.abs(
+        plane(ring_u.astype(np.float64), ring_v.astype(np.float64)) - (disparity[ring_v, ring_u] + calib.doffs))
+        <= rule.plane_tolerance_px)
+    how, share = worst_side_of(backend_agrees | (fit.ring_weights > 0.5), ring_u, ring_v,
+                               _clip_box(detection.box, disparity.shape))
+    if share < rule.min_plane_inliers:
+        return DefectMeasurement(
+            detection, reference.distance_mm, None, reference.valid_fraction, reference.depth_resolution_mm,
+            reference.area_mm2, note=f"deviation unavailable: the surface around the box is not one plane ({how} in the "
+            f"images, {rule.min_plane_inliers:.0%} needed)", distance_sigma_mm=reference.distance_sigma_mm, method="surface")
     offsets_px, sds, centres = surface_fit.cell_offsets(left, right, fit, (uu, vv), weights)
     cells = surface_fit.robust_offset(offsets_px, sds, fit.delta)
     cov = fit.covariance
@@ -328,7 +359,10 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
 
 
 def _fallback(reference: DefectMeasurement, why: str) -> DefectMeasurement:
-    reference.note = f"{why}; measured from the disparity map alone"
+    if reference.deviation_mm is None:
+        reference.note = f"deviation unavailable: {why}, and {reference.note}"
+    else:
+        reference.note = f"{why}; measured from the disparity map alone"
     return reference
 
 

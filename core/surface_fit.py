@@ -40,6 +40,7 @@ HIGH_PASS_SIGMA = 10.0  # px
 BLUR_SIGMAS = (2.0, 1.0)  # the ring's levels before the joint fit on the images as they are
 ITERATIONS = (6, 6)
 JOINT_ITERATIONS = 10
+REFIT_ITERATIONS = 4  # after the ring's cells are weighted again: the fit starts at its solution
 TOLERANCE_PX = 5e-4  # disparity steps below this end the fit: a tenth of the smallest uncertainty seen
 HUBER_K = 1.345  # 95 % efficiency for Gaussian noise
 TUKEY_K = 4.685  # likewise
@@ -47,6 +48,7 @@ CLUSTER_PX = 4  # blocks over which residuals may be correlated
 CELL_PX = 4  # cells of the defect's region whose offsets are combined robustly
 RING_CELL_PX = 6  # cells of the ring that are kept or left out together
 SEARCH_STEP_PX = 0.05
+COARSE_STEP_PX = 0.2
 PARAMS = ("c", "a", "b", "delta", "g", "g_u", "g_v", "o", "g_m", "o_m")
 RING = [0, 1, 2, 4, 5, 6, 7]
 ALL = list(range(len(PARAMS)))
@@ -64,6 +66,7 @@ class SurfaceFit:
     residual_sigma: float  # grey levels of the high-passed images, robust
     inflation: float  # covariance factor for correlated residuals (>= 1)
     converged: bool
+    ring_weights: np.ndarray | None = None  # (ring pixels,) each one's cell weight in [0, 1] at the end
 
     @property
     def c(self) -> float:
@@ -157,7 +160,6 @@ class _Problem:
         self.usable = (grey > SATURATED[0]) & (grey < SATURATED[1]) & (prior > 0)
         # the right image's saturated pixels: a sample that reads one is not usable
         self.right_saturated = (raw_right <= SATURATED[0]) | (raw_right >= SATURATED[1])
-        self.J = np.empty((len(self.u), len(PARAMS)))
         self.level(0.0)
 
     def level(self, sigma: float) -> None:
@@ -167,24 +169,26 @@ class _Problem:
         self.lvals = self.L[self.vi, self.ui]
 
 
-    def residuals(self, theta):
-        """(residuals, Jacobian rows (N, 10), usable) at ``theta`` on the current level's images."""
-        d = theta[0] + theta[1] * self.du + theta[2] * self.dv + theta[3] * self.m
-        x = self.u - d
-        rv, gx = sample(self.R, x, self.v), sample(self.Rx, x, self.v)
-        ok = self.usable & np.isfinite(rv) & np.isfinite(gx)
+    def residuals(self, theta, idx=None):
+        """(residuals, Jacobian rows (n, 10), usable) at ``theta`` on the current level's images, for the
+        pixels ``idx`` (indices; all if None)."""
+        idx = slice(None) if idx is None else idx
+        du, dv, m, u, v = self.du[idx], self.dv[idx], self.m[idx], self.u[idx], self.v[idx]
+        x = u - (theta[0] + theta[1] * du + theta[2] * dv + theta[3] * m)
+        rv, gx = sample(self.R, x, v), sample(self.Rx, x, v)
+        ok = self.usable[idx] & np.isfinite(rv) & np.isfinite(gx)
         column = np.clip(np.rint(x), 0, self.R.shape[1] - 1).astype(np.intp)
-        ok &= ~self.right_saturated[self.vi, column]
-        gain = theta[4] + theta[5] * self.du + theta[6] * self.dv + theta[8] * self.m
-        r = self.lvals - gain * rv - theta[7] - theta[9] * self.m
-        J, m = self.J, self.m
+        ok &= ~self.right_saturated[self.vi[idx], column]
+        gain = theta[4] + theta[5] * du + theta[6] * dv + theta[8] * m
+        r = self.lvals[idx] - gain * rv - theta[7] - theta[9] * m
+        J = np.empty((len(r), len(PARAMS)))
         J[:, 0] = gain * gx  # d r / d disparity
-        J[:, 1] = J[:, 0] * self.du
-        J[:, 2] = J[:, 0] * self.dv
+        J[:, 1] = J[:, 0] * du
+        J[:, 2] = J[:, 0] * dv
         J[:, 3] = J[:, 0] * m
         J[:, 4] = -rv
-        J[:, 5] = -rv * self.du
-        J[:, 6] = -rv * self.dv
+        J[:, 5] = -rv * du
+        J[:, 6] = -rv * dv
         J[:, 7] = -1.0
         J[:, 8] = -rv * m
         J[:, 9] = -m
@@ -193,13 +197,13 @@ class _Problem:
     def gauss_newton(self, theta, free, iterations, select, tolerance):
         """Huber-weighted Gauss-Newton on the parameters ``free`` over the pixels ``select``:
         (theta, moved less than ``tolerance`` px in disparity at the end), or (None, False)."""
+        idx = np.flatnonzero(select)
         for _ in range(iterations):
-            r, J, ok = self.residuals(theta)
-            ok &= select
+            r, J, ok = self.residuals(theta, idx)
             if ok.sum() < len(free) + 2:
                 return None, False
             r, J = r[ok], J[ok][:, free]
-            w = _huber_weights(r, _robust_scale(r)) * self.prior[ok]
+            w = _huber_weights(r, _robust_scale(r)) * self.prior[idx[ok]]
             try:
                 step = np.linalg.solve((J * w[:, None]).T @ J, -(J * w[:, None]).T @ r)
             except np.linalg.LinAlgError:
@@ -248,12 +252,13 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     local = (centre[0] - x0, centre[1] - y0)
     p = _Problem(high_pass(left), high_pass(right), ring, defect, prior, left, right, local)
     on_ring = p.m == 0
+    checker = ((p.ui + p.vi) % 2) == 0
     for level, (sigma, iterations) in enumerate(zip(BLUR_SIGMAS, ITERATIONS)):
         p.level(sigma)
         if level == 0:
             theta[[4, 7]] = _exposure(p, theta)
-        # the coarse levels only bring the start into the fine level's reach
-        theta, _ = p.gauss_newton(theta, RING, iterations, on_ring, 4 * TOLERANCE_PX)
+        # the coarse levels only bring the start into the fine level's reach: every other ring pixel will do
+        theta, _ = p.gauss_newton(theta, RING, iterations, on_ring & checker, 4 * TOLERANCE_PX)
         if theta is None:
             return None
     p.level(0.0)
@@ -266,7 +271,7 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     if theta is None or abs(theta[3] - searched) > 0.5:  # left the searched minimum: not one surface
         return None
     prior[on_ring] = ring_prior[on_ring] * _ring_cell_weights(p, theta)
-    theta, converged = p.gauss_newton(theta, ALL, JOINT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
+    theta, converged = p.gauss_newton(theta, ALL, REFIT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
     if theta is None:
         return None
     r, J, ok = p.residuals(theta)
@@ -279,8 +284,9 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     if not (np.all(np.isfinite(inv)) and np.all(np.diag(inv) > 0)):
         return None
     covariance, inflation = _covariance(J, r, h, w, p.ui[ok], p.vi[ok], inv)
+    ring_weights = np.where(ok[on_ring], prior[on_ring], 0.0)
     return SurfaceFit(theta, covariance, centre, int((ok & on_ring).sum()), int((ok & ~on_ring).sum()),
-                      _robust_scale(r), inflation, converged)
+                      _robust_scale(r), inflation, converged, ring_weights)
 
 
 WINDOW_MARGIN_PX = int(3 * HIGH_PASS_SIGMA) + 8  # the filters' reach, the blur's and the interpolation's
@@ -311,8 +317,8 @@ def _ring_cells(p: _Problem, theta: np.ndarray):
     their standard deviations and centres relative to the region's: (cell of each ring pixel, usable
     ring pixels, offsets, sds, du, dv)."""
     ring = p.m == 0
-    r, J, ok = p.residuals(theta)
-    r, j, ok = r[ring], J[ring, 0], ok[ring] & (p.prior[ring] > 0)
+    r, J, ok = p.residuals(theta, np.flatnonzero(ring))
+    j, ok = J[:, 0], ok & (p.prior[ring] > 0)
     scale = _robust_scale(r[ok])
     h = np.where(ok, _huber_weights(r, scale), 0.0)
     cell = np.unique((p.vi[ring] // RING_CELL_PX) * 100_000 + p.ui[ring] // RING_CELL_PX, return_inverse=True)[1]
@@ -389,8 +395,7 @@ def _exposure(p: _Problem, theta: np.ndarray) -> tuple[float, float]:
 def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> float:
     """The defect's offset in [lo, hi] with the least Huber cost over its pixels, the ring's parameters held
     (steps of SEARCH_STEP_PX, refined by the parabola through the least cost and its neighbours)."""
-    r_ring, _, ok_ring = p.residuals(theta)
-    ok_ring &= p.m == 0
+    r_ring, _, ok_ring = p.residuals(theta, np.flatnonzero(p.m == 0))
     scale = _robust_scale(r_ring[ok_ring])
     sel = p.usable & (p.m == 1)
     if not sel.any():
@@ -399,12 +404,17 @@ def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> floa
     base = theta[0] + theta[1] * p.du[sel] + theta[2] * p.dv[sel]
     gain = theta[4] + theta[5] * p.du[sel] + theta[6] * p.dv[sel] + theta[8]
     lv = p.lvals[sel]
-    candidates = np.arange(lo, hi + SEARCH_STEP_PX / 2, SEARCH_STEP_PX)
-    costs = np.empty(len(candidates))
-    for i, delta in enumerate(candidates):
+
+    def cost(delta: float) -> float:
         rv = sample(p.R, u - base - delta, v)
         r = np.where(np.isfinite(rv), lv - gain * rv - theta[7] - theta[9], 0.0)
-        costs[i] = float(np.sum(w * _huber_cost(r, scale)))
+        return float(np.sum(w * _huber_cost(r, scale)))
+
+    # every COARSE_STEP_PX first, then every SEARCH_STEP_PX around the least of those
+    coarse = np.arange(lo, hi + COARSE_STEP_PX / 2, COARSE_STEP_PX)
+    centre = float(coarse[int(np.argmin([cost(d) for d in coarse]))])
+    candidates = np.arange(centre - COARSE_STEP_PX, centre + COARSE_STEP_PX + SEARCH_STEP_PX / 2, SEARCH_STEP_PX)
+    costs = np.array([cost(d) for d in candidates])
     best = int(np.argmin(costs))
     if 0 < best < len(candidates) - 1:
         c0, c1, c2 = costs[best - 1: best + 2]

@@ -7,6 +7,7 @@ becomes an ERROR verdict, which the outputs reject like any other reject.
 from __future__ import annotations
 
 import math
+import os
 import queue
 import threading
 import time
@@ -55,6 +56,23 @@ class Pipeline:
 
     def close(self) -> None:
         self.camera.close()
+
+
+def resolve_threads(threads: int | str) -> int:
+    """The recipe's ``threads``: a count, or auto = half the cores (at least one)."""
+    if threads == "auto":
+        return max(1, (os.cpu_count() or 2) // 2)
+    return int(threads)
+
+
+def apply_threads(threads: int | str) -> int:
+    """Set torch's and OpenCV's CPU threads for this process; returns the count."""
+    import torch
+
+    n = resolve_threads(threads)
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+    return n
 
 
 def resolve_device(device: str) -> str:
@@ -295,6 +313,7 @@ def run(
 ) -> RunSummary:
     registry = registry or default_registry()
     recipe = loaded.recipe
+    apply_threads(recipe.threads)
     pipeline = build_pipeline(loaded, registry, device)
     store = ResultsStore(loaded.resolve(recipe.results.path))
     run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path))

@@ -164,3 +164,28 @@ def test_camera_that_raises_ends_the_run_with_an_alarm(tmp_path, plane_sequence)
     db = sqlite3.connect(tmp_path / "results" / "results.db")
     assert db.execute("SELECT source FROM alarms").fetchall() == [("engine",)]
     assert db.execute("SELECT exit_code FROM runs").fetchone()[0] == engine.EXIT_ALARMS
+
+
+@pytest.mark.parametrize("threads", [1, "auto"])
+def test_the_recipe_sets_the_process_threads(tmp_path, plane_sequence, threads):
+    """A station's torch and OpenCV threads come from the recipe (auto: half the cores), so that two
+    inspections on one PC do not spin against each other."""
+    import os
+
+    import cv2
+    import torch
+
+    info = plane_sequence([0.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi,)))
+    text = RECIPE.format(box=info["box"], output="log") + f"threads: {threads}\n"
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
+    seen = {}
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    try:
+        engine.run(loaded, registry=registry, device="cpu",
+                   on_start=lambda _: seen.update(torch=torch.get_num_threads(), cv=cv2.getNumThreads()))
+    finally:
+        torch.set_num_threads(before[0])
+        cv2.setNumThreads(before[1])
+    expected = 1 if threads == 1 else max(1, (os.cpu_count() or 2) // 2)
+    assert seen == {"torch": expected, "cv": expected}

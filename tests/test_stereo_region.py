@@ -107,3 +107,35 @@ def test_sim_sequence_depth_same_as_full_frame():
             assert abs(a.deviation_mm - b.deviation_mm) <= 0.02, (frame.frame_id, a.deviation_mm, b.deviation_mm)
             compared += 1
     assert compared >= 10
+
+
+EVALUATION = FIXTURE.parent / "plates_textured"
+
+
+@pytest.mark.parametrize("preset", ["seed", "improved"])
+def test_torch_sgm_roi_gives_the_full_frames_depth(preset, torch_one_thread):
+    """Each labelled defect measured as the line measures it (the surface fit, half-resolution matching),
+    from crops and from the whole frame: within 0.02 mm, on the demo sequence and an evaluation set."""
+    from core.depth import measure_frame
+
+    matcher = default_registry().get("stereo", "torch_sgm").spec.factory({"preset": preset}, PluginContext(device="cpu"))
+    worst = {"distance_mm": 0.0, "deviation_mm": 0.0}
+    measured = 0
+    for folder, frames, distance in ((FIXTURE, 4, (350, 500)), (EVALUATION, 3, (300, 700))):
+        section = StereoSection(working_distance_mm=distance, scale=0.5)
+        for frame in ReplayCamera(ReplaySettings(path=str(folder), max_frames=frames)).frames():
+            truths = json.loads(Path(frame.meta["labels"]).read_text())["defects"]
+            detections = [Detection(t["class"], 1.0, tuple(t["box"])) for t in truths]
+            if not detections:
+                continue
+            full = measure_frame(frame_disparity(matcher, frame, section, detections, RULE), detections, frame, RULE)
+            roi = measure_frame(frame_disparity(matcher, frame, section.model_copy(update={"region": "defects"}),
+                                                detections, RULE), detections, frame, RULE)
+            for a, b in zip(full, roi):
+                assert (a.deviation_mm is None) == (b.deviation_mm is None), (frame.frame_id, a.note, b.note)
+                if a.deviation_mm is not None:
+                    measured += 1
+                    for key in worst:
+                        worst[key] = max(worst[key], abs(getattr(a, key) - getattr(b, key)))
+    assert measured >= 8
+    assert worst["distance_mm"] <= 0.02 and worst["deviation_mm"] <= 0.02, worst

@@ -65,15 +65,18 @@ def part_line(outcome) -> str:
 @click.option("--port", default=None, type=click.IntRange(1, 65535), help="view: port (default: the recipe's view.port, 8080)")
 @click.option("--token", default=None, help="view: require this token from every browser (the recipe's view.token)")
 @click.option("--keep-serving", is_flag=True, help="view: keep the page up after the run ends, until Ctrl-C")
+@click.option("--threads", type=click.IntRange(1), default=None,
+              help="CPU threads for torch and OpenCV (the recipe's threads; default auto: half the cores)")
 def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frames: int | None, plc_sim: bool, quiet: bool,
-                view: bool, host: str | None, port: int | None, token: str | None, keep_serving: bool) -> None:
+                view: bool, host: str | None, port: int | None, token: str | None, keep_serving: bool,
+                threads: int | None) -> None:
     """Inspect every part the recipe's camera delivers."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from core import engine
 
-    loaded = _load(recipe, overrides)
+    loaded = _load(recipe, overrides + ((f"threads={threads}",) if threads else ()))
     console = Console(highlight=False, soft_wrap=True)
     if token is not None and len(token) < 8:
         fail("--token: use at least 8 characters")

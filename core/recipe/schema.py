@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 QUANTITIES = ("deviation_mm", "distance_mm", "confidence", "area_mm2")
 OPERATORS = (">", ">=", "<", "<=")
@@ -137,6 +137,16 @@ class ViewSection(Section):
 class Recipe(Section):
     name: str = Field(min_length=1)
     description: str = ""
+    # CPU threads of this process's torch and OpenCV stages; auto = half the cores, so that two stations
+    # on one PC do not spin against each other (docs/benchmarks.md). ``inspect run --threads`` wins.
+    threads: int | str = "auto"
+
+    @field_validator("threads", mode="before")
+    @classmethod
+    def _threads(cls, value):
+        if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+            return value
+        raise ValueError("give auto or a number of threads, at least 1")
     camera: CameraSection
     stereo: StereoSection
     detector: DetectorSection = Field(default_factory=DetectorSection)

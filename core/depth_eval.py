@@ -60,6 +60,8 @@ class DefectRow:
     reference_status: str = ""
     proven: str = ""  # PASS, REJECT (proven beyond the guard band), undecided, or ERROR
     reference_proven: str = ""
+    plain: str = ""  # the value against the limit, no guard band (as a decision without uncertainty would go)
+    reference_plain: str = ""
     clear_cut: bool = False
 
     @property
@@ -85,6 +87,7 @@ class Summary:
     clear_cut_wrong: int = 0
     clear_cut_wrong_beyond_2_sigma: int = 0
     clear_cut_silent_pass: int = 0
+    clear_cut_wrong_plain: int = 0  # decided on the value alone, without the guard band
 
 
 def floor_px(grey: np.ndarray, mask: np.ndarray, noise_sigma: float) -> float:
@@ -140,6 +143,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     noise = (labels.get("sensor") or {}).get("noise_sigma")
     # judged with uncertain: flag, a FLAG is a measurement that proved neither side of a limit
     undecided_as_flag = recipe.decision.model_copy(update={"uncertain": "flag"})
+    no_band = recipe.decision.model_copy(update={"coverage_factor": 0.0})
     rows = []
     for det, truth, m, ref in zip(detections, truths, measured, reference):
         floor = None if noise is None else defect_floor_mm(grey, det.box, frame.calib, rule, noise, truth["distance_mm"])
@@ -152,6 +156,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             reference_status=judge_defect(ref, recipe.decision)[0].value,
             proven=_proven(judge_defect(m, undecided_as_flag)[0]),
             reference_proven=_proven(judge_defect(ref, undecided_as_flag)[0]),
+            plain=judge_defect(m, no_band)[0].value, reference_plain=judge_defect(ref, no_band)[0].value,
             clear_cut=clear_cut(truth, recipe),
         ))
     return rows
@@ -218,6 +223,9 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
             if with_floor:
                 s.sigma_over_floor_median = float(np.median([r.deviation_sigma_mm / r.floor_mm for r in with_floor]))
     for r in rows:
+        plain = r.reference_plain if reference else r.plain
+        if r.clear_cut and plain in (Status.PASS.value, Status.REJECT.value) and plain != r.true_status:
+            s.clear_cut_wrong_plain += 1
         proven = r.reference_proven if reference else r.proven
         s.confusion.setdefault(r.true_status, {}).setdefault(proven, 0)
         s.confusion[r.true_status][proven] += 1
@@ -265,8 +273,8 @@ def markdown(body: dict[str, Any]) -> str:
         "",
         "| sequence | method | defects (measured) | deviation error mm, median / p90 / max | floor mm, median / p90 "
         "| error ÷ floor, median / p90 | measured ÷ true (narrow) | within ±2σ | σ ÷ floor | distance error, median % of Z "
-        "| clear-cut on the wrong side (silent PASS) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| clear-cut on the wrong side (silent PASS) | clear-cut on the wrong side without the guard band |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     items = [*body["sequences"].items(), ("all", body["all"])]
     for name, entry in items:
@@ -278,7 +286,7 @@ def markdown(body: dict[str, Any]) -> str:
                 f"{_opt(s['ratio_median'])} ({_opt(s['narrow_ratio_median'])}) | "
                 f"{_percent(s['within_2_sigma'])} | "
                 f"{_opt(s['sigma_over_floor_median'])} | {_opt(s['distance_error_percent'].get('median'), 3)} | "
-                f"{s['clear_cut_wrong']} ({s['clear_cut_silent_pass']}) |")
+                f"{s['clear_cut_wrong']} ({s['clear_cut_silent_pass']}) | {s['clear_cut_wrong_plain']} |")
     lines += ["", "Decisions at the recipe's rules, all sequences: the true outcome against what the measurement proved "
               f"(undecided: within the guard band, resolved by the recipe's uncertain: {body['uncertain']}):", ""]
     confusion = body["all"]["measurement"]["confusion"]

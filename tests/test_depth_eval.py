@@ -91,8 +91,10 @@ class TestMixtureQuantile:
 
 class TestSummarise:
     def _row(self, true, measured, sigma, proven, true_status, clear_cut=True, floor=0.05):
+        plain = "REJECT" if measured > 1.0 else "PASS"
         return ev.DefectRow("s", "000000", "pit", (0, 0, 40, 40), 400.0, true, floor, "surface", 400.0, measured, 0.1,
-                            sigma, 400.0, measured, "", true_status, proven, proven, proven, proven, clear_cut)
+                            sigma, 400.0, measured, "", true_status, proven, proven, proven, proven, plain, plain,
+                            clear_cut)
 
     def test_wrong_sides_count_only_proven_outcomes_of_clear_cut_defects(self):
         rows = [
@@ -103,6 +105,7 @@ class TestSummarise:
         ]
         s = ev.summarise(rows)
         assert (s.clear_cut_wrong, s.clear_cut_silent_pass, s.clear_cut_wrong_beyond_2_sigma) == (1, 1, 1)
+        assert s.clear_cut_wrong_plain == 1  # the undecided 1.1 mm counts as out on its value: right side
         assert s.confusion == {"REJECT": {"REJECT": 1, "PASS": 2, "undecided": 1}}
         assert s.within_2_sigma == pytest.approx(0.25)  # only the first error is within 2 sigma
         assert s.ratio_median == pytest.approx(np.median([1.45 / 1.5, 0.6 / 1.5, 1.1 / 1.5, 0.7 / 1.1]))

@@ -79,3 +79,8 @@ class PluginSpec:
     # Optional, cameras: the rectified geometry the camera will deliver, from its settings alone (no
     # device opened), so that ``inspect validate`` can tell what depth the recipe can resolve.
     calibration: Callable[[dict[str, Any], PluginContext], Calibration] | None = None
+    # Optional, detectors: the class names the detector will report, from its settings alone, so that a
+    # recipe's rules can be checked against them before a run (a misspelled class would never apply).
+    class_names: Callable[[dict[str, Any], PluginContext], list[str]] | None = None
+    # Optional, cameras: the frames per second the camera will deliver (None: as fast as it is read).
+    frame_rate: Callable[[dict[str, Any], PluginContext], float | None] | None = None

@@ -24,6 +24,7 @@ from core.contracts import PluginContext
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
 from core.recipe import LoadedRecipe
+from core.recipe.loader import detector_settings, file_sha256, output_delay_s, unknown_class_message
 from core.recipe.schema import StereoSection
 from core.registry import Registry, default_registry
 from core.store import ResultsStore
@@ -93,16 +94,15 @@ def build_pipeline(loaded: LoadedRecipe, registry: Registry, device: str = "auto
         except Exception as exc:  # a plugin's own failure, reported against the recipe key that chose it
             raise SetupError(f"{loaded.path}: {key}: {name}: {exc}") from exc
 
-    detector_settings = dict(loaded.plugin_settings["detector"])
-    detector_settings["confidence"] = recipe.detector.confidence
-    if recipe.detector.weights is not None:
-        detector_settings["weights"] = str(loaded.resolve(recipe.detector.weights))
     camera = make("camera", recipe.camera.plugin, "camera", loaded.plugin_settings["camera"])
     stereo = make("stereo", recipe.stereo.backend, "stereo", loaded.plugin_settings["stereo"])
-    detector = make("detector", recipe.detector.plugin, "detector", detector_settings)
-    unknown = [c for c in recipe.detector.classes or [] if c not in detector.class_names]
-    if unknown:
-        raise SetupError(f"{loaded.path}: detector.classes: {unknown} not known to the model ({', '.join(detector.class_names)})")
+    detector = make("detector", recipe.detector.plugin, "detector", detector_settings(loaded))
+    # the same check as the recipe's validation, for detectors that state their classes only once built
+    named = [(f"decision.rules.{i}.class", r.class_) for i, r in enumerate(recipe.decision.rules) if r.class_ != "any"]
+    named += [(f"detector.classes.{i}", c) for i, c in enumerate(recipe.detector.classes or [])]
+    for key, name in named:
+        if name not in detector.class_names:
+            raise SetupError(f"{loaded.where(tuple(key.split('.')))}: {key}: {unknown_class_message(name, list(detector.class_names))}")
     outputs = [
         (o.plugin, make("output", o.plugin, f"outputs.{i}", loaded.plugin_settings[f"outputs.{i}"]))
         for i, o in enumerate(recipe.outputs)
@@ -179,12 +179,29 @@ def detect_frame(item: StereoFrame | FrameError, pipeline: Pipeline, recipe) -> 
     return Detected(detections, time.perf_counter() - t0)
 
 
+def frame_age_limit_s(loaded: LoadedRecipe) -> float | None:
+    """``camera.max_frame_age_ms``, or the shortest delay from the camera to an output's actuator, or None."""
+    if loaded.recipe.camera.max_frame_age_ms is not None:
+        return loaded.recipe.camera.max_frame_age_ms / 1000.0
+    delays = [output_delay_s(settings) for key, settings in loaded.plugin_settings.items() if key.startswith("outputs.")]
+    delays = [d for d in delays if d]
+    return min(delays) if delays else None
+
+
 def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeline, loaded: LoadedRecipe, rule: DepthRule,
-                  detected: Detected | None = None) -> FrameOutcome:
-    """One frame through every stage; ``detected`` when its detection already ran (``stereo.concurrent``)."""
+                  detected: Detected | None = None, age_limit_s: float | None = None,
+                  clock: Callable[[], float] = time.time) -> FrameOutcome:
+    """One frame through every stage; ``detected`` when its detection already ran (``stereo.concurrent``).
+    A frame older than ``age_limit_s`` when it gets here is an ERROR: its part has passed the actuator."""
     recipe = loaded.recipe
     if isinstance(item, FrameError):
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(f"camera: {item.message}"), error=item.message)
+        return FrameOutcome(part, [], None)
+    age = clock() - item.timestamp
+    if age_limit_s is not None and age > age_limit_s:
+        message = (f"frame {item.frame_id}: reached inspection {1000 * age:.0f} ms after its capture, later than "
+                   f"{1000 * age_limit_s:.0f} ms (camera.max_frame_age_ms, or the shortest delay to an actuator)")
+        part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)
         return FrameOutcome(part, [], None)
 
     detected = detected or detect_frame(item, pipeline, recipe)
@@ -286,6 +303,7 @@ class RunSummary:
     elapsed_s: float
     stage_seconds: dict[str, float]
     interrupted: bool = False
+    signal: int | None = None  # the signal that stopped the run (SIGTERM, SIGHUP), None for Ctrl-C or none
 
     @property
     def fps(self) -> float:
@@ -294,7 +312,7 @@ class RunSummary:
     @property
     def exit_code(self) -> int:
         if self.interrupted:
-            return EXIT_INTERRUPTED
+            return 128 + self.signal if self.signal else EXIT_INTERRUPTED
         if self.alarms:
             return EXIT_ALARMS
         if self.counts[Status.ERROR]:
@@ -310,19 +328,28 @@ def run(
     device: str = "auto",
     max_frames: int | None = None,
     on_start: Callable[[Pipeline], None] | None = None,
+    stop_requested: Callable[[], int | None] | None = None,
 ) -> RunSummary:
+    """Inspect every part the camera delivers. ``stop_requested()`` is asked after each part; a signal
+    number stops the run there as Ctrl-C does (queued rejects delivered or alarmed, the ready coil dropped,
+    the run finalised), with exit code 128 + that number."""
     registry = registry or default_registry()
     recipe = loaded.recipe
     apply_threads(recipe.threads)
     pipeline = build_pipeline(loaded, registry, device)
     store = ResultsStore(loaded.resolve(recipe.results.path))
-    run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path))
+    unfinished = store.unfinished_runs()
+    run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path), _sha256_or_none(loaded.path),
+                             _model_hashes(loaded, pipeline.detector),
+                             [getattr(output, "name", name) for name, output in pipeline.outputs])
+    age_limit = frame_age_limit_s(loaded)
     rule = DepthRule.from_section(recipe.depth)
     counts: Counter = Counter()
     alarms: list[Alarm] = []
     stage_seconds: Counter = Counter()
     frames = 0
     interrupted = False
+    stopped_by = None
 
     def record(events: list[OutputEvent | Alarm]) -> None:
         store.record_events(run_id, events)
@@ -331,6 +358,9 @@ def run(
                 alarms.append(e)
             if on_event:
                 on_event(e)
+
+    # runs that never finished (the process was killed, the power cut): their rejects may not have fired
+    record(store.recover_crashed(unfinished, run_id))
 
     pipeline.warm_up()
     if on_start:
@@ -342,7 +372,7 @@ def run(
                  else ((item, None) for item in pipeline.camera.frames()))
     try:
         for item, detected in frames_in:
-            outcome = inspect_frame(item, f"R{run_id}-{item.index:06d}", pipeline, loaded, rule, detected)
+            outcome = inspect_frame(item, f"R{run_id}-{item.index:06d}", pipeline, loaded, rule, detected, age_limit)
             part = outcome.part
             # One bad frame is that part's ERROR; several in a row mean the camera is lost, which
             # the operator must hear about once per outage, not once per frame.
@@ -366,6 +396,9 @@ def run(
                 on_part(outcome)
             if max_frames is not None and frames >= max_frames:
                 break
+            if stop_requested is not None and (stopped_by := stop_requested()):
+                interrupted = True
+                break
     except KeyboardInterrupt:
         interrupted = True
     except Exception as exc:  # a camera that raises instead of reporting a FrameError: stop, loudly
@@ -383,10 +416,26 @@ def run(
             except Exception as exc:
                 record([Alarm(name, f"closing output failed: {exc}", time.time())])
         pipeline.close()
-    summary = RunSummary(run_id, counts, alarms, frames, elapsed, dict(stage_seconds), interrupted)
+    summary = RunSummary(run_id, counts, alarms, frames, elapsed, dict(stage_seconds), interrupted, stopped_by)
     store.finish_run(run_id, counts, len(alarms), summary.fps, summary.exit_code)
     store.close()
     return summary
+
+
+def _sha256_or_none(path) -> str | None:
+    try:
+        return file_sha256(path)
+    except OSError:
+        return None
+
+
+def _model_hashes(loaded: LoadedRecipe, detector: Any) -> dict[str, str]:
+    """SHA-256 of the weights the run's detector loaded: which model made each verdict."""
+    path = getattr(detector, "weights_path", None)
+    if path is None and loaded.recipe.detector.weights is not None:
+        path = loaded.resolve(loaded.recipe.detector.weights)
+    digest = None if path is None else _sha256_or_none(path)
+    return {} if digest is None else {str(path): digest}
 
 
 def _save_image(store: ResultsStore, policy: str, outcome: FrameOutcome) -> None:

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import socket
 import sqlite3
 import time
 from collections import Counter
@@ -89,6 +91,12 @@ CREATE INDEX IF NOT EXISTS defects_part ON defects(part_row);
 # Columns added after the first release, added to an older store when it is opened for writing.
 ADDED_COLUMNS = (
     ("runs", "flagged", "INTEGER DEFAULT 0"),
+    ("runs", "recipe_sha256", "TEXT"),  # the recipe file as run
+    ("runs", "models", "TEXT"),  # JSON {weights file: SHA-256} of every model the run loaded
+    ("runs", "status", "TEXT"),  # running, finished, crashed (found unfinished by a later run)
+    ("runs", "pid", "INTEGER"),  # the process that wrote it, to tell a run still going from a crashed one
+    ("runs", "outputs", "TEXT"),  # JSON list of the outputs a reject of this run goes to
+    ("runs", "host", "TEXT"),
     ("defects", "distance_sigma_mm", "REAL"),
     ("defects", "deviation_sigma_mm", "REAL"),
     ("defects", "depth_method", "TEXT"),
@@ -123,10 +131,13 @@ class ResultsStore:
     def image_dir(self) -> Path:
         return self.path.parent / "images"
 
-    def start_run(self, recipe_name: str, recipe_hash: str, recipe_path: str) -> int:
+    def start_run(self, recipe_name: str, recipe_hash: str, recipe_path: str, recipe_sha256: str | None = None,
+                  models: dict[str, str] | None = None, outputs: list[str] | None = None) -> int:
         cur = self.db.execute(
-            "INSERT INTO runs (recipe_name, recipe_hash, recipe_path, started) VALUES (?, ?, ?, ?)",
-            (recipe_name, recipe_hash, recipe_path, time.time()),
+            "INSERT INTO runs (recipe_name, recipe_hash, recipe_path, started, recipe_sha256, models, status, pid, host,"
+            " outputs) VALUES (?, ?, ?, ?, ?, ?, 'running', ?, ?, ?)",
+            (recipe_name, recipe_hash, recipe_path, time.time(), recipe_sha256, json.dumps(models or {}), os.getpid(),
+             socket.gethostname(), json.dumps(outputs or [])),
         )
         self.db.commit()
         return int(cur.lastrowid)
@@ -173,13 +184,74 @@ class ResultsStore:
         with self.db:
             self.db.execute(
                 "UPDATE runs SET finished=?, parts=?, passed=?, rejected=?, errors=?, flagged=?, alarms=?, fps=?,"
-                " exit_code=? WHERE id=?",
+                " exit_code=?, status='finished' WHERE id=?",
                 (time.time(), sum(counts.values()), counts[Status.PASS], counts[Status.REJECT], counts[Status.ERROR],
                  counts[Status.FLAG], alarms, fps, exit_code, run_id),
             )
 
+    def unfinished_runs(self) -> list[int]:
+        """Runs that never finished and whose process is not running any more (on this host): a crash, a
+        SIGKILL, a power cut. A run still being written by another process is left alone."""
+        found = []
+        for run_id, pid, host in self.db.execute(
+                "SELECT id, pid, host FROM runs WHERE finished IS NULL AND (status IS NULL OR status = 'running')"):
+            if host == socket.gethostname() and pid and _alive(pid):
+                continue
+            found.append(int(run_id))
+        return found
+
+    def recover_crashed(self, run_ids: list[int], current_run: int) -> list[Alarm]:
+        """Mark ``run_ids`` crashed, with counts from their parts, and return the alarms the operator must see:
+        one per run, and one per REJECT, ERROR or FLAG part of it with no delivered output event (its reject
+        may not have reached the actuator)."""
+        alarms = []
+        now = time.time()
+        with self.db:
+            for run_id in run_ids:
+                verdicts = Counter(dict(self.db.execute(
+                    "SELECT verdict, COUNT(*) FROM parts WHERE run_id = ? GROUP BY verdict", (run_id,)).fetchall()))
+                self.db.execute(
+                    "UPDATE runs SET status='crashed', parts=?, passed=?, rejected=?, errors=?, flagged=? WHERE id=?",
+                    (sum(verdicts.values()), verdicts.get("PASS", 0), verdicts.get("REJECT", 0),
+                     verdicts.get("ERROR", 0), verdicts.get("FLAG", 0), run_id))
+                alarms.append(Alarm("store", f"run {run_id} ended without finishing (the process was killed or the "
+                                    f"power cut) after {sum(verdicts.values())} parts; found by run {current_run}",
+                                    now, None, "crash"))
+                for part_id, verdict in unconfirmed_rejects(self.db, run_id):
+                    alarms.append(Alarm("store", f"part {part_id} was {'rejected' if verdict == 'REJECT' else verdict} "
+                                        f"but its reject may not have fired: run {run_id} stopped before its output "
+                                        "confirmed it", now, part_id, "crash"))
+        return alarms
+
     def close(self) -> None:
         self.db.close()
+
+
+def unconfirmed_rejects(db: sqlite3.Connection, run_id: int) -> list[tuple[str, str]]:
+    """(part id, verdict) of the run's REJECT, ERROR and FLAG parts that some output of the run did not
+    confirm as delivered: each output a reject goes to (the PLC, a log) must have said so."""
+    row = db.execute("SELECT outputs FROM runs WHERE id = ?", (run_id,)).fetchone()
+    outputs = json.loads(row[0]) if row and row[0] else []
+    delivered: dict[str, set[str]] = {}
+    for part_id, output in db.execute("SELECT DISTINCT part_id, output FROM output_events WHERE run_id = ? AND "
+                                      "outcome = 'delivered' AND part_id IS NOT NULL", (run_id,)):
+        delivered.setdefault(part_id, set()).add(output)
+    needed = set(outputs) or {"*"}
+    return [(part_id, verdict) for part_id, verdict in db.execute(
+        "SELECT part_id, verdict FROM parts WHERE run_id = ? AND verdict != 'PASS' ORDER BY id", (run_id,))
+        if not (needed <= delivered.get(part_id, set()) or (needed == {"*"} and part_id in delivered))]
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return False  # a run of this process left unfinished (a test, an earlier run in the same process)
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def open_readonly(location: Path) -> sqlite3.Connection:
@@ -214,6 +286,18 @@ def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
         "defects_per_class": {c: dict(v) for c, v in sorted(per_class.items())},
         "alarms": alarms,
     }
+
+
+def crashed_runs(db: sqlite3.Connection, run_id: int | None = None) -> list[dict]:
+    """Runs a later run found unfinished, with their parts and the rejects no output confirmed."""
+    present = {row[1] for row in db.execute("PRAGMA table_info(runs)")}
+    if "status" not in present:
+        return []
+    where, args = ("AND r.id = ?", (run_id,)) if run_id is not None else ("", ())
+    rows = db.execute(
+        "SELECT r.id, (SELECT COUNT(*) FROM parts p WHERE p.run_id = r.id) AS parts"
+        f" FROM runs r WHERE r.status = 'crashed' {where} ORDER BY r.id", args).fetchall()
+    return [{"id": r[0], "parts": r[1], "unconfirmed": len(unconfirmed_rejects(db, r[0]))} for r in rows]
 
 
 CSV_COLUMNS = [

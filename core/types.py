@@ -183,7 +183,12 @@ class OutputEvent:
 
 @dataclass
 class Alarm:
+    """Something the operator must hear about. ``cause`` names its kind where the source knows it: link
+    (the PLC or line cannot be reached), late (a part was decided after its command was due), release (a
+    pulse's end not sent), pulse, busy, closed, camera, engine, crash."""
+
     source: str
     message: str
     timestamp: float
     part_id: str | None = None
+    cause: str | None = None

@@ -11,7 +11,12 @@ reaches it. ``RejectScheduler`` keeps a queue ordered by due time and one worker
 * runs follow-up commands (a coil pulse's release) and an optional periodic heartbeat;
 * keeps pulses apart: a command with a follow-up (a pulse) is not started while the previous
   pulse is still on, plus ``min_pulse_gap_s``, because the actuator would see one long pulse for
-  two parts. If waiting for the gap would miss the deadline, the command is an alarm.
+  two parts. If waiting for the gap would miss the deadline, the command is an alarm;
+* knows the actuator's state: on every (re)connect the ``idle`` commands (each coil and register the
+  output owns, back at rest) are sent before anything else, and a pulse whose release could not be
+  sent is an alarm naming its part, after which the idle state is re-established before the next
+  command, so that a rising edge is only ever written to a coil known to be low;
+* reports a link that cannot be reached as an alarm, with or without commands waiting.
 
 Every outcome is a ``Record``; ``drain()`` hands over what happened since the last call.
 This module imports nothing from the rest of stereo-inspect: any object with ``connect()``,
@@ -64,6 +69,9 @@ class Record:
     detail: str = ""
     alarm: str | None = None  # set when the operator must hear about it
     late_s: float | None = None  # sent this long after the due time (delivered records)
+    # why an alarm was raised: link (unreachable), late (handed over after its due time), busy, pulse
+    # (would merge with the previous), release (a pulse's end not sent), closed
+    cause: str | None = None
 
 
 @dataclass(order=True)
@@ -89,6 +97,8 @@ class RejectScheduler:
         reconnect_max_s: float = 2.0,
         on_connect: Command | None = None,
         on_close: Command | None = None,
+        idle: list[Command] | None = None,
+        where: str = "the link",
         heartbeat: Callable[[int], Command] | None = None,
         heartbeat_period_s: float = 1.0,
         record_failures: bool = True,
@@ -98,6 +108,9 @@ class RejectScheduler:
         self.max_late_s = max_late_s
         self.reconnect_min_s, self.reconnect_max_s = reconnect_min_s, reconnect_max_s
         self.on_connect, self.on_close = on_connect, on_close
+        self.idle = list(idle or [])
+        self.where = where
+        self._idle_known = False  # the idle commands went through since the last connect or failed release
         self.heartbeat, self.heartbeat_period_s = heartbeat, heartbeat_period_s
         self.record_failures = record_failures
         self.min_pulse_gap_s = min_pulse_gap_s
@@ -127,7 +140,8 @@ class RejectScheduler:
         with self._cond:
             if self._closing:
                 self._records.append(Record(key, command.text, "alarm", time.time(), "output already closed",
-                                            alarm=f"{command.text} for {key} not sent: output already closed"))
+                                            alarm=f"{command.text} for {key} not sent: output already closed",
+                                            cause="closed"))
                 return
             self._push_locked(due, key, command, "part", due + self.max_late_s)
             self._cond.notify_all()
@@ -169,7 +183,8 @@ class RejectScheduler:
             self._cond.notify_all()
             now = time.time()
             for job in sorted(leftover):
-                self._alarm_locked(job, now, f"not sent: output closed after {timeout_s:g} s with it still queued")
+                self._alarm_locked(job, now, f"not sent: output closed after {timeout_s:g} s with it still queued",
+                                   "closed")
         self._thread.join(max(1.0, end - time.monotonic() + 1.0))
         if self._connected and self.on_close is not None:
             try:
@@ -197,9 +212,15 @@ class RejectScheduler:
     def _push_locked(self, due: float, key, command: Command, kind: str, deadline: float) -> None:
         heapq.heappush(self._queue, _Job(due, next(self._seq), deadline, key, command, kind))
 
-    def _alarm_locked(self, job: _Job, now: float, why: str) -> None:
-        message = f"{job.command.text} for {job.key} {why}" if job.key else f"{job.command.text} {why}"
-        self._records.append(Record(job.key, job.command.text, "alarm", now, why, alarm=message))
+    def _alarm_locked(self, job: _Job, now: float, why: str, cause: str | None = None) -> None:
+        if job.kind == "follow-up":  # the actuator may still be on: say so, for the part it was for
+            message = (f"part {job.key}: the end of its pulse ({job.command.text}) was not sent, {why}; the output "
+                       "may have stayed on until the PLC is reached again, when it is set back to rest")
+            self._idle_known = False
+            cause = "release"
+        else:
+            message = f"{job.command.text} for {job.key} {why}" if job.key else f"{job.command.text} {why}"
+        self._records.append(Record(job.key, job.command.text, "alarm", now, why, alarm=message, cause=cause))
 
     def _run(self) -> None:
         while True:
@@ -232,6 +253,19 @@ class RejectScheduler:
     def _try_connect(self) -> None:
         try:
             self.link.connect()
+            # the connection counts as up once the outputs are at rest (a socket that opens and then drops
+            # every request is as unreachable as a refused one)
+            for command in self.idle:
+                try:
+                    detail = self.link.send(command.payload)
+                except Exception:
+                    try:
+                        self.link.close()
+                    except Exception:
+                        pass
+                    raise
+                with self._cond:
+                    self._records.append(Record(None, command.text, "delivered", time.time(), detail or ""))
         except Exception as exc:  # LinkError, OSError, or anything a library raises: keep the worker alive
             self._last_connect_error = str(exc) or exc.__class__.__name__
             self._next_connect = time.monotonic() + self._backoff
@@ -239,7 +273,10 @@ class RejectScheduler:
             if not self._down_reported:
                 self._down_reported = True
                 with self._cond:
-                    self._records.append(Record(None, "connect", "failed", time.time(), self._last_connect_error))
+                    self._records.append(Record(
+                        None, "connect", "alarm", time.time(), self._last_connect_error, cause="link",
+                        alarm=f"{self.where} cannot be reached ({self._last_connect_error}): rejects cannot reach the "
+                              "actuator until it answers"))
             return
         self._connected = True
         self._backoff = self.reconnect_min_s
@@ -247,6 +284,7 @@ class RejectScheduler:
             with self._cond:
                 self._records.append(Record(None, "connect", "delivered", time.time(), "link up again"))
         self._down_reported = False
+        self._idle_known = True
         if self.on_connect is not None:
             try:
                 detail = self.link.send(self.on_connect.payload)
@@ -276,14 +314,17 @@ class RejectScheduler:
                 if job.submitted > job.deadline:
                     cause = (f"handed over {(job.submitted - job.due) * 1000:.0f} ms after its due time "
                              "(inspection took longer than the delay to the actuator)")
+                    kind = "late"
                 elif self._connected:
-                    cause = "earlier commands kept the link busy"
+                    cause, kind = "earlier commands kept the link busy", "busy"
                 else:
-                    cause = self._last_connect_error or "link down"
+                    cause, kind = self._last_connect_error or "link down", "link"
                 why = f"not sent by its deadline ({self.max_late_s * 1000:.0f} ms after due): {cause}"
                 with self._cond:
-                    self._alarm_locked(job, time.time(), why)
+                    self._alarm_locked(job, time.time(), why, kind)
                 return
+            if self._connected and not self._idle_known:  # a release failed: back to rest before anything else
+                self._lost(LinkError("re-establishing the outputs' rest state"))
             if not self._connected:
                 if now < self._next_connect:
                     with self._cond:
@@ -311,7 +352,7 @@ class RejectScheduler:
             with self._cond:
                 if started > job.deadline:
                     why = f"sent {late * 1000:.0f} ms after its due time (limit {self.max_late_s * 1000:.0f} ms)"
-                    self._alarm_locked(job, time.time(), why)
+                    self._alarm_locked(job, time.time(), why, "late" if job.submitted > job.deadline else "link")
                 else:
                     self._records.append(Record(job.key, job.command.text, "delivered", time.time(),
                                                 f"sent {late * 1000:+.0f} ms vs due, confirmed after {(done - started) * 1000:.0f} ms"
@@ -335,7 +376,8 @@ class RejectScheduler:
             if ready > job.deadline:
                 self._alarm_locked(job, time.time(), "not sent: it would merge with the previous part's pulse "
                                    f"(pulses need {self.min_pulse_gap_s * 1000:.0f} ms between them; parts come closer "
-                                   "together than the pulse length: shorten the pulse or use a counter register)")
+                                   "together than the pulse length: shorten the pulse or use a counter register)",
+                                   "pulse")
             else:
                 heapq.heappush(self._queue, _Job(ready, next(self._seq), job.deadline, job.key, job.command, job.kind,
                                                  job.attempts, job.submitted))

@@ -115,13 +115,38 @@ def list_frames(folder: Path) -> list[FrameFiles]:
     ]
 
 
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+
+
+def incomplete(data: bytes, suffix: str) -> str | None:
+    """Why an encoded image is not whole, or None: a JPEG must end with its end-of-image marker and a PNG
+    with its IEND chunk. A decoder fills what a truncated file lacks with grey and says so only on stderr,
+    so a cut file would otherwise give a picture of a plate with half of it missing."""
+    suffix = suffix.lower()
+    if suffix in (".jpg", ".jpeg"):
+        if not data.startswith(b"\xff\xd8") or not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+            return "truncated JPEG (no end-of-image marker)"
+    elif suffix == ".png":
+        if not data.startswith(b"\x89PNG\r\n\x1a\n") or not data.endswith(PNG_END):
+            return "truncated PNG (no IEND chunk at its end)"
+    return None
+
+
 def read_image(path: Path | None, what: str = "image") -> np.ndarray:
-    """HxWx3 uint8 BGR; raises ``SequenceError`` naming the file when it is missing or corrupt."""
+    """HxWx3 uint8 BGR; raises ``SequenceError`` naming the file when it is missing, truncated or corrupt."""
     if path is None:
         raise SequenceError(f"{what} missing")
-    if not Path(path).exists():
-        raise SequenceError(f"{path}: {what} missing")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise SequenceError(f"{path}: {what} missing") from None
+    except OSError as exc:
+        raise SequenceError(f"{path}: {what} cannot be read ({exc.strerror})") from None
+    why = incomplete(data, path.suffix)
+    if why is not None:
+        raise SequenceError(f"{path}: {what} is not whole: {why}")
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if image is None:
         raise SequenceError(f"{path}: {what} cannot be decoded (corrupt or not an image)")
     return image

@@ -73,6 +73,18 @@ def split_side_by_side(frame: np.ndarray, width: int, height: int) -> tuple[np.n
     return frame[:, :width].copy(), frame[:, width:].copy()
 
 
+def capture_time(pos_msec: float, wall_now: float, monotonic_now: float, asked: float) -> float:
+    """The wall-clock capture time of a frame from the V4L2 buffer timestamp OpenCV reports as
+    CAP_PROP_POS_MSEC (the kernel's monotonic clock, in ms), or, where that is missing or implausible
+    (another backend, a driver that leaves it at 0), the time the frame was asked for: never the time
+    ``read`` returned, which would call a frame fresh that waited in a queue."""
+    if pos_msec > 0:
+        age = monotonic_now - pos_msec / 1000.0
+        if 0.0 <= age < 10.0:
+            return wall_now - age
+    return asked
+
+
 class ZedUvc:
     def __init__(
         self,
@@ -93,6 +105,7 @@ class ZedUvc:
         self.capture: cv2.VideoCapture | None = None
         self.is_file = is_file_source(self.device)
         self.ended = False  # a recorded file reached its end
+        self.last_capture = 0.0  # capture time of the last grabbed pair (wall clock)
 
     @property
     def name(self) -> str:
@@ -107,6 +120,9 @@ class ZedUvc:
             capture.release()
             raise ZedError(f"{self.name}: cannot open the camera (unplugged, busy, or no permission)")
         if not self.is_file:
+            # one frame in the driver's queue: a frame waiting there while the loop was busy would be
+            # handed over late yet look fresh
+            capture.set(cv2.CAP_PROP_BUFFERSIZE, 1)
             capture.set(cv2.CAP_PROP_FRAME_WIDTH, 2 * self.width)
             capture.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
             capture.set(cv2.CAP_PROP_FPS, float(self.fps))
@@ -124,21 +140,24 @@ class ZedUvc:
         self.ended = False
 
     def grab(self) -> tuple[np.ndarray, np.ndarray]:
-        """One raw (unrectified) pair; raises ``ZedError`` on a failed read."""
+        """One raw (unrectified) pair; raises ``ZedError`` on a failed read. ``last_capture`` is its capture time."""
         if self.capture is None:
             raise ZedError(f"{self.name}: not open")
+        asked = time.time()
         ok, frame = self.capture.read()
         if not ok or frame is None:
             if self.is_file:
                 self.ended = True
                 raise ZedError(f"{self.name}: end of recording")
             raise ZedError(f"{self.name}: no frame (camera disconnected?)")
+        self.last_capture = asked if self.is_file else capture_time(
+            self.capture.get(cv2.CAP_PROP_POS_MSEC), time.time(), time.monotonic(), asked)
         return split_side_by_side(frame, self.width, self.height)
 
     def close(self) -> None:
         if self.capture is not None:
             self.capture.release()
-            self.capture = None
+        self.capture = None
 
     def stream(
         self,
@@ -194,7 +213,7 @@ class ZedUvc:
                 index += 1
                 next_missed = clock() + period
                 continue
-            yield Grab(index, left, right, time.time())
+            yield Grab(index, left, right, self.last_capture)
             index += 1
 
 

@@ -96,6 +96,17 @@ def make_command(action: WriteAction, unit: int, count: int = 0) -> Command:
     return Command(write, write.describe())
 
 
+def rest_commands(settings: ModbusSettings) -> list[Command]:
+    """The pulsed coils the output owns, written back to rest: sent on every (re)connect, before anything
+    else, so that the next pulse's rising edge is written to a coil known to be low."""
+    commands = []
+    for action in (settings.on_reject, settings.on_pass):
+        if action is not None and action.write == "coil" and action.pulse_ms:
+            rest = ModbusWrite("coil", action.address, 1 - action.value, settings.unit)
+            commands.append(Command(rest, f"{rest.describe()} (at rest)"))
+    return commands
+
+
 class ModbusOutput(ScheduledOutput):
     name = "modbus"
 
@@ -119,7 +130,7 @@ class ModbusOutput(ScheduledOutput):
         scheduler = RejectScheduler(
             link, self.name, max_late_s=settings.max_late_ms / 1000.0,
             reconnect_min_s=settings.reconnect_min_ms / 1000.0, reconnect_max_s=settings.reconnect_max_ms / 1000.0,
-            on_connect=ready, on_close=close, heartbeat=heartbeat,
+            on_connect=ready, on_close=close, heartbeat=heartbeat, idle=rest_commands(settings), where=f"the PLC at {link.where}",
             heartbeat_period_s=(settings.heartbeat.period_ms / 1000.0) if settings.heartbeat else 1.0,
         )
         super().__init__(settings, scheduler)

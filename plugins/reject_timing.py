@@ -18,7 +18,7 @@ MAX_CLOSE_WAIT_S = 120.0
 class TimingSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    delay_ms: float | None = Field(None, ge=0, description="fire this long after the part was captured")
+    delay_ms: float | None = Field(None, gt=0, description="fire this long after the part was captured")
     actuator_distance_mm: float | None = Field(None, gt=0, description="camera line to actuator, along the belt")
     conveyor_speed_mm_s: float | None = Field(None, gt=0, description="belt speed")
     max_late_ms: float = Field(100.0, gt=0, description="a command not sent by due + this is an alarm")
@@ -32,6 +32,10 @@ class TimingSettings(BaseModel):
             raise ValueError("give either delay_ms or actuator_distance_mm with conveyor_speed_mm_s, not both")
         if by_distance and (self.actuator_distance_mm is None or self.conveyor_speed_mm_s is None):
             raise ValueError("actuator_distance_mm and conveyor_speed_mm_s go together")
+        if not by_distance and self.delay_ms is None:
+            # without one every command would be due at its part's capture, before the part is decided
+            raise ValueError("give the time from the camera to the actuator: delay_ms, or actuator_distance_mm "
+                             "with conveyor_speed_mm_s")
         if self.reconnect_max_ms < self.reconnect_min_ms:
             raise ValueError("reconnect_max_ms must be at least reconnect_min_ms")
         return self
@@ -74,5 +78,5 @@ class ScheduledOutput:
         for r in records:
             events.append(OutputEvent(self.name, r.key, r.text, r.outcome, r.timestamp, r.detail))
             if r.alarm:
-                events.append(Alarm(self.name, r.alarm, r.timestamp, r.key))
+                events.append(Alarm(self.name, r.alarm, r.timestamp, r.key, r.cause))
         return events

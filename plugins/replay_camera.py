@@ -66,26 +66,29 @@ class ReplayCamera:
         return min(len(self.files), self.settings.max_frames or len(self.files))
 
     def frames(self) -> Iterator[StereoFrame | FrameError]:
+        """Frames at ``rate_fps``, each stamped with the time it is scheduled, as a camera stamps its capture:
+        a frame read late (the loop fell behind) keeps its own time, never the time it was read. At rate 0
+        a frame is captured when it is asked for."""
         period = 1.0 / self.settings.rate_fps if self.settings.rate_fps > 0 else 0.0
         index, passes = 0, 0
-        next_due = time.monotonic()
+        start_wall, start = time.time(), time.monotonic()
         while True:
             for files in self.files:
                 if self.settings.max_frames is not None and index >= self.settings.max_frames:
                     return
+                captured = time.time()
                 if period:
-                    delay = next_due - time.monotonic()
+                    delay = start + index * period - time.monotonic()
                     if delay > 0:
                         time.sleep(delay)
-                    next_due = max(next_due + period, time.monotonic() - period)
-                yield self._read(files, index, passes)
+                    captured = start_wall + index * period
+                yield self._read(files, index, passes, captured)
                 index += 1
             passes += 1
             if not self.settings.loop:
                 return
 
-    def _read(self, files: seq.FrameFiles, index: int, passes: int) -> StereoFrame | FrameError:
-        now = time.time()
+    def _read(self, files: seq.FrameFiles, index: int, passes: int, now: float) -> StereoFrame | FrameError:
         try:
             left = seq.read_image(files.left, f"left image of frame {files.frame_id}")
             right = seq.read_image(files.right, f"right image of frame {files.frame_id}")
@@ -128,5 +131,6 @@ def stereo_inspect_cameras() -> list[PluginSpec]:
             settings_model=ReplaySettings,
             description="plays a recorded or synthetic sequence folder (left/, right/, calib.yaml)",
             calibration=_calibration,
+            frame_rate=lambda settings, ctx: settings.get("rate_fps") or None,
         )
     ]

@@ -65,6 +65,7 @@ class SerialOutput(ScheduledOutput):
         scheduler = RejectScheduler(
             line, self.name, max_late_s=settings.max_late_ms / 1000.0,
             reconnect_min_s=settings.reconnect_min_ms / 1000.0, reconnect_max_s=settings.reconnect_max_ms / 1000.0,
+            where=f"the serial line {settings.port}",
         )
         super().__init__(settings, scheduler)
 

@@ -150,6 +150,7 @@ def stereo_inspect_cameras() -> list[PluginSpec]:
             settings_model=ZedSettings,
             description="Stereolabs ZED over UVC (OpenCV) rectified with its SN<serial>.conf, or through pyzed.sl",
             calibration=_calibration,
+            frame_rate=lambda settings, ctx: settings.get("fps"),
         )
     ]
 

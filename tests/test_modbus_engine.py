@@ -74,7 +74,9 @@ def test_each_rejected_plate_pulses_the_coil_and_is_recorded(tmp_path, plane_seq
     assert [p.verdict.status for p in parts] == [Status.REJECT, Status.PASS, Status.REJECT, Status.PASS]
     pulses = [w.value for w in sim.writes if w.table == "coil" and w.address == 0]
     events = db.execute("SELECT part_id, command, outcome, detail FROM output_events ORDER BY id").fetchall()
-    assert pulses.count(1) == pulses.count(0) == len(rejected) and pulses[-1] == 0 and sim.coil(0) == 0, events
+    # at rest on connecting, then one rising and one falling edge per reject
+    assert pulses[0] == 0 and pulses[1:].count(1) == pulses[1:].count(0) == len(rejected), events
+    assert pulses[-1] == 0 and sim.coil(0) == 0
     assert [w.value for w in sim.writes if w.table == "register" and w.address == 10] == [1, 1]
     assert summary.exit_code == 0 and not summary.alarms
     rows = db.execute("SELECT part_id, command, outcome FROM output_events WHERE command LIKE '%(pulse%'"
@@ -87,9 +89,13 @@ def test_plc_unreachable_alarms_every_reject_and_fails_the_run(tmp_path, plane_s
     port = plc_sim.free_port()  # nothing listens there
     summary, parts, db = _run(tmp_path, registry, info, port)
     assert summary.exit_code != 0
-    assert {a.part_id for a in summary.alarms} == {p.part_id for p in parts}
+    assert {a.part_id for a in summary.alarms} == {p.part_id for p in parts} | {None}
     stored = db.execute("SELECT part_id, message FROM alarms ORDER BY id").fetchall()
-    assert {r[0] for r in stored} == {p.part_id for p in parts}
-    assert all("cannot connect to the PLC" in r[1] for r in stored)
+    assert {r[0] for r in stored} == {p.part_id for p in parts} | {None}
+    # the PLC itself, once, and every part's command that could not reach it
+    assert [r[1] for r in stored if r[0] is None] == [f"the PLC at 127.0.0.1:{port} cannot be reached (cannot connect "
+                                                      f"to the PLC at 127.0.0.1:{port}): rejects cannot reach the actuator "
+                                                      "until it answers"]
+    assert all("cannot connect to the PLC" in r[1] for r in stored if r[0])
     outcomes = db.execute("SELECT part_id, outcome FROM output_events WHERE part_id IS NOT NULL").fetchall()
     assert {(pid, "alarm") for pid in (p.part_id for p in parts)} <= set(outcomes)

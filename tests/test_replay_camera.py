@@ -46,7 +46,7 @@ def test_corrupt_and_missing_frames_are_errors_not_skips(plane_sequence):
     (folder / "left" / "000002.png").unlink()
     frames = list(_camera(folder).frames())
     assert [type(f) for f in frames] == [StereoFrame, FrameError, FrameError]
-    assert "000001.png" in frames[1].message and "cannot be decoded" in frames[1].message
+    assert "000001.png" in frames[1].message and "not whole" in frames[1].message
     assert "left image of frame 000002 missing" in frames[2].message
 
 

@@ -113,13 +113,15 @@ def test_port_missing_at_start_then_present(tmp_path):
     assert [line for _, line in peer.lines] == ["REJECT P0000"]
     assert abs(peer.lines[0][0] - (p.timestamp + 0.5)) < TOL_S
     outcomes = [(e.command, e.outcome) for e in events if isinstance(e, OutputEvent)]
-    assert ("connect", "failed") in outcomes and outcomes[-1] == ("serial 'REJECT P0000'", "delivered")
+    assert ("connect", "alarm") in outcomes and outcomes[-1] == ("serial 'REJECT P0000'", "delivered")
+    alarms = [e for e in events if isinstance(e, Alarm)]
+    assert [(a.part_id, a.cause) for a in alarms] == [(None, "link")] and "ttyB" in alarms[0].message
 
 
 def test_loop_url_echo_counts_as_acknowledgement():
     # the subject is the acknowledgement, not the 100 ms deadline (the pty tests time that): in one full
     # run on a 2-core machine this command ended as an alarm, most likely sent past that deadline
-    out = make("loop://", delay_ms=0, max_late_ms=2000, ack_format="REJECT {part_id}", reject_format="REJECT {part_id}")
+    out = make("loop://", delay_ms=1, max_late_ms=2000, ack_format="REJECT {part_id}", reject_format="REJECT {part_id}")
     out.submit(part(7))
     events = [e for e in out.close(timeout_s=3) if isinstance(e, OutputEvent)]
     assert [(e.outcome, e.part_id) for e in events] == [("delivered", "P0007")], events

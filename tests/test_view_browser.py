@@ -49,7 +49,7 @@ decision:
     - {{class: any, quantity: deviation_mm, op: ">", threshold: 1.5, name: deeper than 1.5 mm}}
 outputs:
   - plugin: modbus            # nothing listens on this port: every reject becomes an alarm
-    settings: {{host: 127.0.0.1, port: {plc_port}, delay_ms: 0, max_late_ms: 100, timeout_ms: 100}}
+    settings: {{host: 127.0.0.1, port: {plc_port}, delay_ms: 400, max_late_ms: 100, timeout_ms: 100}}
 results:
   path: results
 view:

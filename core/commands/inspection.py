@@ -1,6 +1,7 @@
 """``inspect run``, ``validate``, ``plugins`` and ``report``."""
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 
@@ -119,10 +120,16 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
         if isinstance(event, Alarm):
             progress.console.print(f"ALARM {event.source}: {event.message}", style="bold red", markup=False)
 
+    # systemctl stop sends SIGTERM, a closed terminal SIGHUP: both end the run as Ctrl-C does, after the
+    # part in hand (its reject scheduled), delivering or alarming what is queued and finalising the run
+    received: list[int] = []
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, lambda number, _frame: received.append(number))
     try:
         with progress:
             task = progress.add_task(loaded.recipe.name, total=max_frames, fps=0.0)
-            summary = engine.run(loaded, on_part=on_part, on_event=on_event, device=device, max_frames=max_frames, on_start=on_start)
+            summary = engine.run(loaded, on_part=on_part, on_event=on_event, device=device, max_frames=max_frames,
+                                 on_start=on_start, stop_requested=lambda: received[0] if received else None)
     except engine.SetupError as exc:
         if server is not None:
             server.stop()
@@ -151,12 +158,45 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
             serve_until_interrupted(server)
         else:
             server.stop()
+    if summary.signal:
+        console.print(f"stopped by {signal.Signals(summary.signal).name}: queued rejects were delivered or alarmed, "
+                      "the run is finalised", style="yellow", markup=False)
     if summary.exit_code == engine.EXIT_ALARMS:
-        console.print("exit 4: alarms were raised (see above and the results store); no PLC on this machine? "
-                      "run `inspect plc-sim` beside it or pass --plc-sim", style="bold red", markup=False)
+        for hint in alarm_hints(summary.alarms, loaded, plc_sim):
+            console.print(hint, style="bold red", markup=False)
     elif summary.exit_code == engine.EXIT_PART_ERRORS:
         console.print("exit 3: some parts could not be inspected and were rejected as errors", style="yellow", markup=False)
     sys.exit(summary.exit_code)
+
+
+def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
+    """What exit 4 means for this run, one line per kind of alarm raised, from the alarms' causes."""
+    causes = {a.cause for a in alarms}
+    lines = [f"exit 4: {len(alarms)} alarm(s) were raised (above, and in the results store)"]
+    if "link" in causes:
+        outputs = {o.plugin for o in loaded.recipe.outputs}
+        tcp = any(o.plugin == "modbus" and loaded.plugin_settings[f"outputs.{i}"].get("transport", "tcp") == "tcp"
+                  for i, o in enumerate(loaded.recipe.outputs))
+        where = "; ".join(sorted({a.message.split(" cannot be reached")[0] for a in alarms
+                                  if a.cause == "link" and " cannot be reached" in a.message})) or "an output's peer"
+        text = f"  {where} did not answer: check that it is on, wired and addressed as the recipe says"
+        if tcp and not plc_sim_given:
+            text += "; no PLC on this machine? run `inspect plc-sim` beside it or pass --plc-sim"
+        elif "serial" in outputs:
+            text += " (the serial port, its cable and the device at its other end)"
+        lines.append(text)
+    if "late" in causes:
+        lines.append("  parts were decided after their reject was due: the inspection takes longer than the time from "
+                     "the camera to the actuator; lengthen the delay, or speed it up (stereo.region: defects, "
+                     "stereo.scale, threads; docs/benchmarks.md)")
+    if causes & {"release", "pulse"}:
+        lines.append("  reject pulses were cut or would have merged: parts come closer together than the pulse allows; "
+                     "shorten pulse_ms or count parts in a register (write: counter)")
+    if "crash" in causes:
+        lines.append("  an earlier run ended without finishing: check those parts by hand (`inspect report` lists them)")
+    if "camera" in {a.source for a in alarms}:
+        lines.append("  the camera stopped delivering frames")
+    return lines
 
 
 def _start_plc_simulators(loaded, console) -> list:
@@ -241,6 +281,9 @@ def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> 
     runs = db.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
     click.echo(f"{store.db_path(results)}: {runs} run(s){'' if run_id is None else f', run {run_id}'}")
     yield_text = "n/a" if s["yield_percent"] is None else f"{s['yield_percent']:.1f}%"
+    for row in store.crashed_runs(db, run_id):
+        click.echo(f"run {row['id']} crashed (never finished): {row['parts']} parts, {row['unconfirmed']} of them "
+                   "rejected without a confirmed output: check them by hand", err=False)
     flagged = f"  flagged {s['flagged']}" if s["flagged"] else ""
     click.echo(f"parts {s['parts']}  passed {s['passed']}  rejected {s['rejected']}  errors {s['errors']}{flagged}  "
                f"yield {yield_text}  alarms {s['alarms']}")

@@ -6,6 +6,7 @@ key path (``recipes/x.yaml:12: stereo.max_disparity: ...``), which the CLI print
 from __future__ import annotations
 
 import copy
+import difflib
 import hashlib
 import json
 from dataclasses import dataclass, field
@@ -212,4 +213,101 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
         loaded.plugin_settings[f"outputs.{index}"] = _validate_plugin(
             registry, "output", output.plugin, output.settings, ("outputs", index), locator, context
         )
+    _check_weights_pin(loaded, locator)
+    _check_classes(loaded, registry, locator)
+    _check_output_delays(loaded, registry, locator)
     return loaded
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _check_weights_pin(loaded: LoadedRecipe, locator: _Locator) -> None:
+    detector = loaded.recipe.detector
+    if detector.sha256 is None:
+        return
+    if detector.weights is None:
+        raise locator.error(("detector", "sha256"), "pins a weights file: give detector.weights too")
+    actual = file_sha256(loaded.resolve(detector.weights))
+    if actual != detector.sha256.lower():
+        raise locator.error(("detector", "sha256"), f"{loaded.resolve(detector.weights)} has SHA-256 {actual}, "
+                            f"not the pinned {detector.sha256.lower()}")
+
+
+def detector_settings(loaded: LoadedRecipe) -> dict:
+    """The detector plugin's settings as the engine hands them over (confidence and weights from the recipe)."""
+    settings = dict(loaded.plugin_settings["detector"])
+    settings["confidence"] = loaded.recipe.detector.confidence
+    if loaded.recipe.detector.weights is not None:
+        settings["weights"] = str(loaded.resolve(loaded.recipe.detector.weights))
+    return settings
+
+
+def _check_classes(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:
+    """Every class a rule or ``detector.classes`` names must be one the detector reports: a misspelled one
+    would never apply and every part with that defect would pass."""
+    from core.contracts import PluginContext
+
+    recipe = loaded.recipe
+    spec = registry.get("detector", recipe.detector.plugin).spec
+    if spec.class_names is None:  # checked against the detector itself when the run starts
+        return
+    try:
+        known = list(spec.class_names(detector_settings(loaded), PluginContext(recipe_dir=loaded.directory)))
+    except Exception as exc:  # the detector's own reason (weights refused, unreadable, ...)
+        key = ("detector", "weights") if recipe.detector.weights is not None else ("detector", "plugin")
+        raise locator.error(key, str(exc)) from None
+    named = [(("decision", "rules", i, "class"), r.class_) for i, r in enumerate(recipe.decision.rules) if r.class_ != "any"]
+    named += [(("detector", "classes", i), c) for i, c in enumerate(recipe.detector.classes or [])]
+    for key, name in named:
+        if name not in known:
+            raise locator.error(key, unknown_class_message(name, known))
+
+
+def unknown_class_message(name: str, known: list[str]) -> str:
+    close = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    return f"unknown class {name!r}{hint} The detector knows: {', '.join(known)} (or any)"
+
+
+TIMING_KEYS = ("delay_ms", "actuator_distance_mm", "conveyor_speed_mm_s")
+
+
+def output_delay_s(settings: dict) -> float | None:
+    """An output's delay from a part's capture to its command (the timed outputs' shared keys), or None."""
+    if settings.get("actuator_distance_mm") and settings.get("conveyor_speed_mm_s"):
+        return settings["actuator_distance_mm"] / settings["conveyor_speed_mm_s"]
+    if settings.get("delay_ms") is not None:
+        return settings["delay_ms"] / 1000.0
+    return None
+
+
+def _check_output_delays(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:
+    """A timed output's delay must leave the inspection one frame period at least: a part is decided up to a
+    frame period after its capture, so a shorter delay makes every command late."""
+    from core.contracts import PluginContext
+
+    spec = registry.get("camera", loaded.recipe.camera.plugin).spec
+    if spec.frame_rate is None:
+        return
+    try:
+        fps = spec.frame_rate(loaded.plugin_settings["camera"], PluginContext(recipe_dir=loaded.directory))
+    except Exception:
+        return
+    if not fps:
+        return
+    period = 1.0 / fps
+    for index, output in enumerate(loaded.recipe.outputs):
+        settings = loaded.plugin_settings[f"outputs.{index}"]
+        delay = output_delay_s(settings) if any(k in settings for k in TIMING_KEYS) else None
+        if delay is not None and delay < period:
+            key = "delay_ms" if settings.get("delay_ms") is not None else "actuator_distance_mm"
+            raise locator.error(("outputs", index, "settings", key),
+                                f"the command is due {1000 * delay:.0f} ms after a part's capture, less than the camera's "
+                                f"frame period ({1000 * period:.0f} ms at {fps:g} fps) in which the part is decided: "
+                                f"set delay_ms to at least {1000 * period:.0f} (or the actuator further downstream)")

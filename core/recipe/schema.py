@@ -23,7 +23,9 @@ class PluginRef(Section):
 
 
 class CameraSection(PluginRef):
-    pass
+    # A frame that reaches inspection later than this after its capture is an ERROR, not a late reject;
+    # by default the shortest time from the camera to an output's actuator (its part is past it by then).
+    max_frame_age_ms: float | None = Field(None, gt=0)
 
 
 class StereoSection(Section):
@@ -67,7 +69,16 @@ class StereoSection(Section):
 class DetectorSection(Section):
     plugin: str = Field("yolov8", min_length=1)
     weights: str | None = None
+    # the weights file's SHA-256 (64 hex digits): any other file is refused at validation
+    sha256: str | None = Field(None, pattern=r"^[0-9a-fA-F]{64}$")
     confidence: float = Field(0.25, ge=0.0, le=1.0)
+
+    @field_validator("sha256", mode="before")
+    @classmethod
+    def _quoted(cls, value):
+        if isinstance(value, int) and not isinstance(value, bool):
+            raise ValueError("write the SHA-256 in quotes: YAML reads a hash of digits alone as a number")
+        return value
     classes: list[str] | None = None
     settings: dict[str, Any] = Field(default_factory=dict)
 

@@ -29,6 +29,10 @@ class YoloSettings(BaseModel):
     drop_full_tile: float | None = Field(0.95, gt=0.0, le=1.0)
     device: str = "auto"
     max_det: int = Field(100, ge=1)
+    # Checkpoints are pickles. By default they are read with torch's weights_only loader against the
+    # classes a YOLO checkpoint is made of, so a file that would run code is refused; true reads any
+    # pickle in full, which runs whatever the file holds: only for a file you made yourself.
+    trust_pickle: bool = False
 
 
 def _without_full_tile(part: tuple[np.ndarray, np.ndarray, np.ndarray], limit: float):
@@ -53,22 +57,73 @@ def import_yolo():
     return YOLO
 
 
-def load_model(weights: Path):
-    """The YOLO model in ``weights``; a missing or unreadable file is a one-line error naming it."""
-    if not Path(weights).is_file():
+SAFE_MODULES = ("torch.", "ultralytics.", "numpy.", "collections.", "pathlib.", "builtins.getattr")
+
+
+def read_checkpoint(weights: Path, trust_pickle: bool = False) -> dict:
+    """The checkpoint's contents, read without running code unless ``trust_pickle`` (module docstring of
+    the settings). A missing, unreadable or refused file is a one-line error naming it."""
+    import torch
+
+    weights = Path(weights)
+    if not weights.is_file():
         raise FileNotFoundError(f"{weights}: detector weights not found")
+    import_yolo()
+    from ultralytics.nn.tasks import torch_safe_load
+
+    try:
+        ckpt, _ = torch_safe_load(str(weights), safe_only=not trust_pickle)
+    except TypeError as exc:
+        try:
+            needed = torch.serialization.get_unsafe_globals_in_checkpoint(str(weights))
+        except Exception:
+            needed = []
+        foreign = [g for g in needed if not g.startswith(SAFE_MODULES)]
+        if foreign and not trust_pickle:
+            raise ValueError(f"{weights}: refused: reading it would call {', '.join(foreign)}, which a YOLO checkpoint "
+                             "never needs (a pickle can run code); set detector.settings.trust_pickle: true only for a "
+                             "file you made yourself") from None
+        raise ValueError(f"{weights}: not a loadable YOLO checkpoint: {_first_line(exc)}") from None
+    except Exception as exc:
+        raise ValueError(f"{weights}: not a loadable YOLO checkpoint: {_first_line(exc)}") from None
+    model = (ckpt.get("ema") or ckpt.get("model")) if isinstance(ckpt, dict) else None
+    if not isinstance(model, torch.nn.Module):
+        raise ValueError(f"{weights}: not a YOLO checkpoint (no model inside)")
+    return ckpt
+
+
+def checkpoint_class_names(weights: Path, trust_pickle: bool = False) -> list[str]:
+    """The class names a checkpoint's model was trained on, in index order."""
+    ckpt = read_checkpoint(weights, trust_pickle)
+    names = getattr(ckpt.get("model") or ckpt.get("ema"), "names", None) or {}
+    return [names[i] for i in sorted(names)] if isinstance(names, dict) else list(names)
+
+
+def _first_line(exc: Exception) -> str:
+    return next((line for line in str(exc).splitlines() if line.strip()), exc.__class__.__name__).strip()
+
+
+def load_model(weights: Path, trust_pickle: bool = False):
+    """The YOLO model in ``weights``, read as ``read_checkpoint`` does; errors are one line naming the file."""
+    read_checkpoint(weights, trust_pickle)  # refuses what the restricted loader refuses, with the reason
     YOLO = import_yolo()
+    from ultralytics.nn import tasks
+
+    restricted = tasks.SAFE_LOAD
+    tasks.SAFE_LOAD = not trust_pickle  # the model's own load (and its construction) as restricted
     try:
         return YOLO(str(weights), task="detect")
     except Exception as exc:  # ultralytics words its own errors over several lines
-        first = next((line for line in str(exc).splitlines() if line.strip()), exc.__class__.__name__)
-        raise ValueError(f"{weights}: not a loadable YOLO checkpoint: {first.strip()}") from exc
+        raise ValueError(f"{weights}: not a loadable YOLO checkpoint: {_first_line(exc)}") from exc
+    finally:
+        tasks.SAFE_LOAD = restricted
 
 
 class YoloDetector:
     def __init__(self, settings: YoloSettings, device: str = "cpu"):
         self.settings = settings
-        self.model = load_model(Path(settings.weights) if settings.weights else DEFAULT_WEIGHTS)
+        self.weights_path = Path(settings.weights) if settings.weights else DEFAULT_WEIGHTS
+        self.model = load_model(self.weights_path, settings.trust_pickle)
         self.class_names = [self.model.names[i] for i in sorted(self.model.names)]
         if settings.device != "auto":
             device = settings.device

@@ -8,11 +8,16 @@ import click
 
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
-from plugins.yolov8.detector import YoloDetector, YoloSettings
+from plugins.yolov8.detector import DEFAULT_WEIGHTS, YoloDetector, YoloSettings, checkpoint_class_names
 
 
 def _factory(settings: dict, ctx: PluginContext) -> YoloDetector:
     return YoloDetector(YoloSettings(**settings), device=ctx.device)
+
+
+def _class_names(settings: dict, ctx: PluginContext) -> list[str]:
+    s = YoloSettings(**settings)
+    return checkpoint_class_names(Path(s.weights) if s.weights else DEFAULT_WEIGHTS, s.trust_pickle)
 
 
 @hookimpl
@@ -24,6 +29,7 @@ def stereo_inspect_detectors() -> list[PluginSpec]:
             factory=_factory,
             settings_model=YoloSettings,
             description="ultralytics YOLOv8 (NEU-DET weights by default), tiled inference",
+            class_names=_class_names,
         )
     ]
 

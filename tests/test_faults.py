@@ -1,0 +1,32 @@
+"""The fault-injection run in short form (``inspect sim faults``; the docs give the long one): damaged
+frames, a PLC link cut at random through a TCP proxy, the process killed with SIGKILL and restarted, and
+every part accounted for afterwards."""
+from __future__ import annotations
+
+import json
+import random
+
+from conftest import cli
+
+from sim.faults import damaged_copy
+
+
+def test_every_part_is_accounted_for_under_faults(tmp_path):
+    out = tmp_path / "faults"
+    result = cli("sim", "faults", str(out), "--parts", "40", "--kills", "1", "--damage", "0.2", "--seed", "3",
+                 "--set", "stereo.backend=opencv_sgbm")
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads((out / "faults.json").read_text())
+    assert report["ok"] and report["parts"] >= 40 and report["runs"] == 2 and report["kills"] == 1
+    assert report["damaged_frames"] and report["cuts"] >= 1
+    assert report["delivered"] + report["alarmed"] >= report["rejected"] + report["errors"]
+    assert report["crash_alarms"] >= 0 and report["integrity"] == "ok"
+    assert "every part accounted for" in result.stdout
+
+
+def test_the_damaged_copy_cuts_the_frames_it_names(tmp_path):
+    damaged = damaged_copy(tmp_path / "seq", 2, 0.3, random.Random(1))
+    assert damaged and len(list((tmp_path / "seq" / "left").iterdir())) == 20
+    for frame_id in damaged:
+        sizes = [(tmp_path / "seq" / eye / f"{frame_id}.jpg").read_bytes() for eye in ("left", "right")]
+        assert any(not data.endswith(b"\xff\xd9") for data in sizes)

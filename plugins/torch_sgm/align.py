@@ -138,7 +138,7 @@ def resample_rows(image: torch.Tensor, field: torch.Tensor, lobes: int = LANCZOS
     """(B, C, H, W) image, (B, H, W) offsets -> (B, C, H, W): pixel (x, y) takes the image at row
     y + field along its own column, interpolated with a Lanczos kernel (rows clamped at the border).
     A bilinear sample at a half-pixel offset averages two rows; the blur it adds to one image and not the
-    other cost up to a point of Bad-1.0 on Middlebury (docs/benchmarks.md), and Lanczos keeps the
+    other cost up to a point of Bad-1.0 on Middlebury (docs/research-log.md), and Lanczos keeps the
     texture sharp."""
     b, ch, h, w = image.shape
     y = torch.arange(h, dtype=field.dtype, device=field.device)[:, None] + field

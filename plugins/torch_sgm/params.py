@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-# Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/benchmarks.md).
+# Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/research-log.md).
 IMPROVED: dict = {"refine_radius": 0, "agg_radius": 2, "agg_detail_radius": 1, "paths": 8, "p1": 0.08, "p2": 1.3,
                   "search": "coarse_to_fine", "uniqueness": 0.3, "plane_fill": True, "wmf_radius": 4, "fit_radius": 3,
                   "align": "projective", "p2_edge": "path", "p2_alpha": 40.0, "view_check_edge": 0.01,

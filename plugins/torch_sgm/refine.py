@@ -282,7 +282,7 @@ def two_view_choice(disp: torch.Tensor, right_disp: torch.Tensor, reach: int, to
     A pixel whose disparity d misses the right map at x - d by more than ``tolerance`` takes, among the
     values of the pixels 2, 4, ..., ``reach`` px to its left, right, above and below that miss it by at
     most ``tolerance``, the one closest to d: the least change that the right view accepts. Taking the
-    value that misses least instead was 0.07 points worse on Middlebury (docs/benchmarks.md, stop 30): it
+    value that misses least instead was 0.07 points worse on Middlebury (docs/research-log.md, step 30): it
     jumps to another surface where a value close to d is confirmed too. Without such a value the pixel
     keeps d.
     Repeated ``iterations`` times, so that a confirmed value travels further than ``reach``. Unlike the

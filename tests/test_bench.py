@@ -73,9 +73,10 @@ def test_bench_versus_compares_depth_with_other_settings_of_the_backend(tmp_path
 
 def test_soak_reports_rss_at_start_and_end(tmp_path):
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--soak", "12", "--soak-every", "5",
-              "--threads", "1", "--set", "stereo.region=defects", "--out", str(tmp_path))
+              "--threads", "1", "--set", "stereo.region=defects", "--set", "threads=2", "--out", str(tmp_path))
     assert out.returncode == 0, out.stderr
     report = json.loads((tmp_path / "soak.json").read_text())
+    assert report["machine"]["torch_threads"] == 1  # --threads wins over the recipe's, in the real loop too
     assert report["frames"] == 12  # the 10-frame sequence looped
     assert [n for n, _ in report["rss_mb"]] == [1, 5, 10, 12]
     assert 0 < report["rss_start_mb"] <= report["peak_rss_mb"] and report["rss_end_mb"] <= report["peak_rss_mb"]

@@ -51,14 +51,14 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         fail("give both --min-disp and --max-disp")
     if max_disp is not None:
         overrides += ["stereo.working_distance_mm=null", f"stereo.min_disparity={min_disp}", f"stereo.max_disparity={max_disp}"]
+    if threads:
+        overrides.append(f"threads={threads}")  # so that the soak's real loop keeps them too
     loaded = _load(recipe, tuple(overrides))
     registry = default_registry()
     if threads:
-        import cv2
-        import torch
+        from core.engine import apply_threads
 
-        torch.set_num_threads(threads)
-        cv2.setNumThreads(threads)
+        apply_threads(threads)
     if soak is not None:
         report = run_soak(loaded, registry, soak, device, soak_every,
                           None if quiet else lambda n, mb: click.echo(f"frame {n}: RSS {mb:.0f} MB"))

@@ -1,6 +1,8 @@
 """``inspect eval depth``: distance and deviation errors against a labelled sequence's truth."""
 from __future__ import annotations
 
+import json
+import platform
 from pathlib import Path
 
 import click
@@ -23,12 +25,10 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     true boxes: distance and deviation errors (median, p90, max), measured ÷ true, the physical floor,
     the calibration of the reported uncertainty and the decisions at the recipe's rules, for the
     recipe's depth method and for the backend's disparity alone. Saves JSON, Markdown and a figure."""
-    import platform
-
     from core import depth_eval as ev
     from core.commands.inspection import _load, fail
     from core.contracts import PluginContext
-    from core.engine import resolve_device
+    from core.engine import apply_threads, resolve_device
     from core.registry import default_registry
     from drivers.sequence_folder import SequenceError
     from plugins.replay_camera import ReplayCamera, ReplaySettings
@@ -41,17 +41,11 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
             fail(f"{folder}: not a sequence folder")
     loaded = _load(recipe, tuple(overrides))
     if threads:
-        import cv2
-        import torch
-
-        torch.set_num_threads(threads)
-        cv2.setNumThreads(threads)
+        apply_threads(threads)
     registry = default_registry()
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, device=resolve_device(device))
     stereo = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(loaded.plugin_settings["stereo"], ctx)
     rows, timings = [], []
-    import json
-
     for folder in sequences:
         try:
             camera = ReplayCamera(ReplaySettings(path=str(folder.resolve())))

@@ -84,3 +84,7 @@ class PluginSpec:
     class_names: Callable[[dict[str, Any], PluginContext], list[str]] | None = None
     # Optional, cameras: the frames per second the camera will deliver (None: as fast as it is read).
     frame_rate: Callable[[dict[str, Any], PluginContext], float | None] | None = None
+    # Optional, outputs: seconds from a part's capture to its command at the actuator, from the settings
+    # alone, so that a recipe whose delay is shorter than a frame period is refused and a frame older
+    # than the delay is an ERROR (its part is past the actuator).
+    actuator_delay: Callable[[dict[str, Any], PluginContext], float | None] | None = None

@@ -24,7 +24,7 @@ from core.contracts import PluginContext
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
 from core.recipe import LoadedRecipe
-from core.recipe.loader import detector_settings, file_sha256, output_delay_s, unknown_class_message
+from core.recipe.loader import detector_settings, file_sha256, output_delays_s, unknown_class_message
 from core.recipe.schema import StereoSection
 from core.registry import Registry, default_registry
 from core.store import ResultsStore
@@ -179,12 +179,11 @@ def detect_frame(item: StereoFrame | FrameError, pipeline: Pipeline, recipe) -> 
     return Detected(detections, time.perf_counter() - t0)
 
 
-def frame_age_limit_s(loaded: LoadedRecipe) -> float | None:
+def frame_age_limit_s(loaded: LoadedRecipe, registry: Registry | None = None) -> float | None:
     """``camera.max_frame_age_ms``, or the shortest delay from the camera to an output's actuator, or None."""
     if loaded.recipe.camera.max_frame_age_ms is not None:
         return loaded.recipe.camera.max_frame_age_ms / 1000.0
-    delays = [output_delay_s(settings) for key, settings in loaded.plugin_settings.items() if key.startswith("outputs.")]
-    delays = [d for d in delays if d]
+    delays = [d for _, d in output_delays_s(loaded, registry or default_registry()) if d]
     return min(delays) if delays else None
 
 
@@ -342,7 +341,7 @@ def run(
     run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path), _sha256_or_none(loaded.path),
                              _model_hashes(loaded, pipeline.detector),
                              [getattr(output, "name", name) for name, output in pipeline.outputs])
-    age_limit = frame_age_limit_s(loaded)
+    age_limit = frame_age_limit_s(loaded, registry)
     rule = DepthRule.from_section(recipe.depth)
     counts: Counter = Counter()
     alarms: list[Alarm] = []

@@ -29,7 +29,7 @@ from core.hookspecs import hookimpl
 from core.types import PartResult
 from drivers.modbus_link import ModbusLink, ModbusWrite
 from drivers.reject_scheduler import Command, RejectScheduler
-from plugins.reject_timing import ScheduledOutput, TimingSettings
+from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay
 
 
 class WriteAction(BaseModel):
@@ -157,6 +157,7 @@ def stereo_inspect_outputs() -> list[PluginSpec]:
             kind="output",
             factory=_factory,
             settings_model=ModbusSettings,
+            actuator_delay=actuator_delay(ModbusSettings),
             description="reject via Modbus TCP/RTU: coil pulse or register write at the actuator's due time",
         )
     ]

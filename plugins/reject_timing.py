@@ -7,8 +7,11 @@ A command that cannot be sent by ``due + max_late_ms`` is an alarm.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from core.contracts import PluginContext
 from core.types import Alarm, OutputEvent, PartResult
 from drivers.reject_scheduler import Command, Record, RejectScheduler
 
@@ -45,6 +48,11 @@ class TimingSettings(BaseModel):
         if self.actuator_distance_mm is not None and self.conveyor_speed_mm_s is not None:
             return self.actuator_distance_mm / self.conveyor_speed_mm_s
         return (self.delay_ms or 0.0) / 1000.0
+
+
+def actuator_delay(model: type[TimingSettings]) -> Callable[[dict, PluginContext], float]:
+    """``PluginSpec.actuator_delay`` of an output whose settings are ``model``."""
+    return lambda settings, ctx: model.model_validate(settings).delay_s
 
 
 class ScheduledOutput:

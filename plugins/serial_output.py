@@ -27,7 +27,7 @@ from core.hookspecs import hookimpl
 from core.types import PartResult
 from drivers.reject_scheduler import Command, RejectScheduler
 from drivers.serial_line import LineCommand, SerialLine
-from plugins.reject_timing import ScheduledOutput, TimingSettings
+from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay
 
 _FIELDS = {"part_id": "P1", "status": "REJECT", "frame_id": "f", "index": 0}
 
@@ -91,6 +91,7 @@ def stereo_inspect_outputs() -> list[PluginSpec]:
             kind="output",
             factory=_factory,
             settings_model=SerialSettings,
+            actuator_delay=actuator_delay(SerialSettings),
             description="reject via a text line on a serial port (e.g. 'REJECT <part_id>'), optional acknowledgement",
         )
     ]

@@ -16,8 +16,11 @@ from pathlib import Path
 import pytest
 from conftest import ROOT, cli, write_recipe
 
+from core.contracts import PluginSpec
 from core.engine import frame_age_limit_s, inspect_frame
-from core.recipe import load_recipe
+from core.hookspecs import hookimpl
+from core.recipe import RecipeError, load_recipe
+from core.registry import Registry, make_manager
 from core.types import FrameError, Status, StereoFrame
 from drivers import plc_sim
 from drivers.zed_uvc import capture_time
@@ -262,6 +265,25 @@ def test_an_output_without_a_delay_or_with_one_shorter_than_a_frame_is_an_error(
     result = cli("validate", str(DEMO), "--set", "outputs.0.settings.conveyor_speed_mm_s=6000")  # 100 ms at 4 fps
     _one_line_error(result, "outputs.0.settings.actuator_distance_mm", "100 ms after a part's capture",
                     "frame period (250 ms at 4 fps)", "set delay_ms to at least 250")
+
+
+class _AirJetOutputs:
+    """A third-party output that states its delay under its own key."""
+
+    @staticmethod
+    @hookimpl
+    def stereo_inspect_outputs():
+        return [PluginSpec(name="air_jet", kind="output", factory=lambda settings, ctx: None,
+                           actuator_delay=lambda settings, ctx: settings["jet_after_s"])]
+
+
+def test_a_third_party_output_that_states_its_delay_is_held_to_the_same_checks():
+    registry = Registry(make_manager((_AirJetOutputs,)))
+    jet = ["outputs=[{plugin: air_jet, settings: {jet_after_s: 0.1}}]"]
+    with pytest.raises(RecipeError, match=r"outputs\.0\.settings: the command is due 100 ms .* frame period \(250 ms"):
+        load_recipe(DEMO, jet, registry=registry)
+    slow = load_recipe(DEMO, ["outputs=[{plugin: air_jet, settings: {jet_after_s: 0.8}}]"], registry=registry)
+    assert frame_age_limit_s(slow, registry) == pytest.approx(0.8)
 
 
 # -- 9. time: frames carry their capture time; a frame too old is an ERROR ----------------------------------

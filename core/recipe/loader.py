@@ -275,16 +275,20 @@ def unknown_class_message(name: str, known: list[str]) -> str:
     return f"unknown class {name!r}{hint} The detector knows: {', '.join(known)} (or any)"
 
 
-TIMING_KEYS = ("delay_ms", "actuator_distance_mm", "conveyor_speed_mm_s")
+def output_delays_s(loaded: LoadedRecipe, registry: Registry) -> list[tuple[int, float]]:
+    """(index, seconds from a part's capture to its command) of every output that states it
+    (``PluginSpec.actuator_delay``)."""
+    from core.contracts import PluginContext
 
-
-def output_delay_s(settings: dict) -> float | None:
-    """An output's delay from a part's capture to its command (the timed outputs' shared keys), or None."""
-    if settings.get("actuator_distance_mm") and settings.get("conveyor_speed_mm_s"):
-        return settings["actuator_distance_mm"] / settings["conveyor_speed_mm_s"]
-    if settings.get("delay_ms") is not None:
-        return settings["delay_ms"] / 1000.0
-    return None
+    ctx = PluginContext(recipe_dir=loaded.directory)
+    delays = []
+    for index, output in enumerate(loaded.recipe.outputs):
+        spec = registry.get("output", output.plugin).spec
+        if spec.actuator_delay is not None:
+            delay = spec.actuator_delay(loaded.plugin_settings[f"outputs.{index}"], ctx)
+            if delay is not None:
+                delays.append((index, delay))
+    return delays
 
 
 def _check_output_delays(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:
@@ -302,12 +306,12 @@ def _check_output_delays(loaded: LoadedRecipe, registry: Registry, locator: _Loc
     if not fps:
         return
     period = 1.0 / fps
-    for index, output in enumerate(loaded.recipe.outputs):
-        settings = loaded.plugin_settings[f"outputs.{index}"]
-        delay = output_delay_s(settings) if any(k in settings for k in TIMING_KEYS) else None
-        if delay is not None and delay < period:
-            key = "delay_ms" if settings.get("delay_ms") is not None else "actuator_distance_mm"
-            raise locator.error(("outputs", index, "settings", key),
+    for index, delay in output_delays_s(loaded, registry):
+        if delay < period:
+            settings = loaded.plugin_settings[f"outputs.{index}"]
+            key = next((("outputs", index, "settings", k) for k in ("delay_ms", "actuator_distance_mm")
+                        if settings.get(k) is not None), ("outputs", index, "settings"))
+            raise locator.error(key,
                                 f"the command is due {1000 * delay:.0f} ms after a part's capture, less than the camera's "
                                 f"frame period ({1000 * period:.0f} ms at {fps:g} fps) in which the part is decided: "
                                 f"set delay_ms to at least {1000 * period:.0f} (or the actuator further downstream)")

@@ -24,7 +24,7 @@ from core.contracts import PluginContext
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
 from core.recipe import LoadedRecipe
-from core.recipe.loader import detector_settings, file_sha256, output_delays_s, unknown_class_message
+from core.recipe.loader import detector_settings, file_sha256, named_classes, output_delays_s, unknown_class_message
 from core.recipe.schema import StereoSection
 from core.registry import Registry, default_registry
 from core.store import ResultsStore
@@ -98,11 +98,9 @@ def build_pipeline(loaded: LoadedRecipe, registry: Registry, device: str = "auto
     stereo = make("stereo", recipe.stereo.backend, "stereo", loaded.plugin_settings["stereo"])
     detector = make("detector", recipe.detector.plugin, "detector", detector_settings(loaded))
     # the same check as the recipe's validation, for detectors that state their classes only once built
-    named = [(f"decision.rules.{i}.class", r.class_) for i, r in enumerate(recipe.decision.rules) if r.class_ != "any"]
-    named += [(f"detector.classes.{i}", c) for i, c in enumerate(recipe.detector.classes or [])]
-    for key, name in named:
+    for key, name in named_classes(recipe):
         if name not in detector.class_names:
-            raise SetupError(f"{loaded.where(tuple(key.split('.')))}: {key}: {unknown_class_message(name, list(detector.class_names))}")
+            raise SetupError(loaded.describe(key, unknown_class_message(name, list(detector.class_names))))
     outputs = [
         (o.plugin, make("output", o.plugin, f"outputs.{i}", loaded.plugin_settings[f"outputs.{i}"]))
         for i, o in enumerate(recipe.outputs)

@@ -59,13 +59,15 @@ class LoadedRecipe:
     text_hash: str
     plugin_settings: dict[str, Any] = field(default_factory=dict)  # "camera", "stereo", "detector", "outputs.N"
     lines: dict[KeyPath, int] = field(default_factory=dict)  # 1-based line of every key of the file
+    overridden: set[KeyPath] = field(default_factory=set)  # keys given with --set
 
     def where(self, key: KeyPath) -> str:
-        """``file:line`` of the key, or of the nearest key above it that the file has."""
-        for n in range(len(key), 0, -1):
-            if tuple(key[:n]) in self.lines:
-                return f"{self.path}:{self.lines[tuple(key[:n])]}"
-        return str(self.path)
+        """``file:line`` of the key, or of the nearest key above it that the file has (or its --set)."""
+        return _Locator(self.path, self.lines, self.overridden).where(key)
+
+    def describe(self, key: KeyPath, message: str) -> str:
+        """``file:line: dotted.key: message``, as a recipe error reads."""
+        return _Locator(self.path, self.lines, self.overridden).describe(key, message)
 
     @property
     def directory(self) -> Path:
@@ -89,8 +91,11 @@ class _Locator:
                 return f"{self.path}:{self.lines[prefix]}"
         return str(self.path)
 
+    def describe(self, key: KeyPath, message: str) -> str:
+        return f"{self.where(key)}: {_dotted(key)}: {message}"
+
     def error(self, key: KeyPath, message: str) -> RecipeError:
-        return RecipeError(f"{self.where(key)}: {_dotted(key)}: {message}")
+        return RecipeError(self.describe(key, message))
 
 
 def _first_error(exc: ValidationError, base: KeyPath, locator: _Locator) -> RecipeError:
@@ -194,6 +199,7 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
         path=path.resolve(),
         text_hash=hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16],
         lines=lines,
+        overridden=overridden,
     )
     registry = registry or default_registry()
     context = {"recipe_dir": loaded.directory}
@@ -262,11 +268,15 @@ def _check_classes(loaded: LoadedRecipe, registry: Registry, locator: _Locator) 
     except Exception as exc:  # the detector's own reason (weights refused, unreadable, ...)
         key = ("detector", "weights") if recipe.detector.weights is not None else ("detector", "plugin")
         raise locator.error(key, str(exc)) from None
-    named = [(("decision", "rules", i, "class"), r.class_) for i, r in enumerate(recipe.decision.rules) if r.class_ != "any"]
-    named += [(("detector", "classes", i), c) for i, c in enumerate(recipe.detector.classes or [])]
-    for key, name in named:
+    for key, name in named_classes(recipe):
         if name not in known:
             raise locator.error(key, unknown_class_message(name, known))
+
+
+def named_classes(recipe) -> list[tuple[KeyPath, str]]:
+    """(key, class) of every class the recipe names: its rules' (but ``any``) and ``detector.classes``."""
+    named = [(("decision", "rules", i, "class"), r.class_) for i, r in enumerate(recipe.decision.rules) if r.class_ != "any"]
+    return named + [(("detector", "classes", i), c) for i, c in enumerate(recipe.detector.classes or [])]
 
 
 def unknown_class_message(name: str, known: list[str]) -> str:

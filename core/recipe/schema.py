@@ -72,6 +72,8 @@ class DetectorSection(Section):
     # the weights file's SHA-256 (64 hex digits): any other file is refused at validation
     sha256: str | None = Field(None, pattern=r"^[0-9a-fA-F]{64}$")
     confidence: float = Field(0.25, ge=0.0, le=1.0)
+    classes: list[str] | None = None
+    settings: dict[str, Any] = Field(default_factory=dict)
 
     @field_validator("sha256", mode="before")
     @classmethod
@@ -79,8 +81,6 @@ class DetectorSection(Section):
         if isinstance(value, int) and not isinstance(value, bool):
             raise ValueError("write the SHA-256 in quotes: YAML reads a hash of digits alone as a number")
         return value
-    classes: list[str] | None = None
-    settings: dict[str, Any] = Field(default_factory=dict)
 
 
 class DepthSection(Section):
@@ -151,13 +151,6 @@ class Recipe(Section):
     # CPU threads of this process's torch and OpenCV stages; auto = half the cores, so that two stations
     # on one PC do not spin against each other (docs/benchmarks.md). ``inspect run --threads`` wins.
     threads: int | str = "auto"
-
-    @field_validator("threads", mode="before")
-    @classmethod
-    def _threads(cls, value):
-        if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-            return value
-        raise ValueError("give auto or a number of threads, at least 1")
     camera: CameraSection
     stereo: StereoSection
     detector: DetectorSection = Field(default_factory=DetectorSection)
@@ -166,3 +159,10 @@ class Recipe(Section):
     outputs: list[PluginRef] = Field(default_factory=lambda: [PluginRef(plugin="log")])
     results: ResultsSection = Field(default_factory=ResultsSection)
     view: ViewSection = Field(default_factory=ViewSection)
+
+    @field_validator("threads", mode="before")
+    @classmethod
+    def _threads(cls, value):
+        if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+            return value
+        raise ValueError("give auto or a number of threads, at least 1")

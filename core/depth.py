@@ -24,7 +24,7 @@ A point seen at pixel (u, v) with disparity d lies at signed distance
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -283,18 +283,18 @@ def measure_defect(
         reference = DefectMeasurement(detection, distance, None, valid_fraction, resolution, area,
                                       note=f"the surface around the box is not one plane ({how}, "
                                       f"{rule.min_plane_inliers:.0%} needed)", distance_sigma_mm=resolution)
-    return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, inner, (x0, y0, x1, y1),
-                                d_plane - d_defect, reference)
+    return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, ring, inner,
+                                (x0, y0, x1, y1), d_plane - d_defect, reference)
 
 
-def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, inner, clipped, offsets,
+def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, valid_ring, inner, clipped, offsets,
                          reference: DefectMeasurement) -> DefectMeasurement:
     """``method: surface``: the ring's plane and the defect's offset fitted to the images, from the backend's
-    plane and median offset. Falls back to ``reference`` (saying so) where the fit does not settle."""
+    plane and median offset. Falls back to ``reference`` (saying so) where the fit does not settle.
+    ring_all: the ring's pixels (HxW bool); valid_ring: those the backend matched."""
     # the ring less the pixels the backend puts on another surface (the belt, a neighbouring defect);
     # pixels it left unmatched stay: the fit does not need their disparity
-    other = valid_mask(disparity, calib.doffs) & ring_all
-    rv, ru = np.nonzero(other)
+    rv, ru = np.nonzero(valid_ring)
     off_plane = np.abs(plane(ru.astype(np.float64), rv.astype(np.float64)) - (disparity[rv, ru] + calib.doffs)) \
         > rule.plane_tolerance_px
     ring = ring_all.copy()
@@ -305,28 +305,22 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     seen = uu - (shift[0] * uu + shift[1] * vv + shift[2]) >= 2  # the right image holds the point
     if np.sum(weights * seen) < 0.5 * np.sum(weights):
         # the backend's disparities there are its hole filling: no measurement of either kind
-        return DefectMeasurement(
-            detection, reference.distance_mm, None, reference.valid_fraction, reference.depth_resolution_mm,
-            reference.area_mm2, note=f"deviation unavailable: the right camera does not see the region "
-            f"({np.sum(weights * seen) / np.sum(weights):.0%} of it in its view)",
-            distance_sigma_mm=reference.distance_sigma_mm, method="surface")
+        return _unavailable(reference, f"the right camera does not see the region "
+                            f"({np.sum(weights * seen) / np.sum(weights):.0%} of it in its view)")
     start = -float(np.median(offsets))
     left, right = pair
     fit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)
     if fit is None:
         return _fallback(reference, "the surface fit did not settle")
     # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a
-    # sheen upsets only the cells, the crop's edge only the backend's map there
-    backend_agrees = valid_mask(disparity, calib.doffs)[ring_v, ring_u] & (np.abs(
-        plane(ring_u.astype(np.float64), ring_v.astype(np.float64)) - (disparity[ring_v, ring_u] + calib.doffs))
-        <= rule.plane_tolerance_px)
+    # sheen upsets only the cells, the crop's edge only the backend's map there. The ring kept above holds
+    # only the backend's pixels within tolerance, so a matched pixel of it is one the backend agrees with.
+    backend_agrees = valid_ring[ring_v, ring_u]
     how, share = worst_side_of(backend_agrees | (fit.ring_weights > 0.5), ring_u, ring_v,
                                _clip_box(detection.box, disparity.shape))
     if share < rule.min_plane_inliers:
-        return DefectMeasurement(
-            detection, reference.distance_mm, None, reference.valid_fraction, reference.depth_resolution_mm,
-            reference.area_mm2, note=f"deviation unavailable: the surface around the box is not one plane ({how} in the "
-            f"images, {rule.min_plane_inliers:.0%} needed)", distance_sigma_mm=reference.distance_sigma_mm, method="surface")
+        return _unavailable(reference, f"the surface around the box is not one plane ({how} in the images, "
+                            f"{rule.min_plane_inliers:.0%} needed)")
     offsets_px, sds, centres = surface_fit.cell_offsets(left, right, fit, (uu, vv), weights)
     cells = surface_fit.robust_offset(offsets_px, sds, fit.delta)
     cov = fit.covariance
@@ -356,6 +350,12 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         reference.area_mm2 * (distance / reference.distance_mm) ** 2,
         distance_sigma_mm=float(fb / d**2 * np.sqrt(var_d)), deviation_sigma_mm=deviation_sigma, method="surface",
     )
+
+
+def _unavailable(reference: DefectMeasurement, why: str) -> DefectMeasurement:
+    """No deviation from either method: the reference's distance, saying ``why``."""
+    return replace(reference, deviation_mm=None, deviation_sigma_mm=None, note=f"deviation unavailable: {why}",
+                   method="surface")
 
 
 def _fallback(reference: DefectMeasurement, why: str) -> DefectMeasurement:

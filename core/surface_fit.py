@@ -141,6 +141,22 @@ def _huber_cost(r: np.ndarray, scale: float) -> np.ndarray:
     return np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))
 
 
+def _tukey_weights(z: np.ndarray) -> np.ndarray:
+    """Tukey's biweight of residuals ``z`` already divided by their cut."""
+    return np.where(np.abs(z) < 1, (1 - z * z) ** 2, 0.0)
+
+
+def _cell_index(u: np.ndarray, v: np.ndarray, px: int) -> np.ndarray:
+    """Each pixel's ``px`` square cell, numbered 0 .. K-1 over the cells present."""
+    return np.unique((v // px) * 100_000 + u // px, return_inverse=True)[1]
+
+
+def _cell_means(cell: np.ndarray, k: int, *values: np.ndarray) -> list[np.ndarray]:
+    """Each of ``values`` (per pixel) averaged over the K cells of ``cell``."""
+    count = np.maximum(np.bincount(cell, minlength=k), 1)
+    return [np.bincount(cell, x, minlength=k) / count for x in values]
+
+
 def _robust_scale(r: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(r - np.median(r)))) or 1e-3
 
@@ -167,7 +183,6 @@ class _Problem:
         self.L, self.R = _blurred(self.left, sigma), _blurred(self.right, sigma)
         self.Rx = gradient_x(self.R)
         self.lvals = self.L[self.vi, self.ui]
-
 
     def residuals(self, theta, idx=None):
         """(residuals, Jacobian rows (n, 10), usable) at ``theta`` on the current level's images, for the
@@ -321,14 +336,12 @@ def _ring_cells(p: _Problem, theta: np.ndarray):
     j, ok = J[:, 0], ok & (p.prior[ring] > 0)
     scale = _robust_scale(r[ok])
     h = np.where(ok, _huber_weights(r, scale), 0.0)
-    cell = np.unique((p.vi[ring] // RING_CELL_PX) * 100_000 + p.ui[ring] // RING_CELL_PX, return_inverse=True)[1]
+    cell = _cell_index(p.ui[ring], p.vi[ring], RING_CELL_PX)
     k = cell.max() + 1
     info = np.bincount(cell, h * j * j, minlength=k)
     offset = -np.bincount(cell, h * j * r, minlength=k) / np.maximum(info, 1e-12)
     sd = np.where(info > 0, scale / np.sqrt(np.maximum(info, 1e-12)), np.inf)
-    count = np.maximum(np.bincount(cell, minlength=k), 1)
-    du = np.bincount(cell, p.du[ring], minlength=k) / count
-    dv = np.bincount(cell, p.dv[ring], minlength=k) / count
+    du, dv = _cell_means(cell, k, p.du[ring], p.dv[ring])
     return cell, ok, offset, sd, du, dv
 
 
@@ -375,8 +388,7 @@ def _ring_cell_weights(p: _Problem, theta: np.ndarray) -> np.ndarray:
     Returns (ring pixels,) weights in [0, 1], 0 for pixels the fit cannot use."""
     cell, ok, offset, sd, _, _ = _ring_cells(p, theta)
     z = np.where(np.isfinite(sd), offset / (TUKEY_K * sd), np.inf)
-    weight = np.where(np.abs(z) < 1, (1 - z * z) ** 2, 0.0)
-    return np.where(ok, weight[cell], 0.0)
+    return np.where(ok, _tukey_weights(z)[cell], 0.0)
 
 
 def _exposure(p: _Problem, theta: np.ndarray) -> tuple[float, float]:
@@ -439,8 +451,7 @@ def _covariance(J: np.ndarray, r: np.ndarray, h: np.ndarray, p: np.ndarray, u: n
     dof = max(float(p.sum()) - J.shape[1], 1.0)
     s2 = float(np.sum(p * (h * r) ** 2) / dof)
     model = inv @ ((J * (ph * ph)[:, None]).T @ J) @ inv * s2
-    keys = (v // CLUSTER_PX) * 100_000 + (u // CLUSTER_PX)
-    groups = np.unique(keys, return_inverse=True)[1]
+    groups = _cell_index(u, v, CLUSTER_PX)
     g = np.zeros((groups.max() + 1, J.shape[1]))
     np.add.at(g, groups, J * (ph * r)[:, None])
     clustered = inv @ (g.T @ g) @ inv
@@ -463,7 +474,7 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     p = np.ones(len(u)) if weights is None else np.asarray(weights, dtype=np.float64)
     L, R = high_pass(left), high_pass(right)
     Rx = gradient_x(R)
-    cell = np.unique((defect[1] // cell_px) * 100_000 + defect[0] // cell_px, return_inverse=True)[1]
+    cell = _cell_index(defect[0], defect[1], cell_px)
     k = cell.max() + 1
     du, dv = u - (fit.centre[0] - x0), v - (fit.centre[1] - y0)
     plane = th[0] + th[1] * du + th[2] * dv
@@ -488,9 +499,7 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     sd = np.full(k, np.inf)
     has = info > 0
     sd[has] = np.sqrt(fit.residual_sigma**2 * fit.inflation / info[has])
-    count = np.maximum(np.bincount(cell, minlength=k), 1)
-    centres = np.stack([np.bincount(cell, defect[0], minlength=k) / count,
-                        np.bincount(cell, defect[1], minlength=k) / count], axis=1)
+    centres = np.stack(_cell_means(cell, k, defect[0], defect[1]), axis=1)
     return offsets, sd, centres
 
 
@@ -512,7 +521,7 @@ def robust_offset(offsets: np.ndarray, sds: np.ndarray, start: float, iterations
         # cells that scatter more than their noise says widen the cut, or good cells would be cut too
         spread = max(1.0, float(1.4826 * np.median(np.abs(x - mu) / s)))
         z = (x - mu) / (TUKEY_K * s * spread)
-        w = np.where(np.abs(z) < 1, (1 - z * z) ** 2, 0.0)
+        w = _tukey_weights(z)
         if w.sum() <= 0:
             w = np.ones_like(x)
         precision = w / (s * s)

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from core.decision import judge_defect
+from core.decision import judge_defect, rule_applies
 from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
 from core.engine import frame_disparity
 from core.recipe import LoadedRecipe
@@ -116,7 +116,7 @@ def true_measurement(detection: Detection, truth: dict) -> DefectMeasurement:
 def clear_cut(truth: dict, recipe) -> bool:
     """True when the defect's true value is at least CLEAR_CUT_MM from every depth limit that applies to it."""
     for rule in recipe.decision.rules:
-        if rule.class_ not in ("any", truth["class"]) or rule.quantity not in ("deviation_mm", "distance_mm"):
+        if not rule_applies(rule, truth["class"]) or rule.quantity not in ("deviation_mm", "distance_mm"):
             continue
         value = truth[rule.quantity]
         if value is None or abs(value - rule.threshold) < CLEAR_CUT_MM:

@@ -103,10 +103,14 @@ ADDED_COLUMNS = (
 )
 
 
+def _columns(db: sqlite3.Connection, table: str) -> set[str]:
+    return {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
+
+
 def _add_missing_columns(db: sqlite3.Connection) -> None:
+    present = {table: _columns(db, table) for table in {t for t, _, _ in ADDED_COLUMNS}}
     for table, column, kind in ADDED_COLUMNS:
-        present = {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
-        if column not in present:
+        if column not in present[table]:
             db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
 
 
@@ -290,8 +294,7 @@ def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
 
 def crashed_runs(db: sqlite3.Connection, run_id: int | None = None) -> list[dict]:
     """Runs a later run found unfinished, with their parts and the rejects no output confirmed."""
-    present = {row[1] for row in db.execute("PRAGMA table_info(runs)")}
-    if "status" not in present:
+    if "status" not in _columns(db, "runs"):
         return []
     where, args = ("AND r.id = ?", (run_id,)) if run_id is not None else ("", ())
     rows = db.execute(
@@ -325,7 +328,7 @@ def csv_rows(db: sqlite3.Connection, run_id: int | None = None, verdict: str | N
 def _added(db: sqlite3.Connection, table: str, alias: str) -> str:
     """The columns ADDED_COLUMNS gives ``table``, as a select list: NULL for each that a store made by an
     older version (opened read-only, so not migrated) lacks."""
-    present = {row[1] for row in db.execute(f"PRAGMA table_info({table})")}
+    present = _columns(db, table)
     return ", ".join(f"{alias}.{c}" if c in present else "NULL" for t, c, _ in ADDED_COLUMNS if t == table)
 
 

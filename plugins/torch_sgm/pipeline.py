@@ -6,7 +6,7 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import aggregate, align, cost, planes, refine, search, select, sgm
+from plugins.torch_sgm import aggregate, align, cost, planes, refine, search, select, sgm, sgm_numba
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -177,7 +177,10 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
     local = (select.local_winners(volume, disparities, p.lr_tolerance)
              if p.fill != "none" and p.plane_fill and p.plane_local else None)
-    aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
+    if fast and sgm_numba.available(volume):
+        aggregated = sgm_numba.sgm_numba(volume, p.p1, penalty, paths)
+    else:
+        aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
     del volume
     fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel
     disp, index, right_disp, consistent = select.checked_winners(aggregated, disparities, p.lr_tolerance, fit)

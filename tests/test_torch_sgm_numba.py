@@ -1,0 +1,58 @@
+"""The compiled SGM (``sgm_numba``) against the plain stage function it replaces on the CPU (``sgm.sgm``)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from plugins.torch_sgm import sgm, sgm_numba
+from plugins.torch_sgm.params import TorchSGMParams
+from plugins.torch_sgm.pipeline import compute_disparity
+from plugins.torch_sgm.synthetic import layered_scene
+
+ONE_WAY = ((0, 1), (1, 1), (-1, 0))
+
+
+class TestSgmNumba:
+    @pytest.mark.parametrize("paths", [sgm.PATHS_4, sgm.PATHS_8, ONE_WAY])
+    @pytest.mark.parametrize("shape", [(1, 9, 13, 17), (2, 5, 1, 6), (1, 4, 7, 1)])
+    def test_equals_the_reference_with_one_p2_map_per_path(self, paths, shape):
+        g = torch.Generator().manual_seed(3)
+        volume = torch.rand(shape, generator=g)
+        p2 = 0.3 + torch.rand(shape[0], len(paths), *shape[2:], generator=g)
+        ref = sgm.sgm(volume, 0.1, p2, paths)
+        assert torch.allclose(sgm_numba.sgm_numba(volume, 0.1, p2, paths), ref, atol=1e-5)
+        # each path reads its own map: swapping them changes the sums
+        if len(paths) > 1 and shape[2] > 1 and shape[3] > 1:
+            assert not torch.allclose(sgm_numba.sgm_numba(volume, 0.1, p2.flip(1), paths), ref, atol=1e-3)
+
+    @pytest.mark.parametrize("p2", [0.5, "map"])
+    def test_equals_the_reference_with_a_scalar_or_one_map(self, p2):
+        g = torch.Generator().manual_seed(4)
+        volume = torch.rand(1, 8, 11, 14, generator=g)
+        p2 = torch.rand(1, 11, 14, generator=g) + 0.2 if p2 == "map" else p2
+        assert torch.allclose(sgm_numba.sgm_numba(volume, 0.08, p2, sgm.PATHS_8), sgm.sgm(volume, 0.08, p2, sgm.PATHS_8),
+                              atol=1e-5)
+
+    def test_a_single_disparity_is_the_cost_times_the_paths(self):
+        volume = torch.rand(1, 1, 6, 7)
+        assert torch.allclose(sgm_numba.sgm_numba(volume, 0.1, 0.5, sgm.PATHS_4), 4 * volume, atol=1e-6)
+
+    def test_refuses_what_it_cannot_compute(self):
+        with pytest.raises(ValueError, match="float32 CPU"):
+            sgm_numba.sgm_numba(torch.rand(1, 3, 4, 5, dtype=torch.float64), 0.1, 0.5)
+        with pytest.raises(ValueError, match=r"\(B, D, H, W\)"):
+            sgm_numba.sgm_numba(torch.rand(3, 4, 5), 0.1, 0.5)
+        assert not sgm_numba.available(torch.rand(1, 2, 3, 4, dtype=torch.float64))
+
+
+class TestPipelineUsesIt:
+    def test_the_fast_implementation_gives_the_reference_map(self):
+        """The improved preset's map with the compiled SGM (fast) and with the plain stage functions."""
+        left, right, _, _ = layered_scene(48, 72, seed=2)
+        fast, fast_ok = compute_disparity(left, right, 0, 24, TorchSGMParams(implementation="fast"))
+        ref, ref_ok = compute_disparity(left, right, 0, 24, TorchSGMParams(implementation="reference"))
+        assert (fast_ok == ref_ok).mean() > 0.995
+        both = np.isfinite(fast) & np.isfinite(ref)
+        assert both.mean() > 0.9
+        assert (np.abs(fast[both] - ref[both]) > 0.05).mean() < 0.005

@@ -45,6 +45,17 @@ class TestSgmNumba:
             sgm_numba.sgm_numba(torch.rand(3, 4, 5), 0.1, 0.5)
         assert not sgm_numba.available(torch.rand(1, 2, 3, 4, dtype=torch.float64))
 
+    def test_runs_on_torchs_thread_count(self):
+        import numba
+
+        before = torch.get_num_threads()
+        try:
+            torch.set_num_threads(1)
+            sgm_numba.sgm_numba(torch.rand(1, 3, 4, 5), 0.1, 0.5)
+            assert numba.get_num_threads() == 1
+        finally:
+            torch.set_num_threads(before)
+
 
 class TestPipelineUsesIt:
     def test_the_fast_implementation_gives_the_reference_map(self):
@@ -56,3 +67,4 @@ class TestPipelineUsesIt:
         both = np.isfinite(fast) & np.isfinite(ref)
         assert both.mean() > 0.9
         assert (np.abs(fast[both] - ref[both]) > 0.05).mean() < 0.005
+

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import numba
 from numba import njit, prange
 
 from plugins.torch_sgm import sgm
@@ -85,6 +86,9 @@ def sgm_numba(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sgm
     if cost.dim() != 4:
         raise ValueError(f"sgm_numba: cost must be (B, D, H, W), got {tuple(cost.shape)}")
     penalty = sgm._per_path(p2, cost, paths)
+    # the process's one thread setting (recipe ``threads``, ``--threads``) is torch's: two stations on
+    # two cores must not each spin numba's threads on both
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
     c = np.ascontiguousarray(cost.numpy())
     out = np.zeros_like(c)
     for dy, dx in paths:

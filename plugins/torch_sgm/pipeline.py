@@ -6,7 +6,7 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import aggregate, align, cost, planes, refine, search, select, sgm, sgm_numba
+from plugins.torch_sgm import aggregate, align, cost, planes, refine, search, select, sgm, sgm_numba, refine_numba
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -236,8 +236,12 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
 
 
 def plane_fit(disp: torch.Tensor, left: torch.Tensor, p: TorchSGMParams) -> torch.Tensor:
-    """``refine.local_plane_fit`` of the (B, H, W) map with the settings' radius, weights and tolerance."""
-    return refine.local_plane_fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space, p.fit_tolerance)
+    """``refine.local_plane_fit`` of the (B, H, W) map with the settings' radius, weights and tolerance
+    (compiled on the CPU with the fast implementation)."""
+    fit = (refine_numba.local_plane_fit_numba
+           if p.implementation == "fast" and sgm_numba.available(disp) and sgm_numba.available(left)
+           else refine.local_plane_fit)
+    return fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space, p.fit_tolerance)
 
 
 def right_view_map(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,

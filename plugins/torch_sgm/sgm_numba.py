@@ -73,6 +73,13 @@ def _across_rows(cost, out, p2, p1, dy, dx):
                       p2[b, y, x], fresh)
 
 
+def follow_torch_threads() -> None:
+    """Run numba's parallel loops on as many threads as torch has."""
+    # the process's one thread setting (recipe ``threads``, ``--threads``) is torch's: two stations on
+    # two cores must not each spin numba's threads on both
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+
+
 def available(cost: torch.Tensor) -> bool:
     """True where this kernel can stand in for ``sgm.sgm``: a CPU tensor of float32."""
     return cost.device.type == "cpu" and cost.dtype == torch.float32
@@ -86,9 +93,7 @@ def sgm_numba(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sgm
     if cost.dim() != 4:
         raise ValueError(f"sgm_numba: cost must be (B, D, H, W), got {tuple(cost.shape)}")
     penalty = sgm._per_path(p2, cost, paths)
-    # the process's one thread setting (recipe ``threads``, ``--threads``) is torch's: two stations on
-    # two cores must not each spin numba's threads on both
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    follow_torch_threads()
     c = np.ascontiguousarray(cost.numpy())
     out = np.zeros_like(c)
     for dy, dx in paths:

@@ -1,13 +1,13 @@
-"""The compiled SGM (``sgm_numba``) against the plain stage function it replaces on the CPU (``sgm.sgm``)."""
+"""The stages compiled with numba against the plain stage functions they replace on the CPU."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
 
-from plugins.torch_sgm import sgm, sgm_numba
+from plugins.torch_sgm import refine, refine_numba, sgm, sgm_numba
 from plugins.torch_sgm.params import TorchSGMParams
-from plugins.torch_sgm.pipeline import compute_disparity
+from plugins.torch_sgm.pipeline import bgr_to_tensor, compute_disparity
 from plugins.torch_sgm.synthetic import layered_scene
 
 ONE_WAY = ((0, 1), (1, 1), (-1, 0))
@@ -55,6 +55,37 @@ class TestSgmNumba:
             assert numba.get_num_threads() == 1
         finally:
             torch.set_num_threads(before)
+
+
+class TestLocalPlaneFitNumba:
+    def scene(self, seed=1):
+        left, _, gt, _ = layered_scene(40, 64, seed=seed)
+        image = bgr_to_tensor(left, torch.device("cpu"))
+        g = torch.Generator().manual_seed(seed)
+        disp = torch.from_numpy(gt).float()[None] + 0.4 * torch.rand(1, 40, 64, generator=g)
+        disp[:, 5:9, 10:20] = float("nan")  # holes take no part and stay holes
+        return disp, image
+
+    @pytest.mark.parametrize("radius,sigma_colour,tolerance", [(3, 0.1, 1.0), (1, 1e3, 0.5), (4, 0.05, 2.0)])
+    def test_equals_the_reference(self, radius, sigma_colour, tolerance):
+        disp, image = self.scene()
+        ref = refine.local_plane_fit(disp, image, radius, sigma_colour, 5.0, tolerance)
+        out = refine_numba.local_plane_fit_numba(disp, image, radius, sigma_colour, 5.0, tolerance)
+        assert torch.equal(torch.isfinite(out), torch.isfinite(ref))
+        both = torch.isfinite(ref)
+        assert torch.allclose(out[both], ref[both], atol=1e-4)
+        assert (out[both] - disp[both]).abs().max() > 0.05  # it did move pixels
+
+    def test_radius_zero_returns_the_map(self):
+        disp, image = self.scene()
+        assert refine_numba.local_plane_fit_numba(disp, image, 0, 0.1, 5.0) is disp
+
+    def test_refuses_mismatched_shapes(self):
+        disp, image = self.scene()
+        with pytest.raises(ValueError, match="must match"):
+            refine_numba.local_plane_fit_numba(disp[:, :-1], image, 3, 0.1, 5.0)
+        with pytest.raises(ValueError, match="float32 CPU"):
+            refine_numba.local_plane_fit_numba(disp.double(), image, 3, 0.1, 5.0)
 
 
 class TestPipelineUsesIt:

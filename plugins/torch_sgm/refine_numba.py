@@ -1,0 +1,108 @@
+"""``refine.local_plane_fit`` compiled for the CPU with numba: the same weighted window moments and
+3x3 solve, one pixel at a time instead of (2r+1)^2 whole-map tensor passes (which on the line's small
+crops cost more in per-operation overhead than in arithmetic). ``refine.local_plane_fit`` stays the
+reference the tests hold this one to.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from numba import njit, prange
+
+from plugins.torch_sgm import sgm_numba
+
+
+@njit(cache=True, inline="always")
+def _solve3(m, r):
+    """The third unknown of the 3x3 system ``m x = r`` by Gaussian elimination with partial pivoting
+    (as LAPACK's getrf/getrs); NaN where a pivot is exactly zero (LAPACK's info != 0). m, r are
+    overwritten."""
+    for col in range(3):
+        pivot = col
+        for row in range(col + 1, 3):
+            if abs(m[row, col]) > abs(m[pivot, col]):
+                pivot = row
+        if m[pivot, col] == 0.0:
+            return math.nan
+        if pivot != col:
+            for k in range(3):
+                m[col, k], m[pivot, k] = m[pivot, k], m[col, k]
+            r[col], r[pivot] = r[pivot], r[col]
+        for row in range(col + 1, 3):
+            f = m[row, col] / m[col, col]
+            for k in range(col, 3):
+                m[row, k] -= f * m[col, k]
+            r[row] -= f * r[col]
+    x2 = r[2] / m[2, 2]
+    x1 = (r[1] - m[1, 2] * x2) / m[1, 1]
+    x0 = (r[0] - m[0, 1] * x1 - m[0, 2] * x2) / m[0, 0]
+    return x2 if math.isfinite(x0) and math.isfinite(x1) else math.nan
+
+
+@njit(cache=True, parallel=True)
+def _plane_fit(disp, image, radius, inv_colour2, inv_space2, tolerance, out):
+    n_b, h, w = disp.shape
+    channels = image.shape[1]
+    for job in prange(n_b * h):
+        b, y = job // h, job % h
+        m = np.empty((3, 3))
+        r = np.empty(3)
+        for x in range(w):
+            d0 = disp[b, y, x]
+            out[b, y, x] = d0
+            if not math.isfinite(d0):
+                continue
+            s1 = su = sv = suu = suv = svv = sd = sud = svd = 0.0
+            for v in range(-radius, radius + 1):
+                yy = y + v
+                if yy < 0 or yy >= h:
+                    continue
+                for u in range(-radius, radius + 1):
+                    xx = x + u
+                    if xx < 0 or xx >= w:
+                        continue
+                    rel = disp[b, yy, xx] - d0
+                    if not abs(rel) <= tolerance:  # NaN fails too
+                        continue
+                    colour = 0.0
+                    for c in range(channels):
+                        diff = image[b, c, yy, xx] - image[b, c, y, x]
+                        colour += diff * diff
+                    weight = math.exp(-colour * inv_colour2 - (u * u + v * v) * inv_space2)
+                    s1 += weight
+                    su += weight * u
+                    sv += weight * v
+                    suu += weight * u * u
+                    suv += weight * u * v
+                    svv += weight * v * v
+                    sd += weight * rel
+                    sud += weight * u * rel
+                    svd += weight * v * rel
+            m[0, 0], m[0, 1], m[0, 2] = suu, suv, su
+            m[1, 0], m[1, 1], m[1, 2] = suv, svv, sv
+            m[2, 0], m[2, 1], m[2, 2] = su, sv, s1
+            r[0], r[1], r[2] = sud, svd, sd
+            shift = _solve3(m, r)
+            if math.isfinite(shift) and abs(shift) <= tolerance:
+                out[b, y, x] = d0 + shift
+
+
+def local_plane_fit_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, sigma_colour: float,
+                          sigma_space: float, tolerance: float = 1.0) -> torch.Tensor:
+    """``refine.local_plane_fit`` on the CPU: disp (B, H, W) float32, image (B, C, H, W) float32 ->
+    (B, H, W); the same arguments and result (up to float rounding: the moments are summed in float64)."""
+    if not (sgm_numba.available(disp) and sgm_numba.available(image)):
+        raise ValueError(f"local_plane_fit_numba: needs float32 CPU tensors, got {disp.dtype} on {disp.device}")
+    if disp.dim() != 3 or image.dim() != 4 or image.shape[0] != disp.shape[0] or image.shape[-2:] != disp.shape[-2:]:
+        raise ValueError(f"local_plane_fit_numba: disp (B, H, W) {tuple(disp.shape)} and image (B, C, H, W) "
+                         f"{tuple(image.shape)} must match")
+    if radius <= 0:
+        return disp
+    sgm_numba.follow_torch_threads()
+    d = np.ascontiguousarray(disp.numpy())
+    out = np.empty_like(d)
+    _plane_fit(d, np.ascontiguousarray(image.numpy()), int(radius), 1.0 / sigma_colour ** 2,
+               1.0 / sigma_space ** 2, float(tolerance), out)
+    return torch.from_numpy(out)

@@ -88,6 +88,30 @@ class TestLocalPlaneFitNumba:
             refine_numba.local_plane_fit_numba(disp.double(), image, 3, 0.1, 5.0)
 
 
+class TestWeightedMedianNumba:
+    def scene(self):
+        left, _, gt, _ = layered_scene(40, 64, seed=3)
+        g = torch.Generator().manual_seed(3)
+        return torch.from_numpy(gt).float()[None] + 0.3 * torch.rand(1, 40, 64, generator=g), bgr_to_tensor(left, torch.device("cpu"))
+
+    @pytest.mark.parametrize("radius,sigma_colour,jump", [(4, 0.1, 0.0), (4, 0.1, 1.0), (2, 1e3, 0.5)])
+    def test_equals_the_reference(self, radius, sigma_colour, jump):
+        disp, image = self.scene()
+        ref = refine.weighted_median(disp, image, radius, sigma_colour, 5.0, jump)
+        out = refine_numba.weighted_median_numba(disp, image, radius, sigma_colour, 5.0, jump)
+        assert (out != ref).float().mean() < 0.002
+        assert (out != disp).any()  # it did filter
+
+    def test_radius_zero_returns_the_map(self):
+        disp, image = self.scene()
+        assert refine_numba.weighted_median_numba(disp, image, 0, 0.1, 5.0) is disp
+
+    def test_refuses_mismatched_shapes(self):
+        disp, image = self.scene()
+        with pytest.raises(ValueError, match="must match"):
+            refine_numba.weighted_median_numba(disp, image[..., :-1], 3, 0.1, 5.0)
+
+
 class TestPipelineUsesIt:
     def test_the_fast_implementation_gives_the_reference_map(self):
         """The improved preset's map with the compiled SGM (fast) and with the plain stage functions."""

@@ -177,7 +177,7 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
     local = (select.local_winners(volume, disparities, p.lr_tolerance)
              if p.fill != "none" and p.plane_fill and p.plane_local else None)
-    if fast and sgm_numba.available(volume):
+    if compiled(p, volume):
         aggregated = sgm_numba.sgm_numba(volume, p.p1, penalty, paths)
     else:
         aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
@@ -219,8 +219,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         disp = refine.median_fill(disp, holes, p.median_radius)
         if p.median_scope == "all" and p.median_radius > 0:
             disp = refine.median_filter(disp, p.median_radius)
-        disp = refine.weighted_median(disp, left, p.wmf_radius, p.wmf_sigma_colour, p.wmf_sigma_space,
-                                       p.wmf_jump)
+        median = refine_numba.weighted_median_numba if compiled(p, disp, left) else refine.weighted_median
+        disp = median(disp, left, p.wmf_radius, p.wmf_sigma_colour, p.wmf_sigma_space, p.wmf_jump)
         disp = plane_fit(disp, left, p)
     if p.two_view and p.fill != "none":
         right_map = right_view_map(left, given_right, min_disp, max_disp, p)
@@ -235,12 +235,16 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     return disp, consistent
 
 
+def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
+    """Whether the stages compiled with numba stand in for the torch ones: the fast implementation, on
+    float32 CPU tensors."""
+    return p.implementation == "fast" and all(sgm_numba.available(t) for t in tensors)
+
+
 def plane_fit(disp: torch.Tensor, left: torch.Tensor, p: TorchSGMParams) -> torch.Tensor:
     """``refine.local_plane_fit`` of the (B, H, W) map with the settings' radius, weights and tolerance
     (compiled on the CPU with the fast implementation)."""
-    fit = (refine_numba.local_plane_fit_numba
-           if p.implementation == "fast" and sgm_numba.available(disp) and sgm_numba.available(left)
-           else refine.local_plane_fit)
+    fit = refine_numba.local_plane_fit_numba if compiled(p, disp, left) else refine.local_plane_fit
     return fit(disp, left, p.fit_radius, p.fit_sigma_colour, p.fit_sigma_space, p.fit_tolerance)
 
 

@@ -1,7 +1,7 @@
-"""``refine.local_plane_fit`` compiled for the CPU with numba: the same weighted window moments and
-3x3 solve, one pixel at a time instead of (2r+1)^2 whole-map tensor passes (which on the line's small
-crops cost more in per-operation overhead than in arithmetic). ``refine.local_plane_fit`` stays the
-reference the tests hold this one to.
+"""``refine.local_plane_fit`` and ``refine.weighted_median`` compiled for the CPU with numba: the same
+arithmetic one pixel at a time instead of whole-map tensor passes per window offset (which on the
+line's small crops cost more in per-operation overhead than in arithmetic). The ``refine`` functions
+stay the references the tests hold these to.
 """
 from __future__ import annotations
 
@@ -105,4 +105,67 @@ def local_plane_fit_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, 
     out = np.empty_like(d)
     _plane_fit(d, np.ascontiguousarray(image.numpy()), int(radius), 1.0 / sigma_colour ** 2,
                1.0 / sigma_space ** 2, float(tolerance), out)
+    return torch.from_numpy(out)
+
+
+@njit(cache=True, parallel=True)
+def _weighted_median(disp, image, radius, inv_colour2, inv_space2, jump, out):
+    n_b, h, w = disp.shape
+    channels = image.shape[1]
+    k = 2 * radius + 1
+    for job in prange(n_b * h):
+        b, y = job // h, job % h
+        values = np.empty(k * k, disp.dtype)
+        weights = np.empty(k * k)
+        for x in range(w):
+            out[b, y, x] = disp[b, y, x]
+            if jump > 0:  # the window's span over the pixels inside the image
+                top, bottom = -np.inf, np.inf
+                for yy in range(max(y - radius, 0), min(y + radius + 1, h)):
+                    for xx in range(max(x - radius, 0), min(x + radius + 1, w)):
+                        top = max(top, disp[b, yy, xx])
+                        bottom = min(bottom, disp[b, yy, xx])
+                if not top - bottom > jump:
+                    continue
+            n = 0
+            for v in range(-radius, radius + 1):
+                yy = min(max(y + v, 0), h - 1)  # the border replicated, as the reference pads
+                for u in range(-radius, radius + 1):
+                    xx = min(max(x + u, 0), w - 1)
+                    colour = 0.0
+                    for c in range(channels):
+                        diff = image[b, c, yy, xx] - image[b, c, y, x]
+                        colour += diff * diff
+                    values[n] = disp[b, yy, xx]
+                    weights[n] = math.exp(-colour * inv_colour2 - (u * u + v * v) * inv_space2)
+                    n += 1
+            order = np.argsort(values)
+            total = weights.sum()
+            running = 0.0
+            at = k * k - 1
+            for i in range(k * k):
+                running += weights[order[i]]
+                if not running < total / 2:
+                    at = i
+                    break
+            out[b, y, x] = values[order[at]]
+
+
+def weighted_median_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, sigma_colour: float,
+                          sigma_space: float, jump: float = 0.0) -> torch.Tensor:
+    """``refine.weighted_median`` on the CPU: disp (B, H, W) float32 without holes, image (B, C, H, W)
+    float32 -> (B, H, W); the same arguments and result (the weights are summed in float64, so where the
+    running weight meets half the total within rounding a neighbouring value may be taken)."""
+    if not (sgm_numba.available(disp) and sgm_numba.available(image)):
+        raise ValueError(f"weighted_median_numba: needs float32 CPU tensors, got {disp.dtype} on {disp.device}")
+    if disp.dim() != 3 or image.dim() != 4 or image.shape[0] != disp.shape[0] or image.shape[-2:] != disp.shape[-2:]:
+        raise ValueError(f"weighted_median_numba: disp (B, H, W) {tuple(disp.shape)} and image (B, C, H, W) "
+                         f"{tuple(image.shape)} must match")
+    if radius <= 0:
+        return disp
+    sgm_numba.follow_torch_threads()
+    d = np.ascontiguousarray(disp.numpy())
+    out = np.empty_like(d)
+    _weighted_median(d, np.ascontiguousarray(image.numpy()), int(radius), 1.0 / sigma_colour ** 2,
+                     1.0 / sigma_space ** 2, float(jump), out)
     return torch.from_numpy(out)

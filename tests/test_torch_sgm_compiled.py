@@ -53,6 +53,7 @@ class TestSgmNumba:
             torch.set_num_threads(1)
             sgm_numba.sgm_numba(torch.rand(1, 3, 4, 5), 0.1, 0.5)
             assert numba.get_num_threads() == 1
+            assert torch.get_num_threads() == 1  # and torch's own count is left as it was
         finally:
             torch.set_num_threads(before)
 

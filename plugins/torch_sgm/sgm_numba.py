@@ -15,6 +15,10 @@ from numba import njit, prange
 
 from plugins.torch_sgm import sgm
 
+# numba's own thread pool, not OpenMP's: its OpenMP layer resets the thread count torch reads, so the
+# process's threads setting would be lost after the first compiled stage
+numba.config.THREADING_LAYER = "workqueue"
+
 
 @njit(cache=True, inline="always")
 def _step(cost, out, prev, cur, b, y, x, p1, p2, fresh):

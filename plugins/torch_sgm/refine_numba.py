@@ -100,11 +100,11 @@ def local_plane_fit_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, 
                          f"{tuple(image.shape)} must match")
     if radius <= 0:
         return disp
-    sgm_numba.follow_torch_threads()
     d = np.ascontiguousarray(disp.numpy())
     out = np.empty_like(d)
-    _plane_fit(d, np.ascontiguousarray(image.numpy()), int(radius), 1.0 / sigma_colour ** 2,
-               1.0 / sigma_space ** 2, float(tolerance), out)
+    with sgm_numba.torch_threads():
+        _plane_fit(d, np.ascontiguousarray(image.numpy()), int(radius), 1.0 / sigma_colour ** 2,
+                   1.0 / sigma_space ** 2, float(tolerance), out)
     return torch.from_numpy(out)
 
 
@@ -163,9 +163,9 @@ def weighted_median_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, 
                          f"{tuple(image.shape)} must match")
     if radius <= 0:
         return disp
-    sgm_numba.follow_torch_threads()
     d = np.ascontiguousarray(disp.numpy())
     out = np.empty_like(d)
-    _weighted_median(d, np.ascontiguousarray(image.numpy()), int(radius), 1.0 / sigma_colour ** 2,
-                     1.0 / sigma_space ** 2, float(jump), out)
+    with sgm_numba.torch_threads():
+        _weighted_median(d, np.ascontiguousarray(image.numpy()), int(radius), 1.0 / sigma_colour ** 2,
+                         1.0 / sigma_space ** 2, float(jump), out)
     return torch.from_numpy(out)

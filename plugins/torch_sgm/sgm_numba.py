@@ -8,6 +8,8 @@ the columns. ``sgm.sgm`` stays the reference the tests hold this one to.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 import torch
 import numba
@@ -15,41 +17,40 @@ from numba import njit, prange
 
 from plugins.torch_sgm import sgm
 
-# numba's own thread pool, not OpenMP's: its OpenMP layer resets the thread count torch reads, so the
-# process's threads setting would be lost after the first compiled stage
-numba.config.THREADING_LAYER = "workqueue"
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", fastmath=True)
 def _step(cost, out, prev, cur, b, y, x, p1, p2, fresh):
-    """One pixel of one path: ``cur`` from ``prev`` (the predecessor's path costs), added to ``out``."""
-    d_count = cost.shape[1]
+    """One pixel of one path: ``cur`` from ``prev`` (the predecessor's path costs), added to ``out``.
+    cost, out: (B, H, W, D), so that a pixel's disparities lie side by side."""
+    d_count = cost.shape[3]
+    c, o = cost[b, y, x], out[b, y, x]
     if fresh:
         for d in range(d_count):
-            cur[d] = cost[b, d, y, x]
-            out[b, d, y, x] += cur[d]
+            cur[d] = c[d]
+            o[d] += c[d]
         return
     floor = prev[0]
     for d in range(1, d_count):
-        if prev[d] < floor:
-            floor = prev[d]
+        floor = min(floor, prev[d])
     jump = floor + p2
+    if d_count == 1:
+        cur[0] = c[0] + min(prev[0], jump) - floor
+        o[0] += cur[0]
+        return
+    cur[0] = c[0] + min(min(prev[0], prev[1] + p1), jump) - floor
+    for d in range(1, d_count - 1):
+        cur[d] = c[d] + min(min(prev[d], min(prev[d - 1], prev[d + 1]) + p1), jump) - floor
+    last = d_count - 1
+    cur[last] = c[last] + min(min(prev[last], prev[last - 1] + p1), jump) - floor
     for d in range(d_count):
-        best = prev[d]
-        if d > 0 and prev[d - 1] + p1 < best:
-            best = prev[d - 1] + p1
-        if d < d_count - 1 and prev[d + 1] + p1 < best:
-            best = prev[d + 1] + p1
-        if jump < best:
-            best = jump
-        cur[d] = cost[b, d, y, x] + best - floor
-        out[b, d, y, x] += cur[d]
+        o[d] += cur[d]
 
 
 @njit(cache=True, parallel=True)
 def _along_rows(cost, out, p2, p1, dx):
     """A horizontal path (dy = 0): each row on its own."""
-    n_b, d_count, h, w = cost.shape
+    n_b, h, w, d_count = cost.shape
     for job in prange(n_b * h):
         b, y = job // h, job % h
         prev = np.empty(d_count, cost.dtype)
@@ -64,7 +65,7 @@ def _along_rows(cost, out, p2, p1, dx):
 def _across_rows(cost, out, p2, p1, dy, dx):
     """A path with dy != 0: row after row, the pixels of a row in parallel. ``state`` holds each column's
     path costs at the previous row; a diagonal reads its neighbour's column there."""
-    n_b, d_count, h, w = cost.shape
+    n_b, h, w, d_count = cost.shape
     for b in range(n_b):
         state = np.empty((2, w, d_count), cost.dtype)
         for i in range(h):
@@ -77,11 +78,18 @@ def _across_rows(cost, out, p2, p1, dy, dx):
                       p2[b, y, x], fresh)
 
 
-def follow_torch_threads() -> None:
-    """Run numba's parallel loops on as many threads as torch has."""
+@contextmanager
+def torch_threads():
+    """Run numba's parallel loops on as many threads as torch has, and leave torch's count as it was."""
     # the process's one thread setting (recipe ``threads``, ``--threads``) is torch's: two stations on
-    # two cores must not each spin numba's threads on both
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    # two cores must not each spin numba's threads on both. numba's OpenMP layer resets the OpenMP
+    # thread count that torch reads, so it is put back.
+    n = torch.get_num_threads()
+    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
 
 
 def available(cost: torch.Tensor) -> bool:
@@ -97,13 +105,13 @@ def sgm_numba(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sgm
     if cost.dim() != 4:
         raise ValueError(f"sgm_numba: cost must be (B, D, H, W), got {tuple(cost.shape)}")
     penalty = sgm._per_path(p2, cost, paths)
-    follow_torch_threads()
-    c = np.ascontiguousarray(cost.numpy())
-    out = np.zeros_like(c)
-    for dy, dx in paths:
-        p = np.ascontiguousarray(penalty[dy, dx].to(cost.dtype).numpy())
-        if dy == 0:
-            _along_rows(c, out, p, float(p1), int(dx))
-        else:
-            _across_rows(c, out, p, float(p1), int(dy), int(dx))
-    return torch.from_numpy(out)
+    with torch_threads():
+        c = np.ascontiguousarray(cost.numpy().transpose(0, 2, 3, 1))  # (B, H, W, D)
+        out = np.zeros_like(c)
+        for dy, dx in paths:
+            p = np.ascontiguousarray(penalty[dy, dx].to(cost.dtype).numpy())
+            if dy == 0:
+                _along_rows(c, out, p, float(p1), int(dx))
+            else:
+                _across_rows(c, out, p, float(p1), int(dy), int(dx))
+    return torch.from_numpy(np.ascontiguousarray(out.transpose(0, 3, 1, 2)))

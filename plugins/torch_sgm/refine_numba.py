@@ -93,18 +93,24 @@ def local_plane_fit_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, 
                           sigma_space: float, tolerance: float = 1.0) -> torch.Tensor:
     """``refine.local_plane_fit`` on the CPU: disp (B, H, W) float32, image (B, C, H, W) float32 ->
     (B, H, W); the same arguments and result (up to float rounding: the moments are summed in float64)."""
+    return _windowed("local_plane_fit_numba", _plane_fit, disp, image, radius, sigma_colour, sigma_space, tolerance)
+
+
+def _windowed(name, kernel, disp, image, radius, sigma_colour, sigma_space, last):
+    """Check the maps, then run a window ``kernel`` of (disp, image, radius, 1 / sigma_colour^2,
+    1 / sigma_space^2, ``last``, out) on torch's threads; ``disp`` itself at radius 0."""
     if not (sgm_numba.available(disp) and sgm_numba.available(image)):
-        raise ValueError(f"local_plane_fit_numba: needs float32 CPU tensors, got {disp.dtype} on {disp.device}")
+        raise ValueError(f"{name}: needs float32 CPU tensors, got {disp.dtype} on {disp.device}")
     if disp.dim() != 3 or image.dim() != 4 or image.shape[0] != disp.shape[0] or image.shape[-2:] != disp.shape[-2:]:
-        raise ValueError(f"local_plane_fit_numba: disp (B, H, W) {tuple(disp.shape)} and image (B, C, H, W) "
+        raise ValueError(f"{name}: disp (B, H, W) {tuple(disp.shape)} and image (B, C, H, W) "
                          f"{tuple(image.shape)} must match")
     if radius <= 0:
         return disp
     d = np.ascontiguousarray(disp.numpy())
     out = np.empty_like(d)
     with sgm_numba.torch_threads():
-        _plane_fit(d, np.ascontiguousarray(image.numpy()), int(radius), 1.0 / sigma_colour ** 2,
-                   1.0 / sigma_space ** 2, float(tolerance), out)
+        kernel(d, np.ascontiguousarray(image.numpy()), int(radius), 1.0 / sigma_colour ** 2, 1.0 / sigma_space ** 2,
+               float(last), out)
     return torch.from_numpy(out)
 
 
@@ -156,16 +162,4 @@ def weighted_median_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, 
     """``refine.weighted_median`` on the CPU: disp (B, H, W) float32 without holes, image (B, C, H, W)
     float32 -> (B, H, W); the same arguments and result (the weights are summed in float64, so where the
     running weight meets half the total within rounding a neighbouring value may be taken)."""
-    if not (sgm_numba.available(disp) and sgm_numba.available(image)):
-        raise ValueError(f"weighted_median_numba: needs float32 CPU tensors, got {disp.dtype} on {disp.device}")
-    if disp.dim() != 3 or image.dim() != 4 or image.shape[0] != disp.shape[0] or image.shape[-2:] != disp.shape[-2:]:
-        raise ValueError(f"weighted_median_numba: disp (B, H, W) {tuple(disp.shape)} and image (B, C, H, W) "
-                         f"{tuple(image.shape)} must match")
-    if radius <= 0:
-        return disp
-    d = np.ascontiguousarray(disp.numpy())
-    out = np.empty_like(d)
-    with sgm_numba.torch_threads():
-        _weighted_median(d, np.ascontiguousarray(image.numpy()), int(radius), 1.0 / sigma_colour ** 2,
-                         1.0 / sigma_space ** 2, float(jump), out)
-    return torch.from_numpy(out)
+    return _windowed("weighted_median_numba", _weighted_median, disp, image, radius, sigma_colour, sigma_space, jump)

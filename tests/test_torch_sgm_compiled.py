@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from plugins.torch_sgm import refine, refine_numba, sgm, sgm_numba
+from plugins.torch_sgm import planes, planes_numba, refine, refine_numba, sgm, sgm_numba
 from plugins.torch_sgm.params import TorchSGMParams
 from plugins.torch_sgm.pipeline import bgr_to_tensor, compute_disparity
 from plugins.torch_sgm.synthetic import layered_scene
@@ -111,6 +111,54 @@ class TestWeightedMedianNumba:
         disp, image = self.scene()
         with pytest.raises(ValueError, match="must match"):
             refine_numba.weighted_median_numba(disp, image[..., :-1], 3, 0.1, 5.0)
+
+
+class TestRegionPlanesNumba:
+    def scene(self, seed=5):
+        """Six regions (and an edge column) each on its own slanted plane, with noise, 30 % mismatches and
+        70 % of the pixels matched; one region holds only mismatches, one too few matches."""
+        h, w = 48, 72
+        y, x = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
+                              indexing="ij")
+        labels = (1 + (y >= 24).long() * 3 + (x >= 24).long() + (x >= 48).long())[None]
+        labels[:, :, 36] = 0
+        g = torch.Generator().manual_seed(seed)
+        coeffs = torch.rand(7, 3, generator=g) * torch.tensor([0.4, 0.4, 30.0]) + torch.tensor([-0.2, -0.2, 10.0])
+        c = coeffs[labels]
+        disp = c[..., 0] * x + c[..., 1] * y + c[..., 2] + 0.2 * torch.rand(1, h, w, generator=g)
+        wrong = (torch.rand(disp.shape, generator=g) < 0.3) | (labels == 6)
+        disp = torch.where(wrong, disp + 3 + 8 * torch.rand(disp.shape, generator=g), disp)
+        matched = (torch.rand(disp.shape, generator=g) < 0.7) & ((labels != 3) | (x < 52))
+        return disp, matched, labels
+
+    @pytest.mark.parametrize("samples", [0, 32])
+    @pytest.mark.parametrize("with_wanted", [False, True])
+    def test_equals_the_reference(self, samples, with_wanted):
+        disp, matched, labels = self.scene()
+        wanted = (torch.arange(72) < 30).expand_as(disp).contiguous() if with_wanted else None
+        ref, ref_ok = planes.region_planes(disp, matched, labels, 40, 0.5, samples=samples, wanted=wanted, seed=2)
+        out, ok = planes_numba.region_planes_numba(disp, matched, labels, 40, 0.5, samples=samples, wanted=wanted,
+                                                   seed=2)
+        assert torch.equal(ok, ref_ok) and ok.any() and not ok.all()
+        assert torch.equal(torch.isfinite(out), torch.isfinite(ref))
+        both = torch.isfinite(ref)
+        assert both.any() and torch.allclose(out[both], ref[both], atol=1e-4)
+
+    def test_the_seed_picks_the_triples(self):
+        disp, matched, labels = self.scene(seed=6)
+        a, _ = planes_numba.region_planes_numba(disp, matched, labels, 40, 0.5, samples=4, seed=0)
+        b, _ = planes_numba.region_planes_numba(disp, matched, labels, 40, 0.5, samples=4, seed=1)
+        ref, _ = planes.region_planes(disp, matched, labels, 40, 0.5, samples=4, seed=1)
+        both = torch.isfinite(b)
+        assert not torch.allclose(a[both], b[both], atol=1e-4)  # four triples: another seed, other planes
+        assert torch.allclose(b[both], ref[both], atol=1e-4)
+
+    def test_refuses_what_it_cannot_compute(self):
+        disp, matched, labels = self.scene()
+        with pytest.raises(ValueError, match="float32 CPU"):
+            planes_numba.region_planes_numba(disp.double(), matched, labels, 40, 0.5)
+        with pytest.raises(ValueError, match="must be the same"):
+            planes_numba.region_planes_numba(disp, matched[..., :-1], labels, 40, 0.5)
 
 
 class TestPipelineUsesIt:

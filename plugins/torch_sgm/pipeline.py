@@ -6,7 +6,7 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import aggregate, align, cost, planes, refine, search, select, sgm, sgm_numba, refine_numba
+from plugins.torch_sgm import aggregate, align, cost, planes, planes_numba, refine, search, select, sgm, sgm_numba, refine_numba
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -207,7 +207,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
             thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
             disp, slope = planes.planes_and_slopes(
                 disp, raw_disp, consistent, edges, thresholds, p.plane_min_pixels, p.plane_inliers, p.plane_samples,
-                local, (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched), p.plane_seed)
+                local, (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched), p.plane_seed,
+                planes_numba.region_planes_numba if compiled(p, disp) else planes.region_planes)
             holes = ~torch.isfinite(disp)
         if p.fill == "four_way":
             disp = refine.fill_four_directions(disp, refine.occluded(raw_disp, right_disp, p.lr_tolerance) & holes)
@@ -236,8 +237,9 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
 
 
 def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
-    """Whether the stages compiled with numba stand in for the torch ones: the fast implementation, on
-    float32 CPU tensors."""
+    """Whether the stages compiled with numba (SGM, the plane fits of the slanted-plane filling, the local
+    plane fit, the weighted median) stand in for the torch ones: the fast implementation, on float32
+    CPU tensors."""
     return p.implementation == "fast" and all(sgm_numba.available(t) for t in tensors)
 
 

@@ -356,16 +356,15 @@ def _ring_consensus(p: _Problem, theta: np.ndarray) -> np.ndarray:
     e, s, x, y = offset[good], sd[good], du[good], dv[good]
     design = np.stack([np.ones_like(x), x, y], axis=1)
     rng = np.random.default_rng(0)
-    best, best_cost = np.zeros(3), np.inf
-    for triple in rng.integers(0, len(e), size=(CONSENSUS_SAMPLES, 3)):
-        try:
-            plane = np.linalg.solve(design[triple], e[triple])
-        except np.linalg.LinAlgError:
-            continue
-        z2 = ((design @ plane - e) / s) ** 2
-        cost = float(np.sum(np.minimum(z2, CONSENSUS_SIGMAS**2)))
-        if cost < best_cost:
-            best, best_cost = plane, cost
+    triples = rng.integers(0, len(e), size=(CONSENSUS_SAMPLES, 3))
+    systems = design[triples]  # (S, 3, 3)
+    solvable = np.abs(np.linalg.det(systems)) > 0
+    if not solvable.any():
+        return theta
+    planes = np.linalg.solve(systems[solvable], e[triples[solvable]][..., None])[..., 0]  # (S', 3)
+    # elementwise rather than a matrix product: the threaded BLAS would spin beside the detector
+    z2 = ((planes[:, :1] + planes[:, 1:2] * x + planes[:, 2:3] * y - e) / s) ** 2  # (S', cells)
+    best = planes[int(np.argmin(np.minimum(z2, CONSENSUS_SIGMAS**2).sum(axis=1)))]
     inliers = np.abs(design @ best - e) <= CONSENSUS_SIGMAS * s
     # noisy cells let some triple beat the fitted plane by chance: move only for a clearly larger consensus
     if inliers.mean() - (np.abs(e) <= CONSENSUS_SIGMAS * s).mean() < CONSENSUS_GAIN:
@@ -452,8 +451,8 @@ def _covariance(J: np.ndarray, r: np.ndarray, h: np.ndarray, p: np.ndarray, u: n
     s2 = float(np.sum(p * (h * r) ** 2) / dof)
     model = inv @ ((J * (ph * ph)[:, None]).T @ J) @ inv * s2
     groups = _cell_index(u, v, CLUSTER_PX)
-    g = np.zeros((groups.max() + 1, J.shape[1]))
-    np.add.at(g, groups, J * (ph * r)[:, None])
+    scores = J * (ph * r)[:, None]
+    g = np.stack([np.bincount(groups, scores[:, i], minlength=groups.max() + 1) for i in range(J.shape[1])], axis=1)
     clustered = inv @ (g.T @ g) @ inv
     inflation = max(1.0, float(clustered[0, 0] / model[0, 0])) if model[0, 0] > 0 else 1.0
     return model * inflation, inflation

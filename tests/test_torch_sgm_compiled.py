@@ -113,6 +113,25 @@ class TestWeightedMedianNumba:
             refine_numba.weighted_median_numba(disp, image[..., :-1], 3, 0.1, 5.0)
 
 
+class TestOutOfViewNumba:
+    def test_equals_the_reference(self):
+        left, _, gt, _ = layered_scene(40, 64, seed=4)
+        image = bgr_to_tensor(left, torch.device("cpu"))
+        labels = planes.edge_regions(planes.edge_magnitude(image, 1.0), 0.05)
+        g = torch.Generator().manual_seed(4)
+        # disparities that reach past the left border, some matched pixels of them on one region
+        disp = torch.from_numpy(gt).float()[None] + 20 * torch.rand(1, 40, 64, generator=g)
+        matched = torch.rand(disp.shape, generator=g) < 0.8
+        ref = refine.out_of_view(disp, matched, labels)
+        out = refine_numba.out_of_view_numba(disp, matched, labels)
+        assert torch.equal(out, ref) and ref.any()
+
+    def test_refuses_mismatched_shapes(self):
+        disp = torch.rand(1, 4, 5)
+        with pytest.raises(ValueError, match="must be the same"):
+            refine_numba.out_of_view_numba(disp, torch.ones(1, 4, 4, dtype=torch.bool), torch.ones(1, 4, 5).long())
+
+
 class TestRegionPlanesNumba:
     def scene(self, seed=5):
         """Six regions (and an edge column) each on its own slanted plane, with noise, 30 % mismatches and

@@ -197,7 +197,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
              if p.fill != "none" and (p.view_check_edge > 0 or p.plane_fill) else None)
     if p.fill != "none" and p.view_check_edge > 0:
         labels = planes.edge_regions(edges, p.view_check_edge)
-        consistent = consistent & ~refine.out_of_view(raw_disp, consistent, labels)
+        suspect = refine_numba.out_of_view_numba if compiled(p, raw_disp) else refine.out_of_view
+        consistent = consistent & ~suspect(raw_disp, consistent, labels)
     disp = torch.where(consistent, disp, torch.full_like(disp, float("nan")))
     if p.fill != "none":
         holes = ~consistent
@@ -237,8 +238,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
 
 
 def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
-    """Whether the stages compiled with numba (SGM, the plane fits of the slanted-plane filling, the local
-    plane fit, the weighted median) stand in for the torch ones: the fast implementation, on float32
+    """Whether the stages compiled with numba (SGM, the out-of-view check, the plane fits of the
+    slanted-plane filling, the local plane fit, the weighted median) stand in for the torch ones: the fast implementation, on float32
     CPU tensors."""
     return p.implementation == "fast" and all(sgm_numba.available(t) for t in tensors)
 

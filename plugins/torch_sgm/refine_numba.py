@@ -1,4 +1,4 @@
-"""``refine.local_plane_fit`` and ``refine.weighted_median`` compiled for the CPU with numba: the same
+"""``refine.local_plane_fit``, ``refine.weighted_median`` and ``refine.out_of_view`` compiled for the CPU with numba: the same
 arithmetic one pixel at a time instead of whole-map tensor passes per window offset (which on the
 line's small crops cost more in per-operation overhead than in arithmetic). The ``refine`` functions
 stay the references the tests hold these to.
@@ -163,3 +163,33 @@ def weighted_median_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, 
     float32 -> (B, H, W); the same arguments and result (the weights are summed in float64, so where the
     running weight meets half the total within rounding a neighbouring value may be taken)."""
     return _windowed("weighted_median_numba", _weighted_median, disp, image, radius, sigma_colour, sigma_space, jump)
+
+
+@njit(cache=True, parallel=True)
+def _out_of_view(disp, matched, labels, suspect):
+    n_b, h, w = disp.shape
+    for job in prange(n_b * h):
+        b, y = job // h, job % h
+        reference, region = math.nan, -1
+        for x in range(w - 1, -1, -1):
+            if not matched[b, y, x]:
+                continue
+            if reference > x and labels[b, y, x] == region:  # NaN compares false
+                suspect[b, y, x] = True
+            else:
+                reference, region = disp[b, y, x], labels[b, y, x]
+
+
+def out_of_view_numba(disp: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """``refine.out_of_view`` on the CPU: disp (B, H, W) float32, matched (B, H, W) bool, labels (B, H, W)
+    int64 -> (B, H, W) bool, the same pixels (each row walked once from the right, rows in parallel)."""
+    if not sgm_numba.available(disp):
+        raise ValueError(f"out_of_view_numba: needs a float32 CPU tensor, got {disp.dtype} on {disp.device}")
+    if matched.shape != disp.shape or labels.shape != disp.shape or disp.dim() != 3:
+        raise ValueError(f"out_of_view_numba: disp {tuple(disp.shape)}, matched {tuple(matched.shape)} and labels "
+                         f"{tuple(labels.shape)} must be the same (B, H, W)")
+    suspect = np.zeros(tuple(disp.shape), np.bool_)
+    with sgm_numba.torch_threads():
+        _out_of_view(np.ascontiguousarray(disp.numpy()), np.ascontiguousarray(matched.numpy()),
+                     np.ascontiguousarray(labels.numpy()), suspect)
+    return torch.from_numpy(suspect)

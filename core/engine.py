@@ -67,13 +67,24 @@ def resolve_threads(threads: int | str) -> int:
 
 
 def apply_threads(threads: int | str) -> int:
-    """Set torch's and OpenCV's CPU threads for this process; returns the count."""
+    """Set torch's and OpenCV's CPU threads for this process (and the BLAS libraries' to one,
+    ``single_threaded_blas``); returns the count."""
     import torch
 
     n = resolve_threads(threads)
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
+    single_threaded_blas()
     return n
+
+
+def single_threaded_blas() -> None:
+    """NumPy's and OpenCV's BLAS on one thread. The project's matrix products are small (a surface fit's
+    normal equations and covariance), and the threads OpenBLAS leaves spinning after each one slowed
+    the detector that runs next 2-3x (docs/benchmarks.md, the live loop)."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1, user_api="blas")
 
 
 def resolve_device(device: str) -> str:

@@ -28,7 +28,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     from core import depth_eval as ev
     from core.commands.inspection import _load, fail
     from core.contracts import PluginContext
-    from core.engine import apply_threads, resolve_device
+    from core.engine import apply_threads, resolve_device, single_threaded_blas
     from core.registry import default_registry
     from drivers.sequence_folder import SequenceError
     from plugins.replay_camera import ReplayCamera, ReplaySettings
@@ -42,6 +42,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     loaded = _load(recipe, tuple(overrides))
     if threads:
         apply_threads(threads)
+    else:
+        single_threaded_blas()
     registry = default_registry()
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, device=resolve_device(device))
     stereo = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(loaded.plugin_settings["stereo"], ctx)

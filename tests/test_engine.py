@@ -189,3 +189,19 @@ def test_the_recipe_sets_the_process_threads(tmp_path, plane_sequence, threads):
         cv2.setNumThreads(before[1])
     expected = 1 if threads == 1 else max(1, (os.cpu_count() or 2) // 2)
     assert seen == {"torch": expected, "cv": expected}
+
+
+def test_the_blas_libraries_run_on_one_thread(tmp_path, plane_sequence):
+    """NumPy's (and OpenCV's) OpenBLAS threads, left spinning after the depth stage's small matrix products,
+    slowed the next detection 2-3x on two cores: an inspection runs them on one thread."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    info = plane_sequence([0.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi,)))
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log") + "threads: 2\n"),
+                         registry=registry)
+    seen = []
+    with threadpool_limits(2, user_api="blas"):  # as a fresh process on two cores starts
+        engine.run(loaded, registry=registry, device="cpu",
+                   on_start=lambda _: seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"))
+    assert seen and all(n == 1 for n in seen)

@@ -23,7 +23,7 @@ from core.types import Calibration, Detection
 from drivers.sequence_folder import write_calibration, write_frame
 from sim.neu_crops import NEU_CLASSES, NeuCrops
 from sim.render import render_pair
-from sim.scene import CLASS_SHAPES, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, plate_axes
+from sim.scene import CLASS_SHAPES, PLATEAU_R0, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, plate_axes
 from sim.texture import PLATE_MEAN, belt_albedo, steel_albedo, synthetic_defect_patch
 
 ZED_WVGA = dict(width=672, height=376, focal_px=350.06, baseline_mm=120.0)
@@ -53,6 +53,7 @@ class EvalRanges:
     defect_px: tuple[float, float] | None = None  # each side of the box, in frame pixels
     depth_mm: tuple[float, float] | None = None
     defects_per_frame: tuple[int, int] = (1, 3)
+    flat_floor: tuple[float, float] | None = None  # each defect's plateau (sim.scene), None: PLATEAU_R0
 
     @property
     def plans_defects(self) -> bool:
@@ -166,7 +167,8 @@ def _appearance(rng, cls: str, crops: NeuCrops | None, scale_px: float):
     return patch, pbox, "synthetic", 0.5  # stand-in patches are drawn at 2x the frame size
 
 
-def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, texture_contrast: float = 1.0) -> Scene:
+def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, texture_contrast: float = 1.0,
+                flat_floor: tuple[float, float] | None = None) -> Scene:
     z0 = spec.distance_mm
     e1, e2, n = plate_axes(spec.tilt_deg, spec.yaw_deg)
     p0 = np.array([0.0, 0.0, z0])
@@ -243,7 +245,9 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
             ):
                 continue
             shape_name, p, _ = CLASS_SHAPES[cls]
-            placed.append(Defect(cls, source, shape_name, p, float(depth), (s, t), (float(a), float(b)), patch, pbox))
+            plateau = PLATEAU_R0 if flat_floor is None else float(rng.uniform(*flat_floor))
+            placed.append(Defect(cls, source, shape_name, p, float(depth), (s, t), (float(a), float(b)), patch, pbox,
+                                 plateau))
             break
 
     for d in placed:
@@ -309,9 +313,9 @@ def quantise_disparity(disparity: np.ndarray) -> np.ndarray:
 
 
 def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, frame_id: str, ss: int = 2,
-                 texture_contrast: float = 1.0):
+                 texture_contrast: float = 1.0, flat_floor: tuple[float, float] | None = None):
     """(left, right, gt disparity (quantised), labels dict, scene)."""
-    scene = build_scene(rng, calib, spec, crops, texture_contrast)
+    scene = build_scene(rng, calib, spec, crops, texture_contrast, flat_floor)
     left, right, disparity, hits = render_pair(scene, rng, ss=ss)
     gt = quantise_disparity(disparity)
     defects = []
@@ -328,6 +332,7 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
             "design_depth_mm": round(d.design_depth_mm, 3),
             "shape": d.shape,
             "source": d.source,
+            **({} if flat_floor is None else {"plateau": round(d.plateau, 3)}),
         })
     labels = {
         "frame_id": frame_id,
@@ -380,7 +385,7 @@ def generate_sequence(
         frame_id = f"{i:06d}"
         spec = plan_frame(rng, i, distance_mm, tilt_deg, jitter, decks, ranges)
         left, right, gt, labels, _ = render_frame(rng, calib, spec, crops, frame_id, ss=supersample,
-                                                  texture_contrast=texture_contrast)
+                                                  texture_contrast=texture_contrast, flat_floor=ranges.flat_floor)
         if image_format == "png":
             write_frame(out, frame_id, left, right, gt, labels)
         else:  # high-quality JPEG for the eyes, the rest as write_frame does it

@@ -12,8 +12,9 @@ same sign as ``DefectMeasurement.deviation_mm``. The belt is the parallel plane 
 ``h = belt_offset_mm`` behind the plate, visible where the plate (bounded in s) ends.
 
 Defect heightfields: a superellipse plateau over the defect's footprint rectangle
-(half-sizes a, b): ``h = D * (1 - smoothstep(0.55, 1, r))``, ``r = (|ds/a|^p + |dt/b|^p)^(1/p)``:
+(half-sizes a, b): ``h = D * (1 - smoothstep(r0, 1, r))``, ``r = (|ds/a|^p + |dt/b|^p)^(1/p)``:
 flat at the design depth D over the middle, a smooth wall, zero at the rectangle's border.
+``r0`` is the defect's ``plateau`` (0.55 by default; near 1, a flat-bottomed pit with a steep wall).
 The footprint rectangle is the (scaled) NEU-DET VOC box, so the label box is the defect.
 """
 from __future__ import annotations
@@ -35,7 +36,7 @@ CLASS_SHAPES: dict[str, tuple[str, float, bool]] = {
     "patches": ("raised_patch", 6.0, True),
     "rolled-in_scale": ("raised_scale", 6.0, True),
 }
-PLATEAU_R0 = 0.55
+PLATEAU_R0 = 0.55  # the demo's and the default evaluation sets' floor: walls over the outer 45 %
 
 
 def smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
@@ -63,6 +64,7 @@ class Defect:
     half: tuple[float, float]  # (a, b) mm
     patch: np.ndarray | None = None  # appearance (grey float32), box given by patch_box
     patch_box: tuple[int, int, int, int] = (0, 0, 0, 0)
+    plateau: float = PLATEAU_R0  # share of the half-sizes that is flat floor; the wall rises over the rest
 
 
 @dataclass
@@ -141,4 +143,4 @@ def heightfield_patch(defect: Defect, s: np.ndarray, t: np.ndarray) -> np.ndarra
     a, b = defect.half
     p = defect.exponent
     r = (np.abs((s - defect.center[0]) / a) ** p + np.abs((t - defect.center[1]) / b) ** p) ** (1.0 / p)
-    return defect.design_depth_mm * (1.0 - smoothstep(PLATEAU_R0, 1.0, r))
+    return defect.design_depth_mm * (1.0 - smoothstep(defect.plateau, 1.0, r))

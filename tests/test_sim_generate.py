@@ -222,3 +222,35 @@ def test_raised_depths_draw_raised_classes(tmp_path):
     decks = (_Deck(NEU_CLASSES, rng), _Deck(BELOW_CLASSES, rng), _Deck(RAISED_CLASSES, rng))
     spec = plan_frame(rng, 0, 400.0, 5.0, False, decks, EvalRanges(depth_mm=(-1.0, -0.5), defects_per_frame=(3, 3)))
     assert len(spec.requests) == 3 and all(c in RAISED_CLASSES and -1.0 <= d <= -0.5 for c, d in spec.requests)
+
+
+def test_flat_floor_gives_flat_bottomed_pits_with_steep_walls(tmp_path):
+    """``flat_floor``: the share of each half-size that is floor; near 1 the pit is flat to its rim."""
+    from sim.generate import EvalRanges
+
+    calib = zed_calibration(W, H)
+    spec = FrameSpec(400.0, 0.0, 0.0, [("pitted_surface", 1.0)], [(40.0, 40.0)])
+    share = {}
+    for name, floor in (("default", None), ("flat", (0.9, 0.9))):
+        scene = build_scene(np.random.default_rng(6), calib, spec, None, flat_floor=floor)
+        (d,) = scene.defects
+        assert d.plateau == pytest.approx(0.55 if floor is None else 0.9)
+        inside = scene.height[scene.height > 1e-6]
+        share[name] = float(np.mean(inside >= 0.999))  # of the footprint below the surface, the floor's share
+    assert share["flat"] > share["default"] + 0.3
+    labels = generate_sequence(tmp_path / "flat", frames=2, seed=2, width=336, height=188, supersample=1,
+                               ranges=EvalRanges(depth_mm=(1.0, 2.0), flat_floor=(0.8, 0.95)))
+    plateaus = [d["plateau"] for lab in labels for d in lab["defects"]]
+    assert plateaus and all(0.8 <= p <= 0.95 for p in plateaus)
+    # a flat floor under the whole region: the platform's deviation is the design depth
+    assert all(abs(d["deviation_mm"] - d["design_depth_mm"]) < 0.05 for lab in labels for d in lab["defects"])
+
+
+def test_flat_floor_must_leave_a_wall(tmp_path):
+    from click.testing import CliRunner
+
+    from core.cli import _build
+
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects", "--frames", "1",
+                                      "--depth-range-mm", "1", "2", "--flat-floor", "0.9", "1.0"])
+    assert result.exit_code == 2 and "--flat-floor" in result.output and "no wall" in result.output

@@ -60,9 +60,13 @@ def register(cli: click.Group) -> None:
                   metavar="MIN MAX", help="With --depth-range-mm: defects per frame, drawn uniformly.")
     @click.option("--texture-contrast", default=1.0, show_default=True, type=click.FloatRange(0.05, 3.0),
                   help="Scale of the plate texture's variation (0.3: polished, low-texture metal).")
+    @click.option("--flat-floor", nargs=2, type=float, default=None, metavar="MIN MAX",
+                  help="Evaluation set: the share of each defect's half-size that is flat floor, drawn per defect "
+                       "(the wall rises over the rest; near 1: a flat-bottomed pit with a steep wall). Default: "
+                       "0.55 for every defect.")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
                  image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
-                 defects_per_frame, texture_contrast) -> None:
+                 defects_per_frame, texture_contrast, flat_floor) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
@@ -71,7 +75,8 @@ def register(cli: click.Group) -> None:
         from sim.neu_crops import NeuDetError
 
         for name, pair, low in (("--distance-range-mm", distance_range_mm, 100.0), ("--defect-size-px", defect_size_px, 4.0),
-                                ("--depth-range-mm", depth_range_mm, None), ("--defects-per-frame", defects_per_frame, 1)):
+                                ("--depth-range-mm", depth_range_mm, None), ("--defects-per-frame", defects_per_frame, 1),
+                                ("--flat-floor", flat_floor, 0.0)):
             if pair is None:
                 continue
             if pair[0] > pair[1]:
@@ -80,8 +85,12 @@ def register(cli: click.Group) -> None:
             if low is not None and pair[0] < low:
                 click.echo(f"error: {name}: {pair[0]:g} is below the smallest allowed, {low:g}", err=True)
                 raise SystemExit(2)
+        if flat_floor is not None and flat_floor[1] >= 1.0:
+            click.echo(f"error: --flat-floor: {flat_floor[1]:g} leaves no wall (give a share below 1)", err=True)
+            raise SystemExit(2)
         ranges = EvalRanges(distance_mm=distance_range_mm, defect_px=defect_size_px, depth_mm=depth_range_mm,
-                            defects_per_frame=tuple(defects_per_frame))
+                            defects_per_frame=tuple(defects_per_frame),
+                            flat_floor=None if flat_floor is None else tuple(flat_floor))
 
         if not synthetic_defects and not Path(neu_det).is_dir():
             click.echo(f"error: NEU-DET folder not found: {neu_det} (give --neu-det DIR or --synthetic-defects)", err=True)

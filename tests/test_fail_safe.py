@@ -216,6 +216,8 @@ def test_the_exit_4_hint_says_when_inspection_was_the_late_one(tmp_path):
                   "--set", f"outputs.0.settings.port={port}", "--set", f"outputs.1.settings.file={results}/log",
                   "--set", "stereo.backend=opencv_sgbm", "--set", "outputs.0.settings.actuator_distance_mm=null",
                   "--set", "outputs.0.settings.conveyor_speed_mm_s=null", "--set", "outputs.0.settings.delay_ms=10",
+                  # 1 ms of grace: a reject due 10 ms after capture is late on any machine, however fast
+                  "--set", "outputs.0.settings.max_late_ms=1",
                   "--set", "camera.settings.rate_fps=0", "--set", "camera.settings.max_frames=4",
                   "--set", "camera.max_frame_age_ms=5000")
     assert out.returncode == 4, out.stdout + out.stderr

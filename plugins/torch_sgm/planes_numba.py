@@ -13,6 +13,7 @@ import torch
 from numba import njit
 
 from plugins.torch_sgm import planes, sgm_numba
+from plugins.torch_sgm.linalg_numba import solve3
 
 COORD_SCALE = planes._COORD_SCALE
 
@@ -62,32 +63,6 @@ def _eligible(region, k):
     return np.nonzero(count >= 3)[0]
 
 
-@njit(cache=True, inline="always")
-def _solve3(m, r, out):
-    """``m x = r`` (3x3) by Gaussian elimination with partial pivoting, as LAPACK's getrf/getrs; False
-    where a pivot is exactly zero (LAPACK's info != 0). m and r are overwritten."""
-    for col in range(3):
-        pivot = col
-        for row in range(col + 1, 3):
-            if abs(m[row, col]) > abs(m[pivot, col]):
-                pivot = row
-        if m[pivot, col] == 0.0:
-            return False
-        if pivot != col:
-            for c in range(3):
-                m[col, c], m[pivot, c] = m[pivot, c], m[col, c]
-            r[col], r[pivot] = r[pivot], r[col]
-        for row in range(col + 1, 3):
-            f = m[row, col] / m[col, col]
-            for c in range(col, 3):
-                m[row, c] -= f * m[col, c]
-            r[row] -= f * r[col]
-    out[2] = r[2] / m[2, 2]
-    out[1] = (r[1] - m[1, 2] * out[2]) / m[1, 1]
-    out[0] = (r[0] - m[0, 1] * out[1] - m[0, 2] * out[2]) / m[0, 0]
-    return True
-
-
 @njit(cache=True)
 def _ransac(x, y, d, region, k, ids, draws, tolerance, voters_max):
     """``planes.ransac_planes`` over the fit pixels (all of them in regions of >= 3): (k, 3) float64,
@@ -126,7 +101,7 @@ def _ransac(x, y, d, region, k, ids, draws, tolerance, voters_max):
                 p = order[start[g] + int(draws[j, s, t] * count[g])]
                 m[t, 0], m[t, 1], m[t, 2] = x[p], y[p], 1.0
                 rhs[t] = d[p]
-            ok = _solve3(m, rhs, sol)
+            ok = solve3(m, rhs, sol)
             for t in range(3):
                 coeffs[j, s, t] = np.float32(sol[t]) if ok else np.float32(np.nan)
             usable[j, s] = ok and math.isfinite(coeffs[j, s, 0]) and math.isfinite(coeffs[j, s, 1]) \
@@ -183,7 +158,7 @@ def _irls(x, y, d, region, k, weight, radii):
             m[1, 0], m[1, 1], m[1, 2] = s[1], s[3] + 1e-9, s[4]
             m[2, 0], m[2, 1], m[2, 2] = s[2], s[4], s[5] + 1e-9
             rhs[0], rhs[1], rhs[2] = s[6], s[7], s[8]
-            if _solve3(m, rhs, sol):
+            if solve3(m, rhs, sol):
                 coeffs[g, 0], coeffs[g, 1], coeffs[g, 2] = sol[0], sol[1], sol[2]
             else:
                 coeffs[g, 0] = coeffs[g, 1] = coeffs[g, 2] = np.nan

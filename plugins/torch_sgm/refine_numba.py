@@ -12,33 +12,7 @@ import torch
 from numba import njit, prange
 
 from plugins.torch_sgm import sgm_numba
-
-
-@njit(cache=True, inline="always")
-def _solve3(m, r):
-    """The third unknown of the 3x3 system ``m x = r`` by Gaussian elimination with partial pivoting
-    (as LAPACK's getrf/getrs); NaN where a pivot is exactly zero (LAPACK's info != 0). m, r are
-    overwritten."""
-    for col in range(3):
-        pivot = col
-        for row in range(col + 1, 3):
-            if abs(m[row, col]) > abs(m[pivot, col]):
-                pivot = row
-        if m[pivot, col] == 0.0:
-            return math.nan
-        if pivot != col:
-            for k in range(3):
-                m[col, k], m[pivot, k] = m[pivot, k], m[col, k]
-            r[col], r[pivot] = r[pivot], r[col]
-        for row in range(col + 1, 3):
-            f = m[row, col] / m[col, col]
-            for k in range(col, 3):
-                m[row, k] -= f * m[col, k]
-            r[row] -= f * r[col]
-    x2 = r[2] / m[2, 2]
-    x1 = (r[1] - m[1, 2] * x2) / m[1, 1]
-    x0 = (r[0] - m[0, 1] * x1 - m[0, 2] * x2) / m[0, 0]
-    return x2 if math.isfinite(x0) and math.isfinite(x1) else math.nan
+from plugins.torch_sgm.linalg_numba import solve3
 
 
 @njit(cache=True, parallel=True)
@@ -49,6 +23,7 @@ def _plane_fit(disp, image, radius, inv_colour2, inv_space2, tolerance, out):
         b, y = job // h, job % h
         m = np.empty((3, 3))
         r = np.empty(3)
+        sol = np.empty(3)
         for x in range(w):
             d0 = disp[b, y, x]
             out[b, y, x] = d0
@@ -84,7 +59,9 @@ def _plane_fit(disp, image, radius, inv_colour2, inv_space2, tolerance, out):
             m[1, 0], m[1, 1], m[1, 2] = suv, svv, sv
             m[2, 0], m[2, 1], m[2, 2] = su, sv, s1
             r[0], r[1], r[2] = sud, svd, sd
-            shift = _solve3(m, r)
+            # the plane's value at the pixel: the third unknown, where the system has a finite solution
+            solved = solve3(m, r, sol)
+            shift = sol[2] if solved and math.isfinite(sol[0]) and math.isfinite(sol[1]) else math.nan
             if math.isfinite(shift) and abs(shift) <= tolerance:
                 out[b, y, x] = d0 + shift
 

@@ -6,7 +6,8 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import aggregate, align, cost, planes, planes_numba, refine, search, select, sgm, sgm_numba, refine_numba
+from plugins.torch_sgm import (aggregate, align, cost, planes, planes_numba, refine, refine_numba, search, select, sgm,
+                               sgm_numba)
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -239,8 +240,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
 
 def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
     """Whether the stages compiled with numba (SGM, the out-of-view check, the plane fits of the
-    slanted-plane filling, the local plane fit, the weighted median) stand in for the torch ones: the fast implementation, on float32
-    CPU tensors."""
+    slanted-plane filling, the local plane fit, the weighted median) stand in for the torch ones: the
+    fast implementation, on float32 CPU tensors."""
     return p.implementation == "fast" and all(sgm_numba.available(t) for t in tensors)
 
 

@@ -56,24 +56,23 @@ def _fit_pixels(index, matched, wanted, use_wanted, k, min_pixels, fit_max):
 
 @njit(cache=True)
 def _eligible(region, k):
-    """Regions with at least three fit pixels, ascending: the rows RANSAC draws triples for."""
+    """The regions with at least three fit pixels, ascending (the rows RANSAC draws triples for), and
+    every region's count of fit pixels."""
     count = np.zeros(k, np.int64)
     for r in region:
         count[r] += 1
-    return np.nonzero(count >= 3)[0]
+    return np.nonzero(count >= 3)[0], count
 
 
 @njit(cache=True)
-def _ransac(x, y, d, region, k, ids, draws, tolerance, voters_max):
+def _ransac(x, y, d, region, k, ids, count, draws, tolerance, voters_max):
     """``planes.ransac_planes`` over the fit pixels (all of them in regions of >= 3): (k, 3) float64,
-    NaN for the regions not in ``ids``. draws: (len(ids), samples, 3) float64 uniform in [0, 1)."""
+    NaN for the regions not in ``ids``. ids, count: ``_eligible``'s; draws: (len(ids), samples, 3)
+    float64 uniform in [0, 1)."""
     best = np.full((k, 3), np.nan)
     n_ids, samples = draws.shape[0], draws.shape[1]
     if n_ids == 0:
         return best
-    count = np.zeros(k, np.int64)
-    for r in region:
-        count[r] += 1
     row = np.full(k, -1, np.int64)
     for j in range(n_ids):
         row[ids[j]] = j
@@ -227,10 +226,10 @@ def region_planes_numba(disp: torch.Tensor, matched: torch.Tensor, labels: torch
     d = disp.numpy().reshape(-1)[fit].astype(np.float64)
     region = index[fit]
     if samples > 0:
-        ids = _eligible(region, k)
+        ids, count = _eligible(region, k)
         gen = torch.Generator().manual_seed(seed)
         draws = torch.rand(ids.size, samples, 3, generator=gen, dtype=torch.float64).numpy()
-        start = _ransac(x, y, d, region, k, ids, draws, float(tolerance), planes._VOTERS)
+        start = _ransac(x, y, d, region, k, ids, count, draws, float(tolerance), planes._VOTERS)
         weight = _start_weights(x, y, d, region, start, planes._RANSAC_RADIUS)
         radii = np.array(planes._TUKEY_RADII_AFTER_RANSAC)
     else:

@@ -1,7 +1,7 @@
 """``refine.local_plane_fit``, ``refine.weighted_median`` and ``refine.out_of_view`` compiled for the CPU
-with numba: the same arithmetic one pixel at a time instead of whole-map tensor passes per window offset (which on the
-line's small crops cost more in per-operation overhead than in arithmetic). The ``refine`` functions
-stay the references the tests hold these to.
+with numba: the same arithmetic one pixel at a time instead of whole-map tensor passes per window offset
+(which on the line's small crops cost more in per-operation overhead than in arithmetic). The ``refine``
+functions stay the references the tests hold these to.
 """
 from __future__ import annotations
 

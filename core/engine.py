@@ -8,11 +8,9 @@ from __future__ import annotations
 
 import math
 import os
-import queue
-import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,6 +21,7 @@ from core.annotate import annotate
 from core.contracts import PluginContext
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
+from core.frame_source import DetectAhead, OneAtATime
 from core.recipe import LoadedRecipe
 from core.recipe.loader import detector_settings, file_sha256, named_classes, output_delays_s, unknown_class_message
 from core.recipe.schema import StereoSection
@@ -244,60 +243,6 @@ class _StageFailed(Exception):
     """A failure already described (a detection that ran ahead of its frame)."""
 
 
-class _CameraFailed:
-    def __init__(self, exc: BaseException):
-        self.exc = exc
-
-
-DETECT_AHEAD_STOP_S = 5.0  # how long stopping waits for the detection thread
-
-
-def _detected_ahead(pipeline: Pipeline, recipe, stop: threading.Event) -> Iterator[tuple[StereoFrame | FrameError, Detected | None]]:
-    """Frames with their detections, detected one frame ahead in a second thread: while the caller
-    works on frame n (stereo, depth, store, outputs), frame n + 1 is read and detected. Torch and
-    OpenCV release the GIL, so the two overlap where a core is free. Set ``stop`` and close the
-    iterator to end the thread."""
-    ready: queue.Queue = queue.Queue(maxsize=1)
-    done = object()
-
-    def produce() -> None:
-        try:
-            for item in pipeline.camera.frames():
-                entry = (item, detect_frame(item, pipeline, recipe))
-                while not stop.is_set():
-                    try:
-                        ready.put(entry, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            ready.put(done)
-        except BaseException as exc:  # a camera that raises: handed to the loop, which raises it there
-            ready.put(_CameraFailed(exc))
-
-    worker = threading.Thread(target=produce, name="detect-ahead", daemon=True)
-    worker.start()
-    try:
-        while True:
-            entry = ready.get()
-            if entry is done:
-                return
-            if isinstance(entry, _CameraFailed):
-                raise entry.exc
-            yield entry
-    finally:
-        stop.set()
-        # A producer waiting to put needs room to notice ``stop``. One blocked inside the camera
-        # (a reconnect back-off, a hardware trigger) is left behind: the camera's close ends it.
-        deadline = time.monotonic() + DETECT_AHEAD_STOP_S
-        while worker.is_alive() and time.monotonic() < deadline:
-            try:
-                ready.get(timeout=0.1)
-            except queue.Empty:
-                pass
-
-
 def _filter(detections: list[Detection], confidence: float, classes: list[str] | None) -> list[Detection]:
     return [d for d in detections if d.confidence >= confidence and (classes is None or d.class_name in classes)]
 
@@ -375,11 +320,25 @@ def run(
         on_start(pipeline)
     started = time.perf_counter()
     failed_in_a_row = 0
-    stop = threading.Event()
-    frames_in = (_detected_ahead(pipeline, recipe, stop) if recipe.stereo.concurrent
-                 else ((item, None) for item in pipeline.camera.frames()))
+    source = (DetectAhead(pipeline.camera.frames(), lambda item: detect_frame(item, pipeline, recipe), max_frames)
+              if recipe.stereo.concurrent else OneAtATime(pipeline.camera.frames(), max_frames))
+
+    def finish(outcome: FrameOutcome) -> None:
+        part = outcome.part
+        _save_image(store, recipe.results.save_images, outcome)
+        store.record_part(run_id, part, outcome.per_defect)
+        for name, output in pipeline.outputs:
+            try:
+                output.submit(part)
+            except Exception as exc:
+                record([Alarm(name, f"reject output failed for {part.part_id}: {exc}", time.time(), part.part_id)])
+            record(output.poll())
+        counts[part.verdict.status] += 1
+
+    current = None  # the frame being inspected: one the run leaves unfinished is rejected, never lost
     try:
-        for item, detected in frames_in:
+        for item, detected in source:
+            current = item
             outcome = inspect_frame(item, f"R{run_id}-{item.index:06d}", pipeline, loaded, rule, detected, age_limit)
             part = outcome.part
             # One bad frame is that part's ERROR; several in a row mean the camera is lost, which
@@ -389,32 +348,28 @@ def run(
                 record([Alarm("camera", f"camera lost: {CAMERA_LOST_AFTER} frames in a row could not be captured "
                                         f"(last: {item.message}); parts are rejected as ERROR until frames arrive",
                               time.time(), part.part_id)])
-            _save_image(store, recipe.results.save_images, outcome)
-            store.record_part(run_id, part, outcome.per_defect)
-            for name, output in pipeline.outputs:
-                try:
-                    output.submit(part)
-                except Exception as exc:
-                    record([Alarm(name, f"reject output failed for {part.part_id}: {exc}", time.time(), part.part_id)])
-                record(output.poll())
-            counts[part.verdict.status] += 1
+            finish(outcome)
+            current = None
             stage_seconds.update(outcome.timings)
             frames += 1
             if on_part:
                 on_part(outcome)
-            if max_frames is not None and frames >= max_frames:
-                break
-            if stop_requested is not None and (stopped_by := stop_requested()):
+            # a stop reads no new frame; the frames already read (detect-ahead's next) are still inspected
+            if not interrupted and stop_requested is not None and (stopped_by := stop_requested()):
                 interrupted = True
-                break
+                source.stop_reading()
     except KeyboardInterrupt:
         interrupted = True
     except Exception as exc:  # a camera that raises instead of reporting a FrameError: stop, loudly
         record([Alarm("engine", f"run stopped after {frames} parts: {type(exc).__name__}: {exc}", time.time())])
     finally:
-        stop.set()
         try:
-            frames_in.close()  # with stereo.concurrent: ends the detection thread before the camera closes
+            left = source.close()
+            unfinished = ([current] if current is not None else []) + [item for item, _ in left]
+            for item in unfinished:
+                message = f"frame {item.frame_id}: not inspected: the run stopped first"
+                finish(FrameOutcome(PartResult(f"R{run_id}-{item.index:06d}", item.frame_id, item.index, item.timestamp,
+                                               error_verdict(message), error=message), [], None))
         except KeyboardInterrupt:  # a second Ctrl-C must not skip closing the outputs and the store
             interrupted = True
         elapsed = time.perf_counter() - started

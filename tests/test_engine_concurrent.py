@@ -1,13 +1,19 @@
 """``stereo.concurrent``: the next frame is detected while this one is measured; nothing else changes."""
 from __future__ import annotations
 
+import sqlite3
 import threading
+
+import numpy as np
+import pytest
 
 import stereo_inspect_fixed_roi
 from conftest import write_recipe
 from test_engine import RECIPE, BrokenCameraPlugin
 
 from core import engine
+from core.contracts import PluginSpec
+from core.hookspecs import hookimpl
 from core.recipe import load_recipe
 from core.registry import Registry, make_manager
 from core.types import Status
@@ -50,3 +56,45 @@ def test_camera_that_raises_is_still_an_alarm(tmp_path, plane_sequence):
     loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), ["stereo.concurrent=true"], registry=registry)
     summary = engine.run(loaded, registry=registry, device="cpu")
     assert summary.exit_code == engine.EXIT_ALARMS and "USB device vanished" in summary.alarms[0].message
+
+
+class InterruptedStereo:
+    """A matcher whose second frame is interrupted (Ctrl-C while that part is being measured)."""
+
+    name = "interrupted"
+
+    def __init__(self):
+        self.calls = 0
+
+    def compute(self, left, right, min_disp, max_disp):
+        self.calls += 1
+        if self.calls == 2:
+            raise KeyboardInterrupt
+        return np.full(left.shape[:2], 90.0, dtype=np.float32)
+
+
+class InterruptedStereoPlugin:
+    @hookimpl
+    def stereo_inspect_stereo_backends(self):
+        return [PluginSpec("interrupted", "stereo", lambda s, ctx: InterruptedStereo())]
+
+
+@pytest.mark.parametrize("concurrent", ["false", "true"])
+def test_an_interrupted_run_rejects_every_part_it_read_and_did_not_finish(tmp_path, plane_sequence, concurrent):
+    """Ctrl-C in the middle of a part: that part, and the next one detection had already read, are ERROR
+    (rejected, stored, sent to the outputs), not lost; the other parts are not read."""
+    info = plane_sequence([0.0] * 6)
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, InterruptedStereoPlugin())))
+    text = RECIPE.format(box=info["box"], output="log").replace("backend: opencv_sgbm", "backend: interrupted")
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), [f"stereo.concurrent={concurrent}"], registry=registry)
+    summary = engine.run(loaded, registry=registry, device="cpu")
+    assert summary.interrupted and summary.exit_code == engine.EXIT_INTERRUPTED
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    parts = db.execute("SELECT frame_id, verdict, error FROM parts ORDER BY frame_id").fetchall()
+    assert [p[0] for p in parts] == [f"{i:06d}" for i in range(len(parts))]
+    assert len(parts) in ((2,) if concurrent == "false" else (3, 4))  # ahead: the frames read while measuring
+    assert parts[0][1] != "ERROR"
+    assert all(v == "ERROR" and "not inspected: the run stopped first" in e for _, v, e in parts[1:])
+    assert db.execute("SELECT parts FROM runs").fetchone()[0] == len(parts)
+    sent = {r[0] for r in db.execute("SELECT part_id FROM output_events WHERE output = 'log' AND command LIKE 'REJECT%'")}
+    assert sent == {r[0] for r in db.execute("SELECT part_id FROM parts WHERE verdict != 'PASS'")}

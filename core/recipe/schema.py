@@ -43,7 +43,7 @@ class StereoSection(Section):
     roi_margin_px: int = Field(32, ge=0, le=1000)
     # Detect the next frame (in a second thread) while this frame's stereo, depth, decision and
     # outputs run. A part's verdict still uses its own frame's disparity.
-    concurrent: bool = False
+    concurrent: bool = True
 
     @model_validator(mode="after")
     def _one_range(self) -> StereoSection:

@@ -323,10 +323,14 @@ def run(
     source = (DetectAhead(pipeline.camera.frames(), lambda item: detect_frame(item, pipeline, recipe), max_frames)
               if recipe.stereo.concurrent else OneAtATime(pipeline.camera.frames(), max_frames))
 
+    current = None  # the frame being inspected: one the run leaves unfinished is rejected, never lost
+
     def finish(outcome: FrameOutcome) -> None:
+        nonlocal current
         part = outcome.part
         _save_image(store, recipe.results.save_images, outcome)
         store.record_part(run_id, part, outcome.per_defect)
+        current = None  # stored: from here on it is a decided part, whatever stops the run
         for name, output in pipeline.outputs:
             try:
                 output.submit(part)
@@ -335,7 +339,6 @@ def run(
             record(output.poll())
         counts[part.verdict.status] += 1
 
-    current = None  # the frame being inspected: one the run leaves unfinished is rejected, never lost
     try:
         for item, detected in source:
             current = item
@@ -349,7 +352,6 @@ def run(
                                         f"(last: {item.message}); parts are rejected as ERROR until frames arrive",
                               time.time(), part.part_id)])
             finish(outcome)
-            current = None
             stage_seconds.update(outcome.timings)
             frames += 1
             if on_part:
@@ -368,8 +370,12 @@ def run(
             unfinished = ([current] if current is not None else []) + [item for item, _ in left]
             for item in unfinished:
                 message = f"frame {item.frame_id}: not inspected: the run stopped first"
-                finish(FrameOutcome(PartResult(f"R{run_id}-{item.index:06d}", item.frame_id, item.index, item.timestamp,
-                                               error_verdict(message), error=message), [], None))
+                try:
+                    finish(FrameOutcome(PartResult(f"R{run_id}-{item.index:06d}", item.frame_id, item.index,
+                                                   item.timestamp, error_verdict(message), error=message), [], None))
+                except Exception as exc:  # the store or an output failing now must not skip closing them
+                    record([Alarm("engine", f"{message}, and it could not be rejected: {type(exc).__name__}: {exc}",
+                                  time.time())])
         except KeyboardInterrupt:  # a second Ctrl-C must not skip closing the outputs and the store
             interrupted = True
         elapsed = time.perf_counter() - started

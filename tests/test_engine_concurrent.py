@@ -98,3 +98,48 @@ def test_an_interrupted_run_rejects_every_part_it_read_and_did_not_finish(tmp_pa
     assert db.execute("SELECT parts FROM runs").fetchone()[0] == len(parts)
     sent = {r[0] for r in db.execute("SELECT part_id FROM output_events WHERE output = 'log' AND command LIKE 'REJECT%'")}
     assert sent == {r[0] for r in db.execute("SELECT part_id FROM parts WHERE verdict != 'PASS'")}
+
+
+class InterruptingOutput:
+    """An output in whose hands the first part is when Ctrl-C comes: that part is already stored."""
+
+    def __init__(self):
+        self.parts = []
+
+    def submit(self, part):
+        self.parts.append(part.part_id)
+        if len(self.parts) == 1:
+            raise KeyboardInterrupt
+
+    def poll(self):
+        return []
+
+    def close(self, timeout_s=10.0):
+        return []
+
+
+class InterruptingOutputPlugin:
+    output = None
+
+    @hookimpl
+    def stereo_inspect_outputs(self):
+        def make(settings, ctx):
+            InterruptingOutputPlugin.output = InterruptingOutput()
+            return InterruptingOutputPlugin.output
+        return [PluginSpec("interrupting", "output", make)]
+
+
+@pytest.mark.parametrize("concurrent", ["false", "true"])
+def test_a_part_stored_before_the_interrupt_keeps_its_verdict(tmp_path, plane_sequence, concurrent):
+    info = plane_sequence([6.0] * 4)
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, InterruptingOutputPlugin())))
+    text = RECIPE.format(box=info["box"], output="interrupting")
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), [f"stereo.concurrent={concurrent}"], registry=registry)
+    summary = engine.run(loaded, registry=registry, device="cpu")
+    assert summary.exit_code == engine.EXIT_INTERRUPTED
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    parts = db.execute("SELECT part_id, verdict FROM parts ORDER BY part_id").fetchall()
+    assert parts[0] == ("R1-000000", "REJECT")  # measured and stored: not turned into an ERROR afterwards
+    assert all(v == "ERROR" for _, v in parts[1:])  # detection ahead had read more: rejected, not lost
+    assert len({p for p, _ in parts}) == len(parts) == (1 if concurrent == "false" else len(parts))
+    assert InterruptingOutputPlugin.output.parts == [p for p, _ in parts]  # each handed to the output once

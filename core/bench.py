@@ -226,6 +226,25 @@ def current_rss_mb() -> float:
     return float("nan")
 
 
+def _looped(loaded: LoadedRecipe, folder: Path, **recipe_changes: Any) -> LoadedRecipe:
+    """The recipe with its camera looped as fast as it runs, its store in ``folder`` and a log output as its
+    only one (no PLC needed); ``recipe_changes`` replace top-level sections (e.g. ``detector``)."""
+    from core.recipe.schema import PluginRef
+
+    recipe = loaded.recipe
+    log = {"file": str(folder / "rejects.log")}
+    return LoadedRecipe(
+        recipe=recipe.model_copy(update={
+            "outputs": [PluginRef(plugin="log", settings=log)],
+            "results": recipe.results.model_copy(update={"path": str(folder / "results")}),
+            **recipe_changes,
+        }),
+        path=loaded.path, text_hash=loaded.text_hash,
+        plugin_settings={**{k: v for k, v in loaded.plugin_settings.items() if not k.startswith("outputs.")},
+                         "outputs.0": log, "camera": {**loaded.plugin_settings["camera"], "loop": True, "rate_fps": 0.0}},
+    )
+
+
 def run_soak(loaded: LoadedRecipe, registry: Registry, frames: int, device: str, every: int = 1000,
              on_sample=None) -> dict[str, Any]:
     """The real loop (``core.engine.run``) over ``frames`` frames of the recipe's camera, looped, as fast as
@@ -233,21 +252,9 @@ def run_soak(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
     memory is sampled after the first frame (models loaded, buffers allocated), every ``every`` frames
     and at the end."""
     from core import engine
-    from core.recipe.schema import PluginRef
 
-    recipe = loaded.recipe
     samples: list[tuple[int, float]] = []
     with tempfile.TemporaryDirectory() as tmp:
-        log = {"file": str(Path(tmp) / "rejects.log")}
-        soak = LoadedRecipe(
-            recipe=recipe.model_copy(update={
-                "outputs": [PluginRef(plugin="log", settings=log)],
-                "results": recipe.results.model_copy(update={"path": str(Path(tmp) / "results")}),
-            }),
-            path=loaded.path, text_hash=loaded.text_hash,
-            plugin_settings={**{k: v for k, v in loaded.plugin_settings.items() if not k.startswith("outputs.")},
-                             "outputs.0": log, "camera": {**loaded.plugin_settings["camera"], "loop": True, "rate_fps": 0.0}},
-        )
         done = [0]
 
         def on_part(outcome) -> None:
@@ -258,7 +265,8 @@ def run_soak(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
                     on_sample(*samples[-1])
 
         start = time.perf_counter()
-        summary = engine.run(soak, registry=registry, on_part=on_part, device=device, max_frames=frames)
+        summary = engine.run(_looped(loaded, Path(tmp)), registry=registry, on_part=on_part, device=device,
+                             max_frames=frames)
         elapsed = time.perf_counter() - start
     return {"recipe": str(loaded.path), "frames": summary.frames, "requested": frames, "seconds": elapsed,
             "fps": summary.fps, "counts": {k.value: v for k, v in summary.counts.items()},
@@ -267,3 +275,37 @@ def run_soak(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
             # VmRSS is read from per-thread counters that can run a little ahead of ru_maxrss
             "peak_rss_mb": max([_peak_rss_mb(), *(mb for _, mb in samples)]),
             "machine": machine(), "when": time.strftime("%Y-%m-%d %H:%M")}
+
+
+def run_live(loaded: LoadedRecipe, registry: Registry, frames: int, device: str) -> dict[str, Any]:
+    """The real loop as the recipe runs it (detection a frame ahead where ``stereo.concurrent``), ``frames``
+    frames of its looped camera, once with detection alone (no detection passes the confidence, so no
+    stereo or depth) and once with depth for every defect: the frame rates and their ratio, one run.
+    The stage table times the stages one after another and cannot show what running them side by side
+    gains."""
+    from core import engine
+
+    alone = {"detector": loaded.recipe.detector.model_copy(update={"confidence": 1.0})}
+    rows = {}
+    for name, changes in (("detection alone", alone), ("with depth", {})):
+        with tempfile.TemporaryDirectory() as tmp:
+            summary = engine.run(_looped(loaded, Path(tmp), **changes), registry=registry, device=device,
+                                 max_frames=frames)
+        seconds = {k: v / max(summary.frames, 1) * 1000.0 for k, v in summary.stage_seconds.items()}
+        rows[name] = {"frames": summary.frames, "fps": summary.fps, "mean_ms": seconds,
+                      "counts": {k.value: v for k, v in summary.counts.items()}}
+    ratio = rows["with depth"]["fps"] / rows["detection alone"]["fps"] if rows["detection alone"]["fps"] else None
+    return {"concurrent": loaded.recipe.stereo.concurrent, "threads": loaded.recipe.threads, "rows": rows,
+            "ratio": ratio}
+
+
+def live_markdown(live: dict[str, Any]) -> str:
+    mode = "detection a frame ahead" if live["concurrent"] else "one frame at a time"
+    lines = [f"The real loop ({mode}, threads {live['threads']}), looped replay, as fast as it runs:", "",
+             "| loop | frames | fps | mean ms per part |", "|---|---|---|---|"]
+    for name, row in live["rows"].items():
+        stages = ", ".join(f"{k} {v:.0f}" for k, v in row["mean_ms"].items())
+        lines.append(f"| {name} | {row['frames']} | {row['fps']:.2f} | {stages} |")
+    if live["ratio"] is not None:
+        lines += ["", f"with depth ÷ detection alone: {live['ratio']:.2f}"]
+    return "\n".join(lines) + "\n"

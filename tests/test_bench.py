@@ -81,3 +81,16 @@ def test_soak_reports_rss_at_start_and_end(tmp_path):
     assert [n for n, _ in report["rss_mb"]] == [1, 5, 10, 12]
     assert 0 < report["rss_start_mb"] <= report["peak_rss_mb"] and report["rss_end_mb"] <= report["peak_rss_mb"]
     assert "RSS" in out.stdout and not (ROOT / "results" / "steel_plate" / "soak").exists()
+
+
+def test_live_runs_the_real_loop_with_and_without_depth(tmp_path):
+    out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "none", "--repeats", "1",
+              "--frames", "1", "--live", "6", "--threads", "1", "--out", str(tmp_path))
+    assert out.returncode == 0, out.stderr
+    live = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())["live"]
+    alone, depth = live["rows"]["detection alone"], live["rows"]["with depth"]
+    assert live["concurrent"] is True and alone["frames"] == depth["frames"] == 6
+    assert set(alone["mean_ms"]) == {"detection"} and alone["counts"] == {"PASS": 6}  # nothing measured
+    assert {"detection", "stereo", "depth"} <= set(depth["mean_ms"]) and depth["counts"].get("REJECT", 0) > 0
+    assert live["ratio"] == depth["fps"] / alone["fps"] > 0
+    assert "with depth ÷ detection alone" in out.stdout and not (ROOT / "results" / "steel_plate" / "live").exists()

@@ -31,6 +31,9 @@ from core.commands.inspection import _load, fail
                    "looped replay and report resident memory at the start and end")
 @click.option("--soak-every", default=1000, show_default=True, type=click.IntRange(1), help="soak: sample RSS every N frames")
 @click.option("--quiet", is_flag=True, help="soak: no line per sample")
+@click.option("--live", default=None, type=click.IntRange(1), metavar="FRAMES",
+              help="after the table: the real loop as the recipe runs it (detection a frame ahead where "
+                   "stereo.concurrent) for FRAMES frames, with detection alone and with depth, and their ratio")
 @click.option("--threads", type=click.IntRange(1), default=None,
               help="torch and OpenCV CPU threads (1 is fastest when another job keeps a core busy)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE")
@@ -38,10 +41,10 @@ from core.commands.inspection import _load, fail
               help="compare every defect's depth with the recipe's stereo backend run full-frame with this setting "
                    "changed (e.g. --versus search=full); repeatable")
 def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, device, repeats, frames, regions, out,
-                  soak, soak_every, quiet, threads, overrides, versus):
+                  soak, soak_every, quiet, live, threads, overrides, versus):
     """Time capture, detection, stereo, depth, decision, outputs and the whole loop; print and save
     a table (JSON + Markdown). Backend "none" times detection alone."""
-    from core.bench import NO_STEREO, markdown, run_bench, run_soak
+    from core.bench import NO_STEREO, live_markdown, markdown, run_bench, run_live, run_soak
     from core.registry import default_registry
 
     overrides = list(overrides)
@@ -94,10 +97,13 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         except ValidationError as exc:
             fail(f"--versus: {exc.errors()[0]['loc'][0]}: {exc.errors()[0]['msg']}")
     report = run_bench(loaded, registry, names, resolution, device, repeats, frames, region_names, reference or None)
+    table = markdown(report)
+    if live is not None:
+        report["live"] = run_live(loaded, registry, live, report["device"])
+        table += "\n" + live_markdown(report["live"])
     out.mkdir(parents=True, exist_ok=True)
     stem = f"bench-{resolution}-{report['device']}"
     (out / f"{stem}.json").write_text(json.dumps(report, indent=2))
-    table = markdown(report)
     (out / f"{stem}.md").write_text(table)
     click.echo(table)
     click.echo(f"saved: {out / (stem + '.json')}, {out / (stem + '.md')}")

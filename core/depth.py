@@ -116,6 +116,7 @@ def ring_mask(shape: tuple[int, int], box: tuple[float, float, float, float], ga
 
 
 SCORED_POINTS = 1024
+INTERIOR_MARGIN_PX = 1.0
 
 
 def fit_plane_robust(
@@ -335,6 +336,8 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     var_d += ((d - c) / max(min(inner[2] - inner[0], inner[3] - inner[1]), 1.0)) ** 2
     # and a floor that is not flat over the region (the box cut through a wall) widens it by how much
     var_d += surface_fit.unevenness_variance(offsets_px, sds, centres)
+    # and it is known no better than the region's interior alone tells it (the border may be the walls' edges)
+    var_d = max(var_d, surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner, INTERIOR_MARGIN_PX))
     if d <= 0 or c <= 0:
         return _fallback(reference, "the surface fit gave no disparity in front of the camera")
     a, b = fit.slopes

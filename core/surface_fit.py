@@ -502,6 +502,37 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     return offsets, sd, centres
 
 
+def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],
+                      weights: np.ndarray | None, box: tuple[float, float, float, float], margin: float) -> float:
+    """The variance (px^2) of the defect's offset from its region's interior alone: the pixels at least
+    ``margin`` px inside ``box`` (x0, y0, x1, y1), whose interpolation reaches no pixel outside the region.
+    ``fit.residual_sigma^2 * fit.inflation / sum (g * R_x)^2`` over them, at the fitted offset; inf where
+    no interior pixel carries a gradient.
+
+    A region's border may hold the edges of the defect's walls, which each eye sees at other places (their
+    shading is view-dependent): where the region has no texture of its own, those edges alone decide the
+    fit, and its curvature claims a precision the floor does not have."""
+    u, v = defect
+    x0, y0, x1, y1 = box
+    keep = (u >= x0 + margin) & (u + 1 <= x1 - margin) & (v >= y0 + margin) & (v + 1 <= y1 - margin)
+    p = np.ones(len(u)) if weights is None else np.asarray(weights, dtype=np.float64)
+    keep &= p > 0
+    if not keep.any():
+        return float("inf")
+    th = fit.params
+    (wx, wy), left, right = _window(left, right, defect, defect, th, 1.0)
+    R = high_pass(right)
+    Rx = gradient_x(R)
+    uu, vv = (u[keep] - wx).astype(np.float64), (v[keep] - wy).astype(np.float64)
+    du, dv = u[keep] - fit.centre[0], v[keep] - fit.centre[1]
+    x = uu - (th[0] + th[1] * du + th[2] * dv + th[3])
+    gx = sample(Rx, x, vv)
+    gain = th[4] + th[5] * du + th[6] * dv + th[8]
+    j = np.where(np.isfinite(gx), gain * gx, 0.0)
+    information = float(np.sum(p[keep] * j * j))
+    return fit.residual_sigma ** 2 * fit.inflation / information if information > 0 else float("inf")
+
+
 def robust_offset(offsets: np.ndarray, sds: np.ndarray, start: float, iterations: int = 20) -> RobustOffset:
     """Tukey's M-estimate of the cells' common offset, from ``start``, cutting at TUKEY_K times each cell's
     standard deviation times the cells' robust spread in those units (at least 1).

@@ -117,6 +117,40 @@ class TestCellOffsets:
         assert np.all(np.isfinite(sds)) and np.median(np.abs(offsets + 0.3) / sds) < 1.5
 
 
+class TestInteriorVariance:
+    INNER = (68, 51, 92, 69)
+
+    def _fit(self, seed=7, noise=1.5):
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, noise=noise, seed=seed)
+        ring, defect = _regions()
+        return left, right, defect, sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
+
+    def test_a_textured_interior_is_at_the_noise_floor_of_its_pixels(self):
+        left, right, defect, fit = self._fit()
+        variance = sf.interior_variance(left, right, fit, defect, None, self.INNER, 1.0)
+        x0, y0, x1, y1 = self.INNER
+        vv, uu = np.mgrid[y0 + 1:y1 - 1, x0 + 1:x1 - 1]
+        floor = _floor(left, (uu.ravel(), vv.ravel()), 1.5)
+        assert 0.7 * floor <= math.sqrt(variance) <= 2.5 * floor
+        # a wider margin leaves fewer pixels, so less is known
+        assert sf.interior_variance(left, right, fit, defect, None, self.INNER, 4.0) > 1.2 * variance
+
+    def test_a_region_whose_only_texture_is_its_border_is_known_poorly(self):
+        left, right, defect, fit = self._fit()
+        textured = sf.interior_variance(left, right, fit, defect, None, self.INNER, 1.0)
+        flat = right.copy()
+        x0, y0, x1, y1 = self.INNER
+        d = _plane_at(80, 60) - 0.3  # where the interior's pixels are read in the right image
+        flat[y0 + 1:y1 - 1, int(x0 + 1 - d - 3):int(x1 - 1 - d + 3)] = 128.0  # no texture, no noise
+        assert sf.interior_variance(left, flat, fit, defect, None, self.INNER, 1.0) > 25 * textured
+
+    def test_a_region_with_no_interior_is_unknown(self):
+        left, right, defect, fit = self._fit()
+        assert sf.interior_variance(left, right, fit, defect, None, (80, 51, 82.5, 69), 1.0) == math.inf
+        zero = np.zeros(len(defect[0]))
+        assert sf.interior_variance(left, right, fit, defect, zero, self.INNER, 1.0) == math.inf
+
+
 class TestRobustOffset:
     def test_cells_off_by_much_more_than_their_noise_do_not_pull(self):
         offsets = np.r_[np.full(30, -0.30), np.full(8, 0.20)]  # a quarter of the cells on a wall

@@ -280,10 +280,6 @@ def measure_defect(
                                   distance_sigma_mm=resolution, deviation_sigma_mm=float(np.sqrt(2.0) * resolution))
     if not surface:
         return reference
-    if share < rule.min_plane_inliers:  # should the fit not settle, the backend's map cannot stand in
-        reference = DefectMeasurement(detection, distance, None, valid_fraction, resolution, area,
-                                      note=f"the surface around the box is not one plane ({how}, "
-                                      f"{rule.min_plane_inliers:.0%} needed)", distance_sigma_mm=resolution)
     return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, ring, inner,
                                 (x0, y0, x1, y1), d_plane - d_defect, reference)
 
@@ -291,7 +287,7 @@ def measure_defect(
 def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, valid_ring, inner, clipped, offsets,
                          reference: DefectMeasurement) -> DefectMeasurement:
     """``method: surface``: the ring's plane and the defect's offset fitted to the images, from the backend's
-    plane and median offset. Falls back to ``reference`` (saying so) where the fit does not settle.
+    plane and median offset. No deviation where the fit does not settle or the images do not match at it.
     ring_all: the ring's pixels (HxW bool); valid_ring: those the backend matched."""
     # the ring less the pixels the backend puts on another surface (the belt, a neighbouring defect);
     # pixels it left unmatched stay: the fit does not need their disparity
@@ -311,8 +307,15 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     start = -float(np.median(offsets))
     left, right = pair
     fit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)
+    # no fallback to the backend's map: where the images cannot be fitted, its value is not one to vouch for
     if fit is None:
-        return _fallback(reference, "the surface fit did not settle")
+        return _unavailable(reference, "the surface fit did not settle")
+    if not fit.matches:
+        return _unavailable(reference, f"the images do not match at the fitted surface (residuals "
+                            f"{fit.residual_sigma:.1f} grey levels against a texture of {fit.signal_sigma:.1f}, the "
+                            f"right eye's gain {fit.params[4]:.2f} on the surface and {fit.params[4] + fit.params[8]:.2f} "
+                            f"on the defect): too little texture, the plate outside the stereo search range "
+                            f"(working distance), or the matcher far off on the defect")
     # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a
     # sheen upsets only the cells, the crop's edge only the backend's map there. The ring kept above holds
     # only the backend's pixels within tolerance, so a matched pixel of it is one the backend agrees with.
@@ -339,7 +342,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # and it is known no better than the region's interior alone tells it (the border may be the walls' edges)
     var_d = max(var_d, surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner, INTERIOR_MARGIN_PX))
     if d <= 0 or c <= 0:
-        return _fallback(reference, "the surface fit gave no disparity in front of the camera")
+        return _unavailable(reference, "the surface fit gave no disparity in front of the camera")
     a, b = fit.slopes
     u0, v0 = fit.centre
     n = Plane(a, b, c - a * u0 - b * v0).normal_length(calib)
@@ -359,14 +362,6 @@ def _unavailable(reference: DefectMeasurement, why: str) -> DefectMeasurement:
     """No deviation from either method: the reference's distance, saying ``why``."""
     return replace(reference, deviation_mm=None, deviation_sigma_mm=None, note=f"deviation unavailable: {why}",
                    method="surface")
-
-
-def _fallback(reference: DefectMeasurement, why: str) -> DefectMeasurement:
-    if reference.deviation_mm is None:
-        reference.note = f"deviation unavailable: {why}, and {reference.note}"
-    else:
-        reference.note = f"{why}; measured from the disparity map alone"
-    return reference
 
 
 def measure_frame(disparity: np.ndarray, detections: list[Detection], frame: StereoFrame,

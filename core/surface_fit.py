@@ -47,6 +47,9 @@ TUKEY_K = 4.685  # likewise
 CLUSTER_PX = 4  # blocks over which residuals may be correlated
 CELL_PX = 4  # cells of the defect's region whose offsets are combined robustly
 RING_CELL_PX = 6  # cells of the ring that are kept or left out together
+MATCH_RATIO = 1.0  # residual / texture spread: 0.2-0.83 on the evaluation sets, 1.55 for a plate outside the range
+MIN_GAIN = 0.25  # the right eye's fitted gain: above 0.34 on the evaluation sets, ~0 on noise alone, 0.21 on a
+# defect started 45 px from its surface
 SEARCH_STEP_PX = 0.05
 COARSE_STEP_PX = 0.2
 PARAMS = ("c", "a", "b", "delta", "g", "g_u", "g_v", "o", "g_m", "o_m")
@@ -67,6 +70,20 @@ class SurfaceFit:
     inflation: float  # covariance factor for correlated residuals (>= 1)
     converged: bool
     ring_weights: np.ndarray | None = None  # (ring pixels,) each one's cell weight in [0, 1] at the end
+    signal_sigma: float = float("inf")  # grey levels: the robust spread of the ring's high-passed left image
+    defect_residual_sigma: float = 0.0  # the same two over the defect's own pixels
+    defect_signal_sigma: float = float("inf")
+
+    @property
+    def matches(self) -> bool:
+        """The pair agrees at the fitted surface better than two unrelated patches of its texture would:
+        their difference spreads sqrt(1 + g^2) ~ 1.4 times the texture, or the texture itself where the fit
+        drives the right eye's gain to nothing, on the ring (``g``) or on the defect (``g + g_m``). Where the
+        texture is no stronger than the noise, the surface lies where the backend did not search (a plate
+        outside the working distance), or the defect was started from a gross mismatch, the fit has found
+        nothing to vouch for."""
+        return (self.residual_sigma < MATCH_RATIO * self.signal_sigma and self.params[4] > MIN_GAIN
+                and self.params[4] + self.params[8] > MIN_GAIN)
 
     @property
     def c(self) -> float:
@@ -300,8 +317,12 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
         return None
     covariance, inflation = _covariance(J, r, h, w, p.ui[ok], p.vi[ok], inv)
     ring_weights = np.where(ok[on_ring], prior[on_ring], 0.0)
+    signal = _robust_scale(p.lvals[on_ring & p.usable])
+    inside = ~on_ring[ok]
+    defect_residual = _robust_scale(r[inside]) if inside.any() else 0.0
+    defect_signal = _robust_scale(p.lvals[~on_ring & p.usable]) if (~on_ring & p.usable).any() else float("inf")
     return SurfaceFit(theta, covariance, centre, int((ok & on_ring).sum()), int((ok & ~on_ring).sum()),
-                      _robust_scale(r), inflation, converged, ring_weights)
+                      _robust_scale(r), inflation, converged, ring_weights, signal, defect_residual, defect_signal)
 
 
 WINDOW_MARGIN_PX = int(3 * HIGH_PASS_SIGMA) + 8  # the filters' reach, the blur's and the interpolation's

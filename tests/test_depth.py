@@ -160,3 +160,16 @@ def test_surface_method_checks_the_pair_against_the_map():
     left, right, disparity = render(CALIB, 400.0)
     with pytest.raises(ValueError, match="differ"):
         measure_defect(disparity, Detection("pit", 0.9, BOX), CALIB, DepthRule(), (_grey(left)[:, 1:], _grey(right)))
+
+
+def test_a_pair_that_does_not_match_at_any_surface_has_no_deviation():
+    """Where the right image is not the left one's view (a plate outside the search range looks like this to
+    the fit: whatever it settles on, the two patches are unrelated), the fit finds nothing to vouch for;
+    the backend's map does not stand in."""
+    left, right, disparity = render(CALIB, 400.0, 4.0, [Pit(160, 96, 25.0, 2.0)])
+    other, _, _ = render(CALIB, 400.0, 4.0, seed=5)  # another plate's texture
+    m = _surface(left, other, disparity)
+    assert m.deviation_mm is None and m.deviation_sigma_mm is None and m.method == "surface"
+    assert "do not match" in m.note or "did not settle" in m.note
+    good = _surface(left, right, disparity)
+    assert good.deviation_mm is not None and good.note == ""

@@ -109,3 +109,22 @@ class TestSummarise:
         assert s.confusion == {"REJECT": {"REJECT": 1, "PASS": 2, "undecided": 1}}
         assert s.within_2_sigma == pytest.approx(0.25)  # only the first error is within 2 sigma
         assert s.ratio_median == pytest.approx(np.median([1.45 / 1.5, 0.6 / 1.5, 1.1 / 1.5, 0.7 / 1.1]))
+
+
+def test_a_plate_outside_the_working_distance_gets_no_deviation(tmp_path):
+    """The demo recipe searches 350-500 mm; the first frame's plate lies at 634-645 mm. Whatever the matcher
+    returns there, the images do not match at it, and no deviation is reported (the part is an ERROR, so
+    rejected) instead of a confident wrong one."""
+    copy = tmp_path / "seq"
+    shutil.copytree(TEXTURED, copy)
+    for folder in ("left", "right", "labels", "gt"):
+        for f in (copy / folder).iterdir():
+            if not f.stem.startswith("000000"):
+                f.unlink()
+    result = cli("eval", "depth", str(copy), "--out", str(tmp_path / "out"), "--threads", "1", "--no-figure")
+    assert result.returncode == 0, result.stderr
+    rows = [r for r in json.loads((tmp_path / "out" / "depth_eval.json").read_text())["rows"] if r["method"] == "surface"]
+    assert rows and all(r["true_distance_mm"] > 600 for r in rows)
+    for r in rows:
+        assert r["deviation_mm"] is None and r["status"] == "ERROR", r
+        assert "do not match" in r["note"] or "did not settle" in r["note"]

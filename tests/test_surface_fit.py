@@ -1,6 +1,7 @@
 """``core.surface_fit`` on exact synthetic pairs: a textured tilted plane with a flat-bottomed step."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -105,6 +106,39 @@ class TestFitSurface:
         ring, _ = _regions()
         assert sf.fit_surface(left, right, ring, (np.array([], int), np.array([], int)), PLANE) is None
         assert sf.fit_surface(left, right, (ring[0][:5], ring[1][:5]), _regions()[1], PLANE) is None
+
+
+class TestMatches:
+    def test_a_textured_pair_matches_at_its_surface(self):
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=4)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
+        assert fit.matches and fit.residual_sigma < 0.3 * fit.signal_sigma
+
+    @pytest.mark.parametrize("seed", [1, 3])
+    def test_noise_without_texture_matches_nothing(self, seed):
+        """The fit settles on noise alone (the right eye's gain goes to 0), and says so."""
+        left, right, _ = step_pair(plane=PLANE, contrast=0.0 if seed == 1 else 0.5, noise=2.0, seed=seed)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
+        assert fit is not None and not fit.matches
+
+    def test_a_defect_whose_own_gain_goes_to_nothing_does_not_match(self):
+        """A defect started far from its surface (a gross mismatch of the matcher) settles where its own
+        exposure explains nothing: the fitted fields say so, whatever the ring does."""
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=4)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
+        params = fit.params.copy()
+        params[8] = -params[4]  # the defect's gain g + g_m at 0
+        assert fit.matches and not dataclasses.replace(fit, params=params).matches
+
+    def test_unrelated_images_give_no_fit_that_matches(self):
+        left, _, _ = step_pair(plane=PLANE, seed=1)
+        other, _, _ = step_pair(plane=PLANE, seed=9)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, other, ring, defect, PLANE, 0.0)
+        assert fit is None or not fit.matches
 
 
 class TestCellOffsets:

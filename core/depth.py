@@ -116,7 +116,7 @@ def ring_mask(shape: tuple[int, int], box: tuple[float, float, float, float], ga
 
 
 SCORED_POINTS = 1024
-INTERIOR_MARGIN_PX = 1.0
+INTERIOR_MARGIN_PX = 1.0  # a region's interior: its pixels at least this far inside its border
 
 
 def fit_plane_robust(
@@ -325,6 +325,10 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     if share < rule.min_plane_inliers:
         return _unavailable(reference, f"the surface around the box is not one plane ({how} in the images, "
                             f"{rule.min_plane_inliers:.0%} needed)")
+    interior = surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner, INTERIOR_MARGIN_PX)
+    if not np.isfinite(interior):
+        return _unavailable(reference, f"the region ({inner[2] - inner[0]:.0f} x {inner[3] - inner[1]:.0f} px) has no "
+                            f"interior with a texture of its own to measure")
     offsets_px, sds, centres = surface_fit.cell_offsets(left, right, fit, (uu, vv), weights)
     cells = surface_fit.robust_offset(offsets_px, sds, fit.delta)
     cov = fit.covariance
@@ -340,7 +344,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # and a floor that is not flat over the region (the box cut through a wall) widens it by how much
     var_d += surface_fit.unevenness_variance(offsets_px, sds, centres)
     # and it is known no better than the region's interior alone tells it (the border may be the walls' edges)
-    var_d = max(var_d, surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner, INTERIOR_MARGIN_PX))
+    var_d = max(var_d, interior)
     if d <= 0 or c <= 0:
         return _unavailable(reference, "the surface fit gave no disparity in front of the camera")
     a, b = fit.slopes

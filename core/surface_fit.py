@@ -71,8 +71,6 @@ class SurfaceFit:
     converged: bool
     ring_weights: np.ndarray | None = None  # (ring pixels,) each one's cell weight in [0, 1] at the end
     signal_sigma: float = float("inf")  # grey levels: the robust spread of the ring's high-passed left image
-    defect_residual_sigma: float = 0.0  # the same two over the defect's own pixels
-    defect_signal_sigma: float = float("inf")
 
     @property
     def matches(self) -> bool:
@@ -318,11 +316,8 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     covariance, inflation = _covariance(J, r, h, w, p.ui[ok], p.vi[ok], inv)
     ring_weights = np.where(ok[on_ring], prior[on_ring], 0.0)
     signal = _robust_scale(p.lvals[on_ring & p.usable])
-    inside = ~on_ring[ok]
-    defect_residual = _robust_scale(r[inside]) if inside.any() else 0.0
-    defect_signal = _robust_scale(p.lvals[~on_ring & p.usable]) if (~on_ring & p.usable).any() else float("inf")
     return SurfaceFit(theta, covariance, centre, int((ok & on_ring).sum()), int((ok & ~on_ring).sum()),
-                      _robust_scale(r), inflation, converged, ring_weights, signal, defect_residual, defect_signal)
+                      _robust_scale(r), inflation, converged, ring_weights, signal)
 
 
 WINDOW_MARGIN_PX = int(3 * HIGH_PASS_SIGMA) + 8  # the filters' reach, the blur's and the interpolation's

@@ -173,3 +173,12 @@ def test_a_pair_that_does_not_match_at_any_surface_has_no_deviation():
     assert "do not match" in m.note or "did not settle" in m.note
     good = _surface(left, right, disparity)
     assert good.deviation_mm is not None and good.note == ""
+
+
+def test_a_region_with_no_interior_has_no_deviation():
+    """A box so small that its inner region has no pixel a pixel inside its border: nothing of its own to
+    measure, so no deviation (and no infinite uncertainty in the store or on the page)."""
+    left, right, disparity = render(CALIB, 420.0, 4.0, [Pit(160, 96, 3.0, 1.5)])
+    m = _surface(left, right, disparity, box=(158.0, 94.0, 162.0, 98.0))
+    assert m.deviation_mm is None and m.deviation_sigma_mm is None and "no interior" in m.note
+    assert m.distance_mm is not None

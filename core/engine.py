@@ -323,6 +323,9 @@ def run(
     source = (DetectAhead(pipeline.camera.frames(), lambda item: detect_frame(item, pipeline, recipe), max_frames)
               if recipe.stereo.concurrent else OneAtATime(pipeline.camera.frames(), max_frames))
 
+    def part_id(item: StereoFrame | FrameError) -> str:
+        return f"R{run_id}-{item.index:06d}"
+
     current = None  # the frame being inspected: one the run leaves unfinished is rejected, never lost
     # [part, the outputs it has still to reach, the one being handed it]: an interrupt in between still
     # reaches the rest, and the one it interrupted raises an alarm
@@ -334,9 +337,9 @@ def run(
         _save_image(store, recipe.results.save_images, outcome)
         store.record_part(run_id, part, outcome.per_defect)
         current = None  # stored: from here on it is a decided part, whatever stops the run
+        counts[part.verdict.status] += 1
         handing[:] = [part, list(pipeline.outputs), None]
         hand_to_outputs()
-        counts[part.verdict.status] += 1
 
     def hand_to_outputs() -> None:
         part, waiting, _ = handing
@@ -354,7 +357,7 @@ def run(
     try:
         for item, detected in source:
             current = item
-            outcome = inspect_frame(item, f"R{run_id}-{item.index:06d}", pipeline, loaded, rule, detected, age_limit)
+            outcome = inspect_frame(item, part_id(item), pipeline, loaded, rule, detected, age_limit)
             part = outcome.part
             # One bad frame is that part's ERROR; several in a row mean the camera is lost, which
             # the operator must hear about once per outage, not once per frame.
@@ -386,14 +389,13 @@ def run(
                                   f"it", time.time(), part.part_id)])
                     handing[2] = None
                 hand_to_outputs()
-                counts[part.verdict.status] += 1
             left = source.close()
             unfinished = ([current] if current is not None else []) + [item for item, _ in left]
             for item in unfinished:
                 message = f"frame {item.frame_id}: not inspected: the run stopped first"
                 try:
-                    finish(FrameOutcome(PartResult(f"R{run_id}-{item.index:06d}", item.frame_id, item.index,
-                                                   item.timestamp, error_verdict(message), error=message), [], None))
+                    finish(FrameOutcome(PartResult(part_id(item), item.frame_id, item.index, item.timestamp,
+                                                   error_verdict(message), error=message), [], None))
                 except Exception as exc:  # the store or an output failing now must not skip closing them
                     record([Alarm("engine", f"{message}, and it could not be rejected: {type(exc).__name__}: {exc}",
                                   time.time())])

@@ -104,15 +104,31 @@ def valid_mask(disparity: np.ndarray, doffs: float = 0.0) -> np.ndarray:
 
 
 def ring_mask(shape: tuple[int, int], box: tuple[float, float, float, float], gap: int, width: int) -> np.ndarray:
-    """Pixels between the box grown by ``gap`` and the box grown by ``gap + width``."""
-    h, w = shape
+    """Pixels between the box grown by ``gap`` and the box grown by ``gap + width`` (HxW bool)."""
     mask = np.zeros(shape, dtype=bool)
+    (x0, y0), window = _ring_window(shape, box, gap, width)
+    mask[y0 : y0 + window.shape[0], x0 : x0 + window.shape[1]] = window
+    return mask
+
+
+def ring_pixels(shape: tuple[int, int], box: tuple[float, float, float, float], gap: int, width: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """``ring_mask``'s pixels as (u, v), 1-D, in row-major order (as ``np.nonzero`` gives them), found
+    without a full-size mask: a frame's defects each cost a pass over the whole image otherwise."""
+    (x0, y0), window = _ring_window(shape, box, gap, width)
+    v, u = np.nonzero(window)
+    return u + x0, v + y0
+
+
+def _ring_window(shape, box, gap, width) -> tuple[tuple[int, int], np.ndarray]:
+    """The ring's bounding rectangle's top-left corner and its mask there."""
+    h, w = shape
     x0, y0, x1, y1 = _clip_box(box, shape)
     outer = (max(x0 - gap - width, 0), max(y0 - gap - width, 0), min(x1 + gap + width, w), min(y1 + gap + width, h))
     inner = (max(x0 - gap, 0), max(y0 - gap, 0), min(x1 + gap, w), min(y1 + gap, h))
-    mask[outer[1] : outer[3], outer[0] : outer[2]] = True
-    mask[inner[1] : inner[3], inner[0] : inner[2]] = False
-    return mask
+    window = np.ones((max(outer[3] - outer[1], 0), max(outer[2] - outer[0], 0)), dtype=bool)
+    window[inner[1] - outer[1] : inner[3] - outer[1], inner[0] - outer[0] : inner[2] - outer[0]] = False
+    return (outer[0], outer[1]), window
 
 
 SCORED_POINTS = 1024
@@ -247,13 +263,14 @@ def measure_defect(
     bw, bh = detection.width, detection.height
     area = bw * bh * (distance / calib.focal_px) ** 2
 
-    ring_all = ring_mask(shape, detection.box, rule.ring_gap_px, rule.ring_width_px)
-    ring = ring_all & valid_mask(disparity, calib.doffs)
-    rv, ru = np.nonzero(ring)
+    ring_all = ring_pixels(shape, detection.box, rule.ring_gap_px, rule.ring_width_px)
+    d_ring = disparity[ring_all[1], ring_all[0]]
+    matched = valid_mask(d_ring, calib.doffs)
+    ru, rv, d_ring = ring_all[0][matched], ring_all[1][matched], d_ring[matched]
     plane = None
     if ru.size >= rule.min_ring_points:
         plane = fit_plane_robust(
-            ru.astype(np.float64), rv.astype(np.float64), disparity[ring].astype(np.float64) + calib.doffs,
+            ru.astype(np.float64), rv.astype(np.float64), d_ring.astype(np.float64) + calib.doffs,
             tolerance=rule.plane_tolerance_px,
         )
     if plane is None:
@@ -262,7 +279,7 @@ def measure_defect(
             note=f"deviation unavailable: {ru.size} valid surface points around the box, {rule.min_ring_points} needed",
             distance_sigma_mm=resolution,
         )
-    how, share = worst_side(plane, ru, rv, disparity[ring] + calib.doffs, _clip_box(detection.box, shape), rule.plane_tolerance_px)
+    how, share = worst_side(plane, ru, rv, d_ring + calib.doffs, _clip_box(detection.box, shape), rule.plane_tolerance_px)
     surface = rule.method == "surface" and pair is not None
     # the surface fit judges the ring from the images itself (below); the backend's judgement only where
     # the ring is not in view, or for the reference
@@ -280,23 +297,23 @@ def measure_defect(
                                   distance_sigma_mm=resolution, deviation_sigma_mm=float(np.sqrt(2.0) * resolution))
     if not surface:
         return reference
-    return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, ring, inner,
+    return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, matched, inner,
                                 (x0, y0, x1, y1), d_plane - d_defect, reference)
 
 
-def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, valid_ring, inner, clipped, offsets,
+def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, matched, inner, clipped, offsets,
                          reference: DefectMeasurement) -> DefectMeasurement:
     """``method: surface``: the ring's plane and the defect's offset fitted to the images, from the backend's
     plane and median offset. No deviation where the fit does not settle or the images do not match at it.
-    ring_all: the ring's pixels (HxW bool); valid_ring: those the backend matched."""
+    ring_all: the ring's pixels (u, v); matched: (ring pixels,) bool, those the backend matched."""
     # the ring less the pixels the backend puts on another surface (the belt, a neighbouring defect);
     # pixels it left unmatched stay: the fit does not need their disparity
-    rv, ru = np.nonzero(valid_ring)
-    off_plane = np.abs(plane(ru.astype(np.float64), rv.astype(np.float64)) - (disparity[rv, ru] + calib.doffs)) \
-        > rule.plane_tolerance_px
-    ring = ring_all.copy()
-    ring[rv[off_plane], ru[off_plane]] = False
-    ring_v, ring_u = np.nonzero(ring)
+    u_all, v_all = ring_all
+    with np.errstate(invalid="ignore"):
+        off_plane = matched & (np.abs(plane(u_all.astype(np.float64), v_all.astype(np.float64))
+                                      - (disparity[v_all, u_all] + calib.doffs)) > rule.plane_tolerance_px)
+    keep = ~off_plane
+    ring_u, ring_v = u_all[keep], v_all[keep]
     uu, vv, weights = region_weights(inner, clipped)
     shift = (plane.a, plane.b, plane.c - calib.doffs)  # the plane of disparities without doffs
     seen = uu - (shift[0] * uu + shift[1] * vv + shift[2]) >= 2  # the right image holds the point
@@ -319,7 +336,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a
     # sheen upsets only the cells, the crop's edge only the backend's map there. The ring kept above holds
     # only the backend's pixels within tolerance, so a matched pixel of it is one the backend agrees with.
-    backend_agrees = valid_ring[ring_v, ring_u]
+    backend_agrees = matched[keep]
     how, share = worst_side_of(backend_agrees | (fit.ring_weights > 0.5), ring_u, ring_v,
                                _clip_box(detection.box, disparity.shape))
     if share < rule.min_plane_inliers:

@@ -134,11 +134,20 @@ def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     The border is replicated and the NaN set afterwards: with a NaN border value OpenCV's cubic remap
     turns whole groups of 8 samples NaN when one of them is near the border (and every sample of a
     map shorter than 8)."""
-    x32, y32 = x.astype(np.float32), y.astype(np.float32)
-    out = cv2.remap(image, x32[None, :], y32[None, :], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)[0]
-    h, w = image.shape
-    inside = (x32 >= 1) & (x32 <= w - 3) & (y32 >= 1) & (y32 <= h - 3)
-    return np.where(inside, out, np.nan).astype(np.float32)
+    return samples((image,), x, y)[0]
+
+
+def samples(images: tuple[np.ndarray, ...], x: np.ndarray, y: np.ndarray) -> list[np.ndarray]:
+    """``sample`` of each of several HxW float32 images of one shape at the same positions."""
+    x32, y32 = x.astype(np.float32)[None, :], y.astype(np.float32)[None, :]
+    h, w = images[0].shape
+    outside = ~((x32[0] >= 1) & (x32[0] <= w - 3) & (y32[0] >= 1) & (y32[0] <= h - 3))
+    out = []
+    for image in images:
+        values = cv2.remap(image, x32, y32, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)[0].astype(np.float32, copy=False)
+        values[outside] = np.nan
+        out.append(values)
+    return out
 
 
 def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
@@ -172,8 +181,20 @@ def _cell_means(cell: np.ndarray, k: int, *values: np.ndarray) -> list[np.ndarra
     return [np.bincount(cell, x, minlength=k) / count for x in values]
 
 
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a 1-D array without NaN, by one partition (np.median's checks cost as much again,
+    and the fit takes two medians at every step)."""
+    k = x.size // 2
+    if x.size == 0:
+        return float("nan")
+    if x.size % 2:
+        return float(np.partition(x, k)[k])
+    part = np.partition(x, (k - 1, k))
+    return float(0.5 * (part[k - 1] + part[k]))
+
+
 def _robust_scale(r: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(r - np.median(r)))) or 1e-3
+    return float(1.4826 * _median(np.abs(r - _median(r)))) or 1e-3
 
 
 class _Problem:
@@ -205,24 +226,26 @@ class _Problem:
         idx = slice(None) if idx is None else idx
         du, dv, m, u, v = self.du[idx], self.dv[idx], self.m[idx], self.u[idx], self.v[idx]
         x = u - (theta[0] + theta[1] * du + theta[2] * dv + theta[3] * m)
-        rv, gx = sample(self.R, x, v), sample(self.Rx, x, v)
+        rv, gx = samples((self.R, self.Rx), x, v)
         ok = self.usable[idx] & np.isfinite(rv) & np.isfinite(gx)
         column = np.clip(np.rint(x), 0, self.R.shape[1] - 1).astype(np.intp)
         ok &= ~self.right_saturated[self.vi[idx], column]
         gain = theta[4] + theta[5] * du + theta[6] * dv + theta[8] * m
         r = self.lvals[idx] - gain * rv - theta[7] - theta[9] * m
-        J = np.empty((len(r), len(PARAMS)))
-        J[:, 0] = gain * gx  # d r / d disparity
-        J[:, 1] = J[:, 0] * du
-        J[:, 2] = J[:, 0] * dv
-        J[:, 3] = J[:, 0] * m
-        J[:, 4] = -rv
-        J[:, 5] = -rv * du
-        J[:, 6] = -rv * dv
-        J[:, 7] = -1.0
-        J[:, 8] = -rv * m
-        J[:, 9] = -m
-        return r, J, ok
+        # built by parameter (each row of Jt contiguous): filling columns of an (n, 10) array was most of
+        # this function's time
+        Jt = np.empty((len(PARAMS), len(r)))
+        np.multiply(gain, gx, out=Jt[0])  # d r / d disparity
+        np.multiply(Jt[0], du, out=Jt[1])
+        np.multiply(Jt[0], dv, out=Jt[2])
+        np.multiply(Jt[0], m, out=Jt[3])
+        np.negative(rv, out=Jt[4])
+        np.multiply(Jt[4], du, out=Jt[5])
+        np.multiply(Jt[4], dv, out=Jt[6])
+        Jt[7] = -1.0
+        np.multiply(Jt[4], m, out=Jt[8])
+        np.negative(m, out=Jt[9])
+        return r, Jt.T, ok
 
     def gauss_newton(self, theta, free, iterations, select, tolerance):
         """Huber-weighted Gauss-Newton on the parameters ``free`` over the pixels ``select``:
@@ -232,10 +255,16 @@ class _Problem:
             r, J, ok = self.residuals(theta, idx)
             if ok.sum() < len(free) + 2:
                 return None, False
-            r, J = r[ok], J[ok][:, free]
-            w = _huber_weights(r, _robust_scale(r)) * self.prior[idx[ok]]
+            kept = np.flatnonzero(ok)
+            # take by index, parameters as rows: boolean masks and column picks of (n, 10) arrays cost
+            # more than the rest of the step
+            r, Jt = r[kept], J.T.take(kept, axis=1)
+            if len(free) < len(PARAMS):
+                Jt = Jt[free]
+            w = _huber_weights(r, _robust_scale(r)) * self.prior[idx[kept]]
+            Jw = Jt * w
             try:
-                step = np.linalg.solve((J * w[:, None]).T @ J, -(J * w[:, None]).T @ r)
+                step = np.linalg.solve(Jw @ Jt.T, -(Jw @ r))
             except np.linalg.LinAlgError:
                 return None, False
             if not np.all(np.isfinite(step)):
@@ -305,10 +334,11 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     if theta is None:
         return None
     r, J, ok = p.residuals(theta)
-    r, J = r[ok], J[ok]
-    h, w = _huber_weights(r, _robust_scale(r)), prior[ok]
+    kept = np.flatnonzero(ok)
+    r, J = r[kept], J.T.take(kept, axis=1).T
+    h, w = _huber_weights(r, _robust_scale(r)), prior[kept]
     try:
-        inv = np.linalg.inv((J * (h * w)[:, None]).T @ J)
+        inv = np.linalg.inv((J.T * (h * w)) @ J)
     except np.linalg.LinAlgError:
         return None
     if not (np.all(np.isfinite(inv)) and np.all(np.diag(inv) > 0)):
@@ -519,7 +549,7 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     j = np.zeros(len(u))
     for _ in range(iterations):
         x = u - plane - offsets[cell]
-        rv, gx = sample(R, x, v), sample(Rx, x, v)
+        rv, gx = samples((R, Rx), x, v)
         ok = np.isfinite(rv) & np.isfinite(gx) & (p > 0)
         r = np.where(ok, lv - gain * rv - th[7] - th[9], 0.0)
         j = np.where(ok, gain * gx, 0.0)

@@ -342,7 +342,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     if share < rule.min_plane_inliers:
         return _unavailable(reference, f"the surface around the box is not one plane ({how} in the images, "
                             f"{rule.min_plane_inliers:.0%} needed)")
-    images = surface_fit.defect_images(left, right, fit, (uu, vv))
+    images = fit.images  # the high-passed window the fit read
     interior = surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner, INTERIOR_MARGIN_PX, images)
     if not np.isfinite(interior):
         return _unavailable(reference, f"the region ({inner[2] - inner[0]:.0f} x {inner[3] - inner[1]:.0f} px) has no "

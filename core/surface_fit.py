@@ -71,6 +71,7 @@ class SurfaceFit:
     converged: bool
     ring_weights: np.ndarray | None = None  # (ring pixels,) each one's cell weight in [0, 1] at the end
     signal_sigma: float = float("inf")  # grey levels: the robust spread of the ring's high-passed left image
+    images: DefectImages | None = None  # the high-passed window the fit read, for the defect's cells
 
     @property
     def matches(self) -> bool:
@@ -347,7 +348,8 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     ring_weights = np.where(ok[on_ring], prior[on_ring], 0.0)
     signal = _robust_scale(p.lvals[on_ring & p.usable])
     return SurfaceFit(theta, covariance, centre, int((ok & on_ring).sum()), int((ok & ~on_ring).sum()),
-                      _robust_scale(r), inflation, converged, ring_weights, signal)
+                      _robust_scale(r), inflation, converged, ring_weights, signal,
+                      DefectImages((x0, y0), p.L, p.R, p.Rx))
 
 
 WINDOW_MARGIN_PX = int(3 * HIGH_PASS_SIGMA) + 8  # the filters' reach, the blur's and the interpolation's
@@ -507,7 +509,8 @@ def _covariance(J: np.ndarray, r: np.ndarray, h: np.ndarray, p: np.ndarray, u: n
 @dataclass(frozen=True)
 class DefectImages:
     """The high-passed window around a defect's region (``origin`` its top-left corner in the image): what
-    ``cell_offsets`` and ``interior_variance`` read, built once per defect by ``defect_images``."""
+    ``cell_offsets`` and ``interior_variance`` read: the fit's own (``SurfaceFit.images``), or
+    ``defect_images``'s for other images."""
 
     origin: tuple[int, int]
     L: np.ndarray
@@ -518,7 +521,8 @@ class DefectImages:
 def defect_images(left: np.ndarray, right: np.ndarray, fit: SurfaceFit,
                   defect: tuple[np.ndarray, np.ndarray]) -> DefectImages:
     """HxW float32 grey images (as given to ``fit_surface``) -> the high-passed window the defect's pixels
-    ``defect`` (u, v) read at the fitted surface."""
+    ``defect`` (u, v) read at the fitted surface (``fit.images`` holds them already for the images the fit
+    was given: its window holds the defect's and more)."""
     origin, left, right = _window(left, right, defect, defect, fit.params, 1.0)
     R = high_pass(right)
     return DefectImages(origin, high_pass(left), R, gradient_x(R))

@@ -150,6 +150,16 @@ class TestCellOffsets:
         assert offsets.shape == sds.shape == (centres.shape[0],) and centres.shape[1] == 2
         assert np.all(np.isfinite(sds)) and np.median(np.abs(offsets + 0.3) / sds) < 1.5
 
+    def test_the_fits_own_window_gives_the_cells_of_a_window_cut_for_them(self):
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=6)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
+        own = sf.cell_offsets(left, right, fit, defect, images=fit.images)
+        cut = sf.cell_offsets(left, right, fit, defect, images=sf.defect_images(left, right, fit, defect))
+        assert fit.images.L.shape != sf.defect_images(left, right, fit, defect).L.shape  # two windows
+        # they differ only where the high-pass reaches a window's edge, by far less than the cells' noise
+        assert np.max(np.abs(own[0] - cut[0]) / own[1]) < 0.01
+
 
 class TestInteriorVariance:
     INNER = (68, 51, 92, 69)

@@ -46,6 +46,9 @@ class StereoBackend(Protocol):
         NaN where invalid. Searches ``min_disp <= d < max_disp``.
         """
 
+    # Optional: ``warm_up()``, called once before the first part, where the first call is slow (kernels
+    # compiled, buffers allocated): otherwise the first part is late and trips the recipe's ``watchdog_s``.
+
 
 @runtime_checkable
 class Detector(Protocol):
@@ -65,6 +68,11 @@ class RejectOutput(Protocol):
 
     def close(self, timeout_s: float = 10.0) -> list[OutputEvent | Alarm]:
         """Deliver or alarm everything still queued, then release the transport."""
+
+    # Optional (the engine looks for them): ``hold(reason: str)`` when a part has been in inspection longer
+    # than the recipe's ``watchdog_s`` (a stage or plugin is not returning): tell the line the inspection is
+    # not ready (a ready signal off, a heartbeat stopped); ``release()`` once it runs again. Both are called
+    # from the engine's watch thread and must not block.
 
 
 @dataclass

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import queue
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -29,6 +30,7 @@ from core.registry import Registry, default_registry
 from core.store import ResultsStore
 from core.stereo_region import disparity_around
 from core.types import Alarm, Calibration, Detection, FrameError, OutputEvent, PartResult, Status, StereoFrame
+from core.watchdog import StallWatch
 
 EXIT_OK, EXIT_USAGE, EXIT_PART_ERRORS, EXIT_ALARMS, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
 CAMERA_LOST_AFTER = 3  # consecutive frames the camera could not deliver
@@ -46,13 +48,20 @@ class Pipeline:
     outputs: list[tuple[str, Any]]
 
     def warm_up(self) -> None:
-        """Run the detector once before the first part: its first call builds the model and would
-        make the first part late for the actuator. A detector that fails here fails on the parts
-        too, where the failure is reported per part."""
+        """Run the detector once, and the stereo backend's optional ``warm_up``, before the first part:
+        their first calls build the model and compile kernels (13 s for torch_sgm's with numba's cache
+        empty), which would make the first part late for the actuator and trip the watchdog. A stage
+        that fails here fails on the parts too, where the failure is reported per part."""
         try:
             self.detector.detect(np.zeros((64, 64, 3), dtype=np.uint8))
         except Exception:
             pass
+        warm_up = getattr(self.stereo, "warm_up", None)
+        if callable(warm_up):
+            try:
+                warm_up()
+            except Exception:
+                pass
 
     def close(self) -> None:
         self.camera.close()
@@ -304,13 +313,37 @@ def run(
     interrupted = False
     stopped_by = None
 
-    def record(events: list[OutputEvent | Alarm]) -> None:
+    def record(events: list[OutputEvent | Alarm], told: bool = False) -> None:
+        """Store ``events`` and count the alarms; ``told``: ``on_event`` has had them already."""
         store.record_events(run_id, events)
         for e in events:
             if isinstance(e, Alarm):
                 alarms.append(e)
-            if on_event:
+            if on_event and not told:
                 on_event(e)
+
+    # The watch's thread tells the operator and the outputs at once; this thread stores what it said (the
+    # store is this thread's), after the part it waited for or when the run ends.
+    from_watch: queue.SimpleQueue = queue.SimpleQueue()
+
+    def stalled(key: str, what: str, seconds: float) -> None:
+        alarm = Alarm("engine", f"{what}: still in inspection after {seconds:.1f} s (watchdog_s: {recipe.watchdog_s:g}): "
+                      "a stage or plugin is not returning; the outputs tell the line the inspection is not ready until "
+                      "it finishes", time.time(), key, "stall")
+        _tell_outputs(pipeline, "hold", alarm.message)
+        _from_watch(from_watch, alarm, on_event)
+
+    def resumed(seconds: float) -> None:
+        _tell_outputs(pipeline, "release")
+        _from_watch(from_watch, OutputEvent("engine", None, "inspection running again", "delivered", time.time(),
+                                            f"after {seconds:.1f} s stalled; the outputs tell the line it is ready"),
+                    on_event)
+
+    def record_watch() -> None:
+        events = []
+        while not from_watch.empty():
+            events.append(from_watch.get())
+        record(events, told=True)
 
     # runs that never finished (the process was killed, the power cut): their rejects may not have fired
     record(store.recover_crashed(unfinished, run_id))
@@ -320,11 +353,21 @@ def run(
         on_start(pipeline)
     started = time.perf_counter()
     failed_in_a_row = 0
-    source = (DetectAhead(pipeline.camera.frames(), lambda item: detect_frame(item, pipeline, recipe), max_frames)
-              if recipe.stereo.concurrent else OneAtATime(pipeline.camera.frames(), max_frames))
 
     def part_id(item: StereoFrame | FrameError) -> str:
         return f"R{run_id}-{item.index:06d}"
+
+    watch = StallWatch(recipe.watchdog_s, stalled, resumed).start()
+
+    def watched(frames):
+        """The camera's frames, each timed from when it is read (the wait for a part is not timed)."""
+        for item in frames:
+            watch.started(part_id(item), f"frame {item.frame_id}")
+            yield item
+
+    frames_in = watched(pipeline.camera.frames())
+    source = (DetectAhead(frames_in, lambda item: detect_frame(item, pipeline, recipe), max_frames)
+              if recipe.stereo.concurrent else OneAtATime(frames_in, max_frames))
 
     current = None  # the frame being inspected: one the run leaves unfinished is rejected, never lost
     # [part, the outputs it has still to reach, the one being handed it]: an interrupt in between still
@@ -340,6 +383,8 @@ def run(
         counts[part.verdict.status] += 1
         handing[:] = [part, list(pipeline.outputs), None]
         hand_to_outputs()
+        watch.finished(part.part_id)
+        record_watch()
 
     def hand_to_outputs() -> None:
         part, waiting, _ = handing
@@ -380,6 +425,7 @@ def run(
     except Exception as exc:  # a camera that raises instead of reporting a FrameError: stop, loudly
         record([Alarm("engine", f"run stopped after {frames} parts: {type(exc).__name__}: {exc}", time.time())])
     finally:
+        watch.close()  # what follows may wait for a camera to stop (a part no longer in inspection)
         try:
             if handing:  # interrupted while a stored part was handed to the outputs
                 part, _, interrupted_output = handing
@@ -402,6 +448,7 @@ def run(
         except KeyboardInterrupt:  # a second Ctrl-C must not skip closing the outputs and the store
             interrupted = True
         elapsed = time.perf_counter() - started
+        record_watch()
         for name, output in pipeline.outputs:
             try:
                 record(output.close())
@@ -412,6 +459,24 @@ def run(
     store.finish_run(run_id, counts, len(alarms), summary.fps, summary.exit_code)
     store.close()
     return summary
+
+
+def _tell_outputs(pipeline: Pipeline, what: str, *args: Any) -> None:
+    """Call the optional ``hold``/``release`` of each output that has it; one failing must not stop the rest
+    (the alarm says the inspection stalled either way)."""
+    for _, output in pipeline.outputs:
+        method = getattr(output, what, None)
+        if callable(method):
+            try:
+                method(*args)
+            except Exception:
+                pass
+
+
+def _from_watch(events: queue.SimpleQueue, event: OutputEvent | Alarm, on_event) -> None:
+    events.put(event)
+    if on_event:
+        on_event(event)
 
 
 def _sha256_or_none(path) -> str | None:

@@ -185,7 +185,8 @@ class OutputEvent:
 class Alarm:
     """Something the operator must hear about. ``cause`` names its kind where the source knows it: link
     (the PLC or line cannot be reached), late (a part was decided after its command was due), release (a
-    pulse's end not sent), pulse, busy, closed, camera, engine, crash."""
+    pulse's end not sent), pulse, busy, closed, camera, engine, crash, stall (a part stayed in inspection
+    longer than the recipe's ``watchdog_s``)."""
 
     source: str
     message: str

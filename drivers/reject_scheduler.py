@@ -9,6 +9,8 @@ reaches it. ``RejectScheduler`` keeps a queue ordered by due time and one worker
 * gives each command until ``due + max_late_s`` (its deadline); a command that cannot be sent
   by then is reported with outcome ``alarm`` and never silently dropped;
 * runs follow-up commands (a coil pulse's release) and an optional periodic heartbeat;
+* tells the line the inspection is not ready while it is held (``hold``: the ``on_close`` command, no
+  heartbeat; the inspection behind it has stalled) and ready again on ``release``;
 * keeps pulses apart: a command with a follow-up (a pulse) is not started while the previous
   pulse is still on, plus ``min_pulse_gap_s``, because the actuator would see one long pulse for
   two parts. If waiting for the gap would miss the deadline, the command is an alarm;
@@ -81,9 +83,12 @@ class _Job:
     deadline: float = field(compare=False)
     key: str | None = field(compare=False)
     command: Command = field(compare=False)
-    kind: str = field(compare=False, default="part")  # part | follow-up | heartbeat
+    kind: str = field(compare=False, default="part")  # part | follow-up | heartbeat | state
     attempts: int = field(compare=False, default=0)
     submitted: float = field(compare=False, default_factory=time.monotonic)
+
+
+SERVICE = ("heartbeat", "state")  # jobs that keep the line informed, not commands for a part
 
 
 class RejectScheduler:
@@ -128,6 +133,7 @@ class RejectScheduler:
         self._stop = False
         self._inflight: _Job | None = None
         self._beat = 0
+        self._held = False
         self._thread = threading.Thread(target=self._run, name=f"{name} scheduler", daemon=True)
         if heartbeat is not None:
             self._push(time.monotonic(), None, heartbeat(0), "heartbeat", deadline=float("inf"))
@@ -146,6 +152,31 @@ class RejectScheduler:
             self._push_locked(due, key, command, "part", due + self.max_late_s)
             self._cond.notify_all()
 
+    def hold(self) -> None:
+        """The inspection behind this output has stalled: send ``on_close`` (the line is told it is not
+        ready) and no heartbeat until ``release``. Commands for parts still go out when due."""
+        with self._cond:
+            if self._held or self._closing:
+                return
+            self._held = True
+            if self.on_close is not None:
+                self._push_locked(time.monotonic(), None, self.on_close, "state", float("inf"))
+            self._cond.notify_all()
+
+    def release(self) -> None:
+        """The inspection is running again: send ``on_connect`` and beat again."""
+        with self._cond:
+            if not self._held or self._closing:
+                return
+            self._held = False
+            if self.on_connect is not None:
+                self._push_locked(time.monotonic(), None, self.on_connect, "state", float("inf"))
+            self._cond.notify_all()
+
+    @property
+    def held(self) -> bool:
+        return self._held
+
     def drain(self) -> list[Record]:
         with self._cond:
             records, self._records = self._records, []
@@ -154,7 +185,7 @@ class RejectScheduler:
     @property
     def pending(self) -> int:
         with self._cond:
-            return sum(1 for j in self._queue if j.kind != "heartbeat")
+            return sum(1 for j in self._queue if j.kind not in SERVICE)
 
     @property
     def connected(self) -> bool:
@@ -163,7 +194,7 @@ class RejectScheduler:
     def last_due_in(self) -> float:
         """Seconds until the last queued command is due (0 when none is waiting)."""
         with self._cond:
-            dues = [j.due for j in self._queue if j.kind != "heartbeat"]
+            dues = [j.due for j in self._queue if j.kind not in SERVICE]
         return max(0.0, max(dues) - time.monotonic()) if dues else 0.0
 
     def close(self, timeout_s: float = 10.0) -> list[Record]:
@@ -172,12 +203,12 @@ class RejectScheduler:
         end = time.monotonic() + timeout_s
         with self._cond:
             self._closing = True
-            self._queue = [j for j in self._queue if j.kind != "heartbeat"]
+            self._queue = [j for j in self._queue if j.kind not in SERVICE]
             heapq.heapify(self._queue)
             self._cond.notify_all()
             while self._busy_locked() and time.monotonic() < end and self._thread.is_alive():
                 self._cond.wait(min(0.05, max(0.0, end - time.monotonic())))
-            leftover = [j for j in self._queue if j.kind != "heartbeat"]
+            leftover = [j for j in self._queue if j.kind not in SERVICE]
             self._queue = []
             self._stop = True
             self._cond.notify_all()
@@ -201,9 +232,9 @@ class RejectScheduler:
 
     # ----------------------------------------------------------------- worker
     def _busy_locked(self) -> bool:
-        if self._inflight is not None and self._inflight.kind != "heartbeat":
+        if self._inflight is not None and self._inflight.kind not in SERVICE:
             return True
-        return any(j.kind != "heartbeat" for j in self._queue)
+        return any(j.kind not in SERVICE for j in self._queue)
 
     def _push(self, due: float, key, command: Command, kind: str, deadline: float) -> None:
         with self._cond:
@@ -285,11 +316,13 @@ class RejectScheduler:
                 self._records.append(Record(None, "connect", "delivered", time.time(), "link up again"))
         self._down_reported = False
         self._idle_known = True
-        if self.on_connect is not None:
+        # held: the line hears "not ready" again (the PLC may have kept the last value while the link was down)
+        state = self.on_close if self._held else self.on_connect
+        if state is not None:
             try:
-                detail = self.link.send(self.on_connect.payload)
+                detail = self.link.send(state.payload)
                 with self._cond:
-                    self._records.append(Record(None, self.on_connect.text, "delivered", time.time(), detail or ""))
+                    self._records.append(Record(None, state.text, "delivered", time.time(), detail or ""))
             except Exception as exc:
                 self._lost(exc)
 
@@ -305,6 +338,9 @@ class RejectScheduler:
     def _attempt(self, job: _Job) -> None:
         if job.kind == "heartbeat":
             self._heartbeat(job)
+            return
+        if job.kind == "state":
+            self._state(job)
             return
         if job.command.follow_up is not None and not self._pulse_apart(job):
             return
@@ -384,8 +420,22 @@ class RejectScheduler:
                 self._cond.notify_all()
         return False
 
+    def _state(self, job: _Job) -> None:
+        """Ready or not ready (``hold``/``release``): sent now if connected, else on the next connect."""
+        if not self._connected or self._closing:
+            return
+        try:
+            detail = self.link.send(job.command.payload)
+        except Exception as exc:
+            with self._cond:
+                self._records.append(Record(None, job.command.text, "failed", time.time(), str(exc)))
+            self._lost(exc)
+            return
+        with self._cond:
+            self._records.append(Record(None, job.command.text, "delivered", time.time(), detail or ""))
+
     def _heartbeat(self, job: _Job) -> None:
-        if self._connected and not self._closing:
+        if self._connected and not self._closing and not self._held:
             try:
                 self.link.send(job.command.payload)
             except Exception as exc:

@@ -75,6 +75,14 @@ class ScheduledOutput:
     def poll(self) -> list[OutputEvent | Alarm]:
         return self._convert(self.scheduler.drain())
 
+    def hold(self, reason: str) -> None:
+        """The inspection has stalled (``reason``): the line is told it is not ready (the ready coil off, no
+        heartbeat) until ``release``."""
+        self.scheduler.hold()
+
+    def release(self) -> None:
+        self.scheduler.release()
+
     def close(self, timeout_s: float = 10.0) -> list[OutputEvent | Alarm]:
         """Plates still on their way to the actuator get their command: wait at least until the last
         one is due (plus ``max_late_ms`` and a margin), at most ``MAX_CLOSE_WAIT_S``."""

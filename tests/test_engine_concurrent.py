@@ -149,3 +149,33 @@ def test_a_part_stored_before_the_interrupt_keeps_its_verdict(tmp_path, plane_se
     assert logged == {p for p, _ in parts}
     alarms = db.execute("SELECT source, part_id, message FROM alarms").fetchall()
     assert [(s, p) for s, p, _ in alarms] == [("interrupting", "R1-000000")] and "may not have received" in alarms[0][2]
+
+
+class WarmStereo:
+    """Records its calls: ``warm_up`` must come once, before the first part's ``compute``."""
+
+    def __init__(self):
+        self.calls = []
+
+    def warm_up(self):
+        self.calls.append("warm_up")
+
+    def compute(self, left, right, min_disp, max_disp):
+        self.calls.append("compute")
+        return np.full(left.shape[:2], 90.0, dtype=np.float32)
+
+
+def test_the_stereo_backends_optional_warm_up_runs_once_before_the_first_part(tmp_path, plane_sequence):
+    info = plane_sequence([0.0] * 2)
+    stereo = WarmStereo()
+
+    class Plugin:
+        @hookimpl
+        def stereo_inspect_stereo_backends(self):
+            return [PluginSpec("warm", "stereo", lambda s, ctx: stereo)]
+
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, Plugin())))
+    text = RECIPE.format(box=info["box"], output="log").replace("backend: opencv_sgbm", "backend: warm")
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
+    engine.run(loaded, registry=registry, device="cpu")
+    assert stereo.calls[0] == "warm_up" and stereo.calls.count("warm_up") == 1 and "compute" in stereo.calls

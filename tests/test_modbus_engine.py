@@ -3,12 +3,16 @@ what lands in the results store. The example detector is registered in-process (
 from __future__ import annotations
 
 import sqlite3
+import time
 
+import numpy as np
 import pytest
 import stereo_inspect_fixed_roi
 from conftest import write_recipe
 
 from core import engine
+from core.contracts import PluginSpec
+from core.hookspecs import hookimpl
 from core.recipe import load_recipe
 from core.registry import Registry, make_manager
 from core.types import Status
@@ -99,3 +103,57 @@ def test_plc_unreachable_alarms_every_reject_and_fails_the_run(tmp_path, plane_s
     assert all("cannot connect to the PLC" in r[1] for r in stored if r[0])
     outcomes = db.execute("SELECT part_id, outcome FROM output_events WHERE part_id IS NOT NULL").fetchall()
     assert {(pid, "alarm") for pid in (p.part_id for p in parts)} <= set(outcomes)
+
+
+class StuckStereo:
+    """A matcher whose second frame does not return until the PLC has been told the inspection stalled
+    (its ready coil off): a driver deadlock that ends. The test fails, not hangs, if that never comes."""
+
+    def __init__(self, sim):
+        self.sim, self.calls = sim, 0
+
+    def compute(self, left, right, min_disp, max_disp):
+        self.calls += 1
+        if self.calls == 2:
+            end = time.monotonic() + 10.0
+            while self.sim.coil(1) != 0 and time.monotonic() < end:
+                time.sleep(0.02)
+        return np.full(left.shape[:2], 90.0, dtype=np.float32)
+
+
+class StuckStereoPlugin:
+    def __init__(self, sim):
+        self.sim = sim
+
+    @hookimpl
+    def stereo_inspect_stereo_backends(self):
+        return [PluginSpec("stuck", "stereo", lambda s, ctx: StuckStereo(self.sim))]
+
+
+@pytest.mark.parametrize("concurrent", ["false", "true"])
+def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(tmp_path, plane_sequence, concurrent):
+    """Without the watchdog the ready coil stays on and the heartbeat beats while nothing is inspected."""
+    import plugins.modbus_output
+
+    info = plane_sequence([0.0] * 4)
+    port = plc_sim.free_port()
+    with plc_sim.serve_in_thread("127.0.0.1", port, on_change=None) as sim:
+        registry = Registry(make_manager((stereo_inspect_fixed_roi, plugins.modbus_output, StuckStereoPlugin(sim))))
+        text = RECIPE.format(box=info["box"], port=port).replace("backend: opencv_sgbm", "backend: stuck") \
+            .replace("      on_pass:", "      ready_coil: 1\n      on_pass:")
+        loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text),
+                             ["watchdog_s=0.3", f"stereo.concurrent={concurrent}"], registry=registry)
+        seen, told = [], []
+        summary = engine.run(loaded, registry=registry, on_part=seen.append, on_event=told.append, device="cpu")
+        ready = [w.value for w in sim.writes if w.table == "coil" and w.address == 1]
+    # on when connected, off for the stall, on again once the part finished, off at the end
+    assert ready == [1, 0, 1, 0]
+    (stall,) = [a for a in summary.alarms if a.cause == "stall"]
+    assert stall.part_id == seen[1].part.part_id and "frame 000001: still in inspection" in stall.message
+    assert stall in told and summary.exit_code == engine.EXIT_ALARMS
+    assert len(seen) == 4  # every part still inspected
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    assert db.execute("SELECT part_id FROM alarms WHERE message LIKE '%still in inspection%'").fetchall() == \
+        [(stall.part_id,)]
+    assert db.execute("SELECT count(*) FROM output_events WHERE output = 'engine' AND command = "
+                      "'inspection running again'").fetchone() == (1,)

@@ -349,3 +349,48 @@ def test_a_link_cut_during_a_pulse_is_an_alarm_and_the_coil_is_reset_before_the_
     assert writes[2:] == [0, 1, 0]  # after the cut: back at rest, the second reject's rising edge, its release
     delivered = [e for e in events_of(events) if e.part_id == second.part_id and "(pulse " in e.command]
     assert [e.outcome for e in delivered] == ["delivered"] and sim.coil(0) == 0
+
+
+def wait_for(condition, timeout_s: float = 3.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if condition():
+            return True
+        time.sleep(0.01)
+    return condition()
+
+
+class TestHold:
+    """A stalled inspection (the engine's watchdog) holds the output: the line is told it is not ready."""
+
+    def test_hold_drops_the_ready_coil_and_stops_the_heartbeat_release_restores_both(self, sim, port):
+        out = output(port, ready_coil=5, heartbeat={"address": 100, "period_ms": 50})
+        assert wait_for(lambda: sim.coil(5) == 1 and sim.register(100) >= 2)
+        out.hold("frame 000007 stuck in stereo")
+        assert wait_for(lambda: sim.coil(5) == 0)
+        beat = sim.register(100)
+        time.sleep(0.3)  # six periods: a live heartbeat would have moved
+        assert sim.register(100) == beat and sim.coil(5) == 0
+        out.release()
+        assert wait_for(lambda: sim.coil(5) == 1 and sim.register(100) > beat)
+        commands = [e.command for e in events_of(out.close(timeout_s=2))]
+        assert commands.count("write_coil 5 = 0 unit 1 (system stopped)") == 2  # the hold, and the close
+
+    def test_rejects_still_fire_while_held(self, sim, port):
+        out = output(port, ready_coil=5, delay_ms=200)
+        out.hold("stalled")
+        out.submit(part(1))
+        events = out.close(timeout_s=2)
+        assert len(coil_on_times(sim)) == 1 and not events_of(events, Alarm)
+
+    def test_a_link_that_comes_back_while_held_hears_not_ready(self, port):
+        out = output(port, ready_coil=5)
+        out.hold("stalled")
+        sim = plc_sim.serve_in_thread(HOST, port, on_change=None)
+        try:
+            assert wait_for(lambda: out.scheduler.connected)
+            time.sleep(0.1)
+            assert sim.coil(5) == 0 and not [w for w in sim.writes if w.table == "coil" and w.address == 5 and w.value == 1]
+            out.close(timeout_s=2)
+        finally:
+            sim.stop()

@@ -151,3 +151,26 @@ def test_two_view_improves_held_out_synthetic_pairs_and_its_average_sharpens_the
         assert chosen["bad1.0"] < alone["bad1.0"]
         # the plane fits and the mean of the two views that follow the choice bring it closer to the truth
         assert both["bad0.5"] < chosen["bad0.5"] and both["avgerr"] < chosen["avgerr"]
+
+
+def test_warm_up_reaches_every_compiled_kernel():
+    """In a fresh process (where no kernel has run yet): after ``warm_up`` every numba kernel of the
+    pipeline has its machine code, so the first part does not pay for compiling one."""
+    import subprocess
+    import sys
+
+    script = """
+import numba
+from core.contracts import PluginContext
+from plugins.torch_sgm import planes_numba, refine_numba, sgm_numba, linalg_numba
+from plugins.torch_sgm.plugin import _factory
+_factory({}, PluginContext(device="cpu")).warm_up()
+kernels = {f"{m.__name__}.{name}": k for m in (planes_numba, refine_numba, sgm_numba, linalg_numba)
+           for name, k in vars(m).items() if isinstance(k, numba.core.registry.CPUDispatcher)}
+inner = {"solve3", "_step"}  # called only from other kernels, compiled into them
+print(sorted(n for n, k in kernels.items() if not k.signatures and n.rsplit(".", 1)[1] not in inner), len(kernels))
+"""
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    missing, count = result.stdout.strip().rsplit(" ", 1)
+    assert missing == "[]" and int(count) >= 8, result.stdout

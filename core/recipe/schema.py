@@ -151,6 +151,9 @@ class Recipe(Section):
     # CPU threads of this process's torch and OpenCV stages; auto = half the cores, so that two stations
     # on one PC do not spin against each other (docs/benchmarks.md). ``inspect run --threads`` wins.
     threads: int | str = "auto"
+    # A part still in inspection after this long means a stage or plugin is not returning: an alarm, and the
+    # outputs tell the line the inspection is not ready (ready coil off, heartbeat stopped) until it finishes.
+    watchdog_s: float = Field(5.0, gt=0)
     camera: CameraSection
     stereo: StereoSection
     detector: DetectorSection = Field(default_factory=DetectorSection)

@@ -18,6 +18,14 @@ class TorchSGM:
     def compute(self, left: np.ndarray, right: np.ndarray, min_disp: float, max_disp: float) -> np.ndarray:
         return self.compute_with_mask(left, right, min_disp, max_disp)[0]
 
+    def warm_up(self) -> None:
+        """Match a small synthetic scene (matches, an occlusion, holes to fill) so that every stage's
+        kernels are compiled, or loaded from numba's cache, before the first part."""
+        from plugins.torch_sgm.synthetic import layered_scene
+
+        left, right, _, _ = layered_scene()
+        self.compute(left, right, 0.0, 24.0)
+
     def compute_with_mask(self, left, right, min_disp, max_disp) -> tuple[np.ndarray, np.ndarray]:
         """The disparity and the pixels that passed the left-right check (before hole filling);
         the evaluation scores the latter as the sparse result."""

@@ -51,7 +51,18 @@ def test_good_recipe_loads(recipe_dir):
 
 def test_unknown_key_names_line_and_path(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("  max_disparity: 64", "  max_disparty: 64"))
-    assert re.search(r"r\.yaml:8: stereo\.max_disparty: unknown key", message), message
+    assert re.search(r"r\.yaml:8: stereo\.max_disparty: unknown key; did you mean 'max_disparity'\?", message), message
+
+
+@pytest.mark.parametrize("old, new, hint", [
+    ("name: t", "name: t\nthread: 2", "thread: unknown key; did you mean 'threads'?"),  # top level
+    ("{class: any", "{clas: any", "decision.rules.0.clas: unknown key; did you mean 'class'?"),  # a list's, aliased
+    ("outputs:", "depth: {ring_widht: 4}\noutputs:", "depth.ring_widht: unknown key; did you mean 'ring_width_px'?"),
+    ("outputs:", "depth: {zzz: 4}\noutputs:", "depth.zzz: unknown key"),  # nothing close: no guess
+])
+def test_an_unknown_key_suggests_the_closest_known_one(recipe_dir, old, new, hint):
+    message = _error(recipe_dir, GOOD.replace(old, new, 1))
+    assert message.endswith(hint), message
 
 
 def test_wrong_type(recipe_dir):
@@ -87,7 +98,7 @@ def test_yaml_syntax_error(recipe_dir):
 
 def test_plugin_setting_typo(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("    path: seq", "    path: seq\n    rate_fsp: 5"))
-    assert ":6: camera.settings.rate_fsp: unknown key" in message
+    assert ":6: camera.settings.rate_fsp: unknown key; did you mean 'rate_fps'?" in message
 
 
 def test_inconsistent_disparity_range(recipe_dir):

@@ -11,7 +11,7 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Union, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ValidationError
@@ -98,12 +98,14 @@ class _Locator:
         return RecipeError(self.describe(key, message))
 
 
-def _first_error(exc: ValidationError, base: KeyPath, locator: _Locator) -> RecipeError:
+def _first_error(exc: ValidationError, base: KeyPath, locator: _Locator, model: type[BaseModel]) -> RecipeError:
     err = exc.errors()[0]
-    key = base + tuple(p for p in err["loc"] if p != "__root__")
+    loc = tuple(p for p in err["loc"] if p != "__root__")
+    key = base + loc
     kind = err["type"]
     if kind == "extra_forbidden":
-        message = "unknown key"
+        close = difflib.get_close_matches(str(loc[-1]), keys_at(model, loc[:-1]), n=1, cutoff=0.6)
+        message = "unknown key" + (f"; did you mean {close[0]!r}?" if close else "")
     elif kind == "missing":
         message = "required key missing"
     else:
@@ -114,6 +116,33 @@ def _first_error(exc: ValidationError, base: KeyPath, locator: _Locator) -> Reci
     if more:
         message += f" (and {more} more problem{'s' if more > 1 else ''})"
     return locator.error(key, message)
+
+
+def keys_at(model: type[BaseModel], path: KeyPath) -> list[str]:
+    """The keys the section of ``model`` at ``path`` (names and list indices) accepts; [] where the path
+    does not lead to a section."""
+    annotation: Any = model
+    for part in path:
+        annotation = next((a for a in (_step(c, part) for c in _members(annotation)) if a is not None), None)
+        if annotation is None:
+            return []
+    section = next((c for c in _members(annotation) if isinstance(c, type) and issubclass(c, BaseModel)), None)
+    return [] if section is None else [f.alias or name for name, f in section.model_fields.items()]
+
+
+def _members(annotation: Any) -> list[Any]:
+    """An annotation's alternatives (``A | B | None`` -> A, B), else itself."""
+    return [a for a in get_args(annotation) if a is not type(None)] if get_origin(annotation) in (Union, type(int | None)) \
+        else [annotation]
+
+
+def _step(annotation: Any, part: str | int) -> Any:
+    """The annotation of ``part`` inside ``annotation`` (a model's field, a list's item), or None."""
+    if isinstance(part, int) and get_origin(annotation) in (list, tuple):
+        return get_args(annotation)[0]
+    if isinstance(part, str) and isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return next((f.annotation for name, f in annotation.model_fields.items() if (f.alias or name) == part), None)
+    return None
 
 
 def apply_override(data: dict, assignment: str) -> KeyPath:
@@ -163,7 +192,7 @@ def _validate_plugin(
     try:
         return model.model_validate(settings, context=context).model_dump()
     except ValidationError as exc:
-        raise _first_error(exc, key + ("settings",), locator) from None
+        raise _first_error(exc, key + ("settings",), locator, model) from None
 
 
 def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None) -> LoadedRecipe:
@@ -192,7 +221,7 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     try:
         recipe = Recipe.model_validate(data)
     except ValidationError as exc:
-        raise _first_error(exc, (), locator) from None
+        raise _first_error(exc, (), locator, Recipe) from None
 
     loaded = LoadedRecipe(
         recipe=recipe,

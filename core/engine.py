@@ -6,7 +6,6 @@ becomes an ERROR verdict, which the outputs reject like any other reject.
 """
 from __future__ import annotations
 
-import math
 import os
 import queue
 import time
@@ -128,16 +127,8 @@ def build_pipeline(loaded: LoadedRecipe, registry: Registry, device: str = "auto
 
 
 def disparity_range(stereo: StereoSection, calib: Calibration) -> tuple[float, float]:
-    """The search range in full-resolution pixels; a working distance gets a 2 px margin each side."""
-    if stereo.working_distance_mm is not None:
-        near, far = stereo.working_distance_mm
-        lo = max(0.0, math.floor(float(calib.disparity_px(far))) - 2)
-        hi = math.ceil(float(calib.disparity_px(near))) + 2
-    else:
-        lo, hi = stereo.min_disparity or 0.0, stereo.max_disparity
-    if hi >= calib.width:
-        raise ValueError(f"stereo: disparity range up to {hi:g} px does not fit the {calib.width} px wide image")
-    return lo, hi
+    """The search range in full-resolution pixels (``StereoSection.search_range``)."""
+    return stereo.search_range(calib)
 
 
 def compute_disparity(backend: Any, frame: StereoFrame, lo: float, hi: float, scale: float) -> np.ndarray:

@@ -131,7 +131,10 @@ def test_part_is_stored_before_outputs_see_it(tmp_path, plane_sequence, registry
 def test_stereo_failure_rejects_the_part(tmp_path, plane_sequence, registry):
     info = plane_sequence([0.0])
     path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log"))
-    loaded = load_recipe(path, ["stereo.working_distance_mm=[10, 600]"], registry=registry)
+    loaded = load_recipe(path, registry=registry)
+    # a range the image cannot hold, past the loader's check (a camera that states no geometry before it runs)
+    stereo = loaded.recipe.stereo.model_copy(update={"working_distance_mm": (10.0, 600.0)})
+    loaded.recipe = loaded.recipe.model_copy(update={"stereo": stereo})
     seen = []
     engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
     assert seen[0].part.verdict.status is Status.ERROR

@@ -101,6 +101,20 @@ def test_plugin_setting_typo(recipe_dir):
     assert ":6: camera.settings.rate_fsp: unknown key; did you mean 'rate_fps'?" in message
 
 
+def test_a_search_range_wider_than_the_cameras_image_is_an_error(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("max_disparity: 64", "max_disparity: 400"))
+    assert ":8: stereo.max_disparity: 400 px of disparity does not fit the camera's 320 px wide image" in message
+
+
+def test_a_working_distance_nearer_than_both_eyes_see_is_an_error_naming_the_nearest(recipe_dir):
+    text = GOOD.replace("  max_disparity: 64", "  working_distance_mm: [5, 600]")
+    message = _error(recipe_dir, text)
+    assert ":8: stereo.working_distance_mm: the camera cannot see 5 mm with both eyes" in message, message
+    nearest = int(re.search(r"the nearest it can match is (\d+) mm", message).group(1))
+    assert load_recipe(write_recipe(recipe_dir / "ok.yaml", text.replace("[5, 600]", f"[{nearest}, 600]")))
+    assert "cannot see" in _error(recipe_dir, text.replace("[5, 600]", f"[{nearest - 1}, 600]"))
+
+
 def test_inconsistent_disparity_range(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("max_disparity: 64", "max_disparity: 64\n  min_disparity: 80"))
     assert "stereo: max_disparity must be larger than min_disparity" in message

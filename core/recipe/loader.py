@@ -9,6 +9,7 @@ import copy
 import difflib
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Union, get_args, get_origin
@@ -251,7 +252,37 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     _check_weights_pin(loaded, locator)
     _check_classes(loaded, registry, locator)
     _check_output_delays(loaded, registry, locator)
+    _check_search_range(loaded, registry, locator)
     return loaded
+
+
+def _check_search_range(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:
+    """The stereo search range must fit the camera's image (where the camera plugin states its geometry
+    from its settings): otherwise every part would be an ERROR. A camera that cannot state it is not
+    checked here (``inspect validate`` says so)."""
+    from core.contracts import PluginContext
+
+    spec = registry.get("camera", loaded.recipe.camera.plugin).spec
+    if spec.calibration is None:
+        return
+    try:
+        calib = spec.calibration(loaded.plugin_settings["camera"], PluginContext(recipe_dir=loaded.directory))
+    except Exception:
+        return
+    stereo = loaded.recipe.stereo
+    try:
+        stereo.search_range(calib)
+    except ValueError:
+        fb = calib.focal_px * calib.baseline_mm
+        if stereo.working_distance_mm is not None:
+            nearest = fb / (calib.width - 1 - stereo.RANGE_MARGIN_PX + calib.doffs)
+            raise locator.error(("stereo", "working_distance_mm"), (
+                f"the camera cannot see {stereo.working_distance_mm[0]:g} mm with both eyes: at its geometry "
+                f"(f {calib.focal_px:.1f} px, baseline {calib.baseline_mm:.1f} mm) that is "
+                f"{calib.disparity_px(stereo.working_distance_mm[0]):.0f} px of disparity in a {calib.width} px wide "
+                f"image; the nearest it can match is {math.ceil(nearest)} mm")) from None
+        raise locator.error(("stereo", "max_disparity"), f"{stereo.max_disparity:g} px of disparity does not fit the "
+                            f"camera's {calib.width} px wide image") from None
 
 
 def file_sha256(path: Path) -> str:

@@ -5,9 +5,13 @@ Relative paths in a recipe are relative to the recipe file.
 """
 from __future__ import annotations
 
-from typing import Any, Literal
+import math
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+if TYPE_CHECKING:
+    from core.types import Calibration
 
 QUANTITIES = ("deviation_mm", "distance_mm", "confidence", "area_mm2")
 OPERATORS = (">", ">=", "<", "<=")
@@ -64,6 +68,21 @@ class StereoSection(Section):
         if self.region == "defects" and self.schedule == "every_frame":
             raise ValueError("region: defects matches only around detections; it needs schedule: on_defect")
         return self
+
+    RANGE_MARGIN_PX: ClassVar[int] = 2  # each side of a working distance's disparities
+
+    def search_range(self, calib: Calibration) -> tuple[float, float]:
+        """The disparities searched in full-resolution pixels (lo, hi): the working distance's with
+        RANGE_MARGIN_PX each side, or min/max_disparity. ValueError where they do not fit the image."""
+        if self.working_distance_mm is not None:
+            near, far = self.working_distance_mm
+            lo = max(0.0, math.floor(float(calib.disparity_px(far))) - self.RANGE_MARGIN_PX)
+            hi = math.ceil(float(calib.disparity_px(near))) + self.RANGE_MARGIN_PX
+        else:
+            lo, hi = self.min_disparity or 0.0, self.max_disparity
+        if hi >= calib.width:
+            raise ValueError(f"stereo: disparity range up to {hi:g} px does not fit the {calib.width} px wide image")
+        return lo, hi
 
 
 class DetectorSection(Section):

@@ -189,8 +189,36 @@ def write_frame(
         (folder / "labels" / f"{frame_id}.json").write_text(json.dumps(labels, indent=2))
 
 
-def read_labels(path: Path) -> dict | list:
-    return json.loads(Path(path).read_text())
+def read_labels(path: Path) -> dict:
+    """A frame's labels: ``{"frame_id": ..., "defects": [{"class", "box": [x0, y0, x1, y1], "distance_mm",
+    "deviation_mm", ...}, ...], ...}``, checked (boxes as floats). ``SequenceError`` naming the file and the
+    entry when it is not one: the truth a result is compared with must be what it says."""
+    path = Path(path)
+    try:
+        labels = json.loads(path.read_text())
+    except OSError as exc:
+        raise SequenceError(f"{path}: labels cannot be read ({exc.strerror})") from None
+    except ValueError as exc:
+        raise SequenceError(f"{path}: labels are not JSON ({exc})") from None
+    if not isinstance(labels, dict) or not isinstance(labels.get("defects"), list):
+        raise SequenceError(f"{path}: expected a mapping with a list of defects")
+    for i, defect in enumerate(labels["defects"]):
+        where = f"{path}: defects[{i}]"
+        if not isinstance(defect, dict) or not isinstance(defect.get("class"), str):
+            raise SequenceError(f"{where}: expected a mapping with a class name")
+        box = defect.get("box")
+        if not (isinstance(box, list) and len(box) == 4 and all(_number(v) for v in box)
+                and box[0] < box[2] and box[1] < box[3]):
+            raise SequenceError(f"{where}.box: expected [x0, y0, x1, y1] with x0 < x1 and y0 < y1, got {box!r}")
+        defect["box"] = [float(v) for v in box]
+        for key in ("distance_mm", "deviation_mm"):
+            if defect.get(key) is not None and not _number(defect[key]):
+                raise SequenceError(f"{where}.{key}: expected a number or null, got {defect[key]!r}")
+    return labels
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
 
 
 def read_pfm(path: Path) -> np.ndarray:

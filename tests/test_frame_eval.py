@@ -39,7 +39,8 @@ def test_cli_on_a_rendered_sequence(tmp_path):
     assert int(rows[0][3]) >= int(rows[1][3])  # a higher threshold never adds boxes
     (seq / "labels" / "000001.json").write_text(json.dumps({"frame_id": "000001"}))
     broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
-    assert broken.exit_code == 2 and "000001.json: not a frame label" in broken.output
-    (seq / "labels" / "000001.json").write_text(json.dumps({"frame_id": "000001", "defects": [{"box": [1, 2, 3]}]}))
+    assert broken.exit_code == 2 and "000001.json: expected a mapping with a list of defects" in broken.output
+    (seq / "labels" / "000001.json").write_text(json.dumps({"frame_id": "000001", "defects": [
+        {"class": "crazing", "box": [1, 2, 3]}]}))
     broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
-    assert broken.exit_code == 2 and "000001.json: not a frame label (a box is not x0, y0, x1, y1)" in broken.output
+    assert broken.exit_code == 2 and "000001.json: defects[0].box: expected [x0, y0, x1, y1]" in broken.output

@@ -1,13 +1,15 @@
 from __future__ import annotations
 
+import json
 import time
+from pathlib import Path
 
 import pytest
 
 from core.contracts import PluginContext
 from core.registry import default_registry
 from core.types import FrameError, StereoFrame
-from drivers.sequence_folder import SequenceError
+from drivers.sequence_folder import SequenceError, read_labels
 
 
 def _camera(folder, **settings):
@@ -55,3 +57,33 @@ def test_missing_calibration(plane_sequence):
     (info["folder"] / "calib.yaml").unlink()
     with pytest.raises(SequenceError, match="calib.yaml: calibration file missing"):
         _camera(info["folder"])
+
+
+class TestReadLabels:
+    """``sequence_folder.read_labels``: the truth an evaluation compares with is checked, each problem one
+    line naming the file and the entry."""
+
+    def _write(self, tmp_path, labels) -> Path:
+        path = tmp_path / "000001.json"
+        path.write_text(labels if isinstance(labels, str) else json.dumps(labels))
+        return path
+
+    def test_a_good_label_reads_with_float_boxes(self, tmp_path):
+        path = self._write(tmp_path, {"frame_id": "000001", "defects": [
+            {"class": "crazing", "box": [1, 2, 30, 40], "distance_mm": 400, "deviation_mm": None}]})
+        assert read_labels(path)["defects"][0]["box"] == [1.0, 2.0, 30.0, 40.0]
+
+    @pytest.mark.parametrize("labels, message", [
+        ("{not json", "000001.json: labels are not JSON"),
+        ([1, 2], "000001.json: expected a mapping with a list of defects"),
+        ({"defects": [{"box": [1, 2, 3, 4]}]}, "defects[0]: expected a mapping with a class name"),
+        ({"defects": [{"class": "pit", "box": [1, 2, 3]}]}, "defects[0].box: expected [x0, y0, x1, y1]"),
+        ({"defects": [{"class": "pit", "box": [5, 2, 3, 4]}]}, "defects[0].box: expected [x0, y0, x1, y1] with x0 < x1"),
+        ({"defects": [{"class": "pit", "box": [1, 2, "a", 4]}]}, "defects[0].box"),
+        ({"defects": [{"class": "pit", "box": [1, 2, 3, 4], "deviation_mm": "deep"}]},
+         "defects[0].deviation_mm: expected a number or null, got 'deep'"),
+    ])
+    def test_a_bad_label_is_one_line_naming_the_file_and_entry(self, tmp_path, labels, message):
+        with pytest.raises(SequenceError) as info:
+            read_labels(self._write(tmp_path, labels))
+        assert message in str(info.value) and "\n" not in str(info.value)

@@ -1,7 +1,6 @@
 """``inspect eval depth``: distance and deviation errors against a labelled sequence's truth."""
 from __future__ import annotations
 
-import json
 import platform
 from pathlib import Path
 
@@ -30,7 +29,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     from core.contracts import PluginContext
     from core.engine import apply_threads, resolve_device, single_threaded_blas
     from core.registry import default_registry
-    from drivers.sequence_folder import SequenceError
+    from drivers.sequence_folder import SequenceError, read_labels
     from plugins.replay_camera import ReplayCamera, ReplaySettings
 
     overrides = list(overrides)
@@ -55,13 +54,14 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
             fail(f"{folder}: {exc}")
         for frame in camera.frames():
             if not hasattr(frame, "left"):
-                fail(f"{folder}: frame {frame.frame_id}: {frame.message}")
+                said = frame.message if frame.frame_id in frame.message else f"frame {frame.frame_id}: {frame.message}"
+                fail(f"{folder}: {said}")
             if "labels" not in frame.meta:
                 fail(f"{folder}: frame {frame.frame_id} has no labels/{frame.frame_id}.json (the truth to compare with)")
             try:
-                labels = json.loads(Path(frame.meta["labels"]).read_text())
-            except (OSError, ValueError) as exc:
-                fail(f"{frame.meta['labels']}: unreadable labels ({exc})")
+                labels = read_labels(frame.meta["labels"])
+            except SequenceError as exc:
+                fail(str(exc))
             new = ev.evaluate_frame(frame, labels, loaded, stereo, folder.name, timings)
             rows += new
             if not quiet:

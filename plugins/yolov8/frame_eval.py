@@ -7,13 +7,13 @@ finds and how many boxes it puts on sound surface, at the recipe's confidence th
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from drivers.sequence_folder import SequenceError, read_labels
 from plugins.yolov8.tiling import box_iou
 
 
@@ -39,13 +39,11 @@ def read_frame_labels(sequence: Path) -> list[tuple[str, list[dict]]]:
     frames = []
     for path in labels:
         try:
-            label = json.loads(path.read_text())
-            defects = [{**d, "box": [float(v) for v in d["box"]]} for d in label["defects"]]
-            if any(len(d["box"]) != 4 for d in defects):
-                raise ValueError("a box is not x0, y0, x1, y1")
-            frames.append((label["frame_id"], defects))
-        except (ValueError, KeyError, TypeError) as exc:
-            raise ValueError(f"{path}: not a frame label ({exc})") from exc
+            label = read_labels(path)
+        except SequenceError as exc:
+            raise ValueError(str(exc)) from None
+        # the file's own name when it does not say (the sequence's frames are named by it)
+        frames.append((str(label.get("frame_id", path.stem)), label["defects"]))
     return frames
 
 

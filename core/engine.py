@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from core.annotate import annotate
+from core.checks import detections_problem, disparity_problem, frame_problem
 from core.contracts import PluginContext
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
@@ -132,15 +133,23 @@ def disparity_range(stereo: StereoSection, calib: Calibration) -> tuple[float, f
 
 
 def compute_disparity(backend: Any, frame: StereoFrame, lo: float, hi: float, scale: float) -> np.ndarray:
-    """Disparity at full resolution; with ``scale < 1`` the pair is matched smaller and scaled back."""
+    """Disparity at full resolution; with ``scale < 1`` the pair is matched smaller and scaled back.
+    ``StageFailed`` where the backend's map is not one for the images it was given (``core.checks``)."""
     if scale >= 1.0:
-        return backend.compute(frame.left, frame.right, lo, hi)
+        return _checked(backend.compute(frame.left, frame.right, lo, hi), frame.left.shape[:2])
     size = (max(1, round(frame.left.shape[1] * scale)), max(1, round(frame.left.shape[0] * scale)))
     small_l = cv2.resize(frame.left, size, interpolation=cv2.INTER_AREA)
     small_r = cv2.resize(frame.right, size, interpolation=cv2.INTER_AREA)
-    small = backend.compute(small_l, small_r, lo * scale, hi * scale)
+    small = _checked(backend.compute(small_l, small_r, lo * scale, hi * scale), small_l.shape[:2])
     full = cv2.resize(small, (frame.left.shape[1], frame.left.shape[0]), interpolation=cv2.INTER_NEAREST)
     return full / scale
+
+
+def _checked(disparity: Any, shape: tuple[int, int]) -> np.ndarray:
+    problem = disparity_problem(disparity, shape)
+    if problem is not None:
+        raise StageFailed(problem)
+    return disparity if disparity.dtype == np.float32 else disparity.astype(np.float32)
 
 
 def frame_disparity(backend: Any, frame: StereoFrame, stereo: StereoSection, detections: list[Detection],
@@ -181,10 +190,13 @@ def detect_frame(item: StereoFrame | FrameError, pipeline: Pipeline, recipe) -> 
         return None
     t0 = time.perf_counter()
     try:
-        detections = _filter(pipeline.detector.detect(item.left), recipe.detector.confidence, recipe.detector.classes)
+        found = pipeline.detector.detect(item.left)
     except Exception as exc:  # reported on the part by inspect_frame
         return Detected(None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}")
-    return Detected(detections, time.perf_counter() - t0)
+    problem = detections_problem(found)
+    if problem is not None:
+        return Detected(None, time.perf_counter() - t0, problem)
+    return Detected(_filter(found, recipe.detector.confidence, recipe.detector.classes), time.perf_counter() - t0)
 
 
 def frame_age_limit_s(loaded: LoadedRecipe, registry: Registry | None = None) -> float | None:
@@ -211,12 +223,17 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)
         return FrameOutcome(part, [], None)
 
+    problem = frame_problem(item)
+    if problem is not None:
+        message = f"frame {item.frame_id}: {problem}"
+        part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)
+        return FrameOutcome(part, [], None)
     detected = detected or detect_frame(item, pipeline, recipe)
     timings: dict[str, float] = {"detection": detected.seconds}
     stage = "detection"
     try:
         if detected.error is not None:
-            raise _StageFailed(detected.error)
+            raise StageFailed(detected.error)
         detections = detected.detections
         measurements = []
         if detections or recipe.stereo.schedule == "every_frame":
@@ -231,7 +248,7 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         stage = "decision"
         verdict, per_defect = decide(measurements, recipe.decision)
     except Exception as exc:  # one part's failure must not stop the line; it rejects that part
-        what = str(exc) if isinstance(exc, _StageFailed) else f"{type(exc).__name__}: {exc}"
+        what = str(exc) if isinstance(exc, StageFailed) else f"{type(exc).__name__}: {exc}"
         message = f"frame {item.frame_id}: {stage} failed: {what}"
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)
         return FrameOutcome(part, [], item.left, timings)
@@ -239,8 +256,8 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
     return FrameOutcome(part, per_defect, item.left, timings)
 
 
-class _StageFailed(Exception):
-    """A failure already described (a detection that ran ahead of its frame)."""
+class StageFailed(Exception):
+    """A failure already described (a detection that ran ahead of its frame, a plugin's broken contract)."""
 
 
 def _filter(detections: list[Detection], confidence: float, classes: list[str] | None) -> list[Detection]:

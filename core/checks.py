@@ -1,0 +1,60 @@
+"""What the engine checks of what plugins hand it: a camera's frame, a detector's boxes, a backend's map.
+
+A third-party plugin that breaks its contract (``core.contracts``) must cost the part it was working on,
+as an ERROR saying what was wrong, and never a measurement read from the wrong pixels. Each function
+returns the problem in words, or None.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from core.types import Detection, StereoFrame
+
+
+def _size(image: np.ndarray) -> str:
+    return f"{image.shape[1]}x{image.shape[0]}" if image.ndim >= 2 else f"shape {image.shape}"
+
+
+def frame_problem(frame: StereoFrame) -> str | None:
+    """A rectified pair as the contract has it: two HxWx3 uint8 images of one size, the calibration's."""
+    for name in ("left", "right"):
+        image = getattr(frame, name)
+        if not isinstance(image, np.ndarray):
+            return f"the camera's {name} image is a {type(image).__name__}, not an array"
+        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+            return f"the camera's {name} image is {image.dtype} of shape {image.shape}, not HxWx3 uint8 BGR"
+    if frame.left.shape != frame.right.shape:
+        return f"the camera's left and right images differ in size ({_size(frame.left)}, {_size(frame.right)})"
+    calib = frame.calib
+    if frame.left.shape[:2] != (calib.height, calib.width):
+        return f"the camera's images are {_size(frame.left)} but its calibration is for {calib.width}x{calib.height}"
+    return None
+
+
+def detections_problem(detections: Any) -> str | None:
+    """A list of ``Detection``s whose boxes are four finite numbers with x0 < x1 and y0 < y1."""
+    if not isinstance(detections, list):
+        return f"the detector returned a {type(detections).__name__}, not a list of detections"
+    for d in detections:
+        if not isinstance(d, Detection):
+            return f"the detector returned a {type(d).__name__} among its detections"
+        box = d.box
+        if not (len(box) == 4 and all(isinstance(v, (int, float, np.floating, np.integer)) and math.isfinite(v)
+                                      for v in box) and box[0] < box[2] and box[1] < box[3]):
+            return f"the detector returned a {d.class_name} box {tuple(box)}, not (x0, y0, x1, y1) with x0 < x1, y0 < y1"
+    return None
+
+
+def disparity_problem(disparity: Any, shape: tuple[int, int]) -> str | None:
+    """An HxW map of real numbers for the HxW image it was computed from."""
+    if not isinstance(disparity, np.ndarray):
+        return f"the stereo backend returned a {type(disparity).__name__}, not an array"
+    if disparity.shape != tuple(shape):
+        return (f"the stereo backend returned a map of shape {disparity.shape} for a {shape[1]}x{shape[0]} image "
+                f"(expected {tuple(shape)})")
+    if not (np.issubdtype(disparity.dtype, np.floating) or np.issubdtype(disparity.dtype, np.integer)):
+        return f"the stereo backend returned a map of {disparity.dtype}, not numbers"
+    return None

@@ -1,0 +1,138 @@
+"""``core.checks``: what the engine checks of what plugins hand it, and the part a breach costs."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import stereo_inspect_fixed_roi
+from conftest import write_recipe
+from test_engine import RECIPE
+
+from core import engine
+from core.checks import detections_problem, disparity_problem, frame_problem
+from core.contracts import PluginSpec
+from core.hookspecs import hookimpl
+from core.recipe import load_recipe
+from core.registry import Registry, make_manager
+from core.types import Calibration, Detection, Status, StereoFrame
+
+CALIB = Calibration(focal_px=350.0, baseline_mm=120.0, cx=80.0, cy=60.0, width=160, height=120)
+
+
+def _frame(left=None, right=None, calib=CALIB):
+    image = np.zeros((120, 160, 3), np.uint8)
+    return StereoFrame("000001", 1, image if left is None else left, image if right is None else right, calib, 0.0)
+
+
+class TestFrameProblem:
+    def test_a_pair_as_the_contract_has_it_passes(self):
+        assert frame_problem(_frame()) is None
+
+    @pytest.mark.parametrize("left, right, says", [
+        (np.zeros((120, 160), np.uint8), None, "left image is uint8 of shape (120, 160), not HxWx3 uint8 BGR"),
+        (None, np.zeros((120, 160, 3), np.float32), "right image is float32"),
+        (None, np.zeros((120, 150, 3), np.uint8), "left and right images differ in size (160x120, 150x120)"),
+        (np.zeros((60, 80, 3), np.uint8), np.zeros((60, 80, 3), np.uint8), "images are 80x60 but its calibration is for 160x120"),
+        ([[0]], None, "left image is a list, not an array"),
+    ])
+    def test_a_broken_pair_is_named(self, left, right, says):
+        assert says in frame_problem(_frame(left, right))
+
+
+class TestDetectionsProblem:
+    def test_good_boxes_pass(self):
+        assert detections_problem([Detection("pit", 0.9, (1, 2, 3.5, 4)), Detection("pit", 0.9, (np.float32(1), 2, 3, 4))]) is None
+        assert detections_problem([]) is None
+
+    @pytest.mark.parametrize("found, says", [
+        ((Detection("pit", 0.9, (1, 2, 3, 4)),), "returned a tuple, not a list"),
+        ([{"box": (1, 2, 3, 4)}], "returned a dict among its detections"),
+        ([Detection("pit", 0.9, (1, 2, math.nan, 4))], "a pit box (1, 2, nan, 4)"),
+        ([Detection("pit", 0.9, (5, 2, 3, 4))], "x0 < x1"),
+        ([Detection("pit", 0.9, (1, 2, 3))], "not (x0, y0, x1, y1)"),
+    ])
+    def test_a_broken_box_is_named(self, found, says):
+        assert says in detections_problem(found)
+
+
+class TestDisparityProblem:
+    def test_a_map_of_the_images_shape_passes(self):
+        assert disparity_problem(np.zeros((120, 160), np.float32), (120, 160)) is None
+        assert disparity_problem(np.zeros((120, 160), np.int16), (120, 160)) is None
+
+    @pytest.mark.parametrize("disparity, says", [
+        (np.zeros((60, 80), np.float32), "a map of shape (60, 80) for a 160x120 image"),
+        (np.zeros((120, 160, 1), np.float32), "shape (120, 160, 1)"),
+        (np.zeros((120, 160), bool), "a map of bool, not numbers"),
+        ([[0.0]], "returned a list, not an array"),
+    ])
+    def test_a_broken_map_is_named(self, disparity, says):
+        assert says in disparity_problem(disparity, (120, 160))
+
+
+# -- the part a breach costs: an ERROR naming it, the run going on ------------------------------------------
+
+class HalfMap:
+    """A backend that forgot to scale its map back to the image."""
+
+    def compute(self, left, right, min_disp, max_disp):
+        return np.full((left.shape[0] // 2, left.shape[1] // 2), 90.0, np.float32)
+
+
+class NanBoxes:
+    class_names = ["pit"]
+
+    def detect(self, image):
+        return [Detection("pit", 0.9, (10.0, 10.0, math.nan, 40.0))]
+
+
+class NarrowRight:
+    """A camera whose right image comes cropped: the replay's frames with 10 columns cut off."""
+
+    def __init__(self, settings, ctx):
+        from plugins.replay_camera import ReplayCamera, ReplaySettings
+
+        self.replay = ReplayCamera(ReplaySettings(path=str(ctx.recipe_dir / "seq")))
+
+    def frames(self):
+        for frame in self.replay.frames():
+            frame.right = frame.right[:, 10:]
+            yield frame
+
+    def close(self):
+        self.replay.close()
+
+
+class Plugins:
+    @hookimpl
+    def stereo_inspect_cameras(self):
+        return [PluginSpec("narrow_right", "camera", NarrowRight)]
+
+    @hookimpl
+    def stereo_inspect_stereo_backends(self):
+        return [PluginSpec("half_map", "stereo", lambda s, ctx: HalfMap())]
+
+    @hookimpl
+    def stereo_inspect_detectors(self):
+        return [PluginSpec("nan_boxes", "detector", lambda s, ctx: NanBoxes(), class_names=lambda s, ctx: ["pit"])]
+
+
+@pytest.mark.parametrize("old, new, says", [
+    ("backend: opencv_sgbm", "backend: half_map", "stereo failed: the stereo backend returned a map of shape"),
+    ("plugin: fixed_roi", "plugin: nan_boxes", "detection failed: the detector returned a pit box (10.0, 10.0, nan, 40.0)"),
+    ("plugin: replay\n  settings: {path: seq}", "plugin: narrow_right",
+     "the camera's left and right images differ in size (320x192, 310x192)"),
+])
+def test_a_plugin_that_breaks_its_contract_costs_its_part_an_error(tmp_path, plane_sequence, old, new, says):
+    info = plane_sequence([0.0, 0.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, Plugins())))
+    text = RECIPE.format(box=info["box"], output="log").replace(old, new)
+    if new == "plugin: nan_boxes":
+        text = text.replace("  settings:\n    regions:\n      - {name: pit, box: " + str(info["box"]) + "}\n", "")
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
+    seen = []
+    summary = engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.ERROR, Status.ERROR]
+    assert all(says in o.part.verdict.reasons[0] for o in seen), seen[0].part.verdict.reasons
+    assert summary.exit_code == engine.EXIT_PART_ERRORS

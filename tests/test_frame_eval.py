@@ -25,7 +25,7 @@ def test_score_frames_counts_found_defects_and_boxes_on_sound_surface():
     assert high.other_per_frame == 0.5
 
 
-def test_cli_on_a_rendered_sequence(tmp_path):
+def test_cli_on_a_rendered_sequence(tmp_path, monkeypatch):
     seq = tmp_path / "plates"
     labels = generate_sequence(seq, frames=2, seed=5, width=448, height=300, neu_det=None)
     defects = sum(len(label["defects"]) for label in labels)
@@ -37,6 +37,20 @@ def test_cli_on_a_rendered_sequence(tmp_path):
     found = [int(r[1].split("/")[0]) for r in rows]
     assert all(r[1].strip().endswith(f"/{defects}") for r in rows) and found[0] >= found[1]
     assert int(rows[0][3]) >= int(rows[1][3])  # a higher threshold never adds boxes
+    # the frame in one piece: the network input follows the tile (the frame at its own scale)
+    from plugins.yolov8 import detector as yolo
+
+    sizes = []
+    original = yolo.YoloDetector.__init__
+
+    def recording(self, settings, device="cpu"):
+        sizes.append((settings.tile_size, settings.imgsz))
+        original(self, settings, device)
+
+    monkeypatch.setattr(yolo.YoloDetector, "__init__", recording)
+    whole = runner.invoke(_build(), ["eval", "detector-frames", str(seq), "--tile-size", "448", "--confidence", "0.5"])
+    assert whole.exit_code == 0, whole.output
+    assert sizes == [(448, 448)] and "| 0.50 |" in whole.output
     (seq / "labels" / "000001.json").write_text(json.dumps({"frame_id": "000001"}))
     broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
     assert broken.exit_code == 2 and "000001.json: expected a mapping with a list of defects" in broken.output

@@ -176,9 +176,11 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
               help="comma-separated thresholds to score")
 @click.option("--tile-size", default=224, show_default=True)
 @click.option("--tile-overlap", default=0.25, show_default=True)
+@click.option("--imgsz", type=int, default=None, help="network input size; default: the tile size (the model sees "
+              "the frame at its own scale)")
 @click.option("--iou", default=0.3, show_default=True, help="a box this close to a labelled defect finds it")
 def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, tile_size: int, tile_overlap: float,
-                        iou: float) -> None:
+                        imgsz: int | None, iou: float) -> None:
     """The detector on whole frames of a labelled sequence, tiled as on the line: defects found, boxes on sound surface."""
     from plugins.yolov8.frame_eval import load_labelled_frames, markdown, score_frames
 
@@ -193,7 +195,8 @@ def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, 
     except ValueError as exc:
         _fail(str(exc))
     detector = YoloDetector(YoloSettings(weights=str(weights) if weights else None, confidence=min(thresholds),
-                                         tile_size=tile_size, tile_overlap=tile_overlap), device="cpu")
+                                         tile_size=tile_size, tile_overlap=tile_overlap, imgsz=imgsz or tile_size),
+                            device="cpu")
     detections = [[(d.class_name, d.confidence, d.box) for d in detector.detect(image)] for _, image, _ in frames]
     click.echo(f"{sequence}: {len(frames)} frames, weights {weights or 'the committed model'}")
     click.echo(markdown(score_frames(detections, [t for _, _, t in frames], thresholds, iou)))

@@ -86,6 +86,15 @@ def apply_threads(threads: int | str) -> int:
     return n
 
 
+def command_threads(threads: int | None) -> None:
+    """A command's ``--threads``: that many torch and OpenCV threads (``apply_threads``); without it torch
+    keeps its own count and only the BLAS libraries go to one thread."""
+    if threads:
+        apply_threads(threads)
+    else:
+        single_threaded_blas()
+
+
 def single_threaded_blas() -> None:
     """NumPy's and OpenCV's BLAS on one thread. The project's matrix products are small (a surface fit's
     normal equations and covariance), and the threads OpenBLAS leaves spinning after each one slowed

@@ -58,12 +58,9 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         overrides.append(f"threads={threads}")  # so that the soak's real loop keeps them too
     loaded = _load(recipe, tuple(overrides))
     registry = default_registry()
-    from core.engine import apply_threads, single_threaded_blas
+    from core.engine import command_threads
 
-    if threads:
-        apply_threads(threads)
-    else:
-        single_threaded_blas()
+    command_threads(threads)
     if soak is not None:
         report = run_soak(loaded, registry, soak, device, soak_every,
                           None if quiet else lambda n, mb: click.echo(f"frame {n}: RSS {mb:.0f} MB"))

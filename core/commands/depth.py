@@ -27,7 +27,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     from core import depth_eval as ev
     from core.commands.inspection import _load, fail
     from core.contracts import PluginContext
-    from core.engine import apply_threads, resolve_device, single_threaded_blas
+    from core.engine import command_threads, resolve_device
     from core.registry import default_registry
     from drivers.sequence_folder import SequenceError, read_labels
     from plugins.replay_camera import ReplayCamera, ReplaySettings
@@ -39,10 +39,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
         if not folder.is_dir():
             fail(f"{folder}: not a sequence folder")
     loaded = _load(recipe, tuple(overrides))
-    if threads:
-        apply_threads(threads)
-    else:
-        single_threaded_blas()
+    command_threads(threads)
     registry = default_registry()
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, device=resolve_device(device))
     stereo = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(loaded.plugin_settings["stereo"], ctx)

@@ -260,14 +260,8 @@ def _check_search_range(loaded: LoadedRecipe, registry: Registry, locator: _Loca
     """The stereo search range must fit the camera's image (where the camera plugin states its geometry
     from its settings): otherwise every part would be an ERROR. A camera that cannot state it is not
     checked here (``inspect validate`` says so)."""
-    from core.contracts import PluginContext
-
-    spec = registry.get("camera", loaded.recipe.camera.plugin).spec
-    if spec.calibration is None:
-        return
-    try:
-        calib = spec.calibration(loaded.plugin_settings["camera"], PluginContext(recipe_dir=loaded.directory))
-    except Exception:
+    calib = _camera_answer(loaded, registry, "calibration")
+    if calib is None:
         return
     stereo = loaded.recipe.stereo
     try:
@@ -361,18 +355,24 @@ def output_delays_s(loaded: LoadedRecipe, registry: Registry) -> list[tuple[int,
     return delays
 
 
+def _camera_answer(loaded: LoadedRecipe, registry: Registry, question: str) -> Any:
+    """The camera plugin's answer to one of ``PluginSpec``'s optional questions (``calibration``,
+    ``frame_rate``) from its settings alone; None where it has no answer or cannot give one."""
+    from core.contracts import PluginContext
+
+    ask = getattr(registry.get("camera", loaded.recipe.camera.plugin).spec, question)
+    if ask is None:
+        return None
+    try:
+        return ask(loaded.plugin_settings["camera"], PluginContext(recipe_dir=loaded.directory))
+    except Exception:
+        return None
+
+
 def _check_output_delays(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:
     """A timed output's delay must leave the inspection one frame period at least: a part is decided up to a
     frame period after its capture, so a shorter delay makes every command late."""
-    from core.contracts import PluginContext
-
-    spec = registry.get("camera", loaded.recipe.camera.plugin).spec
-    if spec.frame_rate is None:
-        return
-    try:
-        fps = spec.frame_rate(loaded.plugin_settings["camera"], PluginContext(recipe_dir=loaded.directory))
-    except Exception:
-        return
+    fps = _camera_answer(loaded, registry, "frame_rate")
     if not fps:
         return
     period = 1.0 / fps

@@ -7,7 +7,6 @@ becomes an ERROR verdict, which the outputs reject like any other reject.
 from __future__ import annotations
 
 import os
-import queue
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -339,28 +338,24 @@ def run(
             if on_event and not told:
                 on_event(e)
 
-    # The watch's thread tells the operator and the outputs at once; this thread stores what it said (the
-    # store is this thread's), after the part it waited for or when the run ends.
-    from_watch: queue.SimpleQueue = queue.SimpleQueue()
-
+    # called from the watch's thread while this one is stuck: the outputs first (the line must hear it even
+    # if what follows hangs), then the operator, then the store (whose writes take turns)
     def stalled(key: str, what: str, seconds: float) -> None:
         alarm = Alarm("engine", f"{what}: still in inspection after {seconds:.1f} s (watchdog_s: {recipe.watchdog_s:g}): "
                       "a stage or plugin is not returning; the outputs tell the line the inspection is not ready until "
                       "it finishes", time.time(), key, "stall")
         _tell_outputs(pipeline, "hold", alarm.message)
-        _from_watch(from_watch, alarm, on_event)
+        _told(alarm)
 
     def resumed(seconds: float) -> None:
         _tell_outputs(pipeline, "release")
-        _from_watch(from_watch, OutputEvent("engine", None, "inspection running again", "delivered", time.time(),
-                                            f"after {seconds:.1f} s stalled; the outputs tell the line it is ready"),
-                    on_event)
+        _told(OutputEvent("engine", None, "inspection running again", "delivered", time.time(),
+                          f"after {seconds:.1f} s stalled; the outputs tell the line it is ready"))
 
-    def record_watch() -> None:
-        events = []
-        while not from_watch.empty():
-            events.append(from_watch.get())
-        record(events, told=True)
+    def _told(event: OutputEvent | Alarm) -> None:
+        if on_event:
+            on_event(event)
+        record([event], told=True)
 
     # runs that never finished (the process was killed, the power cut): their rejects may not have fired
     record(store.recover_crashed(unfinished, run_id))
@@ -401,7 +396,6 @@ def run(
         handing[:] = [part, list(pipeline.outputs), None]
         hand_to_outputs()
         watch.finished(part.part_id)
-        record_watch()
 
     def hand_to_outputs() -> None:
         part, waiting, _ = handing
@@ -465,7 +459,6 @@ def run(
         except KeyboardInterrupt:  # a second Ctrl-C must not skip closing the outputs and the store
             interrupted = True
         elapsed = time.perf_counter() - started
-        record_watch()
         for name, output in pipeline.outputs:
             try:
                 record(output.close())
@@ -488,12 +481,6 @@ def _tell_outputs(pipeline: Pipeline, what: str, *args: Any) -> None:
                 method(*args)
             except Exception:
                 pass
-
-
-def _from_watch(events: queue.SimpleQueue, event: OutputEvent | Alarm, on_event) -> None:
-    events.put(event)
-    if on_event:
-        on_event(event)
 
 
 def _sha256_or_none(path) -> str | None:

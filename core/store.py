@@ -6,10 +6,12 @@ that was decided; WAL lets a reviewer read the store while a run writes it.
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import os
 import socket
 import sqlite3
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -119,10 +121,21 @@ def db_path(location: Path) -> Path:
     return location if location.suffix == ".db" else location / DB_NAME
 
 
+def _serialised(method):
+    """One writer at a time on the store's connection: the run loop's thread, and the watch's thread when it
+    records a stall while the loop is stuck elsewhere (a transaction must not take another's statements)."""
+    @functools.wraps(method)
+    def locked(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+    return locked
+
+
 class ResultsStore:
     def __init__(self, location: Path):
         self.path = db_path(location)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.RLock()
         self.db = sqlite3.connect(self.path, check_same_thread=False)
         self.db.execute("PRAGMA journal_mode=WAL")
         # FULL: a decided part survives a power cut, not only a crash of this process.
@@ -135,6 +148,7 @@ class ResultsStore:
     def image_dir(self) -> Path:
         return self.path.parent / "images"
 
+    @_serialised
     def start_run(self, recipe_name: str, recipe_hash: str, recipe_path: str, recipe_sha256: str | None = None,
                   models: dict[str, str] | None = None, outputs: list[str] | None = None) -> int:
         cur = self.db.execute(
@@ -146,6 +160,7 @@ class ResultsStore:
         self.db.commit()
         return int(cur.lastrowid)
 
+    @_serialised
     def record_part(self, run_id: int, part: PartResult, defect_verdicts: list[tuple[Status, list[str]]]) -> int:
         with self.db:
             cur = self.db.execute(
@@ -167,6 +182,7 @@ class ResultsStore:
                 )
         return row
 
+    @_serialised
     def record_events(self, run_id: int, events: list[OutputEvent | Alarm]) -> None:
         if not events:
             return
@@ -184,6 +200,7 @@ class ResultsStore:
                         (run_id, e.part_id, e.output, e.command, e.outcome, e.timestamp, e.detail),
                     )
 
+    @_serialised
     def finish_run(self, run_id: int, counts: Counter, alarms: int, fps: float, exit_code: int) -> None:
         with self.db:
             self.db.execute(
@@ -204,6 +221,7 @@ class ResultsStore:
             found.append(int(run_id))
         return found
 
+    @_serialised
     def recover_crashed(self, run_ids: list[int], current_run: int) -> list[Alarm]:
         """Mark ``run_ids`` crashed, with counts from their parts, and return the alarms the operator must see:
         one per run, and one per REJECT, ERROR or FLAG part of it with no delivered output event (its reject
@@ -227,6 +245,7 @@ class ResultsStore:
                                         "confirmed it", now, part_id, "crash"))
         return alarms
 
+    @_serialised
     def close(self) -> None:
         self.db.close()
 

@@ -107,27 +107,34 @@ def test_plc_unreachable_alarms_every_reject_and_fails_the_run(tmp_path, plane_s
 
 class StuckStereo:
     """A matcher whose second frame does not return until the PLC has been told the inspection stalled
-    (its ready coil off): a driver deadlock that ends. The test fails, not hangs, if that never comes."""
+    (its ready coil off) and the stall is in the results store, where the operator page reads it: a driver
+    deadlock that ends. The test fails, not hangs, if that never comes."""
 
-    def __init__(self, sim):
-        self.sim, self.calls = sim, 0
+    def __init__(self, sim, db_path):
+        self.sim, self.db_path, self.calls = sim, db_path, 0
+        self.stored_while_stuck = False
+
+    def _stored(self) -> bool:
+        with sqlite3.connect(self.db_path) as db:
+            return bool(db.execute("SELECT count(*) FROM alarms WHERE message LIKE '%still in inspection%'").fetchone()[0])
 
     def compute(self, left, right, min_disp, max_disp):
         self.calls += 1
         if self.calls == 2:
             end = time.monotonic() + 10.0
-            while self.sim.coil(1) != 0 and time.monotonic() < end:
+            while not (self.sim.coil(1) == 0 and self._stored()) and time.monotonic() < end:
                 time.sleep(0.02)
+            self.stored_while_stuck = self._stored()
         return np.full(left.shape[:2], 90.0, dtype=np.float32)
 
 
 class StuckStereoPlugin:
-    def __init__(self, sim):
-        self.sim = sim
+    def __init__(self, sim, db_path):
+        self.stereo = StuckStereo(sim, db_path)
 
     @hookimpl
     def stereo_inspect_stereo_backends(self):
-        return [PluginSpec("stuck", "stereo", lambda s, ctx: StuckStereo(self.sim))]
+        return [PluginSpec("stuck", "stereo", lambda s, ctx: self.stereo)]
 
 
 @pytest.mark.parametrize("concurrent", ["false", "true"])
@@ -138,7 +145,8 @@ def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(t
     info = plane_sequence([0.0] * 4)
     port = plc_sim.free_port()
     with plc_sim.serve_in_thread("127.0.0.1", port, on_change=None) as sim:
-        registry = Registry(make_manager((stereo_inspect_fixed_roi, plugins.modbus_output, StuckStereoPlugin(sim))))
+        stuck = StuckStereoPlugin(sim, tmp_path / "results" / "results.db")
+        registry = Registry(make_manager((stereo_inspect_fixed_roi, plugins.modbus_output, stuck)))
         text = RECIPE.format(box=info["box"], port=port).replace("backend: opencv_sgbm", "backend: stuck") \
             .replace("      on_pass:", "      ready_coil: 1\n      on_pass:")
         loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text),
@@ -151,6 +159,7 @@ def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(t
     (stall,) = [a for a in summary.alarms if a.cause == "stall"]
     assert stall.part_id == seen[1].part.part_id and "frame 000001: still in inspection" in stall.message
     assert stall in told and summary.exit_code == engine.EXIT_ALARMS
+    assert stuck.stereo.stored_while_stuck  # the operator page shows it while it lasts
     assert len(seen) == 4  # every part still inspected
     db = sqlite3.connect(tmp_path / "results" / "results.db")
     assert db.execute("SELECT part_id FROM alarms WHERE message LIKE '%still in inspection%'").fetchall() == \

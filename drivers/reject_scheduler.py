@@ -173,10 +173,6 @@ class RejectScheduler:
                 self._push_locked(time.monotonic(), None, self.on_connect, "state", float("inf"))
             self._cond.notify_all()
 
-    @property
-    def held(self) -> bool:
-        return self._held
-
     def drain(self) -> list[Record]:
         with self._cond:
             records, self._records = self._records, []

@@ -128,27 +128,56 @@ class StuckStereo:
         return np.full(left.shape[:2], 90.0, dtype=np.float32)
 
 
-class StuckStereoPlugin:
+class StuckDetector(StuckStereo):
+    """The fixed-region detector, stuck the same way on the second frame (in the detection thread when
+    detection runs ahead: the loop then waits on it)."""
+
+    def __init__(self, sim, db_path, settings):
+        super().__init__(sim, db_path)
+        self.fixed = stereo_inspect_fixed_roi.FixedRoiDetector(settings)
+        self.class_names = self.fixed.class_names
+
+    def detect(self, image):
+        if image.shape[0] > 64:  # not the engine's warm-up call
+            StuckStereo.compute(self, image, image, 0, 0)
+        return self.fixed.detect(image)
+
+
+class StuckPlugin:
     def __init__(self, sim, db_path):
-        self.stereo = StuckStereo(sim, db_path)
+        self.sim, self.db_path = sim, db_path
+        self.stuck = None
+
+    def _make(self, kind, settings=None):
+        self.stuck = StuckStereo(self.sim, self.db_path) if kind == "stereo" else StuckDetector(
+            self.sim, self.db_path, stereo_inspect_fixed_roi.FixedRoiSettings(**settings))
+        return self.stuck
 
     @hookimpl
     def stereo_inspect_stereo_backends(self):
-        return [PluginSpec("stuck", "stereo", lambda s, ctx: self.stereo)]
+        return [PluginSpec("stuck", "stereo", lambda s, ctx: self._make("stereo"))]
+
+    @hookimpl
+    def stereo_inspect_detectors(self):
+        return [PluginSpec("stuck_roi", "detector", lambda s, ctx: self._make("detector", s),
+                           settings_model=stereo_inspect_fixed_roi.FixedRoiSettings)]
 
 
+@pytest.mark.parametrize("stage", ["stereo", "detector"])
 @pytest.mark.parametrize("concurrent", ["false", "true"])
-def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(tmp_path, plane_sequence, concurrent):
+def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(tmp_path, plane_sequence, concurrent,
+                                                                                stage):
     """Without the watchdog the ready coil stays on and the heartbeat beats while nothing is inspected."""
     import plugins.modbus_output
 
     info = plane_sequence([0.0] * 4)
     port = plc_sim.free_port()
     with plc_sim.serve_in_thread("127.0.0.1", port, on_change=None) as sim:
-        stuck = StuckStereoPlugin(sim, tmp_path / "results" / "results.db")
+        stuck = StuckPlugin(sim, tmp_path / "results" / "results.db")
         registry = Registry(make_manager((stereo_inspect_fixed_roi, plugins.modbus_output, stuck)))
-        text = RECIPE.format(box=info["box"], port=port).replace("backend: opencv_sgbm", "backend: stuck") \
-            .replace("      on_pass:", "      ready_coil: 1\n      on_pass:")
+        text = RECIPE.format(box=info["box"], port=port).replace("      on_pass:", "      ready_coil: 1\n      on_pass:")
+        text = text.replace("backend: opencv_sgbm", "backend: stuck") if stage == "stereo" else \
+            text.replace("plugin: fixed_roi", "plugin: stuck_roi")
         loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text),
                              ["watchdog_s=0.3", f"stereo.concurrent={concurrent}"], registry=registry)
         seen, told = [], []
@@ -159,7 +188,7 @@ def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(t
     (stall,) = [a for a in summary.alarms if a.cause == "stall"]
     assert stall.part_id == seen[1].part.part_id and "frame 000001: still in inspection" in stall.message
     assert stall in told and summary.exit_code == engine.EXIT_ALARMS
-    assert stuck.stereo.stored_while_stuck  # the operator page shows it while it lasts
+    assert stuck.stuck.stored_while_stuck  # the operator page shows it while it lasts
     assert len(seen) == 4  # every part still inspected
     db = sqlite3.connect(tmp_path / "results" / "results.db")
     assert db.execute("SELECT part_id FROM alarms WHERE message LIKE '%still in inspection%'").fetchall() == \

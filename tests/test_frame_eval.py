@@ -37,20 +37,21 @@ def test_cli_on_a_rendered_sequence(tmp_path, monkeypatch):
     found = [int(r[1].split("/")[0]) for r in rows]
     assert all(r[1].strip().endswith(f"/{defects}") for r in rows) and found[0] >= found[1]
     assert int(rows[0][3]) >= int(rows[1][3])  # a higher threshold never adds boxes
-    # the frame in one piece: the network input follows the tile (the frame at its own scale)
+    # the network sees each image at its own scale: a 224 px tile at 224, the whole 448 px frame at 448
     from plugins.yolov8 import detector as yolo
 
     sizes = []
-    original = yolo.YoloDetector.__init__
+    original = yolo.YoloDetector._predict
 
-    def recording(self, settings, device="cpu"):
-        sizes.append((settings.tile_size, settings.imgsz))
-        original(self, settings, device)
+    def recording(self, images, imgsz):
+        sizes.append((images[0].shape[1], imgsz))
+        return original(self, images, imgsz)
 
-    monkeypatch.setattr(yolo.YoloDetector, "__init__", recording)
-    whole = runner.invoke(_build(), ["eval", "detector-frames", str(seq), "--tile-size", "448", "--confidence", "0.5"])
-    assert whole.exit_code == 0, whole.output
-    assert sizes == [(448, 448)] and "| 0.50 |" in whole.output
+    monkeypatch.setattr(yolo.YoloDetector, "_predict", recording)
+    for tile in ("224", "0"):
+        result = runner.invoke(_build(), ["eval", "detector-frames", str(seq), "--tile-size", tile, "--confidence", "0.5"])
+        assert result.exit_code == 0 and "| 0.50 |" in result.output, result.output
+    assert set(sizes) == {(224, 224), (448, 448)}
     (seq / "labels" / "000001.json").write_text(json.dumps({"frame_id": "000001"}))
     broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
     assert broken.exit_code == 2 and "000001.json: expected a mapping with a list of defects" in broken.output

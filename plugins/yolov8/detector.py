@@ -20,7 +20,8 @@ class YoloSettings(BaseModel):
     weights: str | None = Field(None, description="set from the recipe's detector.weights")
     confidence: float = Field(0.25, ge=0.0, le=1.0)
     iou: float = Field(0.5, gt=0.0, le=1.0)
-    imgsz: int = Field(224, ge=32, le=4096, description="network input size (per tile when tiling)")
+    imgsz: int | None = Field(224, ge=32, le=4096, description="network input size (per tile when tiling); null = "
+                              "the image's own size (a tile's edge, or the whole frame's long side): its own scale")
     tile_size: int | None = Field(224, ge=32, description="tile edge in frame pixels; null = whole frame")
     tile_overlap: float = Field(0.25, ge=0.0, lt=0.9)
     # NEU-DET boxes whole images of texture-like classes (pitted surface, crazing), so on a tile of
@@ -129,7 +130,7 @@ class YoloDetector:
             device = settings.device
         self.device = device
 
-    def _predict(self, images: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def _predict(self, images: list[np.ndarray], imgsz: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         import torch
 
         s = self.settings
@@ -138,7 +139,7 @@ class YoloDetector:
         threads = torch.get_num_threads()
         try:
             results = self.model.predict(
-                images, imgsz=s.imgsz, conf=s.confidence, iou=s.iou, device=self.device, verbose=False, max_det=s.max_det
+                images, imgsz=imgsz, conf=s.confidence, iou=s.iou, device=self.device, verbose=False, max_det=s.max_det
             )
         finally:
             torch.set_num_threads(threads)
@@ -152,13 +153,13 @@ class YoloDetector:
         s = self.settings
         h, w = image.shape[:2]
         if s.tile_size is None or (w <= s.tile_size and h <= s.tile_size):
-            boxes, scores, classes = self._predict([image])[0]
+            boxes, scores, classes = self._predict([image], s.imgsz or max(h, w))[0]
         else:
             xs = tiling.tile_origins(w, s.tile_size, s.tile_overlap)
             ys = tiling.tile_origins(h, s.tile_size, s.tile_overlap)
             origins = [(x, y) for y in ys for x in xs]
             tiles = [image[y : y + s.tile_size, x : x + s.tile_size] for x, y in origins]
-            parts = self._predict(tiles)
+            parts = self._predict(tiles, s.imgsz or s.tile_size)
             if s.drop_full_tile is not None:
                 parts = [_without_full_tile(p, s.tile_size * s.drop_full_tile) for p in parts]
             boxes = np.concatenate([p[0] + np.array([x, y, x, y], dtype=np.float32) for p, (x, y) in zip(parts, origins)])

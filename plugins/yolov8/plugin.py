@@ -174,10 +174,10 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
 @click.option("--weights", default=None, type=click.Path(path_type=Path), help="default: the committed model")
 @click.option("--confidence", "confidences", default="0.3,0.4,0.5,0.6,0.7", show_default=True,
               help="comma-separated thresholds to score")
-@click.option("--tile-size", default=224, show_default=True)
+@click.option("--tile-size", default=224, show_default=True, help="0: the whole frame in one piece")
 @click.option("--tile-overlap", default=0.25, show_default=True)
-@click.option("--imgsz", type=int, default=None, help="network input size; default: the tile size (the model sees "
-              "the frame at its own scale)")
+@click.option("--imgsz", type=int, default=None, help="network input size; default: the tile's size, or the frame's "
+              "long side (the model sees the frame at its own scale)")
 @click.option("--iou", default=0.3, show_default=True, help="a box this close to a labelled defect finds it")
 def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, tile_size: int, tile_overlap: float,
                         imgsz: int | None, iou: float) -> None:
@@ -195,7 +195,7 @@ def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, 
     except ValueError as exc:
         _fail(str(exc))
     detector = YoloDetector(YoloSettings(weights=str(weights) if weights else None, confidence=min(thresholds),
-                                         tile_size=tile_size, tile_overlap=tile_overlap, imgsz=imgsz or tile_size),
+                                         tile_size=tile_size or None, tile_overlap=tile_overlap, imgsz=imgsz),
                             device="cpu")
     detections = [[(d.class_name, d.confidence, d.box) for d in detector.detect(image)] for _, image, _ in frames]
     click.echo(f"{sequence}: {len(frames)} frames, weights {weights or 'the committed model'}")

@@ -23,7 +23,8 @@ from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
 from core.frame_source import DetectAhead, OneAtATime
 from core.recipe import LoadedRecipe
-from core.recipe.loader import detector_settings, file_sha256, named_classes, output_delays_s, unknown_class_message
+from core.recipe.loader import (camera_answer, detector_settings, file_sha256, named_classes, output_delays_s,
+                                unknown_class_message)
 from core.recipe.schema import StereoSection
 from core.registry import Registry, default_registry
 from core.store import ResultsStore
@@ -33,6 +34,8 @@ from core.watchdog import StallWatch
 
 EXIT_OK, EXIT_USAGE, EXIT_PART_ERRORS, EXIT_ALARMS, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
 CAMERA_LOST_AFTER = 3  # consecutive frames the camera could not deliver
+CAMERA_WAIT = "camera"  # the watchdog's key for a free-running camera's wait for its next frame
+CAMERA_OPEN_S = 30.0  # the longest a free-running camera's first frame may take (the device opening)
 
 
 class SetupError(Exception):
@@ -341,9 +344,9 @@ def run(
     # called from the watch's thread while this one is stuck: the outputs first (the line must hear it even
     # if what follows hangs), then the operator, then the store (whose writes take turns)
     def stalled(key: str, what: str, seconds: float) -> None:
-        alarm = Alarm("engine", f"{what}: still in inspection after {seconds:.1f} s (watchdog_s: {recipe.watchdog_s:g}): "
-                      "a stage or plugin is not returning; the outputs tell the line the inspection is not ready until "
-                      "it finishes", time.time(), key, "stall")
+        alarm = Alarm("engine", f"{what} after {seconds:.1f} s (watchdog_s: {recipe.watchdog_s:g}): a stage or plugin "
+                      "is not returning; the outputs tell the line the inspection is not ready until it does",
+                      time.time(), None if key == CAMERA_WAIT else key, "stall")
         _tell_outputs(pipeline, "hold", alarm.message)
         _told(alarm)
 
@@ -370,11 +373,28 @@ def run(
         return f"R{run_id}-{item.index:06d}"
 
     watch = StallWatch(recipe.watchdog_s, stalled, resumed).start()
+    # a camera that runs free (it states a frame rate) owes a frame every period: a wait of watchdog_s is
+    # a driver that stopped returning; one triggered by the parts may wait as long as the line stands
+    rate = camera_answer(loaded, registry, "frame_rate")
 
     def watched(frames):
-        """The camera's frames, each timed from when it is read (the wait for a part is not timed)."""
-        for item in frames:
-            watch.started(part_id(item), f"frame {item.frame_id}")
+        """The camera's frames, each timed from when it is read; a free-running camera's waits too."""
+        frames = iter(frames)
+        first = True
+        while True:
+            if rate:
+                # opening a camera (an SDK's start) may take longer than a frame's wait
+                watch.started(CAMERA_WAIT, f"no frame from the camera (it runs at {rate:g} frames a second)",
+                              max(recipe.watchdog_s, CAMERA_OPEN_S) if first else None)
+            first = False
+            try:
+                item = next(frames, None)
+            finally:
+                if rate:
+                    watch.finished(CAMERA_WAIT)
+            if item is None:
+                return
+            watch.started(part_id(item), f"frame {item.frame_id} still in inspection")
             yield item
 
     frames_in = watched(pipeline.camera.frames())

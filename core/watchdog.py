@@ -29,15 +29,15 @@ class StallWatch:
         self.limit_s = limit_s
         self._on_stall, self._on_resume, self._clock = on_stall, on_resume, clock
         self._lock = threading.Lock()
-        self._started: dict[str, tuple[float, str]] = {}  # key -> (when it started, what it is)
+        self._started: dict[str, tuple[float, str, float]] = {}  # key -> (when it started, what it is, its limit)
         self._stalled_since: float | None = None
         self._closed = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def started(self, key: str, what: str) -> None:
-        """A frame entered inspection (thread-safe)."""
+    def started(self, key: str, what: str, limit_s: float | None = None) -> None:
+        """A frame entered inspection (thread-safe); ``limit_s`` in place of the watch's own, for this one."""
         with self._lock:
-            self._started[key] = (self._clock(), what)
+            self._started[key] = (self._clock(), what, self.limit_s if limit_s is None else limit_s)
 
     def finished(self, key: str) -> None:
         """A frame left inspection: stored and handed to the outputs, or abandoned (thread-safe)."""
@@ -51,11 +51,11 @@ class StallWatch:
         they talk to the outputs)."""
         now = self._clock()
         with self._lock:
-            oldest = min(self._started.items(), key=lambda kv: kv[1][0], default=None)
-            late = oldest is not None and now - oldest[1][0] > self.limit_s
+            late = sorted((t0, key, what) for key, (t0, what, limit) in self._started.items() if now - t0 > limit)
             if late and self._stalled_since is None:
-                self._stalled_since = oldest[1][0]
-                stall = (oldest[0], oldest[1][1], now - oldest[1][0])
+                t0, key, what = late[0]  # the oldest of those late
+                self._stalled_since = t0
+                stall = (key, what, now - t0)
             else:
                 stall = None
             resumed = None

@@ -116,7 +116,7 @@ class StuckStereo:
 
     def _stored(self) -> bool:
         with sqlite3.connect(self.db_path) as db:
-            return bool(db.execute("SELECT count(*) FROM alarms WHERE message LIKE '%still in inspection%'").fetchone()[0])
+            return bool(db.execute("SELECT count(*) FROM alarms WHERE message LIKE '%(watchdog_s%'").fetchone()[0])
 
     def compute(self, left, right, min_disp, max_disp):
         self.calls += 1
@@ -143,15 +143,43 @@ class StuckDetector(StuckStereo):
         return self.fixed.detect(image)
 
 
+class StuckCamera(StuckStereo):
+    """A free-running camera (it states 20 frames a second) whose driver stops returning before the second
+    frame: no frame is in inspection, the loop just waits for one that does not come."""
+
+    def __init__(self, sim, db_path, folder):
+        from plugins.replay_camera import ReplayCamera, ReplaySettings
+
+        super().__init__(sim, db_path)
+        self.replay = ReplayCamera(ReplaySettings(path=str(folder)))
+
+    def frames(self):
+        for frame in self.replay.frames():
+            StuckStereo.compute(self, frame.left, frame.right, 0, 0)  # the second read does not return
+            yield frame
+
+    def close(self):
+        self.replay.close()
+
+
 class StuckPlugin:
     def __init__(self, sim, db_path):
         self.sim, self.db_path = sim, db_path
         self.stuck = None
 
-    def _make(self, kind, settings=None):
-        self.stuck = StuckStereo(self.sim, self.db_path) if kind == "stereo" else StuckDetector(
-            self.sim, self.db_path, stereo_inspect_fixed_roi.FixedRoiSettings(**settings))
+    def _make(self, kind, settings=None, ctx=None):
+        if kind == "stereo":
+            self.stuck = StuckStereo(self.sim, self.db_path)
+        elif kind == "detector":
+            self.stuck = StuckDetector(self.sim, self.db_path, stereo_inspect_fixed_roi.FixedRoiSettings(**settings))
+        else:
+            self.stuck = StuckCamera(self.sim, self.db_path, ctx.recipe_dir / settings["path"])
         return self.stuck
+
+    @hookimpl
+    def stereo_inspect_cameras(self):
+        return [PluginSpec("stuck_camera", "camera", lambda s, ctx: self._make("camera", s, ctx),
+                           frame_rate=lambda s, ctx: 20.0)]
 
     @hookimpl
     def stereo_inspect_stereo_backends(self):
@@ -163,7 +191,7 @@ class StuckPlugin:
                            settings_model=stereo_inspect_fixed_roi.FixedRoiSettings)]
 
 
-@pytest.mark.parametrize("stage", ["stereo", "detector"])
+@pytest.mark.parametrize("stage", ["stereo", "detector", "camera"])
 @pytest.mark.parametrize("concurrent", ["false", "true"])
 def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(tmp_path, plane_sequence, concurrent,
                                                                                 stage):
@@ -176,8 +204,9 @@ def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(t
         stuck = StuckPlugin(sim, tmp_path / "results" / "results.db")
         registry = Registry(make_manager((stereo_inspect_fixed_roi, plugins.modbus_output, stuck)))
         text = RECIPE.format(box=info["box"], port=port).replace("      on_pass:", "      ready_coil: 1\n      on_pass:")
-        text = text.replace("backend: opencv_sgbm", "backend: stuck") if stage == "stereo" else \
-            text.replace("plugin: fixed_roi", "plugin: stuck_roi")
+        text = text.replace(*{"stereo": ("backend: opencv_sgbm", "backend: stuck"),
+                              "detector": ("plugin: fixed_roi", "plugin: stuck_roi"),
+                              "camera": ("plugin: replay", "plugin: stuck_camera")}[stage])
         loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text),
                              ["watchdog_s=0.3", f"stereo.concurrent={concurrent}"], registry=registry)
         seen, told = [], []
@@ -186,12 +215,14 @@ def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(t
     # on when connected, off for the stall, on again once the part finished, off at the end
     assert ready == [1, 0, 1, 0]
     (stall,) = [a for a in summary.alarms if a.cause == "stall"]
-    assert stall.part_id == seen[1].part.part_id and "frame 000001: still in inspection" in stall.message
+    if stage == "camera":  # no part was in hand: the camera's wait is what stalled
+        assert stall.part_id is None and "no frame from the camera (it runs at 20 frames a second)" in stall.message
+    else:
+        assert stall.part_id == seen[1].part.part_id and "frame 000001 still in inspection" in stall.message
     assert stall in told and summary.exit_code == engine.EXIT_ALARMS
     assert stuck.stuck.stored_while_stuck  # the operator page shows it while it lasts
     assert len(seen) == 4  # every part still inspected
     db = sqlite3.connect(tmp_path / "results" / "results.db")
-    assert db.execute("SELECT part_id FROM alarms WHERE message LIKE '%still in inspection%'").fetchall() == \
-        [(stall.part_id,)]
+    assert db.execute("SELECT part_id FROM alarms WHERE message LIKE '%(watchdog_s%'").fetchall() == [(stall.part_id,)]
     assert db.execute("SELECT count(*) FROM output_events WHERE output = 'engine' AND command = "
                       "'inspection running again'").fetchone() == (1,)

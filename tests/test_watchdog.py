@@ -85,6 +85,16 @@ class TestStallWatch:
         watch.finished("P1")
         assert [c[0] for c in calls] == ["stall"]
 
+    def test_a_frame_may_have_a_limit_of_its_own(self):
+        watch, clock, calls = _watch()
+        watch.started("camera", "the camera's first frame", 30.0)
+        clock.now += 10.0
+        watch.check()
+        assert calls == []
+        clock.now += 25.0
+        watch.check()
+        assert calls == [("stall", "camera", "the camera's first frame", 35.0)]
+
     def test_the_limit_must_be_positive(self):
         with pytest.raises(ValueError, match="limit_s"):
             StallWatch(0.0, lambda *a: None, lambda s: None)

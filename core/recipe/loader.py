@@ -260,7 +260,7 @@ def _check_search_range(loaded: LoadedRecipe, registry: Registry, locator: _Loca
     """The stereo search range must fit the camera's image (where the camera plugin states its geometry
     from its settings): otherwise every part would be an ERROR. A camera that cannot state it is not
     checked here (``inspect validate`` says so)."""
-    calib = _camera_answer(loaded, registry, "calibration")
+    calib = camera_answer(loaded, registry, "calibration")
     if calib is None:
         return
     stereo = loaded.recipe.stereo
@@ -355,7 +355,7 @@ def output_delays_s(loaded: LoadedRecipe, registry: Registry) -> list[tuple[int,
     return delays
 
 
-def _camera_answer(loaded: LoadedRecipe, registry: Registry, question: str) -> Any:
+def camera_answer(loaded: LoadedRecipe, registry: Registry, question: str) -> Any:
     """The camera plugin's answer to one of ``PluginSpec``'s optional questions (``calibration``,
     ``frame_rate``) from its settings alone; None where it has no answer or cannot give one."""
     from core.contracts import PluginContext
@@ -372,7 +372,7 @@ def _camera_answer(loaded: LoadedRecipe, registry: Registry, question: str) -> A
 def _check_output_delays(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:
     """A timed output's delay must leave the inspection one frame period at least: a part is decided up to a
     frame period after its capture, so a shorter delay makes every command late."""
-    fps = _camera_answer(loaded, registry, "frame_rate")
+    fps = camera_answer(loaded, registry, "frame_rate")
     if not fps:
         return
     period = 1.0 / fps

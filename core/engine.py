@@ -383,9 +383,9 @@ def run(
         first = True
         while True:
             if rate:
-                # opening a camera (an SDK's start) may take longer than a frame's wait
-                watch.started(CAMERA_WAIT, f"no frame from the camera (it runs at {rate:g} frames a second)",
-                              max(recipe.watchdog_s, CAMERA_OPEN_S) if first else None)
+                # a slow camera may take three of its periods; opening one (an SDK's start) longer still
+                wait = max(recipe.watchdog_s, 3.0 / rate, CAMERA_OPEN_S if first else 0.0)
+                watch.started(CAMERA_WAIT, f"no frame from the camera (it runs at {rate:g} frames a second)", wait)
             first = False
             try:
                 item = next(frames, None)

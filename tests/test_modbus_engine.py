@@ -226,3 +226,7 @@ def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(t
     assert db.execute("SELECT part_id FROM alarms WHERE message LIKE '%(watchdog_s%'").fetchall() == [(stall.part_id,)]
     assert db.execute("SELECT count(*) FROM output_events WHERE output = 'engine' AND command = "
                       "'inspection running again'").fetchone() == (1,)
+    from core.commands.inspection import alarm_hints
+
+    assert any("stopped returning for longer than watchdog_s (0.3 s" in line
+               for line in alarm_hints(summary.alarms, loaded, plc_sim_given=False))

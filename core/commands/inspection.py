@@ -196,6 +196,10 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
         lines.append("  an earlier run ended without finishing: check those parts by hand (`inspect report` lists them)")
     if "camera" in {a.source for a in alarms}:
         lines.append("  the camera stopped delivering frames")
+    if "stall" in causes:
+        lines.append(f"  a stage, plugin or camera stopped returning for longer than watchdog_s "
+                     f"({loaded.recipe.watchdog_s:g} s; the alarm names the frame or the camera): the outputs told the "
+                     "line the inspection was not ready meanwhile")
     return lines
 
 

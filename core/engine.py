@@ -332,33 +332,29 @@ def run(
     interrupted = False
     stopped_by = None
 
-    def record(events: list[OutputEvent | Alarm], told: bool = False) -> None:
-        """Store ``events`` and count the alarms; ``told``: ``on_event`` has had them already."""
-        store.record_events(run_id, events)
+    def record(events: list[OutputEvent | Alarm]) -> None:
+        """Tell the operator, count the alarms, then store: a store that hangs or fails (a dead disk) must not
+        keep an alarm from being heard."""
         for e in events:
             if isinstance(e, Alarm):
                 alarms.append(e)
-            if on_event and not told:
+            if on_event:
                 on_event(e)
+        store.record_events(run_id, events)
 
     # called from the watch's thread while this one is stuck: the outputs first (the line must hear it even
-    # if what follows hangs), then the operator, then the store (whose writes take turns)
+    # if what follows hangs), then the operator and the store (whose writes take turns)
     def stalled(key: str, what: str, seconds: float) -> None:
         alarm = Alarm("engine", f"{what} after {seconds:.1f} s (watchdog_s: {recipe.watchdog_s:g}): a stage or plugin "
                       "is not returning; the outputs tell the line the inspection is not ready until it does",
                       time.time(), None if key == CAMERA_WAIT else key, "stall")
         _tell_outputs(pipeline, "hold", alarm.message)
-        _told(alarm)
+        record([alarm])
 
     def resumed(seconds: float) -> None:
         _tell_outputs(pipeline, "release")
-        _told(OutputEvent("engine", None, "inspection running again", "delivered", time.time(),
-                          f"after {seconds:.1f} s stalled; the outputs tell the line it is ready"))
-
-    def _told(event: OutputEvent | Alarm) -> None:
-        if on_event:
-            on_event(event)
-        record([event], told=True)
+        record([OutputEvent("engine", None, "inspection running again", "delivered", time.time(),
+                            f"after {seconds:.1f} s stalled; the outputs tell the line it is ready")])
 
     # runs that never finished (the process was killed, the power cut): their rejects may not have fired
     record(store.recover_crashed(unfinished, run_id))

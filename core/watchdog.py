@@ -3,8 +3,8 @@ stopped returning (a driver deadlock, a hung GPU, a store on a dead disk).
 
 Without it, a loop stuck inside a plugin call raises nothing: the camera keeps running, the outputs'
 threads keep the PLC's ready coil on and its heartbeat beating, and the parts on the belt pass
-uninspected. ``StallWatch`` calls ``on_stall`` once when the oldest frame has been in inspection longer
-than the limit, and ``on_resume`` once every frame that was late has finished; the engine raises an
+uninspected. ``StallWatch`` calls ``on_stall`` once when a frame has been in inspection longer than its
+limit (the oldest of them is named), and ``on_resume`` once every frame that was late has finished; the engine raises an
 alarm and has its outputs tell the line it is not ready in between.
 
 Time comes from ``clock`` (monotonic seconds); ``check()`` is one look at it, which a thread repeats
@@ -18,8 +18,8 @@ from collections.abc import Callable
 
 
 class StallWatch:
-    """limit_s: how long a frame may be in inspection. on_stall(key, what, seconds): the oldest frame
-    (its key and description) has been in inspection ``seconds``. on_resume(seconds): the stall is over,
+    """limit_s: how long a frame may be in inspection (``started`` may give one its own). on_stall(key, what,
+    seconds): the oldest frame past its limit (its key and description) has been in inspection ``seconds``. on_resume(seconds): the stall is over,
     after ``seconds`` from its start."""
 
     def __init__(self, limit_s: float, on_stall: Callable[[str, str, float], None],

@@ -336,9 +336,12 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a
     # sheen upsets only the cells, the crop's edge only the backend's map there. The ring kept above holds
     # only the backend's pixels within tolerance, so a matched pixel of it is one the backend agrees with.
+    # A side the right camera does not see (left of its view) is out of view, not off the plane: the
+    # images can say nothing of it, as of a side beyond the image's border.
     backend_agrees = matched[keep]
-    how, share = worst_side_of(backend_agrees | (fit.ring_weights > 0.5), ring_u, ring_v,
-                               _clip_box(detection.box, disparity.shape))
+    in_view = ring_u - (shift[0] * ring_u + shift[1] * ring_v + shift[2]) >= 2
+    how, share = worst_side_of((backend_agrees | (fit.ring_weights > 0.5))[in_view], ring_u[in_view],
+                               ring_v[in_view], _clip_box(detection.box, disparity.shape))
     if share < rule.min_plane_inliers:
         return _unavailable(reference, f"the surface around the box is not one plane ({how} in the images, "
                             f"{rule.min_plane_inliers:.0%} needed)")

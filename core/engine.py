@@ -6,6 +6,7 @@ becomes an ERROR verdict, which the outputs reject like any other reject.
 """
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections import Counter
@@ -147,13 +148,32 @@ def compute_disparity(backend: Any, frame: StereoFrame, lo: float, hi: float, sc
     """Disparity at full resolution; with ``scale < 1`` the pair is matched smaller and scaled back.
     ``StageFailed`` where the backend's map is not one for the images it was given (``core.checks``)."""
     if scale >= 1.0:
-        return _checked(backend.compute(frame.left, frame.right, lo, hi), frame.left.shape[:2])
+        return match_pair(backend, frame.left, frame.right, lo, hi)
     size = (max(1, round(frame.left.shape[1] * scale)), max(1, round(frame.left.shape[0] * scale)))
     small_l = cv2.resize(frame.left, size, interpolation=cv2.INTER_AREA)
     small_r = cv2.resize(frame.right, size, interpolation=cv2.INTER_AREA)
-    small = _checked(backend.compute(small_l, small_r, lo * scale, hi * scale), small_l.shape[:2])
+    small = match_pair(backend, small_l, small_r, lo * scale, hi * scale)
     full = cv2.resize(small, (frame.left.shape[1], frame.left.shape[0]), interpolation=cv2.INTER_NEAREST)
     return full / scale
+
+
+def match_pair(backend: Any, left: np.ndarray, right: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """The backend's HxW float32 map of the pair, searched over ``lo <= d < hi``.
+
+    A left pixel less than ``lo`` columns from the image's left edge has its match left of the right
+    image, so the backend is given the pair without them: the left image from column ``s = floor(lo)``,
+    the right image without its last ``s`` columns, searched over ``lo - s <= d < hi - s``. The same
+    pixels match the same pixels; the backend's work and the pixels it fills by guessing shrink (a
+    crop's first columns, which are there only for the right image's sake, are a third of it)."""
+    shift = max(0, min(math.floor(lo), left.shape[1] - 1))
+    if shift == 0:
+        return _checked(backend.compute(left, right, lo, hi), left.shape[:2])
+    width = left.shape[1] - shift
+    pair = np.ascontiguousarray(left[:, shift:]), np.ascontiguousarray(right[:, :width])
+    matched = _checked(backend.compute(*pair, lo - shift, hi - shift), pair[0].shape[:2])
+    out = np.full(left.shape[:2], np.nan, dtype=np.float32)
+    out[:, shift:] = matched + shift
+    return out
 
 
 def _checked(disparity: Any, shape: tuple[int, int]) -> np.ndarray:

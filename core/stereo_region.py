@@ -36,10 +36,11 @@ def needed_rect(box: tuple[float, float, float, float], rule: DepthRule, shape: 
             min(w, math.ceil(x1) + grow), min(h, math.ceil(y1) + grow))
 
 
-def crop_rect(needed: Rect, margin: int, max_disp: float, shape: tuple[int, int]) -> Rect:
+def crop_rect(needed: Rect, margin: int, max_disp: float, shape: tuple[int, int], grid: int = 1) -> Rect:
     """The columns and rows matched for a needed rectangle: grown by ``margin`` on every side and by
     the search range (``max_disp + SEARCH_SLACK_PX``) to the left, and never narrower than that range
-    plus the margin."""
+    plus the margin. With ``grid`` > 1 its corners lie on multiples of ``grid`` (or the image's edge),
+    so that a crop shrunk by 1 / ``grid`` is made of the same pixel blocks as the shrunk frame."""
     h, w = shape
     x0, y0, x1, y1 = needed
     reach = math.ceil(max_disp) + SEARCH_SLACK_PX
@@ -50,7 +51,8 @@ def crop_rect(needed: Rect, margin: int, max_disp: float, shape: tuple[int, int]
     if cx1 - cx0 < narrowest:
         cx1 = min(w, cx0 + narrowest)
         cx0 = max(0, cx1 - narrowest)
-    return (cx0, max(0, y0 - margin), cx1, min(h, y1 + margin))
+    cy0, cy1 = max(0, y0 - margin), min(h, y1 + margin)
+    return (cx0 // grid * grid, cy0 // grid * grid, min(w, -(-cx1 // grid) * grid), min(h, -(-cy1 // grid) * grid))
 
 
 def _overlap(a: Rect, b: Rect) -> bool:
@@ -62,10 +64,10 @@ def _union(a: Rect, b: Rect) -> Rect:
 
 
 def plan(boxes: Sequence[tuple[float, float, float, float]], rule: DepthRule, margin: int, max_disp: float,
-         shape: tuple[int, int]) -> list[tuple[Rect, list[Rect]]]:
-    """Crops to match, each with the needed rectangles it serves. Crops that overlap are merged (a
-    pixel is matched once), repeatedly until none overlap."""
-    groups = [(crop_rect(n, margin, max_disp, shape), [n]) for n in (needed_rect(b, rule, shape) for b in boxes)]
+         shape: tuple[int, int], grid: int = 1) -> list[tuple[Rect, list[Rect]]]:
+    """Crops to match (``crop_rect``), each with the needed rectangles it serves. Crops that overlap are
+    merged (a pixel is matched once), repeatedly until none overlap."""
+    groups = [(crop_rect(n, margin, max_disp, shape, grid), [n]) for n in (needed_rect(b, rule, shape) for b in boxes)]
     merged = True
     while merged:
         merged = False
@@ -91,14 +93,17 @@ def crop_frame(frame: StereoFrame, rect: Rect) -> StereoFrame:
 
 def disparity_around(match: Callable[[StereoFrame], np.ndarray], frame: StereoFrame,
                      boxes: Sequence[tuple[float, float, float, float]], rule: DepthRule, margin: int,
-                     max_disp: float) -> np.ndarray:
+                     max_disp: float, scale: float = 1.0) -> np.ndarray:
     """Full-size HxW float32 disparity, NaN except in the needed rectangles of ``boxes``.
 
     ``match(frame)`` is the full-frame computation (``core.engine.compute_disparity`` with its range and
-    scale bound), here called on crops."""
+    scale bound), here called on crops; where it shrinks the pair by a whole factor (``scale`` 1/2,
+    1/4, ...) the crops lie on that factor's grid."""
     shape = frame.left.shape[:2]
     out = np.full(shape, np.nan, dtype=np.float32)
-    for crop, needed in plan(boxes, rule, margin, max_disp, shape):
+    factor = round(1.0 / scale)
+    grid = factor if abs(factor * scale - 1.0) < 1e-6 else 1
+    for crop, needed in plan(boxes, rule, margin, max_disp, shape, grid):
         disparity = match(crop_frame(frame, crop))
         for x0, y0, x1, y1 in needed:
             out[y0:y1, x0:x1] = disparity[y0 - crop[1]: y1 - crop[1], x0 - crop[0]: x1 - crop[0]]

@@ -35,6 +35,14 @@ def test_crop_reaches_the_search_range_to_the_left():
     assert crop_rect((20, 0, 60, 30), 10, 142.0, (376, 150)) == (0, 0, 150, 40)
 
 
+def test_crops_lie_on_the_grid_of_the_scale():
+    # a quarter-scale crop is then made of the same 4 x 4 blocks as the quarter-scale frame
+    x0, y0, x1, y1 = crop_rect((301, 101, 350, 151), margin=10, max_disp=41.0, shape=(376, 672), grid=4)
+    assert (x0, y0, x1, y1) == (232, 88, 360, 164)
+    assert crop_rect((301, 101, 350, 151), 10, 41.0, (376, 358), grid=4)[2] == 358  # the image's edge wins
+    assert crop_rect((301, 101, 350, 151), 10, 41.0, (376, 672)) == (234, 91, 360, 161)
+
+
 @pytest.mark.parametrize("box", [(0, 0, 20, 15), (0, 100, 40, 140), (650, 360, 672, 376)])
 def test_boxes_at_the_image_edges_match_like_the_full_frame(box):
     frame = list(ReplayCamera(ReplaySettings(path=str(FIXTURE), max_frames=2)).frames())[1]
@@ -112,17 +120,19 @@ def test_sim_sequence_depth_same_as_full_frame():
 EVALUATION = FIXTURE.parent / "plates_textured"
 
 
+@pytest.mark.parametrize("scale,margin", [(0.25, 64), (0.5, 32)])
 @pytest.mark.parametrize("preset", ["seed", "improved"])
-def test_torch_sgm_roi_gives_the_full_frames_depth(preset, torch_one_thread):
-    """Each labelled defect measured as the line measures it (the surface fit, half-resolution matching),
-    from crops and from the whole frame: within 0.02 mm, on the demo sequence and an evaluation set."""
+def test_torch_sgm_roi_gives_the_full_frames_depth(preset, scale, margin, torch_one_thread):
+    """Each labelled defect measured as the line measures it (the surface fit, matching at a quarter of
+    the resolution as the demo recipe does, or at half), from crops and from the whole frame: within
+    0.02 mm, on the demo sequence and an evaluation set."""
     from core.depth import measure_frame
 
     matcher = default_registry().get("stereo", "torch_sgm").spec.factory({"preset": preset}, PluginContext(device="cpu"))
     worst = {"distance_mm": 0.0, "deviation_mm": 0.0}
     measured = 0
     for folder, frames, distance in ((FIXTURE, 4, (350, 500)), (EVALUATION, 3, (300, 700))):
-        section = StereoSection(working_distance_mm=distance, scale=0.5)
+        section = StereoSection(working_distance_mm=distance, scale=scale, roi_margin_px=margin)
         for frame in ReplayCamera(ReplaySettings(path=str(folder), max_frames=frames)).frames():
             truths = json.loads(Path(frame.meta["labels"]).read_text())["defects"]
             detections = [Detection(t["class"], 1.0, tuple(t["box"])) for t in truths]

@@ -1,4 +1,5 @@
-"""What the engine checks of what plugins hand it: a camera's frame, a detector's boxes, a backend's map.
+"""What the engine checks of what plugins hand it: a camera's frame (and that it is a new one), a
+detector's boxes, a backend's map.
 
 A third-party plugin that breaks its contract (``core.contracts``) must cost the part it was working on,
 as an ERROR saying what was wrong, and never a measurement read from the wrong pixels. Each function
@@ -32,6 +33,30 @@ def frame_problem(frame: StereoFrame) -> str | None:
     if frame.left.shape[:2] != (calib.height, calib.width):
         return f"the camera's images are {_size(frame.left)} but its calibration is for {calib.width}x{calib.height}"
     return None
+
+
+class RepeatedImages:
+    """Whether a camera hands over its previous frame's images again, byte for byte.
+
+    Two exposures of a real sensor differ somewhere by its noise; the same bytes twice are a driver
+    re-delivering its last buffer (a stalled USB stream, a grab that timed out), and the part in front
+    of the camera then was never seen. ``run`` counts such frames in a row."""
+
+    def __init__(self) -> None:
+        self._last: tuple[str, np.ndarray, np.ndarray] | None = None
+        self.run = 0
+
+    def problem(self, frame: StereoFrame) -> str | None:
+        last = self._last
+        if (last is not None and last[1].shape == frame.left.shape and np.array_equal(last[1], frame.left)
+                and np.array_equal(last[2], frame.right)):
+            self.run += 1
+            return (f"the camera delivered frame {last[0]}'s images again, byte for byte (a driver re-delivering "
+                    f"its last buffer): the part in front of it was not seen")
+        self.run = 0
+        # copies: a driver may refill the same arrays for its next frame
+        self._last = (frame.frame_id, frame.left.copy(), frame.right.copy())
+        return None
 
 
 def detections_problem(detections: Any) -> str | None:

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from core.annotate import annotate
-from core.checks import detections_problem, disparity_problem, frame_problem
+from core.checks import RepeatedImages, detections_problem, disparity_problem, frame_problem
 from core.contracts import PluginContext
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
@@ -240,9 +240,10 @@ def frame_age_limit_s(loaded: LoadedRecipe, registry: Registry | None = None) ->
 
 def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeline, loaded: LoadedRecipe, rule: DepthRule,
                   detected: Detected | None = None, age_limit_s: float | None = None,
-                  clock: Callable[[], float] = time.time) -> FrameOutcome:
+                  clock: Callable[[], float] = time.time, repeated: str | None = None) -> FrameOutcome:
     """One frame through every stage; ``detected`` when its detection already ran (``stereo.concurrent``).
-    A frame older than ``age_limit_s`` when it gets here is an ERROR: its part has passed the actuator."""
+    A frame older than ``age_limit_s`` when it gets here is an ERROR: its part has passed the actuator;
+    so is one whose images are the frame before's (``repeated``, the problem ``RepeatedImages`` saw)."""
     recipe = loaded.recipe
     if isinstance(item, FrameError):
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(f"camera: {item.message}"), error=item.message)
@@ -254,7 +255,7 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)
         return FrameOutcome(part, [], None)
 
-    problem = frame_problem(item)
+    problem = frame_problem(item) or repeated
     if problem is not None:
         message = f"frame {item.frame_id}: {problem}"
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)
@@ -384,6 +385,7 @@ def run(
         on_start(pipeline)
     started = time.perf_counter()
     failed_in_a_row = 0
+    repeats = RepeatedImages()
 
     def part_id(item: StereoFrame | FrameError) -> str:
         return f"R{run_id}-{item.index:06d}"
@@ -449,7 +451,9 @@ def run(
     try:
         for item, detected in source:
             current = item
-            outcome = inspect_frame(item, part_id(item), pipeline, loaded, rule, detected, age_limit)
+            repeated = (repeats.problem(item) if isinstance(item, StereoFrame) and frame_problem(item) is None
+                        else None)
+            outcome = inspect_frame(item, part_id(item), pipeline, loaded, rule, detected, age_limit, repeated=repeated)
             part = outcome.part
             # One bad frame is that part's ERROR; several in a row mean the camera is lost, which
             # the operator must hear about once per outage, not once per frame.
@@ -458,6 +462,10 @@ def run(
                 record([Alarm("camera", f"camera lost: {CAMERA_LOST_AFTER} frames in a row could not be captured "
                                         f"(last: {item.message}); parts are rejected as ERROR until frames arrive",
                               time.time(), part.part_id)])
+            # a repeated image is never noise: the first one is a stalled camera the operator must hear of
+            if repeated and repeats.run == 1:
+                record([Alarm("camera", f"camera frozen: frame {item.frame_id}: {repeated}; parts are rejected as "
+                                        f"ERROR until its images change", time.time(), part.part_id, "frozen")])
             finish(outcome)
             stage_seconds.update(outcome.timings)
             frames += 1

@@ -10,7 +10,7 @@ from conftest import write_recipe
 from test_engine import RECIPE
 
 from core import engine
-from core.checks import detections_problem, disparity_problem, frame_problem
+from core.checks import RepeatedImages, detections_problem, disparity_problem, frame_problem
 from core.contracts import PluginSpec
 from core.hookspecs import hookimpl
 from core.recipe import load_recipe
@@ -38,6 +38,43 @@ class TestFrameProblem:
     ])
     def test_a_broken_pair_is_named(self, left, right, says):
         assert says in frame_problem(_frame(left, right))
+
+
+class TestRepeatedImages:
+    def frames(self, *seeds):
+        rng = {s: np.random.default_rng(s) for s in set(seeds)}
+        images = {s: (rng[s].integers(0, 255, (120, 160, 3), dtype=np.uint8),
+                      rng[s].integers(0, 255, (120, 160, 3), dtype=np.uint8)) for s in set(seeds)}
+        return [StereoFrame(f"{i:06d}", i, *images[s], CALIB, float(i)) for i, s in enumerate(seeds)]
+
+    def test_new_images_pass_and_a_repeat_names_the_frame_it_repeats(self):
+        repeats = RepeatedImages()
+        said = [repeats.problem(f) for f in self.frames(0, 1, 1, 1, 2)]
+        assert said[:2] == [None, None] and said[4] is None
+        assert "frame 000001's images again" in said[2] and "frame 000001's" in said[3]
+
+    def test_run_counts_the_repeats_in_a_row(self):
+        repeats = RepeatedImages()
+        runs = []
+        for f in self.frames(0, 0, 0, 1, 1):
+            repeats.problem(f)
+            runs.append(repeats.run)
+        assert runs == [0, 1, 2, 0, 1]
+
+    def test_one_eye_changing_is_a_new_frame(self):
+        a, b = self.frames(0, 1)
+        repeats = RepeatedImages()
+        repeats.problem(a)
+        assert repeats.problem(StereoFrame("000001", 1, a.left, b.right, CALIB, 1.0)) is None
+
+    def test_an_array_the_driver_refills_is_compared_by_its_contents(self):
+        a, b = self.frames(0, 1)
+        left, right = a.left.copy(), a.right.copy()
+        repeats = RepeatedImages()
+        assert repeats.problem(StereoFrame("000000", 0, left, right, CALIB, 0.0)) is None
+        left[:], right[:] = b.left, b.right  # the same arrays, a new exposure in them
+        assert repeats.problem(StereoFrame("000001", 1, left, right, CALIB, 1.0)) is None
+        assert repeats.problem(StereoFrame("000002", 2, left, right, CALIB, 2.0)) is not None
 
 
 class TestDetectionsProblem:

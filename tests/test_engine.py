@@ -1,6 +1,7 @@
 """The whole loop on exact synthetic plates, with the example detector registered in-process."""
 from __future__ import annotations
 
+import shutil
 import sqlite3
 
 import pytest
@@ -119,6 +120,22 @@ def test_camera_lost_for_several_frames_is_one_alarm(tmp_path, plane_sequence, r
     assert summary.exit_code == engine.EXIT_ALARMS
     db = sqlite3.connect(tmp_path / "results" / "results.db")
     assert db.execute("SELECT source, part_id FROM alarms").fetchall() == [("camera", seen[3].part.part_id)]
+
+
+def test_a_frozen_camera_rejects_every_repeated_frame_with_one_alarm(tmp_path, plane_sequence, registry):
+    info = plane_sequence([0.0, 0.0, 0.0, 0.0, 0.0, 6.0])
+    for side in ("left", "right"):  # frames 2-4 are frame 1's images again, as a stalled driver hands them over
+        for i in (2, 3, 4):
+            shutil.copy(info["folder"] / side / "000001.png", info["folder"] / side / f"{i:06d}.png")
+    summary, seen = _run(tmp_path, registry, info)
+    assert [o.part.verdict.status for o in seen] == [Status.PASS, Status.PASS] + [Status.ERROR] * 3 + [Status.REJECT]
+    assert "frame 000001's images again" in seen[3].part.verdict.reasons[0]
+    (alarm,) = summary.alarms
+    assert alarm.source == "camera" and alarm.cause == "frozen" and alarm.message.startswith("camera frozen: frame 000002")
+    assert alarm.part_id == seen[2].part.part_id and summary.exit_code == engine.EXIT_ALARMS
+    from core.commands.inspection import alarm_hints
+    hints = alarm_hints(summary.alarms, load_recipe(tmp_path / "r.yaml", registry=registry), plc_sim_given=False)
+    assert any("same images again" in h for h in hints) and not any("stopped delivering" in h for h in hints)
 
 
 def test_part_is_stored_before_outputs_see_it(tmp_path, plane_sequence, registry):

@@ -23,6 +23,7 @@ from core.contracts import PluginContext
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
 from core.frame_source import DetectAhead, OneAtATime
+from core.image_quality import image_problem, image_stats
 from core.recipe import LoadedRecipe
 from core.recipe.loader import (camera_answer, detector_settings, file_sha256, named_classes, output_delays_s,
                                 unknown_class_message)
@@ -240,10 +241,11 @@ def frame_age_limit_s(loaded: LoadedRecipe, registry: Registry | None = None) ->
 
 def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeline, loaded: LoadedRecipe, rule: DepthRule,
                   detected: Detected | None = None, age_limit_s: float | None = None,
-                  clock: Callable[[], float] = time.time, repeated: str | None = None) -> FrameOutcome:
+                  clock: Callable[[], float] = time.time, refused: str | None = None) -> FrameOutcome:
     """One frame through every stage; ``detected`` when its detection already ran (``stereo.concurrent``).
     A frame older than ``age_limit_s`` when it gets here is an ERROR: its part has passed the actuator;
-    so is one whose images are the frame before's (``repeated``, the problem ``RepeatedImages`` saw)."""
+    so is one the loop ``refused`` (``frame_refusal``: the frame before's images again, or an image that
+    cannot show a defect)."""
     recipe = loaded.recipe
     if isinstance(item, FrameError):
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(f"camera: {item.message}"), error=item.message)
@@ -255,7 +257,7 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)
         return FrameOutcome(part, [], None)
 
-    problem = frame_problem(item) or repeated
+    problem = frame_problem(item) or refused
     if problem is not None:
         message = f"frame {item.frame_id}: {problem}"
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)
@@ -286,6 +288,18 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         return FrameOutcome(part, [], item.left, timings)
     part = PartResult(part_id, item.frame_id, item.index, item.timestamp, verdict, measurements)
     return FrameOutcome(part, per_defect, item.left, timings)
+
+
+def frame_refusal(item: StereoFrame | FrameError, repeats: RepeatedImages, check) -> tuple[str | None, str | None]:
+    """Why a frame the camera delivered in good order may not decide its part: (its images are the frame
+    before's, in words, or None; its left image cannot show a defect, ``core.image_quality``, or None).
+    ``check``: the recipe's ``camera.image_check``."""
+    if not isinstance(item, StereoFrame) or frame_problem(item) is not None:
+        return None, None  # inspect_frame names those
+    repeated = repeats.problem(item)
+    if repeated is not None:
+        return repeated, None
+    return None, image_problem(image_stats(item.left), check.min_mean_grey, check.max_saturated, check.min_texture)
 
 
 class StageFailed(Exception):
@@ -384,7 +398,7 @@ def run(
     if on_start:
         on_start(pipeline)
     started = time.perf_counter()
-    failed_in_a_row = 0
+    failed_in_a_row = unusable_in_a_row = 0
     repeats = RepeatedImages()
 
     def part_id(item: StereoFrame | FrameError) -> str:
@@ -451,9 +465,9 @@ def run(
     try:
         for item, detected in source:
             current = item
-            repeated = (repeats.problem(item) if isinstance(item, StereoFrame) and frame_problem(item) is None
-                        else None)
-            outcome = inspect_frame(item, part_id(item), pipeline, loaded, rule, detected, age_limit, repeated=repeated)
+            repeated, unusable = frame_refusal(item, repeats, recipe.camera.image_check)
+            outcome = inspect_frame(item, part_id(item), pipeline, loaded, rule, detected, age_limit,
+                                    refused=repeated or unusable)
             part = outcome.part
             # One bad frame is that part's ERROR; several in a row mean the camera is lost, which
             # the operator must hear about once per outage, not once per frame.
@@ -466,6 +480,11 @@ def run(
             if repeated and repeats.run == 1:
                 record([Alarm("camera", f"camera frozen: frame {item.frame_id}: {repeated}; parts are rejected as "
                                         f"ERROR until its images change", time.time(), part.part_id, "frozen")])
+            unusable_in_a_row = unusable_in_a_row + 1 if unusable else 0
+            if unusable_in_a_row == CAMERA_LOST_AFTER:
+                record([Alarm("camera", f"images unusable: {CAMERA_LOST_AFTER} frames in a row (last: frame "
+                                        f"{item.frame_id}: {unusable}); parts are rejected as ERROR until they "
+                                        f"show the plate", time.time(), part.part_id, "image")])
             finish(outcome)
             stage_seconds.update(outcome.timings)
             frames += 1

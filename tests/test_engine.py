@@ -4,6 +4,8 @@ from __future__ import annotations
 import shutil
 import sqlite3
 
+import cv2
+import numpy as np
 import pytest
 import stereo_inspect_fixed_roi
 from conftest import write_recipe
@@ -136,6 +138,24 @@ def test_a_frozen_camera_rejects_every_repeated_frame_with_one_alarm(tmp_path, p
     from core.commands.inspection import alarm_hints
     hints = alarm_hints(summary.alarms, load_recipe(tmp_path / "r.yaml", registry=registry), plc_sim_given=False)
     assert any("same images again" in h for h in hints) and not any("stopped delivering" in h for h in hints)
+
+
+def test_frames_that_cannot_show_a_defect_are_errors_and_an_outage_one_alarm(tmp_path, plane_sequence, registry):
+    info = plane_sequence([0.0] * 7)
+    rng = np.random.default_rng(0)
+    for i in (1, 2, 3, 4):  # the lights fail for four frames: sensor noise on black
+        dark = np.clip(rng.normal(3.0, 2.0, (192, 320, 3)), 0, 255).astype(np.uint8)
+        for side in ("left", "right"):
+            cv2.imwrite(str(info["folder"] / side / f"{i:06d}.png"), dark)
+    cv2.imwrite(str(info["folder"] / "left" / "000006.png"), np.full((192, 320, 3), 128, np.uint8))  # a grey card
+    summary, seen = _run(tmp_path, registry, info)
+    assert [o.part.verdict.status for o in seen] == [Status.PASS] + [Status.ERROR] * 4 + [Status.PASS, Status.ERROR]
+    assert "too dark to inspect" in seen[1].part.verdict.reasons[0] and "no texture" in seen[6].part.verdict.reasons[0]
+    (alarm,) = summary.alarms
+    assert alarm.cause == "image" and alarm.message.startswith("images unusable: 3 frames in a row (last: frame 000003")
+    from core.commands.inspection import alarm_hints
+    hints = alarm_hints(summary.alarms, load_recipe(tmp_path / "r.yaml", registry=registry), plc_sim_given=False)
+    assert any("could not show a defect" in h for h in hints) and not any("stopped delivering" in h for h in hints)
 
 
 def test_part_is_stored_before_outputs_see_it(tmp_path, plane_sequence, registry):

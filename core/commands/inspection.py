@@ -194,11 +194,14 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
                      "shorten pulse_ms or count parts in a register (write: counter)")
     if "crash" in causes:
         lines.append("  an earlier run ended without finishing: check those parts by hand (`inspect report` lists them)")
-    if any(a.source == "camera" and a.cause != "frozen" for a in alarms):
+    if any(a.source == "camera" and a.cause not in ("frozen", "image") for a in alarms):
         lines.append("  the camera stopped delivering frames")
     if "frozen" in causes:
         lines.append("  the camera delivered the same images again (a stalled driver or USB stream): check its "
                      "cable and driver; the parts it did not see were rejected")
+    if "image" in causes:
+        lines.append("  the camera's images could not show a defect (too dark, washed out or without texture): check "
+                     "the lights, the exposure and the lens (camera.image_check, docs/recipe-reference.md)")
     if "stall" in causes:
         lines.append(f"  a stage, plugin or camera stopped returning for longer than watchdog_s "
                      f"({loaded.recipe.watchdog_s:g} s; the alarm names the frame or the camera): the outputs told the "

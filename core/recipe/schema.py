@@ -26,10 +26,21 @@ class PluginRef(Section):
     settings: dict[str, Any] = Field(default_factory=dict)
 
 
+class ImageCheck(Section):
+    """What a frame's left image must show before its detections (or their absence) may decide the part
+    (``core.image_quality``); a frame that fails is its part's ERROR. The defaults trip only on images
+    with no usable content; 0, 1 and 0 turn each test off."""
+
+    min_mean_grey: float = Field(20.0, ge=0, le=255)
+    max_saturated: float = Field(0.9, ge=0, le=1)
+    min_texture: float = Field(0.7, ge=0)
+
+
 class CameraSection(PluginRef):
     # A frame that reaches inspection later than this after its capture is an ERROR, not a late reject;
     # by default the shortest time from the camera to an output's actuator (its part is past it by then).
     max_frame_age_ms: float | None = Field(None, gt=0)
+    image_check: ImageCheck = Field(default_factory=ImageCheck)
 
 
 class StereoSection(Section):

@@ -306,6 +306,10 @@ class StageFailed(Exception):
     """A failure already described (a detection that ran ahead of its frame, a plugin's broken contract)."""
 
 
+class StoreFailed(Exception):
+    """The results store could not record a part, which went to the outputs all the same: the run stops."""
+
+
 def _filter(detections: list[Detection], confidence: float, classes: list[str] | None) -> list[Detection]:
     return [d for d in detections if d.confidence >= confidence and (classes is None or d.class_name in classes)]
 
@@ -367,15 +371,29 @@ def run(
     interrupted = False
     stopped_by = None
 
+    # the results store's first failure (a full or dead disk): from then on nothing more is written to it
+    store_down: list[Exception] = []
+
     def record(events: list[OutputEvent | Alarm]) -> None:
         """Tell the operator, count the alarms, then store: a store that hangs or fails (a dead disk) must not
-        keep an alarm from being heard."""
+        keep an alarm from being heard, nor the run from closing its outputs."""
         for e in events:
             if isinstance(e, Alarm):
                 alarms.append(e)
             if on_event:
                 on_event(e)
-        store.record_events(run_id, events)
+        if store_down:
+            return
+        try:
+            store.record_events(run_id, events)
+        except Exception as exc:
+            lose_store(exc)
+
+    def lose_store(exc: Exception) -> None:
+        store_down.append(exc)
+        record([Alarm("store", f"results store failed ({type(exc).__name__}: {exc}): nothing more is recorded; the "
+                               "parts already decided still go to the outputs, then the run stops", time.time(),
+                      None, "store")])
 
     # called from the watch's thread while this one is stuck: the outputs first (the line must hear it even
     # if what follows hangs), then the operator and the store (whose writes take turns)
@@ -439,11 +457,17 @@ def run(
     handing: list = []
 
     def finish(outcome: FrameOutcome) -> None:
+        """Store the part, then hand it to the outputs. A store that fails does not keep a decided part's reject
+        from the actuator: it is handed over unrecorded (and the loop stops the run)."""
         nonlocal current
         part = outcome.part
-        _save_image(store, recipe.results.save_images, outcome)
-        store.record_part(run_id, part, outcome.per_defect)
-        current = None  # stored: from here on it is a decided part, whatever stops the run
+        if not store_down:
+            try:
+                _save_image(store, recipe.results.save_images, outcome)
+                store.record_part(run_id, part, outcome.per_defect)
+            except Exception as exc:
+                lose_store(exc)
+        current = None  # stored (or the store is gone): from here on it is a decided part, whatever stops the run
         counts[part.verdict.status] += 1
         handing[:] = [part, list(pipeline.outputs), None]
         hand_to_outputs()
@@ -490,6 +514,8 @@ def run(
             frames += 1
             if on_part:
                 on_part(outcome)
+            if store_down:
+                raise StoreFailed(f"{part.part_id} ({part.verdict.status.value}) went to the outputs unrecorded")
             # a stop reads no new frame; the frames already read (detect-ahead's next) are still inspected
             if not interrupted and stop_requested is not None and (stopped_by := stop_requested()):
                 interrupted = True
@@ -529,8 +555,15 @@ def run(
                 record([Alarm(name, f"closing output failed: {exc}", time.time())])
         pipeline.close()
     summary = RunSummary(run_id, counts, alarms, frames, elapsed, dict(stage_seconds), interrupted, stopped_by)
-    store.finish_run(run_id, counts, len(alarms), summary.fps, summary.exit_code)
-    store.close()
+    if not store_down:
+        try:
+            store.finish_run(run_id, counts, len(alarms), summary.fps, summary.exit_code)
+        except Exception as exc:
+            lose_store(exc)
+    try:
+        store.close()
+    except Exception:
+        pass  # a store that failed has said so
     return summary
 
 

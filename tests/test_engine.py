@@ -15,6 +15,7 @@ from core.hookspecs import hookimpl
 from core.contracts import PluginSpec
 from core.recipe import load_recipe
 from core.registry import Registry, make_manager
+from core.store import ResultsStore
 from core.types import OutputEvent, Status
 
 RECIPE = """\
@@ -156,6 +157,33 @@ def test_frames_that_cannot_show_a_defect_are_errors_and_an_outage_one_alarm(tmp
     from core.commands.inspection import alarm_hints
     hints = alarm_hints(summary.alarms, load_recipe(tmp_path / "r.yaml", registry=registry), plc_sim_given=False)
     assert any("could not show a defect" in h for h in hints) and not any("stopped delivering" in h for h in hints)
+
+
+def test_a_dead_disk_still_sends_the_decided_reject_then_stops_with_an_alarm(tmp_path, plane_sequence, registry,
+                                                                              monkeypatch):
+    info = plane_sequence([0.0, 6.0, 0.0, 0.0, 0.0])
+    original = ResultsStore.record_part
+
+    def read_only_from_the_second_part(store, run_id, part, verdicts):
+        if part.index >= 1:  # as a disk that the system remounts read-only after an I/O error: SQLite refuses writes
+            store.db.execute("PRAGMA query_only = ON")
+        return original(store, run_id, part, verdicts)
+
+    monkeypatch.setattr(ResultsStore, "record_part", read_only_from_the_second_part)
+    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log"))
+    loaded = load_recipe(path, registry=registry)
+    seen, events = [], []
+    summary = engine.run(loaded, registry=registry, on_part=seen.append, on_event=events.append, device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.PASS, Status.REJECT]  # then the run stopped
+    sent = [e for e in events if isinstance(e, OutputEvent) and e.outcome == "delivered"]
+    assert sent and sent[0].part_id == seen[1].part.part_id and "REJECT" in sent[0].command  # the reject went out
+    # what was read ahead was rejected (not inspected), not dropped
+    assert all("ERROR" in e.command for e in sent[1:])
+    causes = [a.cause for a in summary.alarms]
+    assert causes[0] == "store" and "readonly database" in summary.alarms[0].message
+    assert summary.exit_code == engine.EXIT_ALARMS
+    from core.commands.inspection import alarm_hints
+    assert any("results store" in h for h in alarm_hints(summary.alarms, loaded, plc_sim_given=False))
 
 
 def test_part_is_stored_before_outputs_see_it(tmp_path, plane_sequence, registry):

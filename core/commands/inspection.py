@@ -202,6 +202,9 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
     if "image" in causes:
         lines.append("  the camera's images could not show a defect (too dark, washed out or without texture): check "
                      "the lights, the exposure and the lens (camera.image_check, docs/recipe-reference.md)")
+    if "store" in causes:
+        lines.append("  the results store could not be written (a full disk, its permissions, a removed drive): the "
+                     "parts decided until then went to the outputs unrecorded; free the disk and start again")
     if "stall" in causes:
         lines.append(f"  a stage, plugin or camera stopped returning for longer than watchdog_s "
                      f"({loaded.recipe.watchdog_s:g} s; the alarm names the frame or the camera): the outputs told the "

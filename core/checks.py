@@ -30,6 +30,10 @@ def frame_problem(frame: StereoFrame) -> str | None:
     if frame.left.shape != frame.right.shape:
         return f"the camera's left and right images differ in size ({_size(frame.left)}, {_size(frame.right)})"
     calib = frame.calib
+    for key in ("focal_px", "baseline_mm"):
+        value = getattr(calib, key)
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            return f"the camera's calibration has {key} {value!r}: not a positive number, so no distance can be measured"
     if frame.left.shape[:2] != (calib.height, calib.width):
         return f"the camera's images are {_size(frame.left)} but its calibration is for {calib.width}x{calib.height}"
     return None

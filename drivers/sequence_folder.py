@@ -14,6 +14,7 @@ This module imports nothing from the rest of stereo-inspect, so it can be tried 
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,10 +67,31 @@ def read_middlebury_calib(path: Path) -> dict:
         raise SequenceError(f"{path}: not a Middlebury calibration ({exc})") from None
 
 
+def _checked_calibration(path: Path, data: dict) -> dict:
+    """``data`` when its values are a camera's; else ``SequenceError`` naming the file and the value. A
+    negative focal length or a zero baseline would otherwise turn every distance into nonsense."""
+    def number(key):
+        value = data[key]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise SequenceError(f"{path}: {key} must be a number (got {value!r})")
+        return value
+    for key in ("focal_px", "baseline_mm"):
+        if number(key) <= 0:
+            raise SequenceError(f"{path}: {key} must be positive (got {data[key]!r})")
+    for key in ("width", "height"):
+        if not (isinstance(data[key], int) and not isinstance(data[key], bool) and data[key] > 0):
+            raise SequenceError(f"{path}: {key} must be a whole number of pixels above 0 (got {data[key]!r})")
+    for key in ("cx", "cy", "doffs"):
+        number(key)
+    return data
+
+
 def read_calibration(folder: Path) -> dict:
+    """The sequence's calibration as a dict (``CALIB_KEYS`` and ``doffs``), checked; ``SequenceError`` naming
+    the file and the key otherwise."""
     folder = Path(folder)
     if is_middlebury_scene(folder):
-        return read_middlebury_calib(folder / "calib.txt")
+        return _checked_calibration(folder / "calib.txt", read_middlebury_calib(folder / "calib.txt"))
     path = folder / "calib.yaml"
     if not path.exists():
         raise SequenceError(f"{path}: calibration file missing")
@@ -83,7 +105,7 @@ def read_calibration(folder: Path) -> dict:
     if missing:
         raise SequenceError(f"{path}: missing {', '.join(missing)}")
     data.setdefault("doffs", 0.0)
-    return data
+    return _checked_calibration(path, data)
 
 
 def write_calibration(folder: Path, calib: dict) -> None:

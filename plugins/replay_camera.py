@@ -34,6 +34,11 @@ class ReplaySettings(BaseModel):
         folder = folder if folder.is_absolute() else (base / folder).resolve()
         if not folder.is_dir():
             raise ValueError(f"sequence folder not found: {folder}")
+        # what the camera would fail on when it opens, said where the recipe names the folder
+        try:
+            seq.read_calibration(folder)
+        except seq.SequenceError as exc:
+            raise ValueError(str(exc)) from None
         return str(folder)
 
 

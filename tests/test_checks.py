@@ -39,6 +39,11 @@ class TestFrameProblem:
     def test_a_broken_pair_is_named(self, left, right, says):
         assert says in frame_problem(_frame(left, right))
 
+    @pytest.mark.parametrize("key, value", [("focal_px", -350.0), ("baseline_mm", 0.0), ("focal_px", math.nan)])
+    def test_a_calibration_no_camera_has_is_named(self, key, value):
+        calib = Calibration(**{**CALIB.__dict__, key: value})
+        assert f"calibration has {key} {value!r}: not a positive number" in frame_problem(_frame(calib=calib))
+
 
 class TestRepeatedImages:
     def frames(self, *seeds):

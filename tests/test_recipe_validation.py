@@ -156,13 +156,22 @@ def test_cli_validate_ok(recipe_dir):
     assert result.returncode == 0 and "ok" in result.stdout
 
 
-def test_missing_calibration_is_one_line_exit_2(recipe_dir):
+@pytest.mark.parametrize("command", ["run", "validate"])
+def test_missing_calibration_is_one_line_exit_2(recipe_dir, command):
     (recipe_dir / "seq" / "calib.yaml").unlink()
     path = write_recipe(recipe_dir / "r.yaml", GOOD)
-    result = cli("run", str(path))
+    result = cli(command, str(path))
     assert result.returncode == 2 and "Traceback" not in result.stderr
-    assert result.stderr.count("\n") == 1 and "camera: replay:" in result.stderr
+    assert result.stderr.count("\n") == 1 and "camera.settings.path:" in result.stderr
     assert "calib.yaml: calibration file missing" in result.stderr
+
+
+def test_a_calibration_no_camera_has_fails_validation(recipe_dir):
+    calib = recipe_dir / "seq" / "calib.yaml"
+    calib.write_text(calib.read_text().replace("baseline_mm:", "baseline_mm: -1 #"))
+    result = cli("validate", str(write_recipe(recipe_dir / "r.yaml", GOOD)))
+    assert result.returncode == 2 and result.stderr.count("\n") == 1
+    assert "calib.yaml: baseline_mm must be positive (got -1)" in result.stderr
 
 
 def test_validate_warns_where_the_working_distance_cannot_resolve_a_limit(recipe_dir):

@@ -1,15 +1,17 @@
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from core.contracts import PluginContext
 from core.registry import default_registry
 from core.types import FrameError, StereoFrame
-from drivers.sequence_folder import SequenceError, read_labels
+from drivers.sequence_folder import SequenceError, read_calibration, read_labels
 
 
 def _camera(folder, **settings):
@@ -55,8 +57,33 @@ def test_corrupt_and_missing_frames_are_errors_not_skips(plane_sequence):
 def test_missing_calibration(plane_sequence):
     info = plane_sequence([0.0])
     (info["folder"] / "calib.yaml").unlink()
-    with pytest.raises(SequenceError, match="calib.yaml: calibration file missing"):
+    with pytest.raises(ValueError, match="calib.yaml: calibration file missing"):  # the settings' check says it
         _camera(info["folder"])
+
+
+class TestReadCalibration:
+    """``sequence_folder.read_calibration``: a camera's values, or one line naming the file and the key."""
+
+    @pytest.mark.parametrize("key, value, says", [
+        ("focal_px", -350.0, "focal_px must be positive (got -350.0)"),
+        ("baseline_mm", 0.0, "baseline_mm must be positive"),
+        ("width", 672.5, "width must be a whole number of pixels above 0 (got 672.5)"),
+        ("height", 0, "height must be a whole number"),
+        ("cx", "centre", "cx must be a number (got 'centre')"),
+        ("doffs", float("nan"), "doffs must be a number"),
+    ])
+    def test_a_value_no_camera_has_is_named(self, plane_sequence, key, value, says):
+        info = plane_sequence([0.0])
+        path = info["folder"] / "calib.yaml"
+        data = yaml.safe_load(path.read_text())
+        data[key] = value
+        path.write_text(yaml.safe_dump(data))
+        with pytest.raises(SequenceError, match=re.escape(f"calib.yaml: {says}")):
+            read_calibration(info["folder"])
+
+    def test_a_camera_s_values_pass(self, plane_sequence):
+        info = plane_sequence([0.0])
+        assert read_calibration(info["folder"])["focal_px"] == pytest.approx(350.06)
 
 
 class TestReadLabels:

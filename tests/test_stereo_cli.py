@@ -79,7 +79,9 @@ def test_pair_of_different_sizes_is_refused(pair, tmp_path):
     (["--max-disp", 8, "--min-disp", 8], "--max-disp"),
     (["--max-disp", 4, "--min-disp", 10], "--min-disp"),
     (["--max-disp", 100], "width"),
-    (["--max-disp", 16, "--set", "p3=1"], "--set"),
+    (["--max-disp", 16, "--set", "p3=1"], "--set p3: unknown key"),
+    (["--max-disp", 16, "--set", "wmf_radiu=3"], "did you mean 'wmf_radius'?"),
+    (["--max-disp", 16, "--set", "p1=-1"], "--set p1: Input should be greater than or equal to 0 (got -1)"),
     (["--max-disp", 16, "--backend", "nope"], "nope"),
 ])
 def test_bad_options_are_refused(pair, args, word):

@@ -4,6 +4,7 @@ torch and the backends are imported inside the commands so that ``inspect --help
 """
 from __future__ import annotations
 
+import difflib
 from pathlib import Path
 
 import click
@@ -59,9 +60,17 @@ def make_backend(name: str, settings: dict, device: str):
         _fail(f"--backend: {exc}")
     try:
         return plugin.spec.factory(dict(settings), PluginContext(device=_device(device)))
-    except (ValidationError, ValueError, TypeError) as exc:
-        first = str(exc).splitlines()
-        _fail(f"--set for backend {name!r}: {' '.join(first[:3])}")
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = ".".join(str(p) for p in err["loc"])
+        if err["type"] == "extra_forbidden" and plugin.spec.settings_model is not None:
+            close = difflib.get_close_matches(key, list(plugin.spec.settings_model.model_fields), n=1, cutoff=0.6)
+            message = "unknown key" + (f"; did you mean {close[0]!r}?" if close else "")
+        else:
+            message = err["msg"].removeprefix("Value error, ") + (f" (got {err['input']!r})" if "input" in err else "")
+        _fail(f"--set {key}: {message} (backend {name!r})")
+    except (ValueError, TypeError) as exc:
+        _fail(f"--set for backend {name!r}: {str(exc).splitlines()[0]}")
 
 
 def _threads(n: int | None) -> None:

@@ -79,7 +79,7 @@ def _checked_calibration(path: Path, data: dict) -> dict:
         if number(key) <= 0:
             raise SequenceError(f"{path}: {key} must be positive (got {data[key]!r})")
     for key in ("width", "height"):
-        if not (isinstance(data[key], int) and not isinstance(data[key], bool) and data[key] > 0):
+        if not (number(key) > 0 and float(data[key]).is_integer()):
             raise SequenceError(f"{path}: {key} must be a whole number of pixels above 0 (got {data[key]!r})")
     for key in ("cx", "cy", "doffs"):
         number(key)

@@ -83,7 +83,10 @@ class TestReadCalibration:
 
     def test_a_camera_s_values_pass(self, plane_sequence):
         info = plane_sequence([0.0])
-        assert read_calibration(info["folder"])["focal_px"] == pytest.approx(350.06)
+        path = info["folder"] / "calib.yaml"
+        path.write_text(path.read_text().replace("width: 320", "width: 320.0"))  # a whole number, written as a float
+        calib = read_calibration(info["folder"])
+        assert calib["focal_px"] == pytest.approx(350.06) and calib["width"] == 320
 
 
 class TestReadLabels:

@@ -129,6 +129,21 @@ def test_set_override_applies_and_is_located(recipe_dir):
     assert "(--set stereo.max_disparity): stereo.max_disparity:" in message
 
 
+def test_another_plugin_by_set_starts_from_its_own_settings():
+    """The demo recipe's stereo settings are torch_sgm's: switching the backend leaves them behind, unless
+    the command line gives the new one settings of its own."""
+    from conftest import ROOT
+
+    demo = ROOT / "recipes" / "steel_plate.yaml"
+    assert load_recipe(demo).plugin_settings["stereo"]["align"] == "none"
+    sgbm = load_recipe(demo, ["stereo.backend=opencv_sgbm"])
+    assert sgbm.recipe.stereo.backend == "opencv_sgbm" and "align" not in sgbm.plugin_settings["stereo"]
+    assert load_recipe(demo, ["stereo.backend=opencv_sgbm", "stereo.settings.block_size=7"]).plugin_settings[
+        "stereo"]["block_size"] == 7
+    with pytest.raises(RecipeError, match="stereo.settings.align: unknown key"):
+        load_recipe(demo, ["stereo.backend=opencv_sgbm", "stereo.settings.block_size=7", "stereo.settings.align=none"])
+
+
 @pytest.mark.parametrize(
     "change",
     [

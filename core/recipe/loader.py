@@ -146,6 +146,25 @@ def _step(annotation: Any, part: str | int) -> Any:
     return None
 
 
+# the sections whose settings belong to the plugin they name
+PLUGIN_KEYS = {"camera": "plugin", "stereo": "backend", "detector": "plugin"}
+
+
+def _without_settings_of_replaced_plugins(data: dict, overrides: list[str] | tuple[str, ...]) -> dict:
+    """A copy of ``data`` without the settings of a plugin that ``--set`` replaces: ``--set
+    stereo.backend=opencv_sgbm`` on a recipe written for torch_sgm starts the other backend from its own
+    defaults and the settings ``--set`` gives it, not from torch_sgm's. Likewise a camera's or a detector's."""
+    replaced = copy.deepcopy(data)
+    for assignment in overrides:
+        apply_override(replaced, assignment)
+    data = copy.deepcopy(data)
+    for section, key in PLUGIN_KEYS.items():
+        before, after = data.get(section), replaced.get(section)
+        if isinstance(before, dict) and isinstance(after, dict) and before.get(key) != after.get(key):
+            before.pop("settings", None)
+    return data
+
+
 def apply_override(data: dict, assignment: str) -> KeyPath:
     """Apply ``a.b.c=value`` (value parsed as YAML, list items by index) to ``data``."""
     if "=" not in assignment:
@@ -216,7 +235,7 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     if not isinstance(data, dict):
         raise RecipeError(f"{path}: a recipe must be a mapping of sections (camera, stereo, ...)")
 
-    data = copy.deepcopy(data)
+    data = _without_settings_of_replaced_plugins(data, overrides)
     overridden = {apply_override(data, assignment) for assignment in overrides}
     locator = _Locator(path, lines, overridden)
     try:

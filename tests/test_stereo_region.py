@@ -120,15 +120,18 @@ def test_sim_sequence_depth_same_as_full_frame():
 EVALUATION = FIXTURE.parent / "plates_textured"
 
 
-@pytest.mark.parametrize("scale,margin", [(0.25, 64), (0.5, 32)])
-@pytest.mark.parametrize("preset", ["seed", "improved"])
-def test_torch_sgm_roi_gives_the_full_frames_depth(preset, scale, margin, torch_one_thread):
+@pytest.mark.parametrize("preset,scale,margin,settings", [
+    ("improved", 0.25, 64, {"align": "none"}),  # the demo recipe's
+    ("improved", 0.25, 64, {}), ("seed", 0.25, 64, {}), ("improved", 0.5, 32, {}), ("seed", 0.5, 32, {}),
+])
+def test_torch_sgm_roi_gives_the_full_frames_depth(preset, scale, margin, settings, torch_one_thread):
     """Each labelled defect measured as the line measures it (the surface fit, matching at a quarter of
     the resolution as the demo recipe does, or at half), from crops and from the whole frame: within
     0.02 mm, on the demo sequence and an evaluation set."""
     from core.depth import measure_frame
 
-    matcher = default_registry().get("stereo", "torch_sgm").spec.factory({"preset": preset}, PluginContext(device="cpu"))
+    matcher = default_registry().get("stereo", "torch_sgm").spec.factory({"preset": preset, **settings},
+                                                                          PluginContext(device="cpu"))
     worst = {"distance_mm": 0.0, "deviation_mm": 0.0}
     measured = 0
     for folder, frames, distance in ((FIXTURE, 4, (350, 500)), (EVALUATION, 3, (300, 700))):

@@ -192,7 +192,7 @@ def frame_disparity(backend: Any, frame: StereoFrame, stereo: StereoSection, det
     if stereo.region == "full":
         return compute_disparity(backend, frame, lo, hi, stereo.scale)
     return disparity_around(lambda crop: compute_disparity(backend, crop, lo, hi, stereo.scale), frame,
-                            [d.box for d in detections], rule, stereo.roi_margin_px, hi, stereo.scale)
+                            [d.box for d in detections], rule, stereo.margin_px, hi, stereo.scale)
 
 
 @dataclass

@@ -35,6 +35,12 @@ def test_crop_reaches_the_search_range_to_the_left():
     assert crop_rect((20, 0, 60, 30), 10, 142.0, (376, 150)) == (0, 0, 150, 40)
 
 
+def test_the_context_left_out_is_16_of_the_matchers_pixels_and_at_least_32():
+    section = StereoSection(working_distance_mm=(350, 500))
+    assert [section.model_copy(update={"scale": s}).margin_px for s in (1.0, 0.5, 0.25, 0.2)] == [32, 32, 64, 80]
+    assert StereoSection(working_distance_mm=(350, 500), scale=0.25, roi_margin_px=20).margin_px == 20
+
+
 def test_crops_lie_on_the_grid_of_the_scale():
     # a quarter-scale crop is then made of the same 4 x 4 blocks as the quarter-scale frame
     x0, y0, x1, y1 = crop_rect((301, 101, 350, 151), margin=10, max_disp=41.0, shape=(376, 672), grid=4)

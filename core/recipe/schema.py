@@ -55,10 +55,17 @@ class StereoSection(Section):
     # detector's boxes, their depth ring and roi_margin_px need (plus the disparity search range to
     # the left), so a frame costs stereo in proportion to its defects (needs schedule: on_defect).
     region: Literal["full", "defects"] = "full"
-    roi_margin_px: int = Field(32, ge=0, le=1000)
+    # the context around each needed rectangle, in image pixels; None: 16 of the matcher's pixels, and at
+    # least 32 (``margin_px``), which is what crops need to give the full frame's depth
+    roi_margin_px: int | None = Field(None, ge=0, le=1000)
     # Detect the next frame (in a second thread) while this frame's stereo, depth, decision and
     # outputs run. A part's verdict still uses its own frame's disparity.
     concurrent: bool = True
+
+    @property
+    def margin_px(self) -> int:
+        """``roi_margin_px``, or where the recipe leaves it out, 16 of the matcher's pixels and at least 32."""
+        return self.roi_margin_px if self.roi_margin_px is not None else max(32, math.ceil(16 / self.scale))
 
     @model_validator(mode="after")
     def _one_range(self) -> StereoSection:

@@ -70,6 +70,11 @@ def test_wrong_type(recipe_dir):
     assert ":8: stereo.max_disparity:" in message and "'lots'" in message
 
 
+def test_a_section_that_is_not_a_mapping_lists_its_keys(recipe_dir):
+    message = _error(recipe_dir, GOOD, ["camera.image_check=5"])
+    assert "camera.image_check: should be a mapping of min_mean_grey, max_saturated, min_texture (got 5)" in message
+
+
 def test_out_of_range(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("threshold: 1.0}", "threshold: 1.0}\n    - {class: any, quantity: depth, op: '>', threshold: 1}"))
     assert "decision.rules.1.quantity" in message and ":14:" in message

@@ -109,6 +109,8 @@ def _first_error(exc: ValidationError, base: KeyPath, locator: _Locator, model: 
         message = "unknown key" + (f"; did you mean {close[0]!r}?" if close else "")
     elif kind == "missing":
         message = "required key missing"
+    elif kind == "model_type" and keys_at(model, loc):
+        message = f"should be a mapping of {', '.join(keys_at(model, loc))} (got {err.get('input')!r})"
     else:
         message = err["msg"].removeprefix("Value error, ")
         if "input" in err and kind not in ("model_type", "dict_type") and not isinstance(err["input"], dict):

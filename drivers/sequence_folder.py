@@ -14,7 +14,6 @@ This module imports nothing from the rest of stereo-inspect, so it can be tried 
 from __future__ import annotations
 
 import json
-import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,10 +70,9 @@ def _checked_calibration(path: Path, data: dict) -> dict:
     """``data`` when its values are a camera's; else ``SequenceError`` naming the file and the value. A
     negative focal length or a zero baseline would otherwise turn every distance into nonsense."""
     def number(key):
-        value = data[key]
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise SequenceError(f"{path}: {key} must be a number (got {value!r})")
-        return value
+        if not _number(data[key]):
+            raise SequenceError(f"{path}: {key} must be a number (got {data[key]!r})")
+        return data[key]
     for key in ("focal_px", "baseline_mm"):
         if number(key) <= 0:
             raise SequenceError(f"{path}: {key} must be positive (got {data[key]!r})")

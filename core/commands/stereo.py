@@ -4,7 +4,6 @@ torch and the backends are imported inside the commands so that ``inspect --help
 """
 from __future__ import annotations
 
-import difflib
 from pathlib import Path
 
 import click
@@ -52,6 +51,7 @@ def make_backend(name: str, settings: dict, device: str):
     from pydantic import ValidationError
 
     from core.contracts import PluginContext
+    from core.recipe.loader import first_problem
     from core.registry import UnknownPlugin, default_registry
 
     try:
@@ -61,14 +61,9 @@ def make_backend(name: str, settings: dict, device: str):
     try:
         return plugin.spec.factory(dict(settings), PluginContext(device=_device(device)))
     except ValidationError as exc:
-        err = exc.errors()[0]
-        key = ".".join(str(p) for p in err["loc"])
-        if err["type"] == "extra_forbidden" and plugin.spec.settings_model is not None:
-            close = difflib.get_close_matches(key, list(plugin.spec.settings_model.model_fields), n=1, cutoff=0.6)
-            message = "unknown key" + (f"; did you mean {close[0]!r}?" if close else "")
-        else:
-            message = err["msg"].removeprefix("Value error, ") + (f" (got {err['input']!r})" if "input" in err else "")
-        _fail(f"--set {key}: {message} (backend {name!r})")
+        # worded as a recipe's plugin settings are
+        loc, message = first_problem(exc, plugin.spec.settings_model)
+        _fail(f"--set {'.'.join(str(p) for p in loc)}: {message} (backend {name!r})")
     except (ValueError, TypeError) as exc:
         _fail(f"--set for backend {name!r}: {str(exc).splitlines()[0]}")
 

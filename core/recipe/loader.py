@@ -99,26 +99,34 @@ class _Locator:
         return RecipeError(self.describe(key, message))
 
 
-def _first_error(exc: ValidationError, base: KeyPath, locator: _Locator, model: type[BaseModel]) -> RecipeError:
+def first_problem(exc: ValidationError, model: type[BaseModel]) -> tuple[KeyPath, str]:
+    """Where in ``model`` the first error of ``exc`` lies and what it is, in words: an unknown key with the
+    closest known one, a required key missing, a section given as a scalar with the keys it takes, or the
+    value's problem with the value."""
     err = exc.errors()[0]
     loc = tuple(p for p in err["loc"] if p != "__root__")
-    key = base + loc
     kind = err["type"]
+    keys = keys_at(model, loc) if kind == "model_type" else []
     if kind == "extra_forbidden":
         close = difflib.get_close_matches(str(loc[-1]), keys_at(model, loc[:-1]), n=1, cutoff=0.6)
         message = "unknown key" + (f"; did you mean {close[0]!r}?" if close else "")
     elif kind == "missing":
         message = "required key missing"
-    elif kind == "model_type" and keys_at(model, loc):
-        message = f"should be a mapping of {', '.join(keys_at(model, loc))} (got {err.get('input')!r})"
+    elif keys:
+        message = f"should be a mapping of {', '.join(keys)} (got {err.get('input')!r})"
     else:
         message = err["msg"].removeprefix("Value error, ")
         if "input" in err and kind not in ("model_type", "dict_type") and not isinstance(err["input"], dict):
             message += f" (got {err['input']!r})"
+    return loc, message
+
+
+def _first_error(exc: ValidationError, base: KeyPath, locator: _Locator, model: type[BaseModel]) -> RecipeError:
+    loc, message = first_problem(exc, model)
     more = len(exc.errors()) - 1
     if more:
         message += f" (and {more} more problem{'s' if more > 1 else ''})"
-    return locator.error(key, message)
+    return locator.error(base + loc, message)
 
 
 def keys_at(model: type[BaseModel], path: KeyPath) -> list[str]:

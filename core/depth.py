@@ -364,6 +364,10 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     var_d += ((d - c) / max(min(inner[2] - inner[0], inner[3] - inner[1]), 1.0)) ** 2
     # and a floor that is not flat over the region (the box cut through a wall) widens it by how much
     var_d += surface_fit.unevenness_variance(offsets_px, sds, centres)
+    # and by how much its strongly textured cells (the information weighs them) disagree with its area
+    if np.isfinite(cells.variance):
+        areas = surface_fit.cell_areas((uu, vv), weights)
+        var_d += surface_fit.weighting_variance(offsets_px, sds, areas, cells.delta)
     # and it is known no better than the region's interior alone tells it (the border may be the walls' edges)
     var_d = max(var_d, interior)
     if d <= 0 or c <= 0:

@@ -603,19 +603,34 @@ def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defe
     return fit.residual_sigma ** 2 * fit.inflation / information if information > 0 else float("inf")
 
 
-def robust_offset(offsets: np.ndarray, sds: np.ndarray, start: float, iterations: int = 20) -> RobustOffset:
+def cell_areas(defect: tuple[np.ndarray, np.ndarray], weights: np.ndarray | None = None,
+               cell_px: int = CELL_PX) -> np.ndarray:
+    """(K,) each ``cell_px`` cell's share of the region (the sum of its pixels' weights, 1 each if not
+    given), in ``cell_offsets``'s order of the cells."""
+    p = np.ones(len(defect[0])) if weights is None else np.asarray(weights, dtype=np.float64)
+    cell = _cell_index(defect[0], defect[1], cell_px)
+    return np.bincount(cell, p, minlength=cell.max() + 1 if cell.size else 0)
+
+
+def robust_offset(offsets: np.ndarray, sds: np.ndarray, start: float, iterations: int = 20,
+                  areas: np.ndarray | None = None) -> RobustOffset:
     """Tukey's M-estimate of the cells' common offset, from ``start``, cutting at TUKEY_K times each cell's
     standard deviation times the cells' robust spread in those units (at least 1).
 
-    offsets, sds: (K,) each cell's offset and standard deviation. The variance is that of the weighted
-    mean with the final weights held, times the Birge ratio (the weighted scatter of the kept cells
-    about the estimate over what their standard deviations predict) where that exceeds 1."""
-    if offsets.shape != sds.shape or offsets.ndim != 1:
-        raise ValueError(f"robust_offset: offsets {offsets.shape} and sds {sds.shape} must be the same (K,)")
+    offsets, sds: (K,) each cell's offset and standard deviation. The cells are weighed by their
+    information (1 / sd^2), or with ``areas`` (K,) by their share of the region. The variance is that of
+    the weighted mean with the final weights held, times the Birge ratio (the weighted scatter of the kept
+    cells about the estimate over what their standard deviations predict) where that exceeds 1."""
+    if offsets.shape != sds.shape or offsets.ndim != 1 or (areas is not None and np.shape(areas) != offsets.shape):
+        raise ValueError(f"robust_offset: offsets {offsets.shape}, sds {sds.shape}"
+                         f"{'' if areas is None else f' and areas {np.shape(areas)}'} must be the same (K,)")
     ok = np.isfinite(sds) & (sds > 0)
+    if areas is not None:
+        ok &= np.asarray(areas) > 0
     x, s = offsets[ok], sds[ok]
     if x.size == 0:
         return RobustOffset(start, np.inf, 0, 0.0, 1.0)
+    prior = 1.0 / (s * s) if areas is None else np.asarray(areas, dtype=np.float64)[ok]
     mu, w = start, np.ones_like(x)
     for _ in range(iterations):
         # cells that scatter more than their noise says widen the cut, or good cells would be cut too
@@ -624,20 +639,36 @@ def robust_offset(offsets: np.ndarray, sds: np.ndarray, start: float, iterations
         w = _tukey_weights(z)
         if w.sum() <= 0:
             w = np.ones_like(x)
-        precision = w / (s * s)
-        new = float(np.sum(precision * x) / np.sum(precision))
+        new = float(np.sum(w * prior * x) / np.sum(w * prior))
         done = abs(new - mu) < 1e-6
         mu = new
         if done:
             break
-    precision = w / (s * s)
-    alpha = precision / precision.sum()
+    alpha = w * prior / np.sum(w * prior)
     variance = float(np.sum(alpha * alpha * s * s))
     kept = w > 0
     birge = 1.0
     if kept.sum() >= 2:
         birge = max(1.0, float(np.sum(w[kept] * ((x[kept] - mu) / s[kept]) ** 2) / (w[kept].sum() - 1 + 1e-12)))
     return RobustOffset(mu, variance * birge, int(x.size), float(w.sum()), birge)
+
+
+def weighting_variance(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, estimate: float,
+                       z: float = 2.0) -> float:
+    """How far ``estimate`` (the cells weighed by their information, ``robust_offset``) is from the
+    region's offset weighed by area (the cells by their share of it), as a variance to add (px^2): the
+    square of the difference where it exceeds ``z`` standard deviations of the area-weighed offset, less
+    those; 0 where the two agree.
+
+    The truth is the offset over the region's area, while the information-weighed estimate reads it
+    where the texture is strongest: on an uneven region (a narrow pit seen slanted, whose wall crosses
+    the box) those can be the wall's cells alone. offsets, sds, areas: (K,) as ``cell_offsets`` and
+    ``cell_areas`` give them."""
+    by_area = robust_offset(offsets, sds, estimate, areas=areas)
+    if not np.isfinite(by_area.variance):
+        return 0.0
+    noise = by_area.variance / by_area.birge  # the cells' own noise, not their scatter
+    return max(0.0, (by_area.delta - estimate) ** 2 - z * z * noise)
 
 
 def unevenness_variance(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, z: float = 2.0) -> float:

@@ -211,9 +211,44 @@ class TestRobustOffset:
         assert calm.birge < 1.6 < wild.birge
         assert wild.variance > 4 * calm.variance
 
+    def test_by_area_each_cell_counts_by_its_share_of_the_region(self):
+        # a quarter of the cells, on a wall's strongly textured edge, hold most of the information
+        offsets = np.r_[np.full(30, -0.36), np.full(10, -0.18)]
+        sds = np.r_[np.full(30, 0.25), np.full(10, 0.04)]
+        noisy = offsets + np.random.default_rng(3).normal(0, 1, 40) * sds
+        assert sf.robust_offset(noisy, sds, -0.2).delta == pytest.approx(-0.19, abs=0.03)
+        by_area = sf.robust_offset(noisy, sds, -0.2, areas=np.full(40, 16.0))
+        assert by_area.delta == pytest.approx(-0.315, abs=0.05)
+
     def test_shape_check(self):
         with pytest.raises(ValueError, match="same"):
             sf.robust_offset(np.zeros(3), np.ones(4), 0.0)
+        with pytest.raises(ValueError, match="areas"):
+            sf.robust_offset(np.zeros(3), np.ones(3), 0.0, areas=np.ones(2))
+
+
+class TestCellAreas:
+    def test_each_cell_sums_its_pixels_weights_in_the_order_of_cell_offsets(self):
+        v, u = np.mgrid[10:16, 21:27]  # cells of columns 21-23 / 24-26, rows 10-11 / 12-15
+        weights = np.where(u.ravel() == 21, 0.5, 1.0)
+        areas = sf.cell_areas((u.ravel(), v.ravel()), weights)
+        np.testing.assert_allclose(areas, [2 * 0.5 + 4, 6, 4 * 0.5 + 8, 12])
+        assert sf.cell_areas((u.ravel(), v.ravel())).sum() == 36
+
+
+class TestWeightingVariance:
+    def test_agreeing_weightings_add_nothing_an_uneven_region_their_difference(self):
+        rng = np.random.default_rng(4)
+        sds = np.r_[np.full(30, 0.25), np.full(10, 0.04)]
+        areas = np.full(40, 16.0)
+        even = -0.36 + rng.normal(0, 1, 40) * sds
+        estimate = sf.robust_offset(even, sds, -0.3).delta
+        assert sf.weighting_variance(even, sds, areas, estimate) == 0.0
+        uneven = np.r_[np.full(30, -0.36), np.full(10, -0.18)] + rng.normal(0, 1, 40) * sds
+        estimate = sf.robust_offset(uneven, sds, -0.2).delta
+        added = sf.weighting_variance(uneven, sds, areas, estimate)
+        # the difference of the two weightings (about 0.13 px) less twice the area estimate's noise
+        assert 0.05**2 < added < 0.15**2
 
 
 class TestUnevennessVariance:

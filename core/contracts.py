@@ -48,6 +48,9 @@ class StereoBackend(Protocol):
 
     # Optional: ``warm_up()``, called once before the first part, where the first call is slow (kernels
     # compiled, buffers allocated): otherwise the first part is late and trips the recipe's ``watchdog_s``.
+    # Optional: ``memory_bytes(height, width, disparities) -> int``, the most host memory one map of that
+    # size and search takes: a recipe whose frames cannot fit is refused before the run, a crop that cannot
+    # is its part's ERROR, instead of the process being killed with rejects queued (``core.stereo_memory``).
 
 
 @runtime_checkable

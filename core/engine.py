@@ -17,6 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from core import stereo_memory
 from core.annotate import annotate
 from core.checks import RepeatedImages, detections_problem, disparity_problem, frame_problem
 from core.contracts import PluginContext
@@ -140,6 +141,23 @@ def build_pipeline(loaded: LoadedRecipe, registry: Registry, device: str = "auto
     return Pipeline(camera, stereo, detector, outputs)
 
 
+def check_stereo_memory(loaded: LoadedRecipe, backend: Any, registry: Registry) -> None:
+    """``SetupError`` where the recipe matches whole frames (``region: full``) that cannot be matched in the
+    memory available, from the geometry the camera states (``core.stereo_memory``). Crops are checked one by
+    one as they come."""
+    if loaded.recipe.stereo.region != "full":
+        return
+    calib = camera_answer(loaded, registry, "calibration")
+    if calib is None:
+        return
+    try:
+        problem = stereo_memory.whole_frame_problem(loaded.recipe.stereo, backend, calib)
+    except ValueError:  # a range that does not fit the image: validation's to report
+        return
+    if problem is not None:
+        raise SetupError(loaded.describe(("stereo",), problem))
+
+
 def disparity_range(stereo: StereoSection, calib: Calibration) -> tuple[float, float]:
     """The search range in full-resolution pixels (``StereoSection.search_range``)."""
     return stereo.search_range(calib)
@@ -167,9 +185,13 @@ def match_pair(backend: Any, left: np.ndarray, right: np.ndarray, lo: float, hi:
     pixels match the same pixels; the backend's work and the pixels it fills by guessing shrink (a
     crop's first columns, which are there only for the right image's sake, are a third of it)."""
     shift = max(0, min(math.floor(lo), left.shape[1] - 1))
+    width = left.shape[1] - shift
+    # refused here rather than killed by the kernel halfway, with the rejects queued before it
+    problem = stereo_memory.memory_problem(backend, left.shape[0], width, stereo_memory.search_disparities(lo, hi))
+    if problem is not None:
+        raise StageFailed(problem)
     if shift == 0:
         return _checked(backend.compute(left, right, lo, hi), left.shape[:2])
-    width = left.shape[1] - shift
     pair = np.ascontiguousarray(left[:, shift:]), np.ascontiguousarray(right[:, :width])
     matched = _checked(backend.compute(*pair, lo - shift, hi - shift), pair[0].shape[:2])
     out = np.full(left.shape[:2], np.nan, dtype=np.float32)
@@ -357,6 +379,7 @@ def run(
     recipe = loaded.recipe
     apply_threads(recipe.threads)
     pipeline = build_pipeline(loaded, registry, device)
+    check_stereo_memory(loaded, pipeline.stereo, registry)
     store = ResultsStore(loaded.resolve(recipe.results.path))
     unfinished = store.unfinished_runs()
     run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path), _sha256_or_none(loaded.path),

@@ -239,12 +239,38 @@ def validate_command(recipe: Path, overrides: tuple[str, ...]) -> None:
     """Check a recipe (keys, types, ranges, plugins, files) without running it."""
     loaded = _load(recipe, overrides)
     r = loaded.recipe
+    memory = _stereo_memory_problem(loaded)
+    if memory is not None and r.stereo.region == "full":
+        fail(loaded.describe(("stereo",), memory))
     click.echo(
         f"{recipe}: ok (recipe {r.name!r}, camera {r.camera.plugin}, stereo {r.stereo.backend}, detector {r.detector.plugin}, "
         f"{len(r.decision.rules)} rules, outputs {', '.join(o.plugin for o in r.outputs) or 'none'})"
     )
     for line in _depth_warnings(loaded):
         click.echo(line, err=True)
+    if memory is not None:
+        click.echo(loaded.describe(("stereo",), f"warning: a box covering most of the frame would be its part's "
+                                                 f"ERROR: {memory}"), err=True)
+
+
+def _stereo_memory_problem(loaded) -> str | None:
+    """``core.stereo_memory.whole_frame_problem`` for the recipe's camera geometry and stereo backend (built
+    from its settings, as ``inspect run`` builds it), None where either cannot tell."""
+    from core.contracts import PluginContext
+    from core.recipe.loader import camera_answer
+    from core.registry import default_registry
+    from core.stereo_memory import whole_frame_problem
+
+    registry = default_registry()
+    calib = camera_answer(loaded, registry, "calibration")
+    if calib is None:
+        return None
+    try:
+        backend = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(
+            loaded.plugin_settings["stereo"], PluginContext(recipe_dir=loaded.directory))
+        return whole_frame_problem(loaded.recipe.stereo, backend, calib)
+    except Exception:  # the backend's own failure or a range that does not fit: inspect run reports those
+        return None
 
 
 def _depth_warnings(loaded) -> list[str]:

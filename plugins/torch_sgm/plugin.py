@@ -8,6 +8,9 @@ from core.hookspecs import hookimpl
 from plugins.torch_sgm.params import TorchSGMParams
 
 
+BYTES_PER_CELL = 24  # the most measured (21 bytes per pixel and disparity) with room to spare
+
+
 class TorchSGM:
     def __init__(self, params: TorchSGMParams, device: str):
         from plugins.torch_sgm.pipeline import pick_device  # torch loads only when the backend is used
@@ -25,6 +28,15 @@ class TorchSGM:
 
         left, right, _, _ = layered_scene()
         self.compute(left, right, 0.0, 24.0)
+
+    def memory_bytes(self, height: int, width: int, disparities: int) -> int:
+        """Host memory one map takes at most: on the CPU the cost volume, the SGM sums and the stages'
+        temporaries, measured at 18-21 bytes per pixel and disparity where the whole range is searched
+        (WVGA and 1344x752, 128 and 256 disparities, with and without ``two_view``); on CUDA the images and
+        maps alone (the GPU's own memory runs out as an exception, not a killed process)."""
+        if str(self.device).startswith("cuda"):
+            return 64 * height * width
+        return BYTES_PER_CELL * height * width * disparities
 
     def compute_with_mask(self, left, right, min_disp, max_disp) -> tuple[np.ndarray, np.ndarray]:
         """The disparity and the pixels that passed the left-right check (before hole filling);

@@ -75,6 +75,15 @@ def test_pair_of_different_sizes_is_refused(pair, tmp_path):
     _assert_error(invoke("stereo", left, tmp_path / "small.png", "--max-disp", 16), "small.png", "72x40")
 
 
+def test_a_pair_too_large_for_the_memory_is_refused_before_matching(tmp_path):
+    # 4000 x 2000 over 3999 disparities: 24 bytes each for torch_sgm, 715 GiB, more than any machine has
+    grey = np.full((2000, 4000, 3), 128, np.uint8)
+    for side in ("left", "right"):
+        cv2.imwrite(str(tmp_path / f"{side}.png"), grey)
+    result = invoke("stereo", tmp_path / "left.png", tmp_path / "right.png", "--max-disp", 3999)
+    _assert_error(result, "left.png", "torch_sgm would need 715.", "GiB of memory is available")
+
+
 @pytest.mark.parametrize("args, word", [
     (["--max-disp", 8, "--min-disp", 8], "--max-disp"),
     (["--max-disp", 4, "--min-disp", 10], "--min-disp"),

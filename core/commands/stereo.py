@@ -127,6 +127,12 @@ def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings,
     check_disparity_range(min_disp, max_disp, left_img.shape[1])
     _threads(threads)
     matcher = make_backend(backend, best_single_map(backend, _parse_settings(settings)), device)
+    from core.stereo_memory import memory_problem, search_disparities
+
+    memory = memory_problem(matcher, left_img.shape[0], left_img.shape[1], search_disparities(min_disp, max_disp),
+                            name=backend)
+    if memory is not None:
+        _fail(f"{left}: {memory}: match a downscaled pair or a narrower range")
     import time
 
     # A backend that holds a CUDA device also reports the peak GPU memory of this one map.
@@ -190,6 +196,8 @@ def eval_stereo_command(folder, backends, scenes, out, settings, figure, device,
         _fail(f"--scenes: {exc}")
     if not scene_dirs:
         _fail(f"--middlebury {folder}: no scene folders (im0.png + calib.txt) inside")
+    from core.stereo_memory import memory_problem
+
     _threads(threads)
     per_backend = {n: best_single_map(n, per_backend[n]) for n in names}
     matchers = {n: make_backend(n, per_backend[n], device) for n in names}
@@ -203,6 +211,9 @@ def eval_stereo_command(folder, backends, scenes, out, settings, figure, device,
             _fail(str(exc))
         loaded.append(scene)
         for n, matcher in matchers.items():
+            memory = memory_problem(matcher, scene.left.shape[0], scene.left.shape[1], int(scene.ndisp), name=n)
+            if memory is not None:
+                _fail(f"{scene_dir}: {memory}")
             s, disp = ev.evaluate_scene(matcher, n, scene)
             results[n].append(s)
             if figure:

@@ -1,7 +1,7 @@
 """Will the stereo stage fit in this machine's memory?
 
 A matcher that holds a cost volume needs memory in proportion to the pixels times the disparities it
-searches: torch_sgm on an HD1080 frame with a 240 px range takes about 11 GiB. Beyond the memory the
+searches: torch_sgm on an HD1080 frame with a 240 px range may take 11 GiB. Beyond the memory the
 machine has, the kernel kills the process: no exception, no alarm, the run left unfinished and the
 rejects it had queued neither sent nor reported. So a backend may state what one map takes (the optional
 ``memory_bytes(height, width, disparities)`` of ``core.contracts.StereoBackend``), and the engine

@@ -10,12 +10,14 @@ of rolled steel, where a per-pixel matcher is off by a tenth or more.
 The model, fitted over the ring around a box and the defect's region inside it::
 
     d(u, v) = c + a * (u - u0) + b * (v - v0) + delta * m(u, v)
-    I_L(u, v) = (g + g_u * (u - u0) + g_v * (v - v0) + g_m * m) * I_R(u - d(u, v), v) + o + o_m * m
+    I_L(u, v) = (g + g_u * (u - u0) + g_v * (v - v0) + g_m * m) * I_R(u - d(u, v), v + e) + o + o_m * m
 
 ``m`` is 1 on the defect's region, 0 on the ring; (u0, v0) the region's centre, so ``c`` is the
 surrounding surface's disparity there and ``delta`` the defect's offset from it. The gain varies over
 the ring because both eyes' vignetting differs at pixels ``d`` apart; the defect has an exposure of its
-own because its walls reflect the light differently towards each eye. Both images are high-passed
+own because its walls reflect the light differently towards each eye. ``e`` is what rectification
+left of the eyes' vertical offset: a few tenths of a pixel on a real camera, which, unmodelled, the
+fit reads as disparity wherever the texture runs diagonally. Both images are high-passed
 first (what varies more slowly than ``HIGH_PASS_SIGMA`` is sheen, not texture), saturated pixels are
 left out and residuals are weighted with Huber's function.
 
@@ -52,8 +54,10 @@ MIN_GAIN = 0.25  # the right eye's fitted gain: above 0.34 on the evaluation set
 # defect started 45 px from its surface
 SEARCH_STEP_PX = 0.05
 COARSE_STEP_PX = 0.2
-PARAMS = ("c", "a", "b", "delta", "g", "g_u", "g_v", "o", "g_m", "o_m")
-RING = [0, 1, 2, 4, 5, 6, 7]
+PARAMS = ("c", "a", "b", "delta", "g", "g_u", "g_v", "o", "g_m", "o_m", "e")
+RING = [0, 1, 2, 4, 5, 6, 7, 10]
+E = 10  # the vertical offset between the eyes
+E_PRIOR_PX = 1.0  # its prior spread: a rectified pair is within a pixel, and a texture without rows cannot tell
 ALL = list(range(len(PARAMS)))
 
 
@@ -61,8 +65,8 @@ ALL = list(range(len(PARAMS)))
 class SurfaceFit:
     """The fitted parameters (``PARAMS``, see the module docstring), their covariance and what the fit saw."""
 
-    params: np.ndarray  # (10,)
-    covariance: np.ndarray  # (10, 10)
+    params: np.ndarray  # (11,)
+    covariance: np.ndarray  # (11, 11)
     centre: tuple[float, float]  # (u0, v0), px
     ring_pixels: int
     defect_pixels: int
@@ -125,6 +129,13 @@ def gradient_x(image: np.ndarray) -> np.ndarray:
     """HxW -> HxW central difference along the rows (0 in the first and last column)."""
     g = np.zeros_like(image)
     g[:, 1:-1] = 0.5 * (image[:, 2:] - image[:, :-2])
+    return g
+
+
+def gradient_y(image: np.ndarray) -> np.ndarray:
+    """HxW -> HxW central difference along the columns (0 in the first and last row)."""
+    g = np.zeros_like(image)
+    g[1:-1] = 0.5 * (image[2:] - image[:-2])
     return g
 
 
@@ -194,6 +205,12 @@ def _median(x: np.ndarray) -> float:
     return float(0.5 * (part[k - 1] + part[k]))
 
 
+def _e_prior(scale: float) -> float:
+    """The vertical offset's prior information in the normal equations: one observation of 0 with spread
+    E_PRIOR_PX, in units of the residuals' ``scale``."""
+    return (scale / E_PRIOR_PX) ** 2
+
+
 def _robust_scale(r: np.ndarray) -> float:
     return float(1.4826 * _median(np.abs(r - _median(r)))) or 1e-3
 
@@ -218,19 +235,21 @@ class _Problem:
     def level(self, sigma: float) -> None:
         """Read the images blurred by ``sigma`` from now on (0: as they are)."""
         self.L, self.R = _blurred(self.left, sigma), _blurred(self.right, sigma)
-        self.Rx = gradient_x(self.R)
+        self.Rx, self.Ry = gradient_x(self.R), gradient_y(self.R)
         self.lvals = self.L[self.vi, self.ui]
 
     def residuals(self, theta, idx=None):
-        """(residuals, Jacobian rows (n, 10), usable) at ``theta`` on the current level's images, for the
+        """(residuals, Jacobian rows (n, 11), usable) at ``theta`` on the current level's images, for the
         pixels ``idx`` (indices; all if None)."""
         idx = slice(None) if idx is None else idx
         du, dv, m, u, v = self.du[idx], self.dv[idx], self.m[idx], self.u[idx], self.v[idx]
         x = u - (theta[0] + theta[1] * du + theta[2] * dv + theta[3] * m)
-        rv, gx = samples((self.R, self.Rx), x, v)
-        ok = self.usable[idx] & np.isfinite(rv) & np.isfinite(gx)
+        y = v + theta[E]
+        rv, gx, gy = samples((self.R, self.Rx, self.Ry), x, y)
+        ok = self.usable[idx] & np.isfinite(rv) & np.isfinite(gx) & np.isfinite(gy)
         column = np.clip(np.rint(x), 0, self.R.shape[1] - 1).astype(np.intp)
-        ok &= ~self.right_saturated[self.vi[idx], column]
+        row = np.clip(np.rint(y), 0, self.R.shape[0] - 1).astype(np.intp)
+        ok &= ~self.right_saturated[row, column]
         gain = theta[4] + theta[5] * du + theta[6] * dv + theta[8] * m
         r = self.lvals[idx] - gain * rv - theta[7] - theta[9] * m
         # built by parameter (each row of Jt contiguous): filling columns of an (n, 10) array was most of
@@ -246,6 +265,8 @@ class _Problem:
         Jt[7] = -1.0
         np.multiply(Jt[4], m, out=Jt[8])
         np.negative(m, out=Jt[9])
+        np.multiply(gain, gy, out=Jt[E])
+        np.negative(Jt[E], out=Jt[E])  # d r / d e
         return r, Jt.T, ok
 
     def gauss_newton(self, theta, free, iterations, select, tolerance):
@@ -262,10 +283,16 @@ class _Problem:
             r, Jt = r[kept], J.T.take(kept, axis=1)
             if len(free) < len(PARAMS):
                 Jt = Jt[free]
-            w = _huber_weights(r, _robust_scale(r)) * self.prior[idx[kept]]
+            scale = _robust_scale(r)
+            w = _huber_weights(r, scale) * self.prior[idx[kept]]
             Jw = Jt * w
+            A, b = Jw @ Jt.T, -(Jw @ r)
+            if E in free:
+                k = list(free).index(E)
+                A[k, k] += _e_prior(scale)
+                b[k] -= _e_prior(scale) * theta[E]
             try:
-                step = np.linalg.solve(Jw @ Jt.T, -(Jw @ r))
+                step = np.linalg.solve(A, b)
             except np.linalg.LinAlgError:
                 return None, False
             if not np.all(np.isfinite(step)):
@@ -305,7 +332,7 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     prior = np.concatenate([np.ones(len(ring[0])), wd])
     centre = (float(np.average(defect[0], weights=wd)), float(np.average(defect[1], weights=wd)))
     a0, b0, c_img = plane
-    theta = np.array([a0 * centre[0] + b0 * centre[1] + c_img, a0, b0, delta0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    theta = np.array([a0 * centre[0] + b0 * centre[1] + c_img, a0, b0, delta0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     (x0, y0), left, right = _window(left, right, ring, defect, theta, search_px)
     ring = (ring[0] - x0, ring[1] - y0)
     defect = (defect[0] - x0, defect[1] - y0)
@@ -337,9 +364,12 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     r, J, ok = p.residuals(theta)
     kept = np.flatnonzero(ok)
     r, J = r[kept], J.T.take(kept, axis=1).T
-    h, w = _huber_weights(r, _robust_scale(r)), prior[kept]
+    scale = _robust_scale(r)
+    h, w = _huber_weights(r, scale), prior[kept]
+    information = (J.T * (h * w)) @ J
+    information[E, E] += _e_prior(scale)
     try:
-        inv = np.linalg.inv((J.T * (h * w)) @ J)
+        inv = np.linalg.inv(information)
     except np.linalg.LinAlgError:
         return None
     if not (np.all(np.isfinite(inv)) and np.all(np.diag(inv) > 0)):
@@ -442,7 +472,7 @@ def _exposure(p: _Problem, theta: np.ndarray) -> tuple[float, float]:
     """Gain and offset of the ring by least squares at the starting disparities."""
     ring = p.m == 0
     d = theta[0] + theta[1] * p.du[ring] + theta[2] * p.dv[ring]
-    rv = sample(p.R, p.u[ring] - d, p.v[ring])
+    rv = sample(p.R, p.u[ring] - d, p.v[ring] + theta[E])
     lv = p.lvals[ring]
     ok = np.isfinite(rv)
     if ok.sum() < 3 or np.std(rv[ok]) < 1e-6:
@@ -465,7 +495,7 @@ def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> floa
     lv = p.lvals[sel]
 
     def cost(delta: float) -> float:
-        rv = sample(p.R, u - base - delta, v)
+        rv = sample(p.R, u - base - delta, v + theta[E])
         r = np.where(np.isfinite(rv), lv - gain * rv - theta[7] - theta[9], 0.0)
         return float(np.sum(w * _huber_cost(r, scale)))
 
@@ -553,7 +583,7 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     j = np.zeros(len(u))
     for _ in range(iterations):
         x = u - plane - offsets[cell]
-        rv, gx = samples((R, Rx), x, v)
+        rv, gx = samples((R, Rx), x, v + th[E])
         ok = np.isfinite(rv) & np.isfinite(gx) & (p > 0)
         r = np.where(ok, lv - gain * rv - th[7] - th[9], 0.0)
         j = np.where(ok, gain * gx, 0.0)
@@ -596,7 +626,7 @@ def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defe
     uu, vv = (u[keep] - wx).astype(np.float64), (v[keep] - wy).astype(np.float64)
     du, dv = u[keep] - fit.centre[0], v[keep] - fit.centre[1]
     x = uu - (th[0] + th[1] * du + th[2] * dv + th[3])
-    gx = sample(Rx, x, vv)
+    gx = sample(Rx, x, vv + th[E])
     gain = th[4] + th[5] * du + th[6] * dv + th[8]
     j = np.where(np.isfinite(gx), gain * gx, 0.0)
     information = float(np.sum(p[keep] * j * j))

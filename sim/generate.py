@@ -313,10 +313,11 @@ def quantise_disparity(disparity: np.ndarray) -> np.ndarray:
 
 
 def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, frame_id: str, ss: int = 2,
-                 texture_contrast: float = 1.0, flat_floor: tuple[float, float] | None = None):
+                 texture_contrast: float = 1.0, flat_floor: tuple[float, float] | None = None,
+                 rectification_error_px: float = 0.0):
     """(left, right, gt disparity (quantised), labels dict, scene)."""
     scene = build_scene(rng, calib, spec, crops, texture_contrast, flat_floor)
-    left, right, disparity, hits = render_pair(scene, rng, ss=ss)
+    left, right, disparity, hits = render_pair(scene, rng, ss=ss, rectification_error_px=rectification_error_px)
     gt = quantise_disparity(disparity)
     defects = []
     for d in scene.defects:
@@ -344,6 +345,7 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
         "sensor": {"noise_sigma": round(scene.sensor.noise_sigma, 4), "right_gain": round(scene.sensor.right_gain, 4),
                    "right_offset": round(scene.sensor.right_offset, 4)},
         "texture_contrast": texture_contrast,
+        **({} if not rectification_error_px else {"rectification_error_px": rectification_error_px}),
         "defects": defects,
     }
     return left, right, gt, labels, scene
@@ -364,9 +366,11 @@ def generate_sequence(
     log=None,
     ranges: EvalRanges = EvalRanges(),
     texture_contrast: float = 1.0,
+    rectification_error_px: float = 0.0,
 ) -> list[dict]:
     """Write a sequence folder; returns the labels of every frame. ``neu_det=None`` uses the
-    synthetic stand-in defect appearance. ``ranges`` and ``texture_contrast`` make an evaluation set;
+    synthetic stand-in defect appearance. ``ranges``, ``texture_contrast`` and ``rectification_error_px``
+    (the right eye's rows that far off the left's) make an evaluation set;
     left at their defaults, the draws (and so the files) are those of the demo plan."""
     out = Path(out)
     crops = NeuCrops(Path(neu_det)) if neu_det is not None else None
@@ -385,7 +389,8 @@ def generate_sequence(
         frame_id = f"{i:06d}"
         spec = plan_frame(rng, i, distance_mm, tilt_deg, jitter, decks, ranges)
         left, right, gt, labels, _ = render_frame(rng, calib, spec, crops, frame_id, ss=supersample,
-                                                  texture_contrast=texture_contrast, flat_floor=ranges.flat_floor)
+                                                  texture_contrast=texture_contrast, flat_floor=ranges.flat_floor,
+                                                  rectification_error_px=rectification_error_px)
         if image_format == "png":
             write_frame(out, frame_id, left, right, gt, labels)
         else:  # high-quality JPEG for the eyes, the rest as write_frame does it

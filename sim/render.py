@@ -110,11 +110,12 @@ def shade(scene: Scene, origin: np.ndarray, hits: Hits) -> np.ndarray:
     return radiance + np.where(hits.on_plate, spec, 0.0)
 
 
-def render_radiance(scene: Scene, origin: np.ndarray, ss: int = 2) -> np.ndarray:
-    """HxW radiance of one eye, box-filtered over ss x ss supersamples."""
+def render_radiance(scene: Scene, origin: np.ndarray, ss: int = 2, row_offset_px: float = 0.0) -> np.ndarray:
+    """HxW radiance of one eye, box-filtered over ss x ss supersamples; ``row_offset_px``: the eye sees
+    every point that many rows lower than a rectified eye would (what a calibration leaves)."""
     calib = scene.calib
     uu, vv = pixel_grid(calib, ss)
-    img = shade(scene, origin, trace(scene, origin, uu, vv))
+    img = shade(scene, origin, trace(scene, origin, uu, vv - row_offset_px))
     return img.reshape(calib.height, ss, calib.width, ss).mean(axis=(1, 3))
 
 
@@ -132,13 +133,15 @@ def sensor(
     return cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
 
 
-def render_pair(scene: Scene, rng: np.random.Generator | None, ss: int = 2, nuisances: bool = True):
-    """(left BGR, right BGR, left GT disparity float32, left centre-ray hits)."""
+def render_pair(scene: Scene, rng: np.random.Generator | None, ss: int = 2, nuisances: bool = True,
+                rectification_error_px: float = 0.0):
+    """(left BGR, right BGR, left GT disparity float32, left centre-ray hits). ``rectification_error_px``:
+    the right eye's rows that far off the left's (0: an exactly rectified pair)."""
     calib = scene.calib
     left_o = np.zeros(3)
     right_o = np.array([calib.baseline_mm, 0.0, 0.0])
     rad_l = render_radiance(scene, left_o, ss)
-    rad_r = render_radiance(scene, right_o, ss)
+    rad_r = render_radiance(scene, right_o, ss, rectification_error_px)
     sn = scene.sensor
     if nuisances:
         left = sensor(rad_l, rng, 1.0, 0.0, sn.noise_sigma, sn.vignetting)

@@ -117,6 +117,24 @@ def test_right_image_is_the_left_warped_by_gt_exactly():
         assert exact < 0.8 * residual(shift), shift
 
 
+def test_a_rectification_error_puts_the_right_eyes_rows_that_far_below():
+    calib = zed_calibration(W, H)
+    spec = FrameSpec(410.0, 6.0, 1.5, [("pitted_surface", 2.5)])
+    exact = render_pair(build_scene(np.random.default_rng(7), calib, spec, None), None, nuisances=False)[1]
+    off = render_pair(build_scene(np.random.default_rng(7), calib, spec, None), None, nuisances=False,
+                      rectification_error_px=0.5)[1]
+    exact, off = exact[..., 0].astype(np.float32), off[..., 0].astype(np.float32)
+    inner = (slice(8, -8), slice(8, -8))
+
+    def misfit(rows: float) -> float:  # the exact eye moved down by ``rows`` against the offset one
+        moved = cv2.warpAffine(exact, np.float32([[1, 0, 0], [0, 1, rows]]), exact.shape[::-1],
+                               flags=cv2.INTER_LANCZOS4)
+        return float(np.mean(np.abs(moved - off)[inner]))
+
+    best = misfit(0.5)  # the highlight and the sampling leave a floor: the least of the rows tried
+    assert best < min(misfit(0.4), misfit(0.6)) and best < 0.6 * min(misfit(0.0), misfit(1.0))
+
+
 def test_right_image_with_nuisances_still_matches_gt():
     residual, lg, rg = _pair_residual(nuisances=True)
     exact = residual(0.0)

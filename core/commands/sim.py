@@ -64,9 +64,12 @@ def register(cli: click.Group) -> None:
                   help="Evaluation set: the share of each defect's half-size that is flat floor, drawn per defect "
                        "(the wall rises over the rest; near 1: a flat-bottomed pit with a steep wall). Default: "
                        "0.55 for every defect.")
+    @click.option("--rectification-error-px", default=0.0, show_default=True, type=click.FloatRange(-5.0, 5.0),
+                  help="The right eye's rows this far below the left's (what a real camera's rectification "
+                       "leaves, a few tenths of a pixel; 0: exactly rectified).")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
                  image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
-                 defects_per_frame, texture_contrast, flat_floor) -> None:
+                 defects_per_frame, texture_contrast, flat_floor, rectification_error_px) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
@@ -107,7 +110,7 @@ def register(cli: click.Group) -> None:
                 out, frames=frames, seed=seed, distance_mm=distance_mm, tilt_deg=tilt_deg,
                 neu_det=None if synthetic_defects else neu_det, width=width, height=height, jitter=jitter,
                 supersample=supersample, image_format=image_format, log=click.echo, ranges=ranges,
-                texture_contrast=texture_contrast,
+                texture_contrast=texture_contrast, rectification_error_px=rectification_error_px,
             )
         except NeuDetError as exc:
             click.echo(f"error: {exc}", err=True)

@@ -3,6 +3,7 @@ the process being killed by the kernel with rejects queued (``core.stereo_memory
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -156,8 +157,6 @@ class TestEngine:
 
 def _big_sequence(tmp_path):
     """The demo sequence with a calibration that states a frame 40 times as large each way."""
-    import shutil
-
     seq = tmp_path / "big"
     shutil.copytree(ROOT / "sim_fixtures" / "steel_plate", seq)
     calib = seq / "calib.yaml"

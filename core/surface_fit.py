@@ -252,7 +252,7 @@ class _Problem:
         ok &= ~self.right_saturated[row, column]
         gain = theta[4] + theta[5] * du + theta[6] * dv + theta[8] * m
         r = self.lvals[idx] - gain * rv - theta[7] - theta[9] * m
-        # built by parameter (each row of Jt contiguous): filling columns of an (n, 10) array was most of
+        # built by parameter (each row of Jt contiguous): filling columns of an (n, 11) array was most of
         # this function's time
         Jt = np.empty((len(PARAMS), len(r)))
         np.multiply(gain, gx, out=Jt[0])  # d r / d disparity
@@ -278,7 +278,7 @@ class _Problem:
             if ok.sum() < len(free) + 2:
                 return None, False
             kept = np.flatnonzero(ok)
-            # take by index, parameters as rows: boolean masks and column picks of (n, 10) arrays cost
+            # take by index, parameters as rows: boolean masks and column picks of (n, 11) arrays cost
             # more than the rest of the step
             r, Jt = r[kept], J.T.take(kept, axis=1)
             if len(free) < len(PARAMS):

@@ -84,7 +84,7 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
     if versus and stereo is not None:
         reference = registry.get("stereo", backend).spec.factory({**settings, **versus}, ctx)
     compare = stereo is not None and (region != "full" or bool(versus))
-    rule = DepthRule.from_section(recipe.depth)
+    rule = DepthRule.from_recipe(recipe)
     section = recipe.stereo.model_copy(update={"region": region})
     diffs = {"defects": 0, "distance_mm": 0.0, "deviation_mm": 0.0, "availability_differs": 0}
     camera_spec = registry.get("camera", recipe.camera.plugin).spec

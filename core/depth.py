@@ -61,6 +61,16 @@ class DepthRule:
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in {**values, **changes}.items() if k in names})
 
+    @classmethod
+    def from_recipe(cls, recipe: Any, **changes: Any) -> DepthRule:
+        """The rule of a recipe: its ``depth`` section, with ``plane_tolerance_px`` counted in the matcher's
+        pixels (``stereo.scale``): a matcher working at a quarter of the resolution knows its disparity to
+        about a pixel of its own, 4 of the frame's, and a tolerance finer than that sorts its noise, so
+        that the crops and the whole frame kept different ring pixels (0.05 mm apart at HD720)."""
+        scale = min(1.0, float(recipe.stereo.scale))
+        return cls.from_section(recipe.depth, **{"plane_tolerance_px": recipe.depth.plane_tolerance_px / scale,
+                                                 **changes})
+
 
 @dataclass(frozen=True)
 class Plane:

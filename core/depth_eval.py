@@ -128,8 +128,8 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
                    timings: list[float]) -> list[DefectRow]:
     """Every labelled defect of one frame (defects whose truth has no deviation are skipped)."""
     recipe = loaded.recipe
-    rule = DepthRule.from_section(recipe.depth)
-    reference_rule = DepthRule.from_section(recipe.depth, method="disparity")
+    rule = DepthRule.from_recipe(recipe)
+    reference_rule = DepthRule.from_recipe(recipe, method="disparity")
     truths = [t for t in labels["defects"] if t.get("deviation_mm") is not None and t.get("distance_mm") is not None]
     if not truths:
         return []

@@ -386,7 +386,7 @@ def run(
                              _model_hashes(loaded, pipeline.detector),
                              [getattr(output, "name", name) for name, output in pipeline.outputs])
     age_limit = frame_age_limit_s(loaded, registry)
-    rule = DepthRule.from_section(recipe.depth)
+    rule = DepthRule.from_recipe(recipe)
     counts: Counter = Counter()
     alarms: list[Alarm] = []
     stage_seconds: Counter = Counter()

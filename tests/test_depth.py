@@ -4,9 +4,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from conftest import ROOT
 from synthetic_pairs import Pit, calib_for, render
 
 from core.depth import DepthRule, fit_plane_robust, measure_defect, ring_mask
+from core.recipe import load_recipe
 from core.types import Detection
 
 CALIB = calib_for(320, 192)
@@ -182,3 +184,15 @@ def test_a_region_with_no_interior_has_no_deviation():
     m = _surface(left, right, disparity, box=(158.0, 94.0, 162.0, 98.0))
     assert m.deviation_mm is None and m.deviation_sigma_mm is None and "no interior" in m.note
     assert m.distance_mm is not None
+
+
+def test_a_recipes_plane_tolerance_counts_in_the_matchers_pixels():
+    """At stereo.scale 0.25 the matcher knows its disparity to about 4 of the frame's pixels: the tolerance
+    that sorts the ring's pixels onto the surface or off it is 4 of them, not 1 (crops and the whole frame
+    then keep the same ring pixels)."""
+    demo = load_recipe(ROOT / "recipes" / "steel_plate.yaml")
+    assert demo.recipe.stereo.scale == 0.25
+    assert DepthRule.from_recipe(demo.recipe).plane_tolerance_px == pytest.approx(4.0)
+    full = load_recipe(ROOT / "recipes" / "steel_plate.yaml", overrides=["stereo.scale=1", "depth.plane_tolerance_px=1.5"])
+    assert DepthRule.from_recipe(full.recipe).plane_tolerance_px == pytest.approx(1.5)
+    assert DepthRule.from_recipe(demo.recipe, method="disparity").method == "disparity"

@@ -147,13 +147,7 @@ def check_stereo_memory(loaded: LoadedRecipe, backend: Any, registry: Registry) 
     one as they come."""
     if loaded.recipe.stereo.region != "full":
         return
-    calib = camera_answer(loaded, registry, "calibration")
-    if calib is None:
-        return
-    try:
-        problem = stereo_memory.whole_frame_problem(loaded.recipe.stereo, backend, calib)
-    except ValueError:  # a range that does not fit the image: validation's to report
-        return
+    problem = stereo_memory.recipe_problem(loaded, backend, registry)
     if problem is not None:
         raise SetupError(loaded.describe(("stereo",), problem))
 

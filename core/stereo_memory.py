@@ -15,6 +15,8 @@ from typing import Any
 
 import psutil
 
+from core.recipe import LoadedRecipe
+from core.recipe.loader import camera_answer
 from core.types import Calibration
 
 GIB = 2**30
@@ -64,3 +66,15 @@ def whole_frame_problem(stereo: Any, backend: Any, calib: Calibration, available
         return None
     return (f"{problem} (the whole frame at stereo.scale {scale:g}): a lower stereo.scale (half of it needs an "
             f"eighth of the memory) or a narrower stereo.working_distance_mm needs less")
+
+
+def recipe_problem(loaded: LoadedRecipe, backend: Any, registry: Any) -> str | None:
+    """``whole_frame_problem`` for the geometry the recipe's camera states before it runs, None where it
+    states none or the search range does not fit the image (the recipe's validation reports that)."""
+    calib = camera_answer(loaded, registry, "calibration")
+    if calib is None:
+        return None
+    try:
+        return whole_frame_problem(loaded.recipe.stereo, backend, calib)
+    except ValueError:
+        return None

@@ -254,23 +254,19 @@ def validate_command(recipe: Path, overrides: tuple[str, ...]) -> None:
 
 
 def _stereo_memory_problem(loaded) -> str | None:
-    """``core.stereo_memory.whole_frame_problem`` for the recipe's camera geometry and stereo backend (built
-    from its settings, as ``inspect run`` builds it), None where either cannot tell."""
+    """``core.stereo_memory.recipe_problem`` with the recipe's stereo backend built from its settings, as
+    ``inspect run`` builds it; None where the backend cannot be built (inspect run reports that)."""
     from core.contracts import PluginContext
-    from core.recipe.loader import camera_answer
     from core.registry import default_registry
-    from core.stereo_memory import whole_frame_problem
+    from core.stereo_memory import recipe_problem
 
     registry = default_registry()
-    calib = camera_answer(loaded, registry, "calibration")
-    if calib is None:
-        return None
     try:
         backend = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(
             loaded.plugin_settings["stereo"], PluginContext(recipe_dir=loaded.directory))
-        return whole_frame_problem(loaded.recipe.stereo, backend, calib)
-    except Exception:  # the backend's own failure or a range that does not fit: inspect run reports those
+    except Exception:
         return None
+    return recipe_problem(loaded, backend, registry)
 
 
 def _depth_warnings(loaded) -> list[str]:

@@ -70,17 +70,23 @@ def _checked_calibration(path: Path, data: dict) -> dict:
     """``data`` when its values are a camera's; else ``SequenceError`` naming the file and the value. A
     negative focal length or a zero baseline would otherwise turn every distance into nonsense."""
     def number(key):
-        if not _number(data[key]):
+        value = _as_number(data[key])
+        if value is None:
             raise SequenceError(f"{path}: {key} must be a number (got {data[key]!r})")
-        return data[key]
+        data[key] = value
+        return value
     for key in ("focal_px", "baseline_mm"):
         if number(key) <= 0:
             raise SequenceError(f"{path}: {key} must be positive (got {data[key]!r})")
     for key in ("width", "height"):
         if not (number(key) > 0 and float(data[key]).is_integer()):
             raise SequenceError(f"{path}: {key} must be a whole number of pixels above 0 (got {data[key]!r})")
+        data[key] = int(data[key])
     for key in ("cx", "cy", "doffs"):
         number(key)
+    if abs(data["doffs"]) >= data["width"]:
+        # the principal points' offset between the eyes is a fraction of the image, never the whole of it
+        raise SequenceError(f"{path}: doffs must lie within the image's width, {data['width']} px (got {data['doffs']!r})")
     return data
 
 
@@ -239,6 +245,17 @@ def read_labels(path: Path) -> dict:
 
 def _number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _as_number(value) -> float | int | None:
+    """``value`` as a finite number, or None. A string that reads as one counts: YAML 1.1 reads ``1e9``
+    (no decimal point) as a string, and calibration tools write such exponents."""
+    if isinstance(value, str):
+        try:
+            value = float(value)
+        except ValueError:
+            return None
+    return value if _number(value) else None
 
 
 def read_pfm(path: Path) -> np.ndarray:

@@ -101,6 +101,42 @@ def test_yaml_syntax_error(recipe_dir):
     assert "YAML syntax error" in message and re.search(r"r\.yaml:\d+:", message)
 
 
+def test_a_key_given_twice_is_an_error_naming_both_lines(recipe_dir):
+    text = GOOD.replace('threshold: 1.0}', 'threshold: 1.0}\n    - {class: any, quantity: deviation_mm, op: ">", '
+                        'threshold: 1.0, threshold: 9.0}').replace("name: t", "name: t\nname: u")
+    message = _error(recipe_dir, text)
+    assert re.search(r"r\.yaml:2: name: given twice \(first at line 1\)", message), message
+    message = _error(recipe_dir, text.replace("name: u\n", ""))
+    assert "decision.rules.1.threshold: given twice" in message, message
+
+
+@pytest.mark.parametrize("value", [".nan", ".inf", "-.inf"])
+def test_a_threshold_that_is_not_a_finite_number_is_an_error(recipe_dir, value):
+    # every comparison with NaN is false: such a rule would never reject
+    message = _error(recipe_dir, GOOD.replace("threshold: 1.0", f"threshold: {value}"))
+    assert ":13: decision.rules.0.threshold: must be a finite number" in message, message
+
+
+def test_no_plugin_setting_or_override_may_be_nan(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("    path: seq", "    path: seq\n    rate_fps: .nan"))
+    assert ":6: camera.settings.rate_fps: must be a finite number (got nan)" in message, message
+    message = _error(recipe_dir, GOOD, ["stereo.scale=.nan"])
+    assert "(--set stereo.scale): stereo.scale: must be a finite number" in message, message
+
+
+def test_a_recipe_not_in_utf8_names_its_line(recipe_dir):
+    path = recipe_dir / "r.yaml"
+    path.write_bytes(GOOD.replace("name: t", "name: t # caf\xe9").encode("latin-1"))
+    with pytest.raises(RecipeError, match=r"r\.yaml:1: not UTF-8 text \(byte 0xe9\)"):
+        load_recipe(path)
+
+
+def test_a_byte_order_mark_is_read_past(recipe_dir):
+    path = recipe_dir / "r.yaml"
+    path.write_bytes(b"\xef\xbb\xbf" + GOOD.encode())
+    assert load_recipe(path).recipe.name == "t"
+
+
 def test_plugin_setting_typo(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("    path: seq", "    path: seq\n    rate_fsp: 5"))
     assert ":6: camera.settings.rate_fsp: unknown key; did you mean 'rate_fps'?" in message

@@ -71,6 +71,7 @@ class TestReadCalibration:
         ("height", 0, "height must be a whole number"),
         ("cx", "centre", "cx must be a number (got 'centre')"),
         ("doffs", float("nan"), "doffs must be a number"),
+        ("doffs", 1000.0, "doffs must lie within the image's width, 320 px (got 1000.0)"),
     ])
     def test_a_value_no_camera_has_is_named(self, plane_sequence, key, value, says):
         info = plane_sequence([0.0])
@@ -87,6 +88,15 @@ class TestReadCalibration:
         path.write_text(path.read_text().replace("width: 320", "width: 320.0"))  # a whole number, written as a float
         calib = read_calibration(info["folder"])
         assert calib["focal_px"] == pytest.approx(350.06) and calib["width"] == 320
+
+    def test_an_exponent_without_a_decimal_point_is_a_number(self, plane_sequence):
+        # YAML 1.1 reads 3e2 as a string; calibration tools write such values
+        info = plane_sequence([0.0])
+        path = info["folder"] / "calib.yaml"
+        text = path.read_text()
+        path.write_text(text.replace("width: 320", "width: 32e1").replace("doffs: 0.0", "doffs: 1e1"))
+        calib = read_calibration(info["folder"])
+        assert calib["width"] == 320 and isinstance(calib["width"], int) and calib["doffs"] == 10.0
 
 
 class TestReadLabels:

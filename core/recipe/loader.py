@@ -28,15 +28,26 @@ class RecipeError(Exception):
 KeyPath = tuple[str | int, ...]
 
 
+class DuplicateKey(Exception):
+    def __init__(self, key: KeyPath, line: int, first: int):
+        super().__init__(f"{line}: {_dotted(key)}: given twice (first at line {first}); one of them would be ignored")
+        self.line = line
+
+
 def _line_map(text: str) -> dict[KeyPath, int]:
-    """1-based line of every key (and list item) in the YAML document."""
+    """1-based line of every key (and list item) in the YAML document. A key given twice in one mapping
+    raises ``DuplicateKey``: YAML keeps the last silently, and a recipe's second threshold must not hide
+    its first."""
     lines: dict[KeyPath, int] = {}
 
     def walk(node: yaml.Node, path: KeyPath) -> None:
         if isinstance(node, yaml.MappingNode):
             for key_node, value_node in node.value:
                 child = path + (key_node.value,)
-                lines[child] = key_node.start_mark.line + 1
+                line = key_node.start_mark.line + 1
+                if child in lines:
+                    raise DuplicateKey(child, line, lines[child])
+                lines[child] = line
                 walk(value_node, child)
         elif isinstance(node, yaml.SequenceNode):
             for index, item in enumerate(node.value):
@@ -116,7 +127,8 @@ def first_problem(exc: ValidationError, model: type[BaseModel]) -> tuple[KeyPath
         message = f"should be a mapping of {', '.join(keys)} (got {err.get('input')!r})"
     else:
         message = err["msg"].removeprefix("Value error, ")
-        if "input" in err and kind not in ("model_type", "dict_type") and not isinstance(err["input"], dict):
+        if "input" in err and kind not in ("model_type", "dict_type") and not isinstance(err["input"], dict) \
+                and str(err["input"]).rstrip("/") not in message:  # a message naming the file it read says it
             message += f" (got {err['input']!r})"
     return loc, message
 
@@ -228,14 +240,20 @@ def _validate_plugin(
 def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None) -> LoadedRecipe:
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise RecipeError(f"{path}: recipe file not found") from None
+    except UnicodeDecodeError as exc:
+        line = path.read_bytes()[: exc.start].count(b"\n") + 1
+        raise RecipeError(f"{path}:{line}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x}): save the recipe "
+                          f"as UTF-8") from None
     except OSError as exc:
         raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from None
     try:
         data = yaml.safe_load(text)
         lines = _line_map(text)
+    except DuplicateKey as exc:
+        raise RecipeError(f"{path}:{exc}") from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark
         where = f"{path}:{mark.line + 1}" if mark else str(path)
@@ -248,6 +266,7 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     data = _without_settings_of_replaced_plugins(data, overrides)
     overridden = {apply_override(data, assignment) for assignment in overrides}
     locator = _Locator(path, lines, overridden)
+    _check_finite(data, (), locator)
     try:
         recipe = Recipe.model_validate(data)
     except ValidationError as exc:
@@ -283,6 +302,16 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     _check_output_delays(loaded, registry, locator)
     _check_search_range(loaded, registry, locator)
     return loaded
+
+
+def _check_finite(node: Any, key: KeyPath, locator: _Locator) -> None:
+    """No NaN or infinity anywhere, a plugin's settings included: every comparison with NaN is false, so a
+    rule whose threshold is ``.nan`` would never reject."""
+    if isinstance(node, float) and not math.isfinite(node):
+        raise locator.error(key, f"must be a finite number (got {node})")
+    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+    for k, value in items:
+        _check_finite(value, key + (k,), locator)
 
 
 def _check_search_range(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:

@@ -98,6 +98,14 @@ def test_bad_options_are_refused(pair, args, word):
     _assert_error(invoke("stereo", left, right, *args), word)
 
 
+@pytest.mark.parametrize("value", ["nan", "inf"])
+def test_a_search_range_that_is_not_a_number_is_refused(pair, value):
+    left, right, _ = pair
+    result = invoke("stereo", left, right, "--max-disp", value)
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert f"Invalid value for '--max-disp': '{value}' is not a finite number" in result.output
+
+
 def test_unreadable_or_missing_file_is_refused(pair, tmp_path):
     left, _, _ = pair
     (tmp_path / "junk.png").write_bytes(b"not an image")

@@ -9,6 +9,7 @@ import yaml
 from pydantic import ValidationError
 
 from core.commands.inspection import _load, fail
+from core.commands.params import FINITE
 
 
 @click.command("bench")
@@ -17,8 +18,8 @@ from core.commands.inspection import _load, fail
 @click.option("--sequence", type=click.Path(path_type=Path), default=None, help="another recorded sequence folder")
 @click.option("--backends", default="opencv_sgbm,torch_sgm", show_default=True, help="comma-separated stereo backends")
 @click.option("--resolution", type=click.Choice(["wvga", "hd720"]), default="wvga", show_default=True)
-@click.option("--min-disp", type=float, default=None)
-@click.option("--max-disp", type=float, default=None)
+@click.option("--min-disp", type=FINITE, default=None)
+@click.option("--max-disp", type=FINITE, default=None)
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or auto")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 100))
 @click.option("--frames", default=None, type=click.IntRange(1), help="use only the first N frames")

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import click
 
+from core.commands.params import Finite
 
 def _fail(message: str) -> None:
     click.echo(f"error: {message}", err=True)
@@ -21,8 +22,8 @@ def _fail(message: str) -> None:
 @click.option("--port", type=click.IntRange(0, 65535), default=5020, show_default=True, help="Modbus TCP port; 0: no TCP")
 @click.option("--rtu", "rtu", metavar="PATH", default=None, help="also serve Modbus RTU on this serial port (e.g. /dev/pts/3)")
 @click.option("--baudrate", type=int, default=19200, show_default=True, help="RTU baud rate")
-@click.option("--delay-ms", type=click.FloatRange(0), default=0.0, help="answer every request this late (fault testing)")
-@click.option("--duration", type=click.FloatRange(0), default=None, help="stop after this many seconds (default: until Ctrl-C)")
+@click.option("--delay-ms", type=Finite(0), default=0.0, help="answer every request this late (fault testing)")
+@click.option("--duration", type=Finite(0), default=None, help="stop after this many seconds (default: until Ctrl-C)")
 def plc_sim_command(host: str, port: int, rtu: str | None, baudrate: int, delay_ms: float, duration: float | None) -> None:
     """Stand in for the conveyor PLC: a Modbus server that prints every coil or register change."""
     from drivers import plc_sim

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from core.commands.params import FINITE, Finite
 
 FRAME_FILE = re.compile(r"^\d{6}\.(png|jpg|jpeg|json)$")
 
@@ -30,9 +31,9 @@ def register(cli: click.Group) -> None:
     @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
     @click.option("--frames", default=10, show_default=True, type=click.IntRange(min=1), help="Number of frames.")
     @click.option("--seed", default=0, show_default=True, type=int, help="Random seed (the output is a function of it).")
-    @click.option("--distance-mm", default=400.0, show_default=True, type=click.FloatRange(min=100.0),
+    @click.option("--distance-mm", default=400.0, show_default=True, type=Finite(min=100.0),
                   help="Plate distance at the image centre (jittered by -20..+50 mm per frame unless --no-jitter).")
-    @click.option("--tilt-deg", default=5.0, show_default=True, type=click.FloatRange(-30.0, 30.0),
+    @click.option("--tilt-deg", default=5.0, show_default=True, type=Finite(-30.0, 30.0),
                   help="Plate tilt about the image x axis (jittered by -5..+3 deg, floored at 0, unless --no-jitter).")
     @click.option("--jitter/--no-jitter", default=True, show_default=True,
                   help="Vary distance, tilt and a small yaw per frame.")
@@ -48,23 +49,23 @@ def register(cli: click.Group) -> None:
                   help="Replace the frames of an existing sequence in OUT (otherwise that is an error).")
     @click.option("--supersample", default=2, show_default=True, type=click.IntRange(1, 4),
                   help="Rays per pixel along each axis (anti-aliasing).")
-    @click.option("--distance-range-mm", nargs=2, type=float, default=None, metavar="NEAR FAR",
+    @click.option("--distance-range-mm", nargs=2, type=FINITE, default=None, metavar="NEAR FAR",
                   help="Evaluation set: plate distance drawn uniformly per frame (instead of --distance-mm).")
-    @click.option("--defect-size-px", nargs=2, type=float, default=None, metavar="MIN MAX",
+    @click.option("--defect-size-px", nargs=2, type=FINITE, default=None, metavar="MIN MAX",
                   help="Evaluation set: each side of every defect's box drawn uniformly, in frame pixels.")
-    @click.option("--depth-range-mm", nargs=2, type=float, default=None, metavar="MIN MAX",
+    @click.option("--depth-range-mm", nargs=2, type=FINITE, default=None, metavar="MIN MAX",
                   help="Evaluation set: every frame carries defects (see --defects-per-frame) whose depth is drawn "
                        "uniformly (+ below the surface, - raised), instead of the demo's plan of sound, shallow and "
                        "deep plates.")
     @click.option("--defects-per-frame", nargs=2, type=click.IntRange(1, 6), default=(1, 3), show_default=True,
                   metavar="MIN MAX", help="With --depth-range-mm: defects per frame, drawn uniformly.")
-    @click.option("--texture-contrast", default=1.0, show_default=True, type=click.FloatRange(0.05, 3.0),
+    @click.option("--texture-contrast", default=1.0, show_default=True, type=Finite(0.05, 3.0),
                   help="Scale of the plate texture's variation (0.3: polished, low-texture metal).")
-    @click.option("--flat-floor", nargs=2, type=float, default=None, metavar="MIN MAX",
+    @click.option("--flat-floor", nargs=2, type=FINITE, default=None, metavar="MIN MAX",
                   help="Evaluation set: the share of each defect's half-size that is flat floor, drawn per defect "
                        "(the wall rises over the rest; near 1: a flat-bottomed pit with a steep wall). Default: "
                        "0.55 for every defect.")
-    @click.option("--rectification-error-px", default=0.0, show_default=True, type=click.FloatRange(-5.0, 5.0),
+    @click.option("--rectification-error-px", default=0.0, show_default=True, type=Finite(-5.0, 5.0),
                   help="The right eye's rows this far below the left's (what a real camera's rectification "
                        "leaves, a few tenths of a pixel; 0: exactly rectified).")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
@@ -121,9 +122,9 @@ def register(cli: click.Group) -> None:
     @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
     @click.option("--parts", default=200, show_default=True, type=click.IntRange(10), help="parts to inspect in all")
     @click.option("--kills", default=2, show_default=True, type=click.IntRange(0), help="SIGKILLs on the way")
-    @click.option("--damage", default=0.1, show_default=True, type=click.FloatRange(0.0, 1.0),
+    @click.option("--damage", default=0.1, show_default=True, type=Finite(0.0, 1.0),
                   help="share of the frames whose left or right image is cut short")
-    @click.option("--rate-fps", default=6.0, show_default=True, type=click.FloatRange(min=0.5))
+    @click.option("--rate-fps", default=6.0, show_default=True, type=Finite(min=0.5))
     @click.option("--seed", default=0, show_default=True, type=int)
     @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE", help="passed to inspect run")
     def faults(out, parts, kills, damage, rate_fps, seed, overrides) -> None:

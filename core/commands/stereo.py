@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from core.commands.params import FINITE
 
 def _fail(message: str) -> None:
     click.echo(f"error: {message}", err=True)
@@ -104,8 +105,8 @@ device_option = click.option("--device", type=click.Choice(["auto", "cpu", "cuda
 @click.argument("right", type=click.Path(path_type=Path))
 @click.option("--backend", default="torch_sgm", show_default=True,
               help="stereo plugin, e.g. torch_sgm (its best map: the improved preset with two_view) or opencv_sgbm")
-@click.option("--max-disp", type=float, required=True, help="search min-disp <= d < max-disp (pixels)")
-@click.option("--min-disp", type=float, default=0.0, show_default=True)
+@click.option("--max-disp", type=FINITE, required=True, help="search min-disp <= d < max-disp (pixels)")
+@click.option("--min-disp", type=FINITE, default=0.0, show_default=True)
 @click.option("--out", type=click.Path(path_type=Path), help="PFM, Middlebury convention (invalid = inf)")
 @click.option("--png", type=click.Path(path_type=Path), help="colour-mapped view")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="backend setting, repeatable")

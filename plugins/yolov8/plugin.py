@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from core.commands.params import Finite
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
 from plugins.yolov8.detector import DEFAULT_WEIGHTS, YoloDetector, YoloSettings, checkpoint_class_names
@@ -149,7 +150,7 @@ def average_command(weights: tuple[Path, ...], out: Path) -> None:
 @click.option("--weights", required=True, type=click.Path(path_type=Path))
 @click.option("--split", default="val", show_default=True)
 @click.option("--imgsz", default=224, show_default=True)
-@click.option("--iou", default=YoloSettings.model_fields["iou"].default, show_default=True, type=click.FloatRange(0, 1, min_open=True),
+@click.option("--iou", default=YoloSettings.model_fields["iou"].default, show_default=True, type=Finite(0, 1, min_open=True),
               help="NMS IoU; the default is what the yolov8 detector runs with (detector.settings.iou); ultralytics' own val uses 0.7")
 @click.option("--out", default=Path("runs/detector-eval"), type=click.Path(path_type=Path), show_default=True)
 def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, out: Path) -> None:

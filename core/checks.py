@@ -64,7 +64,8 @@ class RepeatedImages:
 
 
 def detections_problem(detections: Any) -> str | None:
-    """A list of ``Detection``s whose boxes are four finite numbers with x0 < x1 and y0 < y1."""
+    """A list of ``Detection``s whose boxes are four finite numbers with x0 < x1 and y0 < y1 and whose
+    confidences lie in [0, 1]."""
     if not isinstance(detections, list):
         return f"the detector returned a {type(detections).__name__}, not a list of detections"
     for d in detections:
@@ -74,6 +75,9 @@ def detections_problem(detections: Any) -> str | None:
         if not (len(box) == 4 and all(isinstance(v, (int, float, np.floating, np.integer)) and math.isfinite(v)
                                       for v in box) and box[0] < box[2] and box[1] < box[3]):
             return f"the detector returned a {d.class_name} box {tuple(box)}, not (x0, y0, x1, y1) with x0 < x1, y0 < y1"
+        if not (isinstance(d.confidence, (int, float, np.floating, np.integer)) and 0.0 <= d.confidence <= 1.0):
+            # a NaN confidence fails every threshold: the defect would be dropped and the part pass
+            return f"the detector returned a {d.class_name} with confidence {d.confidence!r}, not a number in [0, 1]"
     return None
 
 

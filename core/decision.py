@@ -15,6 +15,7 @@ rejects the part like a REJECT does but is counted apart. Precedence: ERROR, REJ
 """
 from __future__ import annotations
 
+import math
 import operator
 
 from core.recipe.schema import DecisionSection, Rule
@@ -58,6 +59,12 @@ def judge_defect(m: DefectMeasurement, decision: DecisionSection) -> tuple[Statu
             reasons.append(f"{label}: rule '{rule.describe()}' needs {rule.quantity}, {why}")
             continue
         sigma = m.uncertainty(rule.quantity) or 0.0
+        if not (math.isfinite(value) and math.isfinite(sigma) and sigma >= 0):
+            # every comparison with NaN is false: such a value would read as "inside" and pass
+            outcomes.append(Status.ERROR)
+            reasons.append(f"{label}: rule '{rule.describe()}' needs {rule.quantity}, measured as {value} "
+                           f"± {sigma}: not a measurement to decide on")
+            continue
         band = decision.coverage_factor * sigma
         shown = f"{rule.quantity} {value:.2f}" + (f" ± {band:.2f}" if band > 0 else "")
         state = conformance(value, band, rule.op, rule.threshold)

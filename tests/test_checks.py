@@ -93,6 +93,9 @@ class TestDetectionsProblem:
         ([Detection("pit", 0.9, (1, 2, math.nan, 4))], "a pit box (1, 2, nan, 4)"),
         ([Detection("pit", 0.9, (5, 2, 3, 4))], "x0 < x1"),
         ([Detection("pit", 0.9, (1, 2, 3))], "not (x0, y0, x1, y1)"),
+        ([Detection("pit", math.nan, (1, 2, 3, 4))], "a pit with confidence nan, not a number in [0, 1]"),
+        ([Detection("pit", 1.5, (1, 2, 3, 4))], "confidence 1.5"),
+        ([Detection("pit", "high", (1, 2, 3, 4))], "confidence 'high'"),
     ])
     def test_a_broken_box_is_named(self, found, says):
         assert says in detections_problem(found)

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
 from core.decision import decide, judge_defect
@@ -34,6 +36,17 @@ def test_missing_measurement_is_an_error_not_a_pass():
     verdict, _ = decide([_m(deviation=None, note="deviation unavailable: 3 valid surface points")], RULES)
     assert verdict.status is Status.ERROR
     assert "needs deviation_mm" in verdict.reasons[0] and "3 valid surface points" in verdict.reasons[0]
+
+
+@pytest.mark.parametrize("deviation, sigma", [
+    (float("nan"), 0.1), (float("inf"), 0.1), (0.2, float("nan")), (0.2, float("inf")), (0.2, -0.1),
+])
+def test_a_value_that_is_not_a_number_is_an_error_not_a_pass(deviation, sigma):
+    # every comparison with NaN is false, so without the check it would read as inside the limit
+    m = replace(_m(deviation=deviation), deviation_sigma_mm=sigma)
+    verdict, _ = decide([m], RULES)
+    assert verdict.status is Status.ERROR, verdict
+    assert "not a measurement to decide on" in verdict.reasons[0]
 
 
 def test_error_wins_over_reject():

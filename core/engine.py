@@ -30,7 +30,7 @@ from core.recipe.loader import (camera_answer, detector_settings, file_sha256, n
                                 unknown_class_message)
 from core.recipe.schema import StereoSection
 from core.registry import Registry, default_registry
-from core.store import ResultsStore
+from core.store import ResultsStore, StoreError
 from core.stereo_region import disparity_around
 from core.types import Alarm, Calibration, Detection, FrameError, OutputEvent, PartResult, Status, StereoFrame
 from core.watchdog import StallWatch
@@ -372,9 +372,12 @@ def run(
     registry = registry or default_registry()
     recipe = loaded.recipe
     apply_threads(recipe.threads)
+    try:
+        store = ResultsStore(loaded.resolve(recipe.results.path))
+    except StoreError as exc:  # before any plugin opens its hardware
+        raise SetupError(loaded.describe(("results", "path"), str(exc))) from None
     pipeline = build_pipeline(loaded, registry, device)
     check_stereo_memory(loaded, pipeline.stereo, registry)
-    store = ResultsStore(loaded.resolve(recipe.results.path))
     unfinished = store.unfinished_runs()
     run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path), _sha256_or_none(loaded.path),
                              _model_hashes(loaded, pipeline.detector),

@@ -116,6 +116,43 @@ def _add_missing_columns(db: sqlite3.Connection) -> None:
             db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
 
 
+class StoreError(Exception):
+    """A results store that cannot be opened; ``str()`` is the one-line message naming the file."""
+
+
+def _unusable(path: Path, exc: Exception) -> StoreError:
+    return StoreError(f"{path}: not a results store that can be used ({exc}): move it aside or give another "
+                      f"results.path")
+
+
+def _required_columns() -> dict[str, set[str]]:
+    """Each table's columns that every version of the store has: the schema's less ``ADDED_COLUMNS``."""
+    mem = sqlite3.connect(":memory:")
+    mem.executescript(SCHEMA)
+    tables = [row[0] for row in mem.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
+    added = {(t, c) for t, c, _ in ADDED_COLUMNS}
+    required = {t: {c for c in _columns(mem, t) if (t, c) not in added} for t in tables}
+    mem.close()
+    return required
+
+
+REQUIRED_COLUMNS = _required_columns()
+
+
+def schema_problem(db: sqlite3.Connection, tables: tuple[str, ...] = ()) -> str | None:
+    """Why ``db`` is not a results store, or None: one of ``tables`` missing, or a table of the store's
+    name without the columns every version of it has (another program's database)."""
+    present = {row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    missing_tables = [t for t in tables if t not in present]
+    if missing_tables:
+        return f"no table {', '.join(missing_tables)}"
+    for table, columns in REQUIRED_COLUMNS.items():
+        missing = columns - _columns(db, table) if table in present else set()
+        if missing:
+            return f"its table {table} has no column {', '.join(sorted(missing))}"
+    return None
+
+
 def db_path(location: Path) -> Path:
     location = Path(location)
     return location if location.suffix == ".db" else location / DB_NAME
@@ -133,16 +170,31 @@ def _serialised(method):
 
 class ResultsStore:
     def __init__(self, location: Path):
+        """``StoreError`` where the folder cannot be made or the file is not a store this version can use
+        (another program's database, a damaged file): before a run starts, not at its first part."""
         self.path = db_path(location)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreError(f"{self.path.parent}: cannot create the results folder ({exc.strerror})") from None
         self._lock = threading.RLock()
-        self.db = sqlite3.connect(self.path, check_same_thread=False)
-        self.db.execute("PRAGMA journal_mode=WAL")
-        # FULL: a decided part survives a power cut, not only a crash of this process.
-        self.db.execute("PRAGMA synchronous=FULL")
-        self.db.executescript(SCHEMA)
-        _add_missing_columns(self.db)
-        self.db.commit()
+        try:
+            self.db = sqlite3.connect(self.path, check_same_thread=False)
+        except sqlite3.Error as exc:
+            raise StoreError(f"{self.path}: cannot open the results store ({exc})") from None
+        try:
+            problem = schema_problem(self.db)
+            if problem is not None:
+                raise sqlite3.DatabaseError(problem)
+            self.db.execute("PRAGMA journal_mode=WAL")
+            # FULL: a decided part survives a power cut, not only a crash of this process.
+            self.db.execute("PRAGMA synchronous=FULL")
+            self.db.executescript(SCHEMA)
+            _add_missing_columns(self.db)
+            self.db.commit()
+        except sqlite3.DatabaseError as exc:
+            self.db.close()
+            raise _unusable(self.path, exc) from None
 
     @property
     def image_dir(self) -> Path:
@@ -281,7 +333,14 @@ def open_readonly(location: Path) -> sqlite3.Connection:
     path = db_path(location)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no results store here")
-    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
+    try:
+        problem = schema_problem(db, tables=("runs", "parts"))
+    except sqlite3.DatabaseError as exc:
+        problem = str(exc)
+    if problem is not None:
+        db.close()
+        raise _unusable(path, problem)
     db.row_factory = sqlite3.Row
     return db
 

@@ -81,3 +81,44 @@ def test_a_store_of_an_older_version_is_read_and_migrated(tmp_path):
     columns = {row[1] for row in writer.db.execute("PRAGMA table_info(defects)")}
     assert {"distance_sigma_mm", "deviation_sigma_mm", "depth_method"} <= columns
     writer.close()
+
+
+class TestAFileThatIsNotAStore:
+    """A results.path at a damaged file or another program's database: one line naming it, before a run
+    starts, and the file left as it was."""
+
+    @pytest.fixture(params=["garbage", "foreign", "empty"])
+    def not_a_store(self, request, tmp_path):
+        import sqlite3
+
+        path = tmp_path / "store" / "results.db"
+        path.parent.mkdir()
+        if request.param == "garbage":
+            path.write_bytes(b"not a database at all, just bytes " * 40)
+        elif request.param == "foreign":
+            db = sqlite3.connect(path)
+            db.execute("CREATE TABLE parts (sku TEXT, price REAL)")
+            db.commit()
+            db.close()
+        else:
+            path.write_bytes(b"")
+        return path
+
+    @pytest.mark.parametrize("command", ["report", "view"])
+    def test_report_and_view_name_it(self, not_a_store, command):
+        out = cli(command, str(not_a_store.parent))
+        assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+        assert out.stderr.startswith(f"error: {not_a_store}: not a results store that can be used (")
+
+    def test_a_run_refuses_it_before_it_starts_and_leaves_it_as_it_was(self, not_a_store, tmp_path, plane_sequence):
+        info = plane_sequence([0.0])
+        before = not_a_store.read_bytes()
+        recipe = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log").replace(
+            "path: results", f"path: {not_a_store.parent}"))
+        registry = Registry(make_manager((stereo_inspect_fixed_roi,)))
+        if not before:  # an empty file is SQLite's empty database: a new store
+            assert engine.run(load_recipe(recipe, registry=registry), registry=registry, device="cpu").frames == 1
+            return
+        with pytest.raises(engine.SetupError, match=r"results\.path: .*results\.db: not a results store that can be used"):
+            engine.run(load_recipe(recipe, registry=registry), registry=registry, device="cpu")
+        assert not_a_store.read_bytes() == before

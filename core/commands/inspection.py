@@ -310,7 +310,7 @@ def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> 
 
     try:
         db = store.open_readonly(results)
-    except FileNotFoundError as exc:
+    except (FileNotFoundError, store.StoreError) as exc:
         fail(str(exc))
     s = store.summary(db, run_id)
     runs = db.execute("SELECT COUNT(*) FROM runs").fetchone()[0]

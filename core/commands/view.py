@@ -45,10 +45,14 @@ def serve_until_interrupted(server) -> None:
 @click.option("--token", default=None, help="require this token (?token=...) from every browser")
 def view_command(results: Path, host: str, port: int, token: str | None) -> None:
     """Review a finished run in the browser: filter by verdict and class, page through parts, export CSV."""
-    from core.store import db_path
+    from core.store import StoreError, db_path, open_readonly
 
     if not db_path(results).is_file():
         fail(f"{db_path(results)}: no results store here (give the recipe's results.path)")
+    try:
+        open_readonly(results).close()
+    except StoreError as exc:
+        fail(str(exc))
     if token is not None and len(token) < 8:
         fail("--token: use at least 8 characters")
     server = start_view(results, None, host, port, token, jpeg_quality=85, max_fps=10.0)

@@ -127,13 +127,21 @@ def read_conf(path: str | Path, resolution: str = "WVGA") -> ZedCalibration:
                 return default
             raise CalibrationError(f"{path}: [{sec.name}] {key} missing")
         try:
-            return float(raw)
+            value = float(raw)
         except ValueError:
-            raise CalibrationError(f"{path}: [{sec.name}] {key} = {raw!r} is not a number") from None
+            value = float("nan")
+        if not np.isfinite(value):
+            raise CalibrationError(f"{path}: [{sec.name}] {key} = {raw!r} is not a number")
+        return value
 
     def eye(name: str) -> EyeIntrinsics:
         sec = section(name)
-        return EyeIntrinsics(*(number(sec, k, None if k in ("fx", "fy", "cx", "cy") else 0.0) for k in INTRINSIC_KEYS))
+        intrinsics = EyeIntrinsics(*(number(sec, k, None if k in ("fx", "fy", "cx", "cy") else 0.0)
+                                     for k in INTRINSIC_KEYS))
+        for key in ("fx", "fy"):
+            if getattr(intrinsics, key) <= 0:
+                raise CalibrationError(f"{path}: [{name}] {key} must be positive (px), got {getattr(intrinsics, key)}")
+        return intrinsics
 
     stereo = section("STEREO")
     width, height = RESOLUTIONS[resolution]

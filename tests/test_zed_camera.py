@@ -111,6 +111,30 @@ def test_bad_conf_names_file_and_key(tmp_path):
         read_conf(tmp_path / "missing.conf")
 
 
+@pytest.mark.parametrize("old, new, says", [
+    ("Baseline=120.0", "Baseline=nan", r"\[STEREO\] Baseline = 'nan' is not a number"),
+    ("Baseline=120.0", "Baseline=inf", r"\[STEREO\] Baseline = 'inf' is not a number"),
+    ("Baseline=120.0", "Baseline=-120.0", r"\[STEREO\] Baseline must be positive"),
+])
+def test_a_value_no_camera_has_is_refused_on_reading(tmp_path, old, new, says):
+    # NaN passes every "must be positive" comparison: it would reach the frames as a nonsense geometry
+    broken = tmp_path / "SN3.conf"
+    broken.write_text(CONF.read_text().replace(old, new))
+    with pytest.raises(CalibrationError, match=says):
+        read_conf(broken, "WVGA")
+
+
+def test_a_focal_length_that_is_not_positive_is_refused(tmp_path):
+    text = CONF.read_text()
+    section = text.index("[LEFT_CAM_VGA]")
+    start = text.index("fx=", section)
+    end = text.index("\n", start)
+    broken = tmp_path / "SN4.conf"
+    broken.write_text(text[:start] + "fx=-350" + text[end:])
+    with pytest.raises(CalibrationError, match=r"\[LEFT_CAM_VGA\] fx must be positive \(px\), got -350.0"):
+        read_conf(broken, "WVGA")
+
+
 def test_video_through_capture_path_lands_points_on_rows_at_disparity(dots_video, calib):
     cam = ZedUvc(str(dots_video), "WVGA", fps=15)
     items = list(cam.stream(max_frames=2))

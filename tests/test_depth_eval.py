@@ -121,7 +121,9 @@ def test_a_plate_outside_the_working_distance_gets_no_deviation(tmp_path):
         for f in (copy / folder).iterdir():
             if not f.stem.startswith("000000"):
                 f.unlink()
-    result = cli("eval", "depth", str(copy), "--out", str(tmp_path / "out"), "--threads", "1", "--no-figure")
+    # from another folder: the demo recipe is found beside the package, not in the working folder
+    result = cli("eval", "depth", str(copy), "--out", str(tmp_path / "out"), "--threads", "1", "--no-figure",
+                 cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     rows = [r for r in json.loads((tmp_path / "out" / "depth_eval.json").read_text())["rows"] if r["method"] == "surface"]
     assert rows and all(r["true_distance_mm"] > 600 for r in rows)

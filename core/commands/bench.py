@@ -9,11 +9,11 @@ import yaml
 from pydantic import ValidationError
 
 from core.commands.inspection import _load, fail
-from core.commands.params import FINITE
+from core.commands.params import FINITE, demo_recipe
 
 
 @click.command("bench")
-@click.option("--recipe", "recipe", default=Path("recipes/steel_plate.yaml"), type=click.Path(path_type=Path),
+@click.option("--recipe", "recipe", default=demo_recipe(), type=click.Path(path_type=Path),
               show_default=True, help="camera (the frames), detector, depth and decision come from here")
 @click.option("--sequence", type=click.Path(path_type=Path), default=None, help="another recorded sequence folder")
 @click.option("--backends", default="opencv_sgbm,torch_sgm", show_default=True, help="comma-separated stereo backends")

@@ -6,10 +6,12 @@ from pathlib import Path
 
 import click
 
+from core.commands.params import demo_recipe
+
 
 @click.command("depth")
 @click.argument("sequences", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--recipe", default=Path("recipes/steel_plate.yaml"), type=click.Path(path_type=Path), show_default=True,
+@click.option("--recipe", default=demo_recipe(), type=click.Path(path_type=Path), show_default=True,
               help="stereo, depth and decision settings come from here (its camera is not used)")
 @click.option("--backend", default=None, help="stereo backend instead of the recipe's (with its default settings)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE",

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import click
 
@@ -20,3 +21,10 @@ class Finite(click.FloatRange):
 
 
 FINITE = Finite()
+
+
+def demo_recipe() -> Path:
+    """The demo recipe of the checkout this package runs from, so that a command works from any folder;
+    ``recipes/steel_plate.yaml`` of the working folder where the package was installed without it."""
+    beside = Path(__file__).resolve().parents[2] / "recipes" / "steel_plate.yaml"
+    return beside if beside.is_file() else Path("recipes/steel_plate.yaml")

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from core.commands.inspection import fail
+from core.commands.params import demo_recipe
 
 
 def start_view(results: Path, feed, host: str, port: int, token: str | None, jpeg_quality: int, max_fps: float,
@@ -61,7 +62,7 @@ def view_command(results: Path, host: str, port: int, token: str | None) -> None
 
 
 @click.command("bench-view")
-@click.argument("recipe", type=click.Path(path_type=Path), default=Path("recipes/steel_plate.yaml"))
+@click.argument("recipe", type=click.Path(path_type=Path), default=demo_recipe())
 @click.option("--frames", default=40, show_default=True, type=click.IntRange(1), help="parts per configuration")
 @click.option("--browsers", default="0,1,3", show_default=True, help="comma-separated numbers of page-like clients")
 @click.option("--port", default=None, type=click.IntRange(1, 65535), help="default: a free port")

@@ -30,7 +30,7 @@ from core.recipe.loader import (camera_answer, detector_settings, file_sha256, n
                                 unknown_class_message)
 from core.recipe.schema import StereoSection
 from core.registry import Registry, default_registry
-from core.store import ResultsStore, StoreError
+from core.store import ResultsStore, StoreError, store_problem
 from core.stereo_region import disparity_around
 from core.types import Alarm, Calibration, Detection, FrameError, OutputEvent, PartResult, Status, StereoFrame
 from core.watchdog import StallWatch
@@ -372,12 +372,16 @@ def run(
     registry = registry or default_registry()
     recipe = loaded.recipe
     apply_threads(recipe.threads)
-    try:
-        store = ResultsStore(loaded.resolve(recipe.results.path))
-    except StoreError as exc:  # before any plugin opens its hardware
-        raise SetupError(loaded.describe(("results", "path"), str(exc))) from None
+    results = loaded.resolve(recipe.results.path)
+    problem = store_problem(results)  # before any plugin opens its hardware
+    if problem is not None:
+        raise SetupError(loaded.describe(("results", "path"), problem))
     pipeline = build_pipeline(loaded, registry, device)
     check_stereo_memory(loaded, pipeline.stereo, registry)
+    try:
+        store = ResultsStore(results)
+    except StoreError as exc:
+        raise SetupError(loaded.describe(("results", "path"), str(exc))) from None
     unfinished = store.unfinished_runs()
     run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path), _sha256_or_none(loaded.path),
                              _model_hashes(loaded, pipeline.detector),

@@ -153,6 +153,23 @@ def schema_problem(db: sqlite3.Connection, tables: tuple[str, ...] = ()) -> str 
     return None
 
 
+def store_problem(location: Path) -> str | None:
+    """Why the store at ``location`` cannot be written to (``schema_problem``, or not a database at all), in
+    one line naming the file; None where it can, or where there is none yet. Creates and changes nothing."""
+    path = db_path(location)
+    if not path.is_file():
+        return None
+    try:
+        db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
+        try:
+            problem = schema_problem(db)
+        finally:
+            db.close()
+    except sqlite3.DatabaseError as exc:
+        problem = str(exc)
+    return None if problem is None else str(_unusable(path, problem))
+
+
 def db_path(location: Path) -> Path:
     location = Path(location)
     return location if location.suffix == ".db" else location / DB_NAME

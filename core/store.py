@@ -153,16 +153,16 @@ def schema_problem(db: sqlite3.Connection, tables: tuple[str, ...] = ()) -> str 
     return None
 
 
-def store_problem(location: Path) -> str | None:
-    """Why the store at ``location`` cannot be written to (``schema_problem``, or not a database at all), in
-    one line naming the file; None where it can, or where there is none yet. Creates and changes nothing."""
+def store_problem(location: Path, tables: tuple[str, ...] = ()) -> str | None:
+    """Why the store at ``location`` cannot be used (``schema_problem``, or not a database at all), in one
+    line naming the file; None where it can, or where there is none yet. Creates and changes nothing."""
     path = db_path(location)
     if not path.is_file():
         return None
     try:
         db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
         try:
-            problem = schema_problem(db)
+            problem = schema_problem(db, tables)
         finally:
             db.close()
     except sqlite3.DatabaseError as exc:
@@ -350,14 +350,10 @@ def open_readonly(location: Path) -> sqlite3.Connection:
     path = db_path(location)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no results store here")
-    db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
-    try:
-        problem = schema_problem(db, tables=("runs", "parts"))
-    except sqlite3.DatabaseError as exc:
-        problem = str(exc)
+    problem = store_problem(path, tables=("runs", "parts"))
     if problem is not None:
-        db.close()
-        raise _unusable(path, problem)
+        raise StoreError(problem)
+    db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
     db.row_factory = sqlite3.Row
     return db
 

@@ -12,6 +12,7 @@ import click
 
 from core.commands.params import Finite
 
+
 def _fail(message: str) -> None:
     click.echo(f"error: {message}", err=True)
     raise click.exceptions.Exit(2)

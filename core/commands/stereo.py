@@ -10,6 +10,7 @@ import click
 
 from core.commands.params import FINITE
 
+
 def _fail(message: str) -> None:
     click.echo(f"error: {message}", err=True)
     raise click.exceptions.Exit(2)

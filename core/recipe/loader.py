@@ -29,9 +29,10 @@ KeyPath = tuple[str | int, ...]
 
 
 class DuplicateKey(Exception):
+    """A key given twice in one mapping; ``str()`` is ``line: key: ...``, to follow the file's name."""
+
     def __init__(self, key: KeyPath, line: int, first: int):
         super().__init__(f"{line}: {_dotted(key)}: given twice (first at line {first}); one of them would be ignored")
-        self.line = line
 
 
 def _line_map(text: str) -> dict[KeyPath, int]:

@@ -30,6 +30,14 @@ def rule_applies(rule: Rule, class_name: str) -> bool:
     return rule.class_ in ("any", class_name)
 
 
+def unruled_classes(decision: DecisionSection, classes: list[str]) -> list[str]:
+    """Those of ``classes`` that no rule covers and that therefore pass whatever is measured (none where
+    ``reject_unruled_defects`` rejects them)."""
+    if decision.reject_unruled_defects:
+        return []
+    return [c for c in classes if not any(rule_applies(r, c) for r in decision.rules)]
+
+
 def conformance(value: float, band: float, op: str, threshold: float) -> str:
     """``beyond`` (the rule's condition holds even at the far end of the band), ``inside`` (it fails
     even at the near end) or ``undecided``."""

@@ -4,7 +4,7 @@ from dataclasses import replace
 
 import pytest
 
-from core.decision import decide, judge_defect
+from core.decision import decide, judge_defect, unruled_classes
 from core.recipe.schema import DecisionSection
 from core.types import DefectMeasurement, Detection, Status
 
@@ -61,6 +61,16 @@ def test_class_specific_rule_only_for_its_class():
     assert decide([m], RULES)[0].status is Status.REJECT
     m.detection = Detection("patches", 0.8, (0, 0, 10, 10))
     assert decide([m], RULES)[0].status is Status.PASS
+
+
+def test_the_classes_no_rule_covers_are_named_unless_they_are_rejected():
+    classes = ["scratches", "inclusion", "patches"]
+    assert unruled_classes(RULES, classes) == []  # a rule for any covers every class
+    scratches_only = DecisionSection.model_validate({"rules": [RULES.rules[1].model_dump(by_alias=True)]})
+    assert unruled_classes(scratches_only, classes) == ["inclusion", "patches"]
+    assert unruled_classes(DecisionSection.model_validate({"rules": []}), classes) == classes
+    rejecting = scratches_only.model_copy(update={"reject_unruled_defects": True})
+    assert unruled_classes(rejecting, classes) == []
 
 
 def test_unruled_defects_optionally_rejected():

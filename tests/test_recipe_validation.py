@@ -244,6 +244,21 @@ def test_validate_warns_where_the_working_distance_cannot_resolve_a_limit(recipe
     assert cli("validate", str(near)).stderr == ""
 
 
+def test_validate_warns_of_classes_that_no_rule_covers(recipe_dir):
+    # a defect of such a class passes however deep it is
+    only = GOOD.replace("{class: any,", "{class: scratches,")
+    result = cli("validate", str(write_recipe(recipe_dir / "only.yaml", only)))
+    assert result.returncode == 0, result.stderr
+    assert re.search(r"only\.yaml:11: decision: warning: no rule covers crazing, inclusion, patches, pitted_surface, "
+                     r"rolled-in_scale: such a defect passes", result.stderr), result.stderr
+    none = GOOD.replace('    - {class: any, quantity: deviation_mm, op: ">", threshold: 1.0}', "    []")
+    assert "no rule covers every class the detector reports" in cli(
+        "validate", str(write_recipe(recipe_dir / "none.yaml", none))).stderr
+    rejected = only.replace("decision:", "decision:\n  reject_unruled_defects: true")
+    assert "no rule covers" not in cli("validate", str(write_recipe(recipe_dir / "rej.yaml", rejected))).stderr
+    assert "no rule covers" not in cli("validate", str(write_recipe(recipe_dir / "good.yaml", GOOD))).stderr
+
+
 def test_the_demo_recipe_resolves_its_limits():
     from conftest import ROOT
 

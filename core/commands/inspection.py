@@ -246,7 +246,7 @@ def validate_command(recipe: Path, overrides: tuple[str, ...]) -> None:
         f"{recipe}: ok (recipe {r.name!r}, camera {r.camera.plugin}, stereo {r.stereo.backend}, detector {r.detector.plugin}, "
         f"{len(r.decision.rules)} rules, outputs {', '.join(o.plugin for o in r.outputs) or 'none'})"
     )
-    for line in _depth_warnings(loaded):
+    for line in _depth_warnings(loaded) + _coverage_warnings(loaded):
         click.echo(line, err=True)
     if memory is not None:
         click.echo(loaded.describe(("stereo",), f"warning: a box covering most of the frame would be its part's "
@@ -267,6 +267,27 @@ def _stereo_memory_problem(loaded) -> str | None:
     except Exception:
         return None
     return recipe_problem(loaded, backend, registry)
+
+
+def _coverage_warnings(loaded) -> list[str]:
+    """A line naming the classes the detector reports (those ``detector.classes`` keeps) that no rule covers:
+    a defect of theirs passes whatever its depth."""
+    from core.decision import unruled_classes
+    from core.recipe.loader import detector_classes
+    from core.registry import default_registry
+
+    recipe = loaded.recipe
+    known = detector_classes(loaded, default_registry())  # the loader has already had the detector's answer
+    if known is None:
+        return []
+    kept = [c for c in known if recipe.detector.classes is None or c in recipe.detector.classes]
+    unruled = unruled_classes(recipe.decision, kept)
+    if not unruled:
+        return []
+    which = "every class the detector reports" if len(unruled) == len(kept) else ", ".join(unruled)
+    return [loaded.describe(("decision",), f"warning: no rule covers {which}: such a defect passes whatever is "
+                                           f"measured (add a rule for it or for class any, or set "
+                                           f"reject_unruled_defects: true)")]
 
 
 def _depth_warnings(loaded) -> list[str]:

@@ -370,20 +370,28 @@ def detector_settings(loaded: LoadedRecipe) -> dict:
 def _check_classes(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:
     """Every class a rule or ``detector.classes`` names must be one the detector reports: a misspelled one
     would never apply and every part with that defect would pass."""
-    from core.contracts import PluginContext
-
     recipe = loaded.recipe
-    spec = registry.get("detector", recipe.detector.plugin).spec
-    if spec.class_names is None:  # checked against the detector itself when the run starts
-        return
     try:
-        known = list(spec.class_names(detector_settings(loaded), PluginContext(recipe_dir=loaded.directory)))
+        known = detector_classes(loaded, registry)
     except Exception as exc:  # the detector's own reason (weights refused, unreadable, ...)
         key = ("detector", "weights") if recipe.detector.weights is not None else ("detector", "plugin")
         raise locator.error(key, str(exc)) from None
+    if known is None:  # checked against the detector itself when the run starts
+        return
     for key, name in named_classes(recipe):
         if name not in known:
             raise locator.error(key, unknown_class_message(name, known))
+
+
+def detector_classes(loaded: LoadedRecipe, registry: Registry) -> list[str] | None:
+    """The classes the recipe's detector reports, from its settings, or None where its plugin states them
+    only once built; the plugin's exception where it cannot say (its weights unreadable, say)."""
+    from core.contracts import PluginContext
+
+    spec = registry.get("detector", loaded.recipe.detector.plugin).spec
+    if spec.class_names is None:
+        return None
+    return list(spec.class_names(detector_settings(loaded), PluginContext(recipe_dir=loaded.directory)))
 
 
 def named_classes(recipe) -> list[tuple[KeyPath, str]]:

@@ -39,6 +39,9 @@ EXIT_OK, EXIT_USAGE, EXIT_PART_ERRORS, EXIT_ALARMS, EXIT_INTERRUPTED = 0, 2, 3, 
 CAMERA_LOST_AFTER = 3  # consecutive frames the camera could not deliver
 CAMERA_WAIT = "camera"  # the watchdog's key for a free-running camera's wait for its next frame
 CAMERA_OPEN_S = 30.0  # the longest a free-running camera's first frame may take (the device opening)
+# how far ahead of this computer's clock a frame's capture time may lie (a clock set back while it was
+# inspected); further, or not a number, and the stamp is not this computer's time at capture
+STAMP_AHEAD_S = 1.0
 
 
 class SetupError(Exception):
@@ -263,6 +266,13 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
     so is one the loop ``refused`` (``frame_refusal``: the frame before's images again, or an image that
     cannot show a defect)."""
     recipe = loaded.recipe
+    stamp_problem = capture_time_problem(item.timestamp, clock())
+    if stamp_problem is not None:
+        # its reject is timed from now, the best that is known of when the plate passed the camera
+        message = f"frame {item.frame_id}: {stamp_problem}" + (
+            f" (and {item.message})" if isinstance(item, FrameError) else "")
+        part = PartResult(part_id, item.frame_id, item.index, clock(), error_verdict(f"camera: {message}"), error=message)
+        return FrameOutcome(part, [], None)
     if isinstance(item, FrameError):
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(f"camera: {item.message}"), error=item.message)
         return FrameOutcome(part, [], None)
@@ -304,6 +314,17 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         return FrameOutcome(part, [], item.left, timings)
     part = PartResult(part_id, item.frame_id, item.index, item.timestamp, verdict, measurements)
     return FrameOutcome(part, per_defect, item.left, timings)
+
+
+def capture_time_problem(timestamp: Any, now: float) -> str | None:
+    """Why a camera's ``timestamp`` is not this computer's ``time.time()`` at capture, or None. The outputs
+    time each reject from it: a NaN would never fall due, a stamp from another clock fall due hours off."""
+    if not (isinstance(timestamp, (int, float)) and math.isfinite(timestamp)):
+        return f"the camera stamped it {timestamp!r}, not a time"
+    if timestamp - now > STAMP_AHEAD_S:
+        return (f"the camera stamped it {timestamp - now:.1f} s ahead of this computer's clock: a frame's stamp must "
+                f"be time.time() at its capture")
+    return None
 
 
 def frame_refusal(item: StereoFrame | FrameError, repeats: RepeatedImages, check) -> tuple[str | None, str | None]:

@@ -11,6 +11,7 @@ import sqlite3
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -308,6 +309,23 @@ def test_a_frame_older_than_the_limit_is_an_error_not_a_late_reject(tmp_path):
     frame = next(iter(ReplayCamera(ReplaySettings(path=str(FIXTURE), max_frames=1)).frames()))
     outcome = inspect_frame(frame, "P1", None, loaded, None, age_limit_s=1.5, clock=lambda: frame.timestamp + 1.8)
     assert outcome.part.verdict.status is Status.ERROR and "1800 ms after its capture" in outcome.part.error
+
+
+@pytest.mark.parametrize("stamp, says", [
+    (float("nan"), "the camera stamped it nan, not a time"),
+    (None, "the camera stamped it None, not a time"),
+    (1000.0 + 3600.0, "stamped it 3600.0 s ahead of this computer's clock"),
+])
+def test_a_frame_stamped_off_this_computers_clock_is_an_error_timed_from_now(stamp, says):
+    # the outputs time each reject from the stamp: a NaN would never fall due, an hour ahead an hour late
+    loaded = load_recipe(DEMO)
+    frame = next(iter(ReplayCamera(ReplaySettings(path=str(FIXTURE), max_frames=1)).frames()))
+    for item in (replace(frame, timestamp=stamp), FrameError("000000", 0, "cut short", stamp)):
+        outcome = inspect_frame(item, "P1", None, loaded, None, age_limit_s=1.5, clock=lambda: 1000.0)
+        assert outcome.part.verdict.status is Status.ERROR and says in outcome.part.error, outcome.part.error
+        assert outcome.part.timestamp == 1000.0
+    in_time = inspect_frame(FrameError("000000", 0, "cut short", 1000.5), "P1", None, loaded, None, clock=lambda: 1000.0)
+    assert in_time.part.timestamp == 1000.5 and in_time.part.error == "cut short"  # within the clock's slack
 
 
 def test_the_zed_driver_stamps_the_capture_not_the_read():

@@ -8,6 +8,7 @@ returns the problem in words, or None.
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 from typing import Any
 
 import numpy as np
@@ -63,9 +64,9 @@ class RepeatedImages:
         return None
 
 
-def detections_problem(detections: Any) -> str | None:
-    """A list of ``Detection``s whose boxes are four finite numbers with x0 < x1 and y0 < y1 and whose
-    confidences lie in [0, 1]."""
+def detections_problem(detections: Any, classes: Collection[str] | None = None) -> str | None:
+    """A list of ``Detection``s whose boxes are four finite numbers with x0 < x1 and y0 < y1, whose
+    confidences lie in [0, 1] and whose classes are among the detector's ``classes`` (where given)."""
     if not isinstance(detections, list):
         return f"the detector returned a {type(detections).__name__}, not a list of detections"
     for d in detections:
@@ -78,6 +79,10 @@ def detections_problem(detections: Any) -> str | None:
         if not (isinstance(d.confidence, (int, float, np.floating, np.integer)) and 0.0 <= d.confidence <= 1.0):
             # a NaN confidence fails every threshold: the defect would be dropped and the part pass
             return f"the detector returned a {d.class_name} with confidence {d.confidence!r}, not a number in [0, 1]"
+        if classes is not None and d.class_name not in classes:
+            # a rule for one class would never cover it, and the part would pass
+            return (f"the detector returned a {d.class_name!r}, not one of the classes it states "
+                    f"({', '.join(classes)})")
     return None
 
 

@@ -244,7 +244,7 @@ def detect_frame(item: StereoFrame | FrameError, pipeline: Pipeline, recipe) -> 
         found = pipeline.detector.detect(item.left)
     except Exception as exc:  # reported on the part by inspect_frame
         return Detected(None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}")
-    problem = detections_problem(found)
+    problem = detections_problem(found, getattr(pipeline.detector, "class_names", None))
     if problem is not None:
         return Detected(None, time.perf_counter() - t0, problem)
     return Detected(_filter(found, recipe.detector.confidence, recipe.detector.classes), time.perf_counter() - t0)

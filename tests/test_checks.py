@@ -100,6 +100,14 @@ class TestDetectionsProblem:
     def test_a_broken_box_is_named(self, found, says):
         assert says in detections_problem(found)
 
+    def test_a_class_the_detector_does_not_state_is_named(self):
+        # a rule for one class would never cover it: the part would pass
+        found = [Detection("pit", 0.9, (1, 2, 3, 4)), Detection("rust", 0.9, (1, 2, 3, 4))]
+        assert detections_problem(found[:1], ["pit", "scratch"]) is None
+        assert detections_problem(found, ["pit", "scratch"]) == \
+            "the detector returned a 'rust', not one of the classes it states (pit, scratch)"
+        assert detections_problem(found) is None  # a detector that states none is not held to any
+
 
 class TestDisparityProblem:
     def test_a_map_of_the_images_shape_passes(self):

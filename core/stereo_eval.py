@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.sequence_folder import read_image, read_middlebury_calib, read_pfm
+from drivers.sequence_folder import SequenceError, read_image, read_middlebury_calib, read_pfm
 
 THRESHOLDS = (0.5, 1.0, 2.0, 4.0)
 
@@ -93,8 +93,11 @@ def load_scene(folder: Path) -> SceneData:
     mask_path = folder / "mask0nocc.png"
     mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
     nonocc = (mask == 255) if mask is not None else np.ones(gt.shape, bool)
-    return SceneData(folder.name, read_image(folder / "im0.png", "left image"),
-                     read_image(folder / "im1.png", "right image"), gt, nonocc, calib["ndisp"])
+    left, right = read_image(folder / "im0.png", "left image"), read_image(folder / "im1.png", "right image")
+    for name, shape in (("im1.png", right.shape[:2]), ("disp0GT.pfm", gt.shape), ("mask0nocc.png", nonocc.shape)):
+        if shape != left.shape[:2]:
+            raise SequenceError(f"{folder / name}: {shape[1]}x{shape[0]}, but im0.png is {left.shape[1]}x{left.shape[0]}")
+    return SceneData(folder.name, left, right, gt, nonocc, calib["ndisp"])
 
 
 def run_backend(backend, scene: SceneData) -> tuple[np.ndarray, np.ndarray | None, float]:

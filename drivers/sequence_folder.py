@@ -261,18 +261,28 @@ def _as_number(value) -> float | int | None:
 def read_pfm(path: Path) -> np.ndarray:
     """A PFM image as float32 (rows top-to-bottom); grey PFMs give HxW."""
     path = Path(path)
+    if not path.is_file():
+        raise SequenceError(f"{path}: file missing")
     with open(path, "rb") as f:
         header = f.readline().decode("latin-1").strip()
         if header not in ("Pf", "PF"):
             raise SequenceError(f"{path}: not a PFM file")
-        dims = f.readline().decode("latin-1").split()
-        while not dims:
+        try:
             dims = f.readline().decode("latin-1").split()
-        width, height = int(dims[0]), int(dims[1])
-        scale = float(f.readline().decode("latin-1").strip())
+            while not dims:
+                dims = f.readline().decode("latin-1").split()
+            width, height = int(dims[0]), int(dims[1])
+            scale = float(f.readline().decode("latin-1").strip())
+        except (ValueError, IndexError):
+            raise SequenceError(f"{path}: PFM header is not 'width height' and a scale") from None
         dtype = "<f4" if scale < 0 else ">f4"
         channels = 3 if header == "PF" else 1
-        data = np.frombuffer(f.read(), dtype=dtype, count=width * height * channels)
+        payload = f.read()
+    count = width * height * channels
+    if width <= 0 or height <= 0 or len(payload) < 4 * count:
+        raise SequenceError(f"{path}: PFM is not whole ({len(payload)} bytes of pixels, {4 * count} for "
+                            f"{width}x{height})")
+    data = np.frombuffer(payload, dtype=dtype, count=count)
     shape = (height, width, 3) if channels == 3 else (height, width)
     return np.flipud(data.reshape(shape)).astype(np.float32)
 

@@ -165,3 +165,19 @@ def test_eval_errors(tmp_path):
     write_scene(tmp_path / "mb" / "SceneA", seed=0)
     _assert_error(invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--scenes", "Nope"), "Nope")
     _assert_error(invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--set", "paths=8"), "--set")
+
+
+@pytest.mark.parametrize("damage, says", [
+    (lambda scene: (scene / "disp0GT.pfm").unlink(), "disp0GT.pfm: file missing"),
+    (lambda scene: (scene / "disp0GT.pfm").write_bytes((scene / "disp0GT.pfm").read_bytes()[:300]),
+     "disp0GT.pfm: PFM is not whole (288 bytes of pixels, 10240 for 64x40)"),
+    (lambda scene: (scene / "disp0GT.pfm").write_bytes(b"Pf\nsixty-four 40\n-1\n"),
+     "disp0GT.pfm: PFM header is not 'width height' and a scale"),
+    (lambda scene: cv2.imwrite(str(scene / "mask0nocc.png"), np.full((20, 30), 255, np.uint8)),
+     "mask0nocc.png: 30x20, but im0.png is 64x40"),
+])
+def test_a_damaged_scene_is_named_not_a_traceback(tmp_path, damage, says):
+    scene = tmp_path / "mb" / "SceneA"
+    write_scene(scene, seed=0)
+    damage(scene)
+    _assert_error(invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--backend", "opencv_sgbm"), says)

@@ -44,5 +44,10 @@ def test_bad_input_is_one_line_naming_it(dataset, tmp_path):
     assert bad.returncode == 2 and "broken.pt" in bad.stderr and "Traceback" not in bad.stderr
     nodata = cli("eval", "detector", "--data", str(tmp_path / "nodata"), "--weights", str(WEIGHTS))
     assert nodata.returncode == 2 and "nodata: dataset file not found" in nodata.stderr
+    recipe = tmp_path / "recipe.yaml"  # a YAML file that is not a dataset: ultralytics raised with a traceback
+    recipe.write_text("name: plate\ncamera: {plugin: replay}\n")
+    wrong = cli("eval", "detector", "--data", str(recipe), "--weights", str(WEIGHTS))
+    assert wrong.returncode == 2 and "Traceback" not in wrong.stderr
+    assert f"{recipe}: not a YOLO dataset description: no val, names" in wrong.stderr
     iou = cli("eval", "detector", "--data", str(dataset), "--weights", str(WEIGHTS), "--iou", "0")
     assert iou.returncode == 2 and "--iou" in iou.stderr

@@ -40,6 +40,24 @@ def _fail(message: str) -> None:
     sys.exit(2)
 
 
+def _dataset_yaml(data: Path, splits: tuple[str, ...], hint: str = "") -> Path:
+    """The dataset's data.yaml (``data`` or the one inside it), checked for what ultralytics needs; otherwise
+    one line naming it (ultralytics would raise with a traceback)."""
+    import yaml
+
+    data_yaml = data / "data.yaml" if data.is_dir() else data
+    if not data_yaml.is_file():
+        _fail(f"{data_yaml}: dataset file not found{hint}")
+    try:
+        spec = yaml.safe_load(data_yaml.read_text(encoding="utf-8-sig"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        _fail(f"{data_yaml}: not a dataset description ({str(exc).splitlines()[0]})")
+    missing = [k for k in (*splits, "names") if not isinstance(spec, dict) or k not in spec]
+    if missing:
+        _fail(f"{data_yaml}: not a YOLO dataset description: no {', '.join(missing)}{hint}")
+    return data_yaml
+
+
 @click.command("convert-voc")
 @click.argument("src", type=click.Path(path_type=Path))
 @click.argument("dst", type=click.Path(path_type=Path))
@@ -114,9 +132,7 @@ def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int
     """Train YOLOv8n from scratch (resumes when OUT/NAME/weights/last.pt exists)."""
     from plugins.yolov8.training import TrainSettings, train_detector
 
-    data_yaml = data / "data.yaml" if data.is_dir() else data
-    if not data_yaml.is_file():
-        _fail(f"{data_yaml}: dataset file not found (run `inspect data convert-voc` first)")
+    data_yaml = _dataset_yaml(data, ("train", "val"), " (run `inspect data convert-voc` first)")
     if init is not None and not init.is_file():
         _fail(f"{init}: weights file not found")
     settings = TrainSettings(epochs=epochs, patience=patience, imgsz=imgsz, batch=batch, device=device, workers=workers,
@@ -157,9 +173,7 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
     """mAP@0.50, mAP@0.50:0.95, precision, recall and per-class AP, beside the seed's figures."""
     from plugins.yolov8.evaluation import evaluate_detector, metrics_markdown
 
-    data_yaml = data / "data.yaml" if data.is_dir() else data
-    if not data_yaml.is_file():
-        _fail(f"{data_yaml}: dataset file not found")
+    data_yaml = _dataset_yaml(data, (split,))
     if not weights.is_file():
         _fail(f"{weights}: weights file not found")
     try:

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import ROOT
 
 from drivers.zed_calibration import CalibrationError, RESOLUTIONS, StereoRectifier, read_conf
 from drivers.zed_uvc import Grab, ZedUvc
@@ -268,3 +269,14 @@ def test_camera_record_reports_a_bad_recipe(tmp_path):
     result = CliRunner().invoke(_build(), ["camera", "record", str(recipe), "--frames", "1", str(tmp_path / "o")])
     assert result.exit_code == 2
     assert "error:" in result.output and "calibration file not found" in result.output and "Traceback" not in result.output
+
+
+def test_camera_record_refuses_a_folder_it_cannot_create_before_opening_the_camera(tmp_path):
+    from core.cli import _build
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    recipe = ROOT / "recipes" / "steel_plate.yaml"
+    result = CliRunner().invoke(_build(), ["camera", "record", str(recipe), "--frames", "1", str(blocker / "out")])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert f"error: {blocker / 'out'}: cannot create the folder" in result.output

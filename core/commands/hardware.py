@@ -79,6 +79,10 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
     plugin_name, settings, recipe_dir = _camera_section(recipe, overrides)
     if (out / "left").is_dir() and any((out / "left").iterdir()):
         _fail(f"{out}: already holds a recorded sequence; choose a new folder")
+    try:  # before the camera opens: a folder that cannot be written must not cost a recording
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _fail(f"{out}: cannot create the folder ({exc.strerror})")
     try:
         plugin = default_registry().get("camera", plugin_name)
     except UnknownPlugin as exc:
@@ -111,6 +115,8 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
                 break
     except KeyboardInterrupt:
         click.echo("interrupted", err=True)
+    except OSError as exc:  # a full disk, a folder removed under it (the camera is closed below)
+        _fail(f"{out}: cannot write pair {written} ({exc.strerror or exc}); {written} of {count} recorded")
     finally:
         camera.close()
     if written < count:

@@ -9,7 +9,7 @@ import yaml
 from pydantic import ValidationError
 
 from core.commands.inspection import _load, fail
-from core.commands.params import FINITE, demo_recipe
+from core.commands.params import FINITE, demo_recipe, out_folder
 
 
 @click.command("bench")
@@ -26,7 +26,8 @@ from core.commands.params import FINITE, demo_recipe
 @click.option("--regions", default="full,defects", show_default=True,
               help="comma-separated: full (stereo on every whole frame) and/or defects (stereo.region: defects, "
                    "compared with full-frame depth)")
-@click.option("--out", default=Path("results/bench"), type=click.Path(path_type=Path), show_default=True)
+@click.option("--out", default=Path("results/bench"), type=click.Path(path_type=Path), show_default=True,
+              callback=out_folder)
 @click.option("--soak", default=None, type=click.IntRange(1), metavar="FRAMES",
               help="instead of the table: run the real loop (the recipe's backend and region) for FRAMES frames of a "
                    "looped replay and report resident memory at the start and end")

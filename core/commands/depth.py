@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import demo_recipe
+from core.commands.params import demo_recipe, out_folder
 
 
 @click.command("depth")
@@ -16,7 +16,8 @@ from core.commands.params import demo_recipe
 @click.option("--backend", default=None, help="stereo backend instead of the recipe's (with its default settings)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE",
               help="override a recipe value, e.g. depth.method=disparity or stereo.settings.preset=seed (repeatable)")
-@click.option("--out", type=click.Path(path_type=Path), default=Path("runs/depth_eval"), show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), default=Path("runs/depth_eval"), show_default=True,
+              callback=out_folder)
 @click.option("--figure/--no-figure", default=True, show_default=True, help="save error against distance and width")
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or auto (torch_sgm)")
 @click.option("--threads", type=click.IntRange(1), default=None, help="torch and OpenCV CPU threads")

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from core.commands.params import out_file
 from core.types import Alarm, OutputEvent, Status
 
 _STYLE = {Status.PASS: "green", Status.REJECT: "bold red", Status.ERROR: "bold yellow", Status.FLAG: "bold magenta"}
@@ -324,7 +325,8 @@ def plugins_command() -> None:
 @click.command("report")
 @click.argument("results", type=click.Path(path_type=Path))
 @click.option("--run", "run_id", type=int, default=None, help="one run only (default: all runs in the store)")
-@click.option("--csv", "csv_path", type=click.Path(path_type=Path), default=None, help="export one row per defect")
+@click.option("--csv", "csv_path", type=click.Path(path_type=Path), default=None, callback=out_file,
+              help="export one row per defect")
 def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> None:
     """Yield and counts per class from a results store (folder or results.db)."""
     from core import store

@@ -28,3 +28,21 @@ def demo_recipe() -> Path:
     ``recipes/steel_plate.yaml`` of the working folder where the package was installed without it."""
     beside = Path(__file__).resolve().parents[2] / "recipes" / "steel_plate.yaml"
     return beside if beside.is_file() else Path("recipes/steel_plate.yaml")
+
+
+def out_folder(ctx: click.Context, param: click.Parameter, value: Path | None) -> Path | None:
+    """Click callback for an output folder: made now, so that one that cannot be is said before the work
+    (a ten-minute evaluation), not as a traceback after it."""
+    if value is not None:
+        try:
+            value.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise click.BadParameter(f"{value}: cannot create the folder ({exc.strerror})", ctx, param) from None
+    return value
+
+
+def out_file(ctx: click.Context, param: click.Parameter, value: Path | None) -> Path | None:
+    """Click callback for an output file: its folder made now (``out_folder``)."""
+    if value is not None:
+        out_folder(ctx, param, value.parent)
+    return value

@@ -105,6 +105,11 @@ def register(cli: click.Group) -> None:
             raise SystemExit(2)
         for path in old:  # stale frames (or another image format) would mix into the new sequence
             path.unlink()
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            click.echo(f"error: {out}: cannot create the folder ({exc.strerror})", err=True)
+            raise SystemExit(2) from None
         start = time.perf_counter()
         try:
             generate_sequence(

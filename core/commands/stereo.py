@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import FINITE
+from core.commands.params import FINITE, out_file, out_folder
 
 
 def _fail(message: str) -> None:
@@ -108,7 +108,8 @@ device_option = click.option("--device", type=click.Choice(["auto", "cpu", "cuda
               help="stereo plugin, e.g. torch_sgm (its best map: the improved preset with two_view) or opencv_sgbm")
 @click.option("--max-disp", type=FINITE, required=True, help="search min-disp <= d < max-disp (pixels)")
 @click.option("--min-disp", type=FINITE, default=0.0, show_default=True)
-@click.option("--out", type=click.Path(path_type=Path), help="PFM, Middlebury convention (invalid = inf)")
+@click.option("--out", type=click.Path(path_type=Path), callback=out_file,
+              help="PFM, Middlebury convention (invalid = inf)")
 @click.option("--png", type=click.Path(path_type=Path), help="colour-mapped view")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="backend setting, repeatable")
 @device_option
@@ -171,7 +172,8 @@ def _split(values: tuple[str, ...]) -> list[str]:
               help="folder of Middlebury scene folders (im0.png, im1.png, disp0GT.pfm, mask0nocc.png, calib.txt)")
 @click.option("--backend", "backends", multiple=True, help="repeatable or comma-separated; default torch_sgm")
 @click.option("--scenes", multiple=True, help="scene names, repeatable or comma-separated; default all")
-@click.option("--out", type=click.Path(path_type=Path), default=Path("runs/stereo_eval"), show_default=True)
+@click.option("--out", type=click.Path(path_type=Path), default=Path("runs/stereo_eval"), show_default=True,
+              callback=out_folder)
 @click.option("--set", "settings", multiple=True, metavar="BACKEND.KEY=VALUE", help="backend setting, repeatable")
 @click.option("--figure/--no-figure", default=True, show_default=True, help="save the per-scene figure")
 @device_option

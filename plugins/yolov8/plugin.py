@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import Finite
+from core.commands.params import Finite, out_file, out_folder
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
 from plugins.yolov8.detector import DEFAULT_WEIGHTS, YoloDetector, YoloSettings, checkpoint_class_names
@@ -144,7 +144,8 @@ def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int
 
 @click.command("average")
 @click.argument("weights", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--out", required=True, type=click.Path(path_type=Path), help="the averaged checkpoint to write")
+@click.option("--out", required=True, type=click.Path(path_type=Path), callback=out_file,
+              help="the averaged checkpoint to write")
 def average_command(weights: tuple[Path, ...], out: Path) -> None:
     """Average the weights of several detector checkpoints of one architecture (a model soup)."""
     from plugins.yolov8.averaging import AveragingError, average_checkpoints
@@ -168,7 +169,8 @@ def average_command(weights: tuple[Path, ...], out: Path) -> None:
 @click.option("--imgsz", default=224, show_default=True)
 @click.option("--iou", default=YoloSettings.model_fields["iou"].default, show_default=True, type=Finite(0, 1, min_open=True),
               help="NMS IoU; the default is what the yolov8 detector runs with (detector.settings.iou); ultralytics' own val uses 0.7")
-@click.option("--out", default=Path("runs/detector-eval"), type=click.Path(path_type=Path), show_default=True)
+@click.option("--out", default=Path("runs/detector-eval"), type=click.Path(path_type=Path), show_default=True,
+              callback=out_folder)
 def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, out: Path) -> None:
     """mAP@0.50, mAP@0.50:0.95, precision, recall and per-class AP, beside the seed's figures."""
     from plugins.yolov8.evaluation import evaluate_detector, metrics_markdown

@@ -1,0 +1,39 @@
+"""Every command that writes files says so in one line when it cannot make their folder, before its work
+(an evaluation of minutes would otherwise end in a traceback)."""
+from __future__ import annotations
+
+import pytest
+from click.testing import CliRunner
+
+from core.cli import _build
+
+SEQUENCE = "sim_fixtures/plates_textured"
+PAIR = ("sim_fixtures/steel_plate/left/000000.jpg", "sim_fixtures/steel_plate/right/000000.jpg")
+
+
+@pytest.fixture
+def blocked(tmp_path):
+    """A path under a plain file: no folder can be made there."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    return blocker / "out"
+
+
+@pytest.mark.parametrize("args, option", [
+    (["eval", "depth", SEQUENCE, "--out", "{out}"], "--out"),
+    (["bench", "--backends", "none", "--out", "{out}"], "--out"),
+    (["eval", "stereo", "--middlebury", "nowhere", "--out", "{out}"], "--out"),
+    (["stereo", *PAIR, "--max-disp", "64", "--out", "{out}/d.pfm"], "--out"),
+    (["report", "results", "--csv", "{out}/parts.csv"], "--csv"),
+    (["eval", "detector", "--data", "nowhere", "--weights", "nowhere.pt", "--out", "{out}"], "--out"),
+])
+def test_an_output_folder_that_cannot_be_made_is_refused_first(blocked, args, option):
+    result = CliRunner().invoke(_build(), [a.replace("{out}", str(blocked)) for a in args])
+    assert result.exit_code == 2, result.output
+    assert f"Invalid value for '{option}'" in result.output and "cannot create the folder" in result.output
+
+
+def test_sim_generate_says_it_cannot_make_its_folder(blocked):
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(blocked), "--frames", "1", "--synthetic-defects"])
+    assert result.exit_code == 2
+    assert f"error: {blocked}: cannot create the folder" in result.output

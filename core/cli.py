@@ -41,7 +41,12 @@ def _build() -> click.Group:
         module.register(cli)
     from core.registry import default_registry
 
-    default_registry().manager.hook.stereo_inspect_commands(cli=cli)
+    registry = default_registry()
+    for impl in registry.manager.hook.stereo_inspect_commands.get_hookimpls():
+        try:
+            impl.function(cli=cli)
+        except Exception as exc:  # one package's broken commands must not take the others with them
+            registry.failed.append(f"{impl.plugin_name} (its commands): {type(exc).__name__}: {exc}")
     return cli
 
 

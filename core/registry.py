@@ -5,6 +5,7 @@ packages declare themselves in the entry-point group, built-in ones included.
 """
 from __future__ import annotations
 
+import importlib.metadata
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -22,9 +23,19 @@ _HOOK_BY_KIND = {
 
 
 class UnknownPlugin(LookupError):
-    def __init__(self, kind: str, name: str, known: list[str]):
+    def __init__(self, kind: str, name: str, known: list[str], failed: list[str] | None = None):
         self.kind, self.name, self.known = kind, name, known
-        super().__init__(f"unknown {kind} plugin {name!r}; known: {', '.join(known) or 'none'}")
+        why = f"; these plugin packages failed to load: {'; '.join(failed)}" if failed else ""
+        super().__init__(f"unknown {kind} plugin {name!r}; known: {', '.join(known) or 'none'}{why}")
+
+
+class PluginConflict(UnknownPlugin):
+    """Two packages register one name: which of them a recipe means cannot be told."""
+
+    def __init__(self, kind: str, name: str, packages: list[str]):
+        LookupError.__init__(self, f"{kind} plugin {name!r} is registered by {' and by '.join(packages)}: uninstall "
+                                   f"one of them")
+        self.kind, self.name, self.known = kind, name, []
 
 
 @dataclass
@@ -34,17 +45,32 @@ class RegisteredPlugin:
 
 
 class Registry:
+    """The plugins of every kind by name. A package that fails to load, or whose hook fails, is left out and
+    listed in ``failed`` (one broken third-party package must not stop the others, nor be silent: a recipe
+    naming its plugin is told why it is missing); a name two packages register is a ``PluginConflict``."""
+
     def __init__(self, manager: pluggy.PluginManager):
         self.manager = manager
+        self.failed: list[str] = list(getattr(manager, "load_failures", []))
         self._plugins: dict[str, dict[str, RegisteredPlugin]] = {kind: {} for kind in PLUGIN_KINDS}
+        self._conflicts: dict[tuple[str, str], list[str]] = {}
         for kind in PLUGIN_KINDS:
             hook = getattr(manager.hook, _HOOK_BY_KIND[kind])
             for impl in hook.get_hookimpls():
                 package = self._package_of(impl.plugin)
-                for spec in impl.function() or []:
+                try:
+                    specs = list(impl.function() or [])
+                except Exception as exc:
+                    self.failed.append(f"{package} ({impl.plugin_name}): {type(exc).__name__}: {exc}")
+                    continue
+                for spec in specs:
                     if spec.kind != kind:
                         raise TypeError(f"{impl.plugin_name}: {spec.name!r} is a {spec.kind}, returned as a {kind}")
-                    self._plugins[kind].setdefault(spec.name, RegisteredPlugin(spec, package))
+                    if spec.name in self._plugins[kind]:
+                        first = self._plugins[kind][spec.name].package
+                        self._conflicts.setdefault((kind, spec.name), [first]).append(package)
+                        continue
+                    self._plugins[kind][spec.name] = RegisteredPlugin(spec, package)
 
     def _package_of(self, plugin: object) -> str:
         for loaded, dist in self.manager.list_plugin_distinfo():
@@ -53,22 +79,38 @@ class Registry:
         return "registered in-process"
 
     def names(self, kind: PluginKind) -> list[str]:
-        return sorted(self._plugins[kind])
+        """The names of ``kind`` that one package registers (those two register are ``conflicts``)."""
+        return sorted(n for n in self._plugins[kind] if (kind, n) not in self._conflicts)
 
     def get(self, kind: PluginKind, name: str) -> RegisteredPlugin:
+        if (kind, name) in self._conflicts:
+            raise PluginConflict(kind, name, self._conflicts[(kind, name)])
         try:
             return self._plugins[kind][name]
         except KeyError:
-            raise UnknownPlugin(kind, name, self.names(kind)) from None
+            raise UnknownPlugin(kind, name, self.names(kind), self.failed) from None
+
+    def conflicts(self) -> list[str]:
+        """One line per name that several packages register."""
+        return [str(PluginConflict(kind, name, packages)) for (kind, name), packages in self._conflicts.items()]
 
     def all(self) -> list[RegisteredPlugin]:
         return [p for kind in PLUGIN_KINDS for _, p in sorted(self._plugins[kind].items())]
 
 
 def make_manager(extra_plugins: tuple[object, ...] = ()) -> pluggy.PluginManager:
+    """A plugin manager with every package of the entry-point group loaded, one at a time: one that fails to
+    import is left out and named in the manager's ``load_failures``."""
     manager = pluggy.PluginManager(hookspecs.PROJECT)
     manager.add_hookspecs(hookspecs)
-    manager.load_setuptools_entrypoints(hookspecs.ENTRY_POINT_GROUP)
+    manager.load_failures = []
+    for entry in importlib.metadata.entry_points(group=hookspecs.ENTRY_POINT_GROUP):
+        try:
+            manager.load_setuptools_entrypoints(hookspecs.ENTRY_POINT_GROUP, name=entry.name)
+        except Exception as exc:
+            dist = getattr(entry, "dist", None)
+            package = f"{dist.metadata['name']} {dist.version}" if dist is not None else entry.value
+            manager.load_failures.append(f"{package} ({entry.name}): {type(exc).__name__}: {exc}")
     for plugin in extra_plugins:
         if not manager.is_registered(plugin):
             manager.register(plugin)

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import sqlite3
 
+import pytest
 from conftest import cli, write_recipe
+
+from core.contracts import PluginSpec
+from core.hookspecs import hookimpl
+from core.registry import PluginConflict, Registry, make_manager
 
 RECIPE = """\
 name: external
@@ -55,3 +60,40 @@ def test_selected_by_name_and_run(tmp_path, plane_sequence, external_plugin_site
     assert [r[0] for r in db.execute("SELECT class FROM defects")] == ["weld_seam", "weld_seam"]
     log = (tmp_path / "rejects.log").read_text().splitlines()
     assert len(log) == 1 and log[0].endswith("REJECT R1-000001 REJECT")
+
+
+def _broken_package(site):
+    """A package whose entry point cannot be imported (a dependency missing), as pip would leave it."""
+    info = site / "broken_plugin-1.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: broken-plugin\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[stereo_inspect]\nbroken = broken_plugin_module\n")
+    (site / "broken_plugin_module.py").write_text("import a_dependency_nobody_installed\n")
+    return site
+
+
+def test_a_package_that_fails_to_load_leaves_the_others_and_is_named(tmp_path, plane_sequence):
+    env = {"PYTHONPATH": str(_broken_package(tmp_path / "site"))}
+    listed = cli("plugins", env_extra=env)
+    assert listed.returncode == 0 and "replay" in listed.stdout, listed.stderr
+    assert "failed to load: broken-plugin 1.0 (broken): ModuleNotFoundError" in listed.stderr
+    info = plane_sequence([0.0])
+    recipe = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"]))
+    assert cli("validate", str(recipe), "--set", "detector.plugin=yolov8", "--set", "detector.settings={}",
+               "--set", "decision.rules.0.class=any", env_extra=env).returncode == 0
+    named = cli("validate", str(recipe), env_extra=env)  # a recipe naming a plugin that is not there says why
+    assert named.returncode == 2 and "unknown detector plugin 'fixed_roi'" in named.stderr
+    assert "these plugin packages failed to load: broken-plugin 1.0 (broken): ModuleNotFoundError" in named.stderr
+
+
+def test_a_name_two_packages_register_is_refused_naming_both():
+    class Impostor:
+        @hookimpl
+        def stereo_inspect_cameras(self):
+            return [PluginSpec("replay", "camera", lambda settings, ctx: None)]
+
+    registry = Registry(make_manager((Impostor(),)))
+    with pytest.raises(PluginConflict, match=r"camera plugin 'replay' is registered by stereo-inspect [\d.]+ and by "
+                                             r"registered in-process: uninstall one of them"):
+        registry.get("camera", "replay")
+    assert "replay" not in registry.names("camera") and "zed" in registry.names("camera")

@@ -320,6 +320,10 @@ def plugins_command() -> None:
         for name in registry.names(kind):
             plugin = registry.get(kind, name)
             click.echo(f"  {name:<14} {plugin.package:<28} {plugin.spec.description}")
+    for line in registry.conflicts():
+        click.echo(f"conflict: {line}", err=True)
+    for line in registry.failed:
+        click.echo(f"failed to load: {line}", err=True)
 
 
 @click.command("report")

@@ -78,6 +78,19 @@ class RejectOutput(Protocol):
     # from the engine's watch thread and must not block.
 
 
+PROTOCOLS: dict[str, type] = {"camera": Camera, "stereo": StereoBackend, "detector": Detector, "output": RejectOutput}
+
+
+def missing_members(obj: Any, kind: str) -> list[str]:
+    """The methods and attributes of ``kind``'s protocol that ``obj`` lacks (a plugin's factory that
+    returned something else: every part would fail on it)."""
+    protocol = PROTOCOLS[kind]
+    methods = [n for n, v in vars(protocol).items() if callable(v) and not n.startswith("_")]
+    attributes = list(getattr(protocol, "__annotations__", {}))
+    return ([m for m in methods if not callable(getattr(obj, m, None))]
+            + [a for a in attributes if not hasattr(obj, a)])
+
+
 @dataclass
 class PluginSpec:
     """One named implementation of a plugin kind, as returned by the registration hooks."""

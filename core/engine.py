@@ -20,7 +20,7 @@ import numpy as np
 from core import stereo_memory
 from core.annotate import annotate
 from core.checks import RepeatedImages, detections_problem, disparity_problem, frame_problem
-from core.contracts import PluginContext
+from core.contracts import PluginContext, missing_members
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
 from core.frame_source import DetectAhead, OneAtATime
@@ -126,9 +126,14 @@ def build_pipeline(loaded: LoadedRecipe, registry: Registry, device: str = "auto
 
     def make(kind: str, name: str, key: str, settings: dict) -> Any:
         try:
-            return registry.get(kind, name).spec.factory(settings, ctx)
+            made = registry.get(kind, name).spec.factory(settings, ctx)
         except Exception as exc:  # a plugin's own failure, reported against the recipe key that chose it
             raise SetupError(f"{loaded.path}: {key}: {name}: {exc}") from exc
+        missing = missing_members(made, kind)
+        if missing:
+            raise SetupError(f"{loaded.path}: {key}: {name}: its factory returned an instance of {type(made).__name__}, which has no "
+                             f"{', '.join(missing)} (a {kind} plugin's object needs them)")
+        return made
 
     camera = make("camera", recipe.camera.plugin, "camera", loaded.plugin_settings["camera"])
     stereo = make("stereo", recipe.stereo.backend, "stereo", loaded.plugin_settings["stereo"])

@@ -234,6 +234,25 @@ def test_camera_that_raises_ends_the_run_with_an_alarm(tmp_path, plane_sequence)
     assert db.execute("SELECT exit_code FROM runs").fetchone()[0] == engine.EXIT_ALARMS
 
 
+class HalfACameraPlugin:
+    """A factory that returns an object without the camera's methods (a plugin under development)."""
+
+    @hookimpl
+    def stereo_inspect_cameras(self):
+        return [PluginSpec("half", "camera", lambda s, ctx: object())]
+
+
+def test_a_plugin_object_without_its_kinds_methods_is_refused_before_the_run(tmp_path, plane_sequence):
+    info = plane_sequence([0.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, HalfACameraPlugin())))
+    text = RECIPE.format(box=info["box"], output="log").replace("plugin: replay\n  settings: {path: seq}", "plugin: half")
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
+    with pytest.raises(engine.SetupError, match=r"camera: half: its factory returned an instance of object, which has no frames, "
+                                                r"close \(a camera plugin's object needs them\)"):
+        engine.run(loaded, registry=registry, device="cpu")
+    assert not (tmp_path / "results").exists()  # refused before a run was recorded
+
+
 @pytest.mark.parametrize("threads", [1, "auto"])
 def test_the_recipe_sets_the_process_threads(tmp_path, plane_sequence, threads):
     """A station's torch and OpenCV threads come from the recipe (auto: half the cores), so that two

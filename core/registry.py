@@ -64,8 +64,10 @@ class Registry:
                     self.failed.append(f"{package} ({impl.plugin_name}): {type(exc).__name__}: {exc}")
                     continue
                 for spec in specs:
-                    if spec.kind != kind:
-                        raise TypeError(f"{impl.plugin_name}: {spec.name!r} is a {spec.kind}, returned as a {kind}")
+                    if not isinstance(spec, PluginSpec) or spec.kind != kind:
+                        what = f"{spec.name!r}, a {spec.kind}" if isinstance(spec, PluginSpec) else type(spec).__name__
+                        self.failed.append(f"{package} ({impl.plugin_name}): {_HOOK_BY_KIND[kind]} returned {what}")
+                        continue
                     if spec.name in self._plugins[kind]:
                         first = self._plugins[kind][spec.name].package
                         self._conflicts.setdefault((kind, spec.name), [first]).append(package)

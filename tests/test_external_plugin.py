@@ -9,7 +9,7 @@ from conftest import cli, write_recipe
 
 from core.contracts import PluginSpec
 from core.hookspecs import hookimpl
-from core.registry import PluginConflict, Registry, make_manager
+from core.registry import PluginConflict, Registry, UnknownPlugin, make_manager
 
 RECIPE = """\
 name: external
@@ -97,3 +97,23 @@ def test_a_name_two_packages_register_is_refused_naming_both():
                                              r"registered in-process: uninstall one of them"):
         registry.get("camera", "replay")
     assert "replay" not in registry.names("camera") and "zed" in registry.names("camera")
+
+
+def test_a_hook_that_fails_or_returns_something_else_is_left_out_and_named():
+    class Failing:
+        @hookimpl
+        def stereo_inspect_detectors(self):
+            raise RuntimeError("licence server unreachable")
+
+    class Confused:
+        @hookimpl
+        def stereo_inspect_outputs(self):
+            return [PluginSpec("plc", "camera", lambda settings, ctx: None), {"name": "plc"}]
+
+    registry = Registry(make_manager((Failing(), Confused())))
+    assert "yolov8" in registry.names("detector") and "modbus" in registry.names("output")
+    failed = "\n".join(registry.failed)
+    assert "RuntimeError: licence server unreachable" in failed
+    assert "stereo_inspect_outputs returned 'plc', a camera" in failed and "stereo_inspect_outputs returned dict" in failed
+    with pytest.raises(UnknownPlugin, match="these plugin packages failed to load: .*licence server unreachable"):
+        registry.get("detector", "their_detector")

@@ -66,7 +66,7 @@ class RepeatedImages:
 
 def detections_problem(detections: Any, classes: Collection[str] | None = None) -> str | None:
     """A list of ``Detection``s whose boxes are four finite numbers with x0 < x1 and y0 < y1, whose
-    confidences lie in [0, 1] and whose classes are among the detector's ``classes`` (where given)."""
+    confidences lie in [0, 1] and whose classes are among the detector's ``classes`` (where it states any)."""
     if not isinstance(detections, list):
         return f"the detector returned a {type(detections).__name__}, not a list of detections"
     for d in detections:
@@ -79,7 +79,7 @@ def detections_problem(detections: Any, classes: Collection[str] | None = None) 
         if not (isinstance(d.confidence, (int, float, np.floating, np.integer)) and 0.0 <= d.confidence <= 1.0):
             # a NaN confidence fails every threshold: the defect would be dropped and the part pass
             return f"the detector returned a {d.class_name} with confidence {d.confidence!r}, not a number in [0, 1]"
-        if classes is not None and d.class_name not in classes:
+        if classes and d.class_name not in classes:
             # a rule for one class would never cover it, and the part would pass
             return (f"the detector returned a {d.class_name!r}, not one of the classes it states "
                     f"({', '.join(classes)})")

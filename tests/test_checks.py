@@ -106,7 +106,7 @@ class TestDetectionsProblem:
         assert detections_problem(found[:1], ["pit", "scratch"]) is None
         assert detections_problem(found, ["pit", "scratch"]) == \
             "the detector returned a 'rust', not one of the classes it states (pit, scratch)"
-        assert detections_problem(found) is None  # a detector that states none is not held to any
+        assert detections_problem(found) is None and detections_problem(found, []) is None  # none stated: none held to
 
 
 class TestDisparityProblem:

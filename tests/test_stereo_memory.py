@@ -10,6 +10,7 @@ import sys
 import pytest
 import stereo_inspect_fixed_roi
 from conftest import ROOT, cli, write_recipe
+from test_engine import RECIPE
 
 from core import engine, stereo_memory
 from core.recipe import load_recipe
@@ -100,31 +101,6 @@ def test_torch_sgm_states_at_least_what_a_whole_range_search_takes():
     assert 0.5 * figures["stated"] < figures["taken"] <= figures["stated"]
 
 
-RECIPE = """\
-name: memory-test
-camera:
-  plugin: replay
-  settings: {{path: seq}}
-stereo:
-  backend: opencv_sgbm
-  working_distance_mm: [300, 600]
-  region: {region}
-  schedule: {schedule}
-detector:
-  plugin: fixed_roi
-  settings:
-    regions:
-      - {{name: pit, box: {box}}}
-decision:
-  rules:
-    - {{class: any, quantity: deviation_mm, op: ">", threshold: 1.5}}
-outputs:
-  - plugin: log
-results:
-  path: results
-"""
-
-
 @pytest.fixture
 def registry():
     return Registry(make_manager((stereo_inspect_fixed_roi,)))
@@ -132,7 +108,9 @@ def registry():
 
 def _loaded(tmp_path, registry, info, region):
     schedule = "every_frame" if region == "full" else "on_defect"
-    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], region=region, schedule=schedule))
+    text = RECIPE.format(box=info["box"], output="log").replace(
+        "  schedule: every_frame", f"  region: {region}\n  schedule: {schedule}")
+    path = write_recipe(tmp_path / "r.yaml", text)
     return load_recipe(path, registry=registry)
 
 

@@ -154,11 +154,12 @@ def schema_problem(db: sqlite3.Connection, tables: tuple[str, ...] = ()) -> str 
 
 
 def store_problem(location: Path, tables: tuple[str, ...] = ()) -> str | None:
-    """Why the store at ``location`` cannot be used (``schema_problem``, or not a database at all), in one
-    line naming the file; None where it can, or where there is none yet. Creates and changes nothing."""
+    """Why the store at ``location`` cannot be used (``schema_problem``, or not a database at all), or, where
+    there is none yet, why it could not be made there (a file in its path, a folder not writable); in one
+    line naming it, else None. Creates and changes nothing."""
     path = db_path(location)
     if not path.is_file():
-        return None
+        return _folder_problem(location, path)
     try:
         db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
         try:
@@ -168,6 +169,19 @@ def store_problem(location: Path, tables: tuple[str, ...] = ()) -> str | None:
     except sqlite3.DatabaseError as exc:
         problem = str(exc)
     return None if problem is None else str(_unusable(path, problem))
+
+
+def _folder_problem(location: Path, path: Path) -> str | None:
+    """Why no store could be made at ``path`` (``location``'s database file, not there yet), or None."""
+    existing = path
+    while not existing.exists():
+        existing = existing.parent
+    if existing != path and not existing.is_dir():
+        return f"{location}: cannot be created ({existing} is a file, not a folder)"
+    folder = existing if existing.is_dir() else existing.parent
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"{location}: cannot be written ({folder} is not writable)"
+    return None
 
 
 def db_path(location: Path) -> Path:

@@ -111,7 +111,7 @@ class TestAFileThatIsNotAStore:
         assert out.stderr.startswith(f"error: {not_a_store}: not a results store that can be used (")
 
     def test_validate_names_it_and_leaves_it_as_it_was(self, not_a_store, tmp_path, plane_sequence):
-        from core.commands.inspection import _results_problem
+        from core.store import store_problem
 
         info = plane_sequence([0.0])
         before = not_a_store.read_bytes()
@@ -119,7 +119,7 @@ class TestAFileThatIsNotAStore:
         text = RECIPE.format(box=info["box"], output="log")
         loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text.replace("path: results",
                                                                           f"path: {not_a_store.parent}")), registry=registry)
-        problem = _results_problem(loaded)
+        problem = store_problem(loaded.resolve(loaded.recipe.results.path))
         if not before:  # an empty file is SQLite's empty database: a new store
             assert problem is None
         else:
@@ -127,7 +127,7 @@ class TestAFileThatIsNotAStore:
         assert not_a_store.read_bytes() == before
         blocked = load_recipe(write_recipe(tmp_path / "b.yaml", text.replace("path: results", f"path: {not_a_store}/x")),
                               registry=registry)
-        assert _results_problem(blocked) == f"{not_a_store}/x: cannot be created ({not_a_store} is a file, not a folder)"
+        assert store_problem(blocked.resolve(blocked.recipe.results.path)) == f"{not_a_store}/x: cannot be created ({not_a_store} is a file, not a folder)"
 
     def test_a_run_refuses_it_before_it_starts_and_leaves_it_as_it_was(self, not_a_store, tmp_path, plane_sequence):
         info = plane_sequence([0.0])

@@ -240,7 +240,9 @@ def validate_command(recipe: Path, overrides: tuple[str, ...]) -> None:
     """Check a recipe (keys, types, ranges, plugins, files) without running it."""
     loaded = _load(recipe, overrides)
     r = loaded.recipe
-    results = _results_problem(loaded)
+    from core.store import store_problem
+
+    results = store_problem(loaded.resolve(r.results.path))
     if results is not None:
         fail(loaded.describe(("results", "path"), results))
     memory = _stereo_memory_problem(loaded)
@@ -255,28 +257,6 @@ def validate_command(recipe: Path, overrides: tuple[str, ...]) -> None:
     if memory is not None:
         click.echo(loaded.describe(("stereo",), f"warning: a box covering most of the frame would be its part's "
                                                  f"ERROR: {memory}"), err=True)
-
-
-def _results_problem(loaded) -> str | None:
-    """Why ``inspect run`` could not keep its results where the recipe says (another program's database
-    there, or a folder it may not create), found without creating or changing anything."""
-    import os
-
-    from core.store import db_path, store_problem
-
-    path = loaded.resolve(loaded.recipe.results.path)
-    problem = store_problem(path)
-    if problem is not None:
-        return problem
-    db = existing = db_path(path)
-    while not existing.exists():
-        existing = existing.parent
-    if existing != db and not existing.is_dir():
-        return f"{path}: cannot be created ({existing} is a file, not a folder)"
-    folder = existing if existing.is_dir() else existing.parent
-    if not os.access(folder, os.W_OK | os.X_OK):
-        return f"{path}: cannot be written ({folder} is not writable)"
-    return None
 
 
 def _stereo_memory_problem(loaded) -> str | None:

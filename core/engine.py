@@ -271,17 +271,18 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
     so is one the loop ``refused`` (``frame_refusal``: the frame before's images again, or an image that
     cannot show a defect)."""
     recipe = loaded.recipe
-    stamp_problem = capture_time_problem(item.timestamp, clock())
+    now = clock()
+    stamp_problem = capture_time_problem(item.timestamp, now)
     if stamp_problem is not None:
         # its reject is timed from now, the best that is known of when the plate passed the camera
         message = f"frame {item.frame_id}: {stamp_problem}" + (
             f" (and {item.message})" if isinstance(item, FrameError) else "")
-        part = PartResult(part_id, item.frame_id, item.index, clock(), error_verdict(f"camera: {message}"), error=message)
+        part = PartResult(part_id, item.frame_id, item.index, now, error_verdict(f"camera: {message}"), error=message)
         return FrameOutcome(part, [], None)
     if isinstance(item, FrameError):
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(f"camera: {item.message}"), error=item.message)
         return FrameOutcome(part, [], None)
-    age = clock() - item.timestamp
+    age = now - item.timestamp
     if age_limit_s is not None and age > age_limit_s:
         message = (f"frame {item.frame_id}: reached inspection {1000 * age:.0f} ms after its capture, later than "
                    f"{1000 * age_limit_s:.0f} ms (camera.max_frame_age_ms, or the shortest delay to an actuator)")

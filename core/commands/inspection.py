@@ -279,11 +279,9 @@ def _coverage_warnings(loaded) -> list[str]:
     """A line naming the classes the detector reports (those ``detector.classes`` keeps) that no rule covers:
     a defect of theirs passes whatever its depth."""
     from core.decision import unruled_classes
-    from core.recipe.loader import detector_classes
-    from core.registry import default_registry
 
     recipe = loaded.recipe
-    known = detector_classes(loaded, default_registry())  # the loader has already had the detector's answer
+    known = loaded.detector_classes
     if known is None:
         return []
     kept = [c for c in known if recipe.detector.classes is None or c in recipe.detector.classes]

@@ -73,6 +73,8 @@ class LoadedRecipe:
     plugin_settings: dict[str, Any] = field(default_factory=dict)  # "camera", "stereo", "detector", "outputs.N"
     lines: dict[KeyPath, int] = field(default_factory=dict)  # 1-based line of every key of the file
     overridden: set[KeyPath] = field(default_factory=set)  # keys given with --set
+    # the classes the detector states from its settings, None where it states them only once built
+    detector_classes: list[str] | None = None
 
     def where(self, key: KeyPath) -> str:
         """``file:line`` of the key, or of the nearest key above it that the file has (or its --set)."""
@@ -376,6 +378,7 @@ def _check_classes(loaded: LoadedRecipe, registry: Registry, locator: _Locator) 
     except Exception as exc:  # the detector's own reason (weights refused, unreadable, ...)
         key = ("detector", "weights") if recipe.detector.weights is not None else ("detector", "plugin")
         raise locator.error(key, str(exc)) from None
+    loaded.detector_classes = known
     if known is None:  # checked against the detector itself when the run starts
         return
     for key, name in named_classes(recipe):

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import Finite
+from core.commands.params import Finite, make_folder
 
 
 def _fail(message: str) -> None:
@@ -79,10 +79,9 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
     plugin_name, settings, recipe_dir = _camera_section(recipe, overrides)
     if (out / "left").is_dir() and any((out / "left").iterdir()):
         _fail(f"{out}: already holds a recorded sequence; choose a new folder")
-    try:  # before the camera opens: a folder that cannot be written must not cost a recording
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        _fail(f"{out}: cannot create the folder ({exc.strerror})")
+    problem = make_folder(out)  # before the camera opens: a folder that cannot be made must not cost a recording
+    if problem is not None:
+        _fail(problem)
     try:
         plugin = default_registry().get("camera", plugin_name)
     except UnknownPlugin as exc:

@@ -30,14 +30,21 @@ def demo_recipe() -> Path:
     return beside if beside.is_file() else Path("recipes/steel_plate.yaml")
 
 
+def make_folder(path: Path) -> str | None:
+    """Make the output folder ``path`` (and its parents); why it cannot be, in one line, else None. Made
+    before the work, so that it is said then (a ten-minute evaluation), not as a traceback after it."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"{path}: cannot create the folder ({exc.strerror})"
+    return None
+
+
 def out_folder(ctx: click.Context, param: click.Parameter, value: Path | None) -> Path | None:
-    """Click callback for an output folder: made now, so that one that cannot be is said before the work
-    (a ten-minute evaluation), not as a traceback after it."""
-    if value is not None:
-        try:
-            value.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise click.BadParameter(f"{value}: cannot create the folder ({exc.strerror})", ctx, param) from None
+    """Click callback for an output folder: ``make_folder`` as the option is read."""
+    problem = None if value is None else make_folder(value)
+    if problem is not None:
+        raise click.BadParameter(problem, ctx, param)
     return value
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import FINITE, Finite
+from core.commands.params import FINITE, Finite, make_folder
 
 FRAME_FILE = re.compile(r"^\d{6}\.(png|jpg|jpeg|json)$")
 
@@ -105,11 +105,10 @@ def register(cli: click.Group) -> None:
             raise SystemExit(2)
         for path in old:  # stale frames (or another image format) would mix into the new sequence
             path.unlink()
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            click.echo(f"error: {out}: cannot create the folder ({exc.strerror})", err=True)
-            raise SystemExit(2) from None
+        problem = make_folder(out)
+        if problem is not None:
+            click.echo(f"error: {problem}", err=True)
+            raise SystemExit(2)
         start = time.perf_counter()
         try:
             generate_sequence(

@@ -66,6 +66,41 @@ def test_a_sequence_without_labels_is_a_one_line_error(tmp_path):
     assert cli("eval", "depth", str(tmp_path / "nowhere")).returncode == 2
 
 
+class TestBoxError:
+    def test_no_error_leaves_the_box_as_it_is(self):
+        assert ev.BoxError().apply((10, 20, 50, 40), "a/000000/0") == (10.0, 20.0, 50.0, 40.0)
+
+    def test_scale_keeps_the_centre_and_scales_the_sides(self):
+        x0, y0, x1, y1 = ev.BoxError(scale=1.5).apply((10, 20, 50, 40), "a/000000/0")
+        assert (x0 + x1, y0 + y1) == pytest.approx((60.0, 60.0))
+        assert (x1 - x0, y1 - y0) == pytest.approx((60.0, 30.0))
+
+    def test_shift_moves_by_its_share_of_the_size_in_a_direction_per_defect(self):
+        error = ev.BoxError(shift=0.2)
+        moved = [error.apply((0, 0, 40, 20), f"a/000000/{i}") for i in range(8)]
+        assert moved[0] == error.apply((0, 0, 40, 20), "a/000000/0")  # the same defect moves the same way
+        offsets = np.array([((b[0] + b[2]) / 2 - 20, (b[1] + b[3]) / 2 - 10) for b in moved])
+        # the offset lies on the ellipse of 0.2 of the width and 0.2 of the height
+        assert np.hypot(offsets[:, 0] / 8.0, offsets[:, 1] / 4.0) == pytest.approx(np.ones(8))
+        assert len({(round(x), round(y)) for x, y in offsets}) > 4  # directions differ between defects
+        assert all(b[2] - b[0] == pytest.approx(40) and b[3] - b[1] == pytest.approx(20) for b in moved)
+
+
+def test_boxes_that_are_off_are_measured_there_with_the_true_boxs_floor(evaluated, tmp_path):
+    _, out = evaluated
+    result = cli("eval", "depth", str(TEXTURED), "--set", RANGE, "--out", str(tmp_path), "--threads", "1",
+                 "--box-scale", "1.3", "--box-shift", "0.15", "--no-figure", "--quiet")
+    assert result.returncode == 0, result.stderr
+    moved = json.loads((tmp_path / "depth_eval.json").read_text())
+    true = {(r["frame_id"], tuple(r["box"])): r for r in json.loads((out / "depth_eval.json").read_text())["rows"]}
+    assert moved["box_scale"] == 1.3 and moved["box_shift"] == 0.15 and "scaled by 1.3" in result.stdout
+    for r in moved["rows"]:
+        same = true[(r["frame_id"], tuple(r["box"]))]  # rows keep the true box
+        assert r["floor_mm"] == pytest.approx(same["floor_mm"])
+    assert any(r["deviation_mm"] != true[(r["frame_id"], tuple(r["box"]))]["deviation_mm"] for r in moved["rows"])
+    assert cli("eval", "depth", str(TEXTURED), "--box-scale", "nan").returncode == 2
+
+
 class TestFloor:
     def test_the_floor_falls_with_the_gradient_energy(self):
         rng = np.random.default_rng(0)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import demo_recipe, out_folder
+from core.commands.params import Finite, demo_recipe, out_folder
 
 
 @click.command("depth")
@@ -21,12 +21,20 @@ from core.commands.params import demo_recipe, out_folder
 @click.option("--figure/--no-figure", default=True, show_default=True, help="save error against distance and width")
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or auto (torch_sgm)")
 @click.option("--threads", type=click.IntRange(1), default=None, help="torch and OpenCV CPU threads")
+@click.option("--box-scale", type=Finite(min=0.1, max=10.0), default=1.0, show_default=True,
+              help="measure in the true boxes scaled about their centres, as a detector's looser or tighter boxes")
+@click.option("--box-shift", type=Finite(min=0.0, max=1.0), default=0.0, show_default=True,
+              help="... and moved by this share of their size, each in its own direction")
 @click.option("--quiet", is_flag=True, help="no line per defect")
-def eval_depth_command(sequences, recipe, backend, overrides, out, figure, device, threads, quiet):
+def eval_depth_command(sequences, recipe, backend, overrides, out, figure, device, threads, box_scale, box_shift,
+                       quiet):
     """The engine's stereo and depth on labelled SEQUENCES (folders of `inspect sim generate`) with the
     true boxes: distance and deviation errors (median, p90, max), measured ÷ true, the physical floor,
     the calibration of the reported uncertainty and the decisions at the recipe's rules, for the
-    recipe's depth method and for the backend's disparity alone. Saves JSON, Markdown and a figure."""
+    recipe's depth method and for the backend's disparity alone. Saves JSON, Markdown and a figure.
+
+    --box-scale and --box-shift measure in boxes that are off as a detector's are; the floor stays the
+    true box's."""
     from core import depth_eval as ev
     from core.commands.inspection import _load, fail
     from core.contracts import PluginContext
@@ -47,6 +55,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, device=resolve_device(device))
     stereo = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(loaded.plugin_settings["stereo"], ctx)
     rows, timings = [], []
+    box_error = ev.BoxError(box_scale, box_shift)
     for folder in sequences:
         try:
             camera = ReplayCamera(ReplaySettings(path=str(folder.resolve())))
@@ -62,7 +71,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
                 labels = read_labels(frame.meta["labels"])
             except SequenceError as exc:
                 fail(str(exc))
-            new = ev.evaluate_frame(frame, labels, loaded, stereo, folder.name, timings)
+            new = ev.evaluate_frame(frame, labels, loaded, stereo, folder.name, timings, box_error)
             rows += new
             if not quiet:
                 for r in new:
@@ -83,7 +92,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
             "uncertain": loaded.recipe.decision.uncertain, "coverage_factor": loaded.recipe.decision.coverage_factor,
             "machine": f"{m['cpu']}, {m['cores']} cores, {torch.get_num_threads()} torch threads"
                        + (f", GPU {m['gpu']}" if "gpu" in m and ctx.device.startswith("cuda") else ""),
-            "python": platform.python_version()}
+            "python": platform.python_version(), "box_scale": box_scale, "box_shift": box_shift}
     body = ev.report(rows, meta, sum(timings) / len(timings) if timings else None)
     written = ev.save(body, rows, out, figure)
     click.echo("")

@@ -51,6 +51,8 @@ class StereoBackend(Protocol):
     # Optional: ``memory_bytes(height, width, disparities) -> int``, the most host memory one map of that
     # size and search takes: a recipe whose frames cannot fit is refused before the run, a crop that cannot
     # is its part's ERROR, instead of the process being killed with rejects queued (``core.stereo_memory``).
+    # Optional: ``compute_timed(left, right, min_disp, max_disp) -> (disparity, {stage: seconds})``, the
+    # map and where its time went, stage by stage (``inspect stereo --stages``).
 
 
 @runtime_checkable

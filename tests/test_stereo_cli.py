@@ -69,6 +69,26 @@ def _assert_error(result, *words):
         assert word in lines[0]
 
 
+def test_stages_prints_where_the_maps_time_went(pair, tmp_path):
+    left, right, _ = pair
+    plain = tmp_path / "plain.pfm"
+    assert invoke("stereo", left, right, "--max-disp", 32, "--out", plain).exit_code == 0
+    result = invoke("stereo", left, right, "--max-disp", 32, "--stages", "--out", tmp_path / "timed.pfm")
+    assert result.exit_code == 0, result.output
+    rows = [line.split("|")[1:-1] for line in result.output.splitlines() if line.startswith("| ") and "---" not in line]
+    stages = {name.strip(): float(ms) for name, ms, _ in rows[1:]}
+    assert {"cost and aggregation", "SGM", "winners", "local plane fit", "other"} <= set(stages)
+    total = stages.pop("total")
+    assert sum(stages.values()) == pytest.approx(total, abs=1.0)  # "other" closes the sum
+    assert np.array_equal(read_pfm(tmp_path / "timed.pfm"), read_pfm(plain), equal_nan=True)
+
+
+def test_stages_of_a_backend_that_does_not_time_them_is_refused(pair):
+    left, right, _ = pair
+    result = invoke("stereo", left, right, "--backend", "opencv_sgbm", "--max-disp", 32, "--stages")
+    assert result.exit_code == 2 and "does not time its stages" in result.output
+
+
 def test_pair_of_different_sizes_is_refused(pair, tmp_path):
     left, _, _ = pair
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((40, 72, 3), np.uint8))

@@ -174,3 +174,41 @@ print(sorted(n for n, k in kernels.items() if not k.signatures and n.rsplit(".",
     assert result.returncode == 0, result.stderr
     missing, count = result.stdout.strip().rsplit(" ", 1)
     assert missing == "[]" and int(count) >= 8, result.stdout
+
+
+class TestStageClock:
+    def test_each_stage_is_charged_its_own_time_in_the_order_first_run(self):
+        from plugins.torch_sgm.stage_clock import StageClock
+
+        ticks = iter([0.0, 1.0, 1.0, 3.5, 4.0, 4.25])
+        clock = StageClock("cpu", clock=lambda: next(ticks))
+        with clock("cost"):
+            pass
+        with clock("SGM"):
+            pass
+        with clock("cost"):
+            pass
+        assert list(clock.seconds) == ["cost", "SGM"] and clock.seconds == {"cost": 1.25, "SGM": 2.5}
+
+    def test_a_stage_that_raises_is_still_charged(self):
+        from plugins.torch_sgm.stage_clock import StageClock
+
+        ticks = iter([0.0, 2.0])
+        clock = StageClock("cpu", clock=lambda: next(ticks))
+        with pytest.raises(RuntimeError):
+            with clock("fit"):
+                raise RuntimeError("no")
+        assert clock.seconds == {"fit": 2.0}
+
+    def test_the_timed_map_is_the_map(self):
+        from plugins.torch_sgm.stage_clock import StageClock
+
+        left, right, _, _ = layered_scene(40, 64, seed=3)
+        params = TorchSGMParams(two_view=True)
+        clock = StageClock("cpu")
+        timed, _ = compute_disparity(left, right, 0, 24, params, "cpu", clock)
+        plain, _ = compute_disparity(left, right, 0, 24, params, "cpu")
+        assert np.array_equal(timed, plain, equal_nan=True)
+        assert {"coarse pass", "vertical alignment", "cost and aggregation", "SGM", "winners", "slanted-plane filling",
+                "weighted median", "local plane fit", "two views"} <= set(clock.seconds)
+        assert all(s >= 0 for s in clock.seconds.values())

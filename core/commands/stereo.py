@@ -112,9 +112,11 @@ device_option = click.option("--device", type=click.Choice(["auto", "cpu", "cuda
               help="PFM, Middlebury convention (invalid = inf)")
 @click.option("--png", type=click.Path(path_type=Path), help="colour-mapped view")
 @click.option("--set", "settings", multiple=True, metavar="KEY=VALUE", help="backend setting, repeatable")
+@click.option("--stages", is_flag=True,
+              help="match twice and print the time of each of the backend's stages in the second run (torch_sgm)")
 @device_option
 @threads_option
-def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings, device, threads):
+def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings, stages, device, threads):
     """Disparity map of the LEFT image of a rectified pair."""
     import numpy as np
 
@@ -136,6 +138,8 @@ def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings,
                             name=backend)
     if memory is not None:
         _fail(f"{left}: {memory}: match a downscaled pair or a narrower range")
+    if stages and not callable(getattr(matcher, "compute_timed", None)):
+        _fail(f"--stages: the {backend} backend does not time its stages")
     import time
 
     # A backend that holds a CUDA device also reports the peak GPU memory of this one map.
@@ -144,14 +148,23 @@ def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings,
         import torch
 
         torch.cuda.reset_peak_memory_stats()
+    if stages:
+        # the first map loads the compiled kernels and sizes torch's buffers: time the one after it
+        matcher.compute(left_img, right_img, min_disp, max_disp)
     start = time.perf_counter()
-    disp = np.asarray(matcher.compute(left_img, right_img, min_disp, max_disp), np.float32)
+    if stages:
+        disp, stage_seconds = matcher.compute_timed(left_img, right_img, min_disp, max_disp)
+    else:
+        disp = matcher.compute(left_img, right_img, min_disp, max_disp)
+    disp = np.asarray(disp, np.float32)
     seconds = time.perf_counter() - start
     valid = np.isfinite(disp)
     gpu = torch.cuda.max_memory_allocated() / 2**20 if on_gpu else None
     click.echo(f"{backend}: {disp.shape[1]}x{disp.shape[0]}, disparities {min_disp:g}..{max_disp:g}, "
                f"{100 * valid.mean():.1f}% valid, {seconds:.2f} s"
                + (f", peak GPU memory {gpu:.0f} MiB" if gpu is not None else ""))
+    if stages:
+        click.echo(stage_table(stage_seconds, seconds))
     if out:
         try:
             write_pfm(out, disp)
@@ -161,6 +174,18 @@ def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings,
     if png:
         write_png(png, disp, min_disp, max_disp)
         click.echo(f"wrote {png}")
+
+
+def stage_table(stage_seconds: dict[str, float], total: float) -> str:
+    """A Markdown table of the stages' milliseconds and shares of ``total`` seconds, slowest first, then
+    what no stage accounts for (the backend's own bookkeeping) and the total."""
+    lines = ["| stage | ms | share |", "|---|---|---|"]
+    for stage, s in sorted(stage_seconds.items(), key=lambda item: -item[1]):
+        lines.append(f"| {stage} | {1000 * s:.1f} | {100 * s / total:.0f} % |")
+    rest = total - sum(stage_seconds.values())
+    lines.append(f"| other | {1000 * rest:.1f} | {100 * rest / total:.0f} % |")
+    lines.append(f"| total | {1000 * total:.1f} | 100 % |")
+    return "\n".join(lines)
 
 
 def _split(values: tuple[str, ...]) -> list[str]:

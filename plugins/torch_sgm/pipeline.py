@@ -11,6 +11,7 @@ from plugins.torch_sgm import (aggregate, align, cost, planes, planes_numba, ref
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
+from plugins.torch_sgm.stage_clock import untimed
 
 
 def pick_device(name: str) -> torch.device:
@@ -155,85 +156,100 @@ def aligned_right(left: torch.Tensor, right: torch.Tensor, coarse: tuple[torch.T
 
 
 def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,
-                    p: TorchSGMParams) -> tuple[torch.Tensor, torch.Tensor]:
+                    p: TorchSGMParams, clock=untimed) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 3, H, W) RGB pair in [0, 1] -> (disparity (B, H, W) float32, NaN where still invalid;
-    consistent (B, H, W) bool: pixels that passed the left-right check and, when on, the uniqueness test)."""
+    consistent (B, H, W) bool: pixels that passed the left-right check and, when on, the uniqueness test).
+    ``clock`` (a ``StageClock``) is charged with each stage's time."""
     disparities = disparity_range(min_disp, max_disp)
     given_right = right  # the right view's own run aligns the left image to it, not to the aligned one
     wants_coarse = p.search == "coarse_to_fine" or p.align != "none"
-    coarse = coarse_pass(left, right, min_disp, max_disp, p) if wants_coarse else None
+    with clock("coarse pass"):
+        coarse = coarse_pass(left, right, min_disp, max_disp, p) if wants_coarse else None
     if p.align != "none" and coarse is not None:
-        right = aligned_right(left, right, coarse, p)
-    narrowed = (narrowed_search(coarse, tuple(left.shape[-2:]), min_disp, max_disp, p)
-                if p.search == "coarse_to_fine" else None)
+        with clock("vertical alignment"):
+            right = aligned_right(left, right, coarse, p)
+    with clock("coarse pass"):
+        narrowed = (narrowed_search(coarse, tuple(left.shape[-2:]), min_disp, max_disp, p)
+                    if p.search == "coarse_to_fine" else None)
     if narrowed is not None:
         full = disparities
         disparities = list(range(*narrowed[0]))
     fast = p.implementation == "fast"
-    volume = (cost_volume_fast if fast else cost_volume)(left, right, disparities, p)
-    paths = sgm.PATHS_8 if p.paths == 8 else sgm.PATHS_4
-    if p.p2_edge == "path":
-        penalty = sgm.path_p2(cost.to_grey(left)[:, 0], paths, p.p2, p.p2_alpha, p.p1)
-    else:
-        penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
-    local = (select.local_winners(volume, disparities, p.lr_tolerance)
-             if p.fill != "none" and p.plane_fill and p.plane_local else None)
-    if compiled(p, volume):
-        aggregated = sgm_numba.sgm_numba(volume, p.p1, penalty, paths)
-    else:
-        aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
-    del volume
-    fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel
-    disp, index, right_disp, consistent = select.checked_winners(aggregated, disparities, p.lr_tolerance, fit)
-    if p.uniqueness > 0:
-        consistent &= select.unique_minimum(aggregated, index, p.uniqueness)
-    del aggregated
-    if narrowed is not None:
-        consistent &= ~search.at_narrowed_bound(index, len(disparities), disparities[0] > full[0],
-                                                disparities[-1] < full[-1])
-        consistent &= ~narrowed[1]
+    with clock("cost and aggregation"):
+        volume = (cost_volume_fast if fast else cost_volume)(left, right, disparities, p)
+    with clock("SGM"):
+        paths = sgm.PATHS_8 if p.paths == 8 else sgm.PATHS_4
+        if p.p2_edge == "path":
+            penalty = sgm.path_p2(cost.to_grey(left)[:, 0], paths, p.p2, p.p2_alpha, p.p1)
+        else:
+            penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
+    with clock("winners"):
+        local = (select.local_winners(volume, disparities, p.lr_tolerance)
+                 if p.fill != "none" and p.plane_fill and p.plane_local else None)
+    with clock("SGM"):
+        if compiled(p, volume):
+            aggregated = sgm_numba.sgm_numba(volume, p.p1, penalty, paths)
+        else:
+            aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
+        del volume
+    with clock("winners"):
+        fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel
+        disp, index, right_disp, consistent = select.checked_winners(aggregated, disparities, p.lr_tolerance, fit)
+        if p.uniqueness > 0:
+            consistent &= select.unique_minimum(aggregated, index, p.uniqueness)
+        del aggregated
+        if narrowed is not None:
+            consistent &= ~search.at_narrowed_bound(index, len(disparities), disparities[0] > full[0],
+                                                    disparities[-1] < full[-1])
+            consistent &= ~narrowed[1]
     raw_disp = disp
     # the edges bound the regions of both the out-of-view check and the plane filling
-    edges = (planes.edge_magnitude(left, p.plane_sigma)
-             if p.fill != "none" and (p.view_check_edge > 0 or p.plane_fill) else None)
-    if p.fill != "none" and p.view_check_edge > 0:
-        labels = planes.edge_regions(edges, p.view_check_edge)
-        suspect = refine_numba.out_of_view_numba if compiled(p, raw_disp) else refine.out_of_view
-        consistent = consistent & ~suspect(raw_disp, consistent, labels)
-    disp = torch.where(consistent, disp, torch.full_like(disp, float("nan")))
+    with clock("edges and out-of-view check"):
+        edges = (planes.edge_magnitude(left, p.plane_sigma)
+                 if p.fill != "none" and (p.view_check_edge > 0 or p.plane_fill) else None)
+        if p.fill != "none" and p.view_check_edge > 0:
+            labels = planes.edge_regions(edges, p.view_check_edge)
+            suspect = refine_numba.out_of_view_numba if compiled(p, raw_disp) else refine.out_of_view
+            consistent = consistent & ~suspect(raw_disp, consistent, labels)
+        disp = torch.where(consistent, disp, torch.full_like(disp, float("nan")))
     if p.fill != "none":
         holes = ~consistent
         slope = None
         if p.plane_fill:
-            # first, so that the holes without a plane are filled from plane pixels as well as matched ones
-            thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
-            disp, slope = planes.planes_and_slopes(
-                disp, raw_disp, consistent, edges, thresholds, p.plane_min_pixels, p.plane_inliers, p.plane_samples,
-                local, (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched), p.plane_seed,
-                planes_numba.region_planes_numba if compiled(p, disp) else planes.region_planes)
-            holes = ~torch.isfinite(disp)
-        if p.fill == "four_way":
-            disp = refine.fill_four_directions(disp, refine.occluded(raw_disp, right_disp, p.lr_tolerance) & holes)
-        else:
-            disp = refine.fill_horizontal(disp, p.fill, slope if p.fill_slope else None)
-        disp = refine.median_fill(disp, holes, 0)  # the guided filter needs a hole-free map
-        smooth = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
-        disp = smooth if p.refine_scope == "all" else torch.where(holes, smooth, disp)
-        disp = refine.median_fill(disp, holes, p.median_radius)
-        if p.median_scope == "all" and p.median_radius > 0:
-            disp = refine.median_filter(disp, p.median_radius)
-        median = refine_numba.weighted_median_numba if compiled(p, disp, left) else refine.weighted_median
-        disp = median(disp, left, p.wmf_radius, p.wmf_sigma_colour, p.wmf_sigma_space, p.wmf_jump)
-        disp = plane_fit(disp, left, p)
+            with clock("slanted-plane filling"):
+                # first, so that the holes without a plane are filled from plane pixels as well as matched ones
+                thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
+                disp, slope = planes.planes_and_slopes(
+                    disp, raw_disp, consistent, edges, thresholds, p.plane_min_pixels, p.plane_inliers,
+                    p.plane_samples, local, (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched),
+                    p.plane_seed, planes_numba.region_planes_numba if compiled(p, disp) else planes.region_planes)
+                holes = ~torch.isfinite(disp)
+        with clock("row filling and medians"):
+            if p.fill == "four_way":
+                disp = refine.fill_four_directions(disp, refine.occluded(raw_disp, right_disp, p.lr_tolerance) & holes)
+            else:
+                disp = refine.fill_horizontal(disp, p.fill, slope if p.fill_slope else None)
+            disp = refine.median_fill(disp, holes, 0)  # the guided filter needs a hole-free map
+            smooth = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
+            disp = smooth if p.refine_scope == "all" else torch.where(holes, smooth, disp)
+            disp = refine.median_fill(disp, holes, p.median_radius)
+            if p.median_scope == "all" and p.median_radius > 0:
+                disp = refine.median_filter(disp, p.median_radius)
+        with clock("weighted median"):
+            median = refine_numba.weighted_median_numba if compiled(p, disp, left) else refine.weighted_median
+            disp = median(disp, left, p.wmf_radius, p.wmf_sigma_colour, p.wmf_sigma_space, p.wmf_jump)
+        with clock("local plane fit"):
+            disp = plane_fit(disp, left, p)
     if p.two_view and p.fill != "none":
-        right_map = right_view_map(left, given_right, min_disp, max_disp, p)
-        disp = refine.two_view_choice(disp.clamp(float(min_disp), float(max_disp)), right_map, p.two_view_reach,
-                                      p.lr_tolerance, p.two_view_iterations)
-        # a value the choice took is a neighbour's, up to reach px away, so off a slanted surface's slope
-        disp = plane_fit(disp, left, p)
-        disp = refine.two_view_average(disp, right_map, p.lr_tolerance)
-        # the mean mixes the two views' sub-pixel values pixel by pixel: put back on the local planes
-        disp = plane_fit(disp, left, p)
+        with clock("two views"):
+            right_map = right_view_map(left, given_right, min_disp, max_disp, p)
+            disp = refine.two_view_choice(disp.clamp(float(min_disp), float(max_disp)), right_map, p.two_view_reach,
+                                          p.lr_tolerance, p.two_view_iterations)
+            # a value the choice took is a neighbour's, up to reach px away, so off a slanted surface's slope
+            disp = plane_fit(disp, left, p)
+            disp = refine.two_view_average(disp, right_map, p.lr_tolerance)
+            # the mean mixes the two views' sub-pixel values pixel by pixel: put back on the local planes
+            disp = plane_fit(disp, left, p)
     disp = disp.clamp(float(min_disp), float(max_disp))
     return disp, consistent
 
@@ -263,11 +279,15 @@ def right_view_map(left: torch.Tensor, right: torch.Tensor, min_disp: float, max
 
 def compute_disparity(left: np.ndarray, right: np.ndarray, min_disp: float, max_disp: float,
                       params: TorchSGMParams | None = None, device: str | torch.device | None = None,
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """HxWx3 uint8 BGR pair -> (HxW float32 disparity, NaN invalid; HxW bool LR-consistent mask)."""
+                      clock=untimed) -> tuple[np.ndarray, np.ndarray]:
+    """HxWx3 uint8 BGR pair -> (HxW float32 disparity, NaN invalid; HxW bool LR-consistent mask).
+    ``clock`` (a ``StageClock``) is charged with each stage's time, the images' way to and from the
+    device included."""
     params = params or TorchSGMParams()
     dev = torch.device(device) if device is not None else pick_device(params.device)
     with torch.inference_mode():
-        disp, consistent = compute_tensors(bgr_to_tensor(left, dev), bgr_to_tensor(right, dev),
-                                           min_disp, max_disp, params)
-    return disp[0].cpu().numpy().astype(np.float32), consistent[0].cpu().numpy()
+        with clock("images to and from the device"):
+            pair = bgr_to_tensor(left, dev), bgr_to_tensor(right, dev)
+        disp, consistent = compute_tensors(*pair, min_disp, max_disp, params, clock)
+        with clock("images to and from the device"):
+            return disp[0].cpu().numpy().astype(np.float32), consistent[0].cpu().numpy()

@@ -38,6 +38,15 @@ class TorchSGM:
             return 64 * height * width
         return BYTES_PER_CELL * height * width * disparities
 
+    def compute_timed(self, left, right, min_disp, max_disp) -> tuple[np.ndarray, dict[str, float]]:
+        """``compute`` and the seconds each stage of the pipeline took (``inspect stereo --stages``)."""
+        from plugins.torch_sgm.pipeline import compute_disparity
+        from plugins.torch_sgm.stage_clock import StageClock
+
+        clock = StageClock(self.device)
+        disp, _ = compute_disparity(left, right, min_disp, max_disp, self.params, self.device, clock)
+        return disp, clock.seconds
+
     def compute_with_mask(self, left, right, min_disp, max_disp) -> tuple[np.ndarray, np.ndarray]:
         """The disparity and the pixels that passed the left-right check (before hole filling);
         the evaluation scores the latter as the sparse result."""

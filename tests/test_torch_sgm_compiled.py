@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from plugins.torch_sgm import planes, planes_numba, refine, refine_numba, sgm, sgm_numba
+from plugins.torch_sgm import planes, planes_numba, refine, refine_numba, select, select_numba, sgm, sgm_numba
 from plugins.torch_sgm.params import TorchSGMParams
 from plugins.torch_sgm.pipeline import bgr_to_tensor, compute_disparity
 from plugins.torch_sgm.synthetic import layered_scene
@@ -56,6 +56,37 @@ class TestSgmNumba:
             assert torch.get_num_threads() == 1  # and torch's own count is left as it was
         finally:
             torch.set_num_threads(before)
+
+
+    def test_leaves_each_pixels_disparities_side_by_side(self):
+        out = sgm_numba.sgm_numba(torch.rand(1, 5, 6, 7), 0.1, 0.5)
+        assert out.shape == (1, 5, 6, 7) and select_numba.pixel_major(out) and not out.is_contiguous()
+
+
+class TestRightViewWtaNumba:
+    @pytest.mark.parametrize("first", [0, 3, -2])
+    def test_equals_the_reference_ties_and_nan_included(self, first):
+        g = torch.Generator().manual_seed(5)
+        memory = torch.randint(0, 4, (2, 7, 19, 6), generator=g).float()  # few values: many ties
+        memory[0, 2, 5, 1] = float("nan")
+        volume = memory.permute(0, 3, 1, 2)
+        disparities = list(range(first, first + 6))
+        assert select_numba.pixel_major(volume)
+        ref = select.right_view_wta(volume.contiguous(), disparities)
+        assert torch.equal(select_numba.right_view_wta_numba(volume, disparities).isnan(), ref.isnan())
+        assert torch.equal(torch.nan_to_num(select_numba.right_view_wta_numba(volume, disparities), -99),
+                           torch.nan_to_num(ref, -99))
+
+    def test_disparities_beyond_the_image_land_nowhere(self):
+        volume = torch.rand(1, 9, 3, 4).permute(0, 3, 1, 2)  # 4 disparities, 9 columns
+        out = select_numba.right_view_wta_numba(volume, [20, 21, 22, 23])
+        assert out.isnan().all()
+
+    def test_any_other_volume_goes_to_the_reference(self):
+        volume = torch.rand(1, 4, 5, 6)
+        assert not select_numba.pixel_major(volume)
+        assert torch.equal(select_numba.right_view_wta_numba(volume, [1, 2, 3, 4]).nan_to_num(-1),
+                           select.right_view_wta(volume, [1, 2, 3, 4]).nan_to_num(-1))
 
 
 class TestLocalPlaneFitNumba:

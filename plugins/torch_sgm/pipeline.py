@@ -6,8 +6,8 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import (aggregate, align, cost, planes, planes_numba, refine, refine_numba, search, select, sgm,
-                               sgm_numba)
+from plugins.torch_sgm import (aggregate, align, cost, planes, planes_numba, refine, refine_numba, search, select,
+                               select_numba, sgm, sgm_numba)
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -194,7 +194,9 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         del volume
     with clock("winners"):
         fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel
-        disp, index, right_disp, consistent = select.checked_winners(aggregated, disparities, p.lr_tolerance, fit)
+        right_wta = select_numba.right_view_wta_numba if compiled(p, aggregated) else select.right_view_wta
+        disp, index, right_disp, consistent = select.checked_winners(aggregated, disparities, p.lr_tolerance, fit,
+                                                                     right_wta)
         if p.uniqueness > 0:
             consistent &= select.unique_minimum(aggregated, index, p.uniqueness)
         del aggregated

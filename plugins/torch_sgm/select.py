@@ -82,17 +82,18 @@ def right_view_wta(volume: torch.Tensor, disparities) -> torch.Tensor:
 
 
 def checked_winners(volume: torch.Tensor, disparities, lr_tolerance: float, fit=parabolic_subpixel,
-                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                    right_wta=right_view_wta) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Winner-takes-all of both views read off one volume, and the left-right check between them.
 
     (B, D, H, W) cost over ``disparities`` (consecutive integers) -> (disparity (B, H, W) float32, refined
     by ``fit`` (``parabolic_subpixel`` or ``equiangular_subpixel``); its index (B, H, W) int64 into the
     volume; the right view's disparity (``right_view_wta``); consistent (B, H, W) bool, the pixels that
     ``left_right_check`` passes within ``lr_tolerance``). Leaves ``volume`` as it was, so that
-    ``unique_minimum`` may still be called on it afterwards."""
+    ``unique_minimum`` may still be called on it afterwards. ``right_wta``: ``right_view_wta`` or a compiled
+    stand-in."""
     index = winner_takes_all(volume)
     disp = fit(volume, index) + disparities[0]
-    right_disp = right_view_wta(volume, disparities)
+    right_disp = right_wta(volume, disparities)
     return disp, index, right_disp, left_right_check(disp, right_disp, lr_tolerance)
 
 

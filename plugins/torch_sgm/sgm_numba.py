@@ -114,4 +114,6 @@ def sgm_numba(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sgm
                 _along_rows(c, out, p, float(p1), int(dx))
             else:
                 _across_rows(c, out, p, float(p1), int(dy), int(dx))
-    return torch.from_numpy(np.ascontiguousarray(out.transpose(0, 3, 1, 2)))
+    # a view in the (B, D, H, W) order: the winners read each pixel's disparities side by side, where the
+    # numba kernels left them, instead of after a transposing copy
+    return torch.from_numpy(out).permute(0, 3, 1, 2)

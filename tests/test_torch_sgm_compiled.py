@@ -82,11 +82,41 @@ class TestRightViewWtaNumba:
         out = select_numba.right_view_wta_numba(volume, [20, 21, 22, 23])
         assert out.isnan().all()
 
-    def test_any_other_volume_goes_to_the_reference(self):
-        volume = torch.rand(1, 4, 5, 6)
+    def test_a_volume_in_the_cost_volumes_order_gives_the_same(self):
+        volume = torch.randint(0, 3, (1, 4, 5, 6)).float()
         assert not select_numba.pixel_major(volume)
         assert torch.equal(select_numba.right_view_wta_numba(volume, [1, 2, 3, 4]).nan_to_num(-1),
                            select.right_view_wta(volume, [1, 2, 3, 4]).nan_to_num(-1))
+
+    def test_refuses_what_it_cannot_compute(self):
+        with pytest.raises(ValueError, match="float32 CPU"):
+            select_numba.right_view_wta_numba(torch.rand(1, 2, 3, 4, dtype=torch.float64), [0, 1])
+
+
+class TestUniqueMinimumNumba:
+    @pytest.mark.parametrize("order", ["pixel-major", "cost volume"])
+    def test_equals_the_reference_ties_nan_and_range_ends_included(self, order):
+        g = torch.Generator().manual_seed(6)
+        memory = torch.randint(1, 6, (2, 5, 9, 7), generator=g).float()  # (B, H, W, D): ties and equal seconds
+        memory[1, 3, 4, 5] = float("nan")
+        volume = memory.permute(0, 3, 1, 2) if order == "pixel-major" else memory.permute(0, 3, 1, 2).contiguous()
+        index = volume.min(1).indices
+        index[0, 0, 0], index[0, 0, 1] = 0, volume.shape[1] - 1  # winners at both ends of the range
+        before = volume.clone()
+        for ratio in (0.0, 0.3):
+            ref = select.unique_minimum(volume.clone(), index, ratio)
+            assert torch.equal(select_numba.unique_minimum_numba(volume, index, ratio), ref)
+        assert torch.equal(volume.nan_to_num(-1), before.nan_to_num(-1))  # left as it was
+
+    def test_a_winner_whose_neighbours_are_the_whole_range_has_no_second(self):
+        volume = torch.rand(1, 3, 4, 5)
+        index = torch.ones(1, 4, 5, dtype=torch.int64)
+        assert select_numba.unique_minimum_numba(volume, index, 0.3).all()
+        assert torch.equal(select.unique_minimum(volume.clone(), index, 0.3), torch.ones(1, 4, 5, dtype=torch.bool))
+
+    def test_refuses_what_it_cannot_compute(self):
+        with pytest.raises(ValueError, match="float32 CPU"):
+            select_numba.unique_minimum_numba(torch.rand(1, 4, 3, 2), torch.zeros(1, 2, 3, dtype=torch.int64), 0.3)
 
 
 class TestLocalPlaneFitNumba:

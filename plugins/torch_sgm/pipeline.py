@@ -184,7 +184,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         else:
             penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
     with clock("winners"):
-        local = (select.local_winners(volume, disparities, p.lr_tolerance)
+        right_wta = select_numba.right_view_wta_numba if compiled(p, volume) else select.right_view_wta
+        local = (select.local_winners(volume, disparities, p.lr_tolerance, right_wta)
                  if p.fill != "none" and p.plane_fill and p.plane_local else None)
     with clock("SGM"):
         if compiled(p, volume):
@@ -194,11 +195,11 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         del volume
     with clock("winners"):
         fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel
-        right_wta = select_numba.right_view_wta_numba if compiled(p, aggregated) else select.right_view_wta
         disp, index, right_disp, consistent = select.checked_winners(aggregated, disparities, p.lr_tolerance, fit,
                                                                      right_wta)
         if p.uniqueness > 0:
-            consistent &= select.unique_minimum(aggregated, index, p.uniqueness)
+            unique = select_numba.unique_minimum_numba if compiled(p, aggregated) else select.unique_minimum
+            consistent &= unique(aggregated, index, p.uniqueness)
         del aggregated
         if narrowed is not None:
             consistent &= ~search.at_narrowed_bound(index, len(disparities), disparities[0] > full[0],

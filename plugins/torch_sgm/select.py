@@ -97,7 +97,7 @@ def checked_winners(volume: torch.Tensor, disparities, lr_tolerance: float, fit=
     return disp, index, right_disp, left_right_check(disp, right_disp, lr_tolerance)
 
 
-def local_winners(volume: torch.Tensor, disparities, lr_tolerance: float = 1.0) -> torch.Tensor:
+def local_winners(volume: torch.Tensor, disparities, lr_tolerance: float = 1.0, right_wta=right_view_wta) -> torch.Tensor:
     """The winners of the cost before SGM, where they pass their own left-right check.
 
     SGM carries a disparity across a textureless surface from whatever borders it, so on a flat tabletop
@@ -106,6 +106,6 @@ def local_winners(volume: torch.Tensor, disparities, lr_tolerance: float = 1.0) 
     the faint texture the surface has still lie on its plane (``planes.local_planes`` fits them).
     (B, D, H, W) cost over ``disparities`` (consecutive integers) -> (B, H, W) float32 disparity, parabolic
     sub-pixel, NaN where the right view's winner (read off the same volume) disagrees by more than
-    ``lr_tolerance``."""
-    disp, _, _, consistent = checked_winners(volume, disparities, lr_tolerance)
+    ``lr_tolerance``. ``right_wta`` as in ``checked_winners``."""
+    disp, _, _, consistent = checked_winners(volume, disparities, lr_tolerance, right_wta=right_wta)
     return torch.where(consistent, disp, torch.full_like(disp, float("nan")))

@@ -42,6 +42,9 @@ def test_census_uses_24_bits_and_counts_hamming_distance():
     window = cost.census_transform(grey, cost.window_offsets(4, 3))
     assert window.shape[1] == 62 and cost.pack_bits(window).shape[1] == 3
     assert torch.equal(cost.popcount(cost.pack_bits(window)).sum(1), window.sum(1).int())
+    words = cost.pack_bits(window)
+    for k in range(window.shape[1]):  # bit k of the string is bit k % 30 of word k // 30
+        assert torch.equal(((words[:, k // 30] >> (k % 30)) & 1).bool(), window[:, k])
     assert cost.popcount(torch.tensor([0, 1, 0xFFFFFF, 0b1011, 2**30 - 1])).tolist() == [0, 1, 24, 3, 30]
 
 

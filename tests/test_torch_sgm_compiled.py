@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from plugins.torch_sgm import planes, planes_numba, refine, refine_numba, select, select_numba, sgm, sgm_numba
+from plugins.torch_sgm import (aggregate, aggregate_numba, planes, planes_numba, refine, refine_numba, select, select_numba,
+                               sgm, sgm_numba)
 from plugins.torch_sgm.params import TorchSGMParams
 from plugins.torch_sgm.pipeline import bgr_to_tensor, compute_disparity
 from plugins.torch_sgm.synthetic import layered_scene
@@ -61,6 +62,44 @@ class TestSgmNumba:
     def test_leaves_each_pixels_disparities_side_by_side(self):
         out = sgm_numba.sgm_numba(torch.rand(1, 5, 6, 7), 0.1, 0.5)
         assert out.shape == (1, 5, 6, 7) and select_numba.pixel_major(out) and not out.is_contiguous()
+
+
+class TestAggregateNumba:
+    @staticmethod
+    def reference(raw, guide, radius, detail_radius, weight):
+        wide = aggregate.guided_filter(guide, raw, radius, 1e-3)
+        if weight is None:
+            return wide
+        # at radius 0 the narrow filter is raw itself, which the blend overwrites
+        return aggregate.blend_by_texture(aggregate.guided_filter(guide, raw.clone(), detail_radius, 1e-3), wide, weight)
+
+    @pytest.mark.parametrize("shape", [(1, 5, 23, 31), (2, 3, 9, 4), (1, 2, 1, 12)])
+    @pytest.mark.parametrize("radius, detail_radius, weighted", [(2, 1, True), (3, 0, True), (2, 1, False)])
+    def test_equals_the_reference(self, shape, radius, detail_radius, weighted):
+        g = torch.Generator().manual_seed(7)
+        raw = torch.rand(shape, generator=g)
+        guide = torch.rand(shape[0], 1, *shape[2:], generator=g)
+        weight = aggregate.texture_weight(guide, 2, 0.2) if weighted else None
+        prepared = aggregate_numba.Guide(guide, radius, detail_radius, 1e-3, weight)
+        ref = self.reference(raw, guide, radius, detail_radius, weight)
+        assert torch.allclose(aggregate_numba.aggregate_numba(raw, prepared), ref, atol=2e-5)
+        # and the narrow aggregation or the blend matter: without them it differs
+        if weighted:
+            assert not torch.allclose(aggregate.guided_filter(guide, raw, radius, 1e-3), ref, atol=1e-3)
+
+    def test_writes_into_the_given_slices(self):
+        raw, guide = torch.rand(1, 3, 8, 10), torch.rand(1, 1, 8, 10)
+        volume = torch.zeros(1, 5, 8, 10)
+        aggregate_numba.aggregate_numba(raw, aggregate_numba.Guide(guide, 2, -1, 1e-3, None), volume[:, 1:4])
+        assert torch.allclose(volume[:, 1:4], aggregate.guided_filter(guide, raw, 2, 1e-3), atol=2e-5)
+        assert not volume[:, 0].any() and not volume[:, 4].any()
+
+    def test_refuses_what_it_cannot_compute(self):
+        with pytest.raises(ValueError, match="radius of at least 1"):
+            aggregate_numba.Guide(torch.rand(1, 1, 4, 4), 0, 1, 1e-3, None)
+        with pytest.raises(ValueError, match="float32 CPU costs"):
+            aggregate_numba.aggregate_numba(torch.rand(1, 2, 5, 4), aggregate_numba.Guide(torch.rand(1, 1, 4, 4), 1, 1,
+                                                                                         1e-3, None))
 
 
 class TestRightViewWtaNumba:

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import (aggregate, align, cost, planes, planes_numba, refine, refine_numba, search, select,
-                               select_numba, sgm, sgm_numba)
+from plugins.torch_sgm import (aggregate, aggregate_numba, align, cost, planes, planes_numba, refine, refine_numba,
+                               search, select, select_numba, sgm, sgm_numba)
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -64,8 +64,9 @@ FAST_CHUNK = 8  # disparity slices per step of the fast path: its buffers stay s
 
 
 def cost_volume_fast(left: torch.Tensor, right: torch.Tensor, disparities: list[int], p: TorchSGMParams) -> torch.Tensor:
-    """``cost_volume`` (the reference) from ``cost.fused_cost_chunk`` and ``aggregate.guided_filter_fast``:
-    the disparities of a chunk in one strided view, the guide's statistics computed once."""
+    """``cost_volume`` (the reference) from ``cost.fused_cost_chunk`` and ``aggregate.guided_filter_fast``
+    (on float32 CPU tensors ``aggregate_numba``): the disparities of a chunk in one strided view, the guide's
+    statistics computed once."""
     offsets = cost.STAR_24 if p.census == "star24" else cost.window_offsets(p.census_rx, p.census_ry)
     features = cost.cost_features(left, right, p.znorm_radius, offsets, p.znorm_eps)
     guide = cost.to_grey(left)
@@ -75,10 +76,15 @@ def cost_volume_fast(left: torch.Tensor, right: torch.Tensor, disparities: list[
                     if weight is not None and p.agg_detail_radius > 0 else None)
     volume = torch.empty(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
     step = min(p.chunk_disparities, FAST_CHUNK)
+    compiled_guide = (aggregate_numba.Guide(guide, p.agg_radius, p.agg_detail_radius, p.agg_eps, weight)
+                      if compiled(p, left) and p.agg_radius > 0 else None)
     for start in range(0, len(disparities), step):
         count = min(step, len(disparities) - start)
         raw = cost.fused_cost_chunk(features, disparities[start], count, w_ad=p.w_ad, w_census=p.w_census,
                                     w_grad=p.w_grad, lam_ad=p.lam_ad, lam_census=p.lam_census, lam_grad=p.lam_grad)
+        if compiled_guide is not None:
+            aggregate_numba.aggregate_numba(raw, compiled_guide, volume[:, start: start + count])
+            continue
         # the fast filter overwrites its input, so the narrow aggregation works on a copy
         detail = None if weight is None else raw.clone()
         if detail is not None and detail_stats is not None:

@@ -1,0 +1,133 @@
+"""The cost aggregation of ``pipeline.cost_volume_fast`` compiled for the CPU with numba: both guided
+filters and their blend by texture, one disparity slice at a time, so that a slice's few working arrays
+stay in the processor's cache instead of each torch step streaming a chunk of slices through memory.
+``aggregate.guided_filter`` and ``aggregate.blend_by_texture`` stay the references the tests hold it to.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numba import njit, prange
+
+from plugins.torch_sgm import sgm_numba
+
+
+@njit(cache=True)
+def _box_sum(src, radius, row, out):
+    """Window sums of the (H, W) ``src`` over the (2r+1)^2 window cut to the image, into ``out``;
+    ``row`` is (W,) float64 scratch for the running column sums (in float64, so that adding and taking
+    away rows down the image leaves no drift)."""
+    h, w = src.shape
+    for x in range(w):
+        row[x] = 0.0
+    for y in range(min(radius, h - 1) + 1):
+        for x in range(w):
+            row[x] += src[y, x]
+    for y in range(h):
+        # horizontal window sums of the column sums: a running sum along the row
+        total = 0.0
+        for x in range(min(radius, w - 1) + 1):
+            total += row[x]
+        for x in range(w):
+            out[y, x] = total
+            if x + radius + 1 < w:
+                total += row[x + radius + 1]
+            if x - radius >= 0:
+                total -= row[x - radius]
+        if y + radius + 1 < h:
+            for x in range(w):
+                row[x] += src[y + radius + 1, x]
+        if y - radius >= 0:
+            for x in range(w):
+                row[x] -= src[y - radius, x]
+
+
+@njit(cache=True)
+def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, row, out):
+    """He et al.'s guided filter of the (H, W) slice ``p`` with the guide's statistics; scratch arrays
+    ip, mean_p, mean_ip (H, W) and row (W,); the result into ``out``."""
+    h, w = p.shape
+    for y in range(h):
+        for x in range(w):
+            ip[y, x] = guide[y, x] * p[y, x]
+    _box_sum(p, radius, row, mean_p)
+    _box_sum(ip, radius, row, mean_ip)
+    for y in range(h):
+        for x in range(w):
+            mp = mean_p[y, x] * inv_count[y, x]
+            a = (mean_ip[y, x] * inv_count[y, x] - mean_i[y, x] * mp) * inv_var[y, x]
+            mean_ip[y, x] = a
+            mean_p[y, x] = mp - a * mean_i[y, x]
+    _box_sum(mean_ip, radius, row, ip)  # the mean of a ...
+    _box_sum(mean_p, radius, row, mean_ip)  # ... and of b
+    for y in range(h):
+        for x in range(w):
+            out[y, x] = (ip[y, x] * guide[y, x] + mean_ip[y, x]) * inv_count[y, x]
+
+
+@njit(cache=True, parallel=True)
+def _aggregate(raw, guide, wide_stats, wide_radius, detail_stats, detail_radius, weight, out):
+    n_b, n_d, h, w = raw.shape
+    for job in prange(n_b * n_d):
+        b, k = job // n_d, job % n_d
+        ip, mean_p, mean_ip = np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.float32)
+        wide, row = np.empty((h, w), np.float32), np.empty(w, np.float64)
+        _guided(raw[b, k], guide[b], wide_stats[0, b], wide_stats[1, b], wide_stats[2, b], wide_radius, ip, mean_p,
+                mean_ip, row, wide)
+        if detail_radius < 0:
+            out[b, k] = wide
+            continue
+        if detail_radius == 0:
+            detail = raw[b, k]
+        else:
+            detail = np.empty((h, w), np.float32)
+            _guided(raw[b, k], guide[b], detail_stats[0, b], detail_stats[1, b], detail_stats[2, b], detail_radius,
+                    ip, mean_p, mean_ip, row, detail)
+        for y in range(h):
+            for x in range(w):
+                out[b, k, y, x] = detail[y, x] + weight[b, y, x] * (wide[y, x] - detail[y, x])
+
+
+def _statistics(guide: torch.Tensor, radius: int, eps: float) -> np.ndarray:
+    """(3, B, H, W) float32: the guide's local mean, 1 / (its local variance + eps), and 1 / the pixels in
+    each window -- as ``aggregate.guide_statistics`` and ``cost.box_counts`` compute them."""
+    from plugins.torch_sgm import aggregate
+    from plugins.torch_sgm.cost import box_counts
+
+    _, mean_i, inv_var, _ = aggregate.guide_statistics(guide, radius, eps)
+    counts = box_counts(*guide.shape[-2:], radius).expand(guide.shape[0], -1, -1)
+    return np.ascontiguousarray(torch.stack([mean_i[:, 0], inv_var[:, 0], counts]).numpy())
+
+
+class Guide:
+    """What the aggregation of every disparity slice of one image reads, computed once: the (B, 1, H, W)
+    grey guide, its statistics at ``radius`` and at ``detail_radius`` (-1: no narrow aggregation), and the
+    (B, 1, H, W) ``weight`` of the wide one (``aggregate.texture_weight``; None with no narrow one)."""
+
+    def __init__(self, guide: torch.Tensor, radius: int, detail_radius: int, eps: float, weight: torch.Tensor | None):
+        if not sgm_numba.available(guide) or guide.dim() != 4 or radius < 1:
+            raise ValueError(f"aggregate_numba.Guide: needs a (B, 1, H, W) float32 CPU guide and a radius of at "
+                             f"least 1, got {guide.dtype} {tuple(guide.shape)} on {guide.device}, radius {radius}")
+        self.shape = (guide.shape[0], *guide.shape[-2:])
+        self.grey = np.ascontiguousarray(guide[:, 0].numpy())
+        self.radius = int(radius)
+        self.wide = _statistics(guide, radius, eps)
+        self.detail_radius = int(detail_radius) if weight is not None else -1
+        self.detail = _statistics(guide, detail_radius, eps) if self.detail_radius > 0 else self.wide
+        self.weight = (np.ascontiguousarray(weight[:, 0].numpy()) if weight is not None
+                       else np.zeros((1, 1, 1), np.float32))
+
+
+def aggregate_numba(raw: torch.Tensor, guide: Guide, out: torch.Tensor | None = None) -> torch.Tensor:
+    """The guided filter of radius ``guide.radius`` of each slice of ``raw`` (B, D, H, W) float32, blended
+    by ``guide.weight`` with the one of ``guide.detail_radius`` (0: ``raw`` itself), as
+    ``aggregate.blend_by_texture(guided_filter(.., detail_radius), guided_filter(.., radius), weight)``.
+    Into ``out`` (B, D, H, W), a new tensor if not given, which is returned."""
+    if not sgm_numba.available(raw) or raw.dim() != 4 or (raw.shape[0], *raw.shape[2:]) != guide.shape:
+        raise ValueError(f"aggregate_numba: needs (B, D, H, W) float32 CPU costs for a {guide.shape} guide, got "
+                         f"{raw.dtype} {tuple(raw.shape)} on {raw.device}")
+    out = torch.empty_like(raw) if out is None else out
+    with sgm_numba.torch_threads():
+        _aggregate(raw.numpy(), guide.grey, guide.wide, guide.radius, guide.detail, guide.detail_radius,
+                   guide.weight, out.numpy())
+    return out

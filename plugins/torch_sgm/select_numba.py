@@ -1,8 +1,8 @@
 """``select.right_view_wta`` and ``select.unique_minimum`` compiled for the CPU with numba, for a volume in
-either memory order: the
-cost volume's (B, D, H, W), or the SGM sums as ``sgm_numba`` leaves them, each pixel's disparities side by
-side ((B, H, W, D) memory seen as a (B, D, H, W) view), which the torch version walks slice by slice through
-strided memory. The ``select`` functions stay the references the tests hold these to.
+either memory order: the cost volume's (B, D, H, W), or the SGM sums as ``sgm_numba`` leaves them, each
+pixel's disparities side by side ((B, H, W, D) memory seen as a (B, D, H, W) view), which the torch versions
+read slice by slice through strided memory. The ``select`` functions stay the references the tests hold
+these to.
 """
 from __future__ import annotations
 

@@ -70,14 +70,15 @@ def cost_volume_fast(left: torch.Tensor, right: torch.Tensor, disparities: list[
     offsets = cost.STAR_24 if p.census == "star24" else cost.window_offsets(p.census_rx, p.census_ry)
     features = cost.cost_features(left, right, p.znorm_radius, offsets, p.znorm_eps)
     guide = cost.to_grey(left)
-    stats = aggregate.guide_statistics(guide, p.agg_radius, p.agg_eps) if p.agg_radius > 0 else None
     weight = texture_weight(guide, p)
-    detail_stats = (aggregate.guide_statistics(guide, p.agg_detail_radius, p.agg_eps)
-                    if weight is not None and p.agg_detail_radius > 0 else None)
-    volume = torch.empty(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
-    step = min(p.chunk_disparities, FAST_CHUNK)
     compiled_guide = (aggregate_numba.Guide(guide, p.agg_radius, p.agg_detail_radius, p.agg_eps, weight)
                       if compiled(p, left) and p.agg_radius > 0 else None)
+    if compiled_guide is None:
+        stats = aggregate.guide_statistics(guide, p.agg_radius, p.agg_eps) if p.agg_radius > 0 else None
+        detail_stats = (aggregate.guide_statistics(guide, p.agg_detail_radius, p.agg_eps)
+                        if weight is not None and p.agg_detail_radius > 0 else None)
+    volume = torch.empty(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
+    step = min(p.chunk_disparities, FAST_CHUNK)
     for start in range(0, len(disparities), step):
         count = min(step, len(disparities) - start)
         raw = cost.fused_cost_chunk(features, disparities[start], count, w_ad=p.w_ad, w_census=p.w_census,

@@ -16,9 +16,35 @@ from plugins.torch_sgm.linalg_numba import solve3
 
 
 @njit(cache=True, parallel=True)
-def _plane_fit(disp, image, radius, inv_colour2, inv_space2, tolerance, out):
+def _pair_weights(image, radius, inv_colour2, inv_space2, slot, weights):
+    """The weight of every pair of pixels (p, p + (u, v)) with (v, u) after (0, 0) in reading order and
+    within ``radius``, into ``weights[slot[v + r, u + r], b, y, x]`` (p = (y, x)): the weight is symmetric
+    (the colour distance and the spatial one alike), so each pair's exponential is taken once for both
+    pixels. 0 where p + (u, v) lies outside the image."""
+    n_b, channels, h, w = image.shape
+    for job in prange(n_b * h):
+        b, y = job // h, job % h
+        for v in range(0, radius + 1):
+            yy = y + v
+            for u in range(-radius, radius + 1):
+                if v == 0 and u <= 0:
+                    continue
+                k = slot[v + radius, u + radius]
+                for x in range(w):
+                    xx = x + u
+                    if yy >= h or xx < 0 or xx >= w:
+                        weights[k, b, y, x] = 0.0
+                        continue
+                    colour = 0.0
+                    for c in range(channels):
+                        diff = image[b, c, yy, xx] - image[b, c, y, x]
+                        colour += diff * diff
+                    weights[k, b, y, x] = math.exp(-colour * inv_colour2 - (u * u + v * v) * inv_space2)
+
+
+@njit(cache=True, parallel=True)
+def _plane_fit(disp, weights, slot, radius, tolerance, out):
     n_b, h, w = disp.shape
-    channels = image.shape[1]
     for job in prange(n_b * h):
         b, y = job // h, job % h
         m = np.empty((3, 3))
@@ -41,11 +67,12 @@ def _plane_fit(disp, image, radius, inv_colour2, inv_space2, tolerance, out):
                     rel = disp[b, yy, xx] - d0
                     if not abs(rel) <= tolerance:  # NaN fails too
                         continue
-                    colour = 0.0
-                    for c in range(channels):
-                        diff = image[b, c, yy, xx] - image[b, c, y, x]
-                        colour += diff * diff
-                    weight = math.exp(-colour * inv_colour2 - (u * u + v * v) * inv_space2)
+                    if v == 0 and u == 0:
+                        weight = 1.0
+                    elif v > 0 or (v == 0 and u > 0):
+                        weight = weights[slot[v + radius, u + radius], b, y, x]
+                    else:  # the pair as its other pixel stored it
+                        weight = weights[slot[radius - v, radius - u], b, yy, xx]
                     s1 += weight
                     su += weight * u
                     sv += weight * v
@@ -66,11 +93,32 @@ def _plane_fit(disp, image, radius, inv_colour2, inv_space2, tolerance, out):
                 out[b, y, x] = d0 + shift
 
 
+def _pair_slots(radius: int) -> np.ndarray:
+    """(2r+1, 2r+1) int64: the index of each offset (v, u) after (0, 0) in reading order, -1 elsewhere."""
+    slot = np.full((2 * radius + 1, 2 * radius + 1), -1, np.int64)
+    k = 0
+    for v in range(0, radius + 1):
+        for u in range(-radius, radius + 1):
+            if v > 0 or u > 0:
+                slot[v + radius, u + radius] = k
+                k += 1
+    return slot
+
+
+def _plane_fit_paired(disp, image, radius, inv_colour2, inv_space2, tolerance, out):
+    """The local plane fit from each pair's weight taken once (``_pair_weights``), as ``_windowed`` calls it."""
+    slot = _pair_slots(radius)
+    weights = np.empty((int(slot.max()) + 1, *disp.shape), np.float64)
+    _pair_weights(image, radius, inv_colour2, inv_space2, slot, weights)
+    _plane_fit(disp, weights, slot, radius, tolerance, out)
+
+
 def local_plane_fit_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, sigma_colour: float,
                           sigma_space: float, tolerance: float = 1.0) -> torch.Tensor:
     """``refine.local_plane_fit`` on the CPU: disp (B, H, W) float32, image (B, C, H, W) float32 ->
     (B, H, W); the same arguments and result (up to float rounding: the moments are summed in float64)."""
-    return _windowed("local_plane_fit_numba", _plane_fit, disp, image, radius, sigma_colour, sigma_space, tolerance)
+    return _windowed("local_plane_fit_numba", _plane_fit_paired, disp, image, radius, sigma_colour, sigma_space,
+                     tolerance)
 
 
 def _windowed(name, kernel, disp, image, radius, sigma_colour, sigma_space, last):

@@ -25,9 +25,11 @@ from typing import Any
 
 import numpy as np
 
+from core.boxes import match_boxes
+from core.checks import detections_problem
 from core.decision import judge_defect, rule_applies
 from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
-from core.engine import frame_disparity
+from core.engine import StageFailed, frame_disparity
 from core.recipe import LoadedRecipe
 from core.surface_fit import gradient_x, to_grey
 from core.types import Detection, DefectMeasurement, Status, StereoFrame
@@ -35,6 +37,8 @@ from core.types import Detection, DefectMeasurement, Status, StereoFrame
 CLEAR_CUT_MM = 0.3  # a defect whose true value is at least this far from every limit is clear-cut
 NARROW_PX = 30.0  # boxes narrower than this count as narrow defects
 MIN_RATIO_MM = 0.3  # measured / true only for defects at least this deep
+MATCH_IOU = 0.3  # a detector's box finds a labelled defect from this overlap on
+MISSED = "missed"  # the outcome of a labelled defect the detector did not box
 
 
 @dataclass
@@ -89,6 +93,8 @@ class Summary:
     clear_cut_wrong_beyond_2_sigma: int = 0
     clear_cut_silent_pass: int = 0
     clear_cut_wrong_plain: int = 0  # decided on the value alone, without the guard band
+    missed: int = 0  # labelled defects the detector did not box (``--boxes detector``)
+    missed_beyond_a_limit: int = 0  # ... of them, those whose truth rejects
 
 
 def floor_px(grey: np.ndarray, mask: np.ndarray, noise_sigma: float) -> float:
@@ -143,9 +149,10 @@ class BoxError:
 
 
 def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backend, sequence: str,
-                   timings: list[float], box_error: BoxError = BoxError()) -> list[DefectRow]:
+                   timings: list[float], box_error: BoxError = BoxError(), detector=None) -> list[DefectRow]:
     """Every labelled defect of one frame (defects whose truth has no deviation are skipped), measured in
-    the true boxes as ``box_error`` moves them; the floor is always the true box's."""
+    the true boxes as ``box_error`` moves them, or with a ``detector`` in the box of its that matches the
+    defect (``MATCH_IOU``; a defect without one is ``MISSED``); the floor is always the true box's."""
     recipe = loaded.recipe
     rule = DepthRule.from_recipe(recipe)
     reference_rule = DepthRule.from_recipe(recipe, method="disparity")
@@ -153,20 +160,32 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     if not truths:
         return []
     true_boxes = [tuple(float(v) for v in t["box"]) for t in truths]
-    detections = [Detection(t["class"], 1.0, box_error.apply(box, f"{sequence}/{frame.frame_id}/{i}"))
-                  for i, (t, box) in enumerate(zip(truths, true_boxes))]
+    if detector is None:
+        detections = [Detection(t["class"], 1.0, box_error.apply(box, f"{sequence}/{frame.frame_id}/{i}"))
+                      for i, (t, box) in enumerate(zip(truths, true_boxes))]
+        boxed = detections
+    else:
+        # the stereo region covers every box the detector reports, as on the line
+        detections = detected(detector, frame, recipe)
+        found = match_boxes(np.array(true_boxes), np.array([d.box for d in detections]), MATCH_IOU)
+        boxed = [None if j is None else detections[j] for j in found]
+    rows = [missed_row(sequence, frame.frame_id, truth, box, recipe)
+            for truth, box, det in zip(truths, true_boxes, boxed) if det is None]
+    kept = [(truth, box, det) for truth, box, det in zip(truths, true_boxes, boxed) if det is not None]
+    if not kept:
+        return rows
+    truths, true_boxes, boxed = (list(t) for t in zip(*kept))
     disparity = frame_disparity(backend, frame, recipe.stereo, detections, rule)
     start = time.perf_counter()
-    measured = measure_frame(disparity, detections, frame, rule)
-    timings.append((time.perf_counter() - start) / len(detections))
-    reference = measure_frame(disparity, detections, frame, reference_rule)
+    measured = measure_frame(disparity, boxed, frame, rule)
+    timings.append((time.perf_counter() - start) / len(boxed))
+    reference = measure_frame(disparity, boxed, frame, reference_rule)
     grey = to_grey(frame.left)
     noise = (labels.get("sensor") or {}).get("noise_sigma")
     # judged with uncertain: flag, a FLAG is a measurement that proved neither side of a limit
     undecided_as_flag = recipe.decision.model_copy(update={"uncertain": "flag"})
     no_band = recipe.decision.model_copy(update={"coverage_factor": 0.0})
-    rows = []
-    for det, box, truth, m, ref in zip(detections, true_boxes, truths, measured, reference):
+    for det, box, truth, m, ref in zip(boxed, true_boxes, truths, measured, reference):
         floor = None if noise is None else defect_floor_mm(grey, box, frame.calib, rule, noise, truth["distance_mm"])
         rows.append(DefectRow(
             sequence, frame.frame_id, truth["class"], box, truth["distance_mm"], truth["deviation_mm"], floor,
@@ -181,6 +200,27 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             clear_cut=clear_cut(truth, recipe),
         ))
     return rows
+
+
+def detected(detector, frame: StereoFrame, recipe) -> list[Detection]:
+    """The detector's boxes on the frame's left image at the recipe's confidence and classes; a detector
+    that breaks its contract is an error, not an empty frame."""
+    found = detector.detect(frame.left)
+    problem = detections_problem(found, getattr(detector, "class_names", None))
+    if problem is not None:
+        raise StageFailed(f"frame {frame.frame_id}: {problem}")
+    classes = recipe.detector.classes
+    return [d for d in found if d.confidence >= recipe.detector.confidence and (classes is None or d.class_name in classes)]
+
+
+def missed_row(sequence: str, frame_id: str, truth: dict, box, recipe) -> DefectRow:
+    """A labelled defect no box of the detector found: no measurement, and the outcome ``MISSED``."""
+    det = Detection(truth["class"], 1.0, box)
+    return DefectRow(sequence, frame_id, truth["class"], box, truth["distance_mm"], truth["deviation_mm"], None,
+                     note="missed by the detector", true_status=judge_defect(true_measurement(det, truth),
+                                                                             recipe.decision)[0].value,
+                     status=MISSED, reference_status=MISSED, proven=MISSED, reference_proven=MISSED, plain=MISSED,
+                     reference_plain=MISSED, clear_cut=clear_cut(truth, recipe))
 
 
 def _proven(status: Status) -> str:
@@ -243,6 +283,9 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
             with_floor = [r for r in sig if r.floor_mm]
             if with_floor:
                 s.sigma_over_floor_median = float(np.median([r.deviation_sigma_mm / r.floor_mm for r in with_floor]))
+    missed = [r for r in rows if r.proven == MISSED]
+    s.missed = len(missed)
+    s.missed_beyond_a_limit = sum(r.true_status == Status.REJECT.value for r in missed)
     for r in rows:
         plain = r.reference_plain if reference else r.plain
         if r.clear_cut and plain in (Status.PASS.value, Status.REJECT.value) and plain != r.true_status:
@@ -290,7 +333,8 @@ def _percent(v: float | None) -> str:
 def markdown(body: dict[str, Any]) -> str:
     """The report as Markdown: one table row per sequence and the pooled row, measurement and reference."""
     moved = (f"; the true boxes scaled by {body['box_scale']:g} and moved by {body['box_shift']:g} of their size"
-             if body.get("box_scale", 1.0) != 1.0 or body.get("box_shift", 0.0) else "")
+             if body.get("box_scale", 1.0) != 1.0 or body.get("box_shift", 0.0) else
+             "; the detector's boxes" if body.get("boxes") == "detector" else "")
     lines = [
         f"Recipe `{body['recipe']}`, backend `{body['backend']}`, depth method `{body['method']}`{moved}; "
         f"machine: {body['machine']}",
@@ -319,6 +363,12 @@ def markdown(body: dict[str, Any]) -> str:
     lines.append("|---|" + "---|" * len(outcomes))
     for truth in sorted(confusion):
         lines.append(f"| {truth} | " + " | ".join(str(confusion[truth].get(o, 0)) for o in outcomes) + " |")
+    if body.get("boxes") == "detector":
+        s = body["all"]["measurement"]
+        lines += ["", f"Boxes from the recipe's detector (`{body['detector']}`, confidence {body['confidence']:g}): "
+                  f"{s['defects'] - s['missed']} of the {s['defects']} labelled defects boxed (IoU at least {MATCH_IOU:g}); "
+                  f"{s['missed']} missed, {s['missed_beyond_a_limit']} of them beyond a limit (on the line their part "
+                  "passes unless another box rejects it). The figures above are over the boxed ones."]
     if body.get("seconds_per_defect") is not None:
         lines += ["", f"Depth per defect ({body['method']}): {1000 * body['seconds_per_defect']:.1f} ms on this machine."]
     return "\n".join(lines) + "\n"
@@ -357,7 +407,8 @@ def save(body: dict[str, Any], rows: list[DefectRow], out: Path, with_figure: bo
     written = [out / "depth_eval.json", out / "depth_eval.md"]
     written[0].write_text(json.dumps(body, indent=1, default=float))
     written[1].write_text(markdown(body))
-    if with_figure and rows:
+    # a set in which nothing was measured (every defect missed or unavailable) has nothing to plot
+    if with_figure and any(r.deviation_mm is not None or r.reference_deviation_mm is not None for r in rows):
         figure(rows, out / "depth_eval.png")
         written.append(out / "depth_eval.png")
     return written

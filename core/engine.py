@@ -120,28 +120,42 @@ def resolve_device(device: str) -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
+def make_plugin(loaded: LoadedRecipe, registry: Registry, ctx: PluginContext, kind: str, name: str, key: str,
+                settings: dict) -> Any:
+    """The ``kind`` plugin ``name`` the recipe key ``key`` chose, built from ``settings`` and checked for its
+    kind's methods; ``SetupError`` naming the key where it cannot be."""
+    try:
+        made = registry.get(kind, name).spec.factory(settings, ctx)
+    except Exception as exc:  # a plugin's own failure, reported against the recipe key that chose it
+        raise SetupError(f"{loaded.path}: {key}: {name}: {exc}") from exc
+    missing = missing_members(made, kind)
+    if missing:
+        raise SetupError(f"{loaded.path}: {key}: {name}: its factory returned an instance of {type(made).__name__}, which has no "
+                         f"{', '.join(missing)} (a {kind} plugin's object needs them)")
+    return made
+
+
+def build_detector(loaded: LoadedRecipe, registry: Registry, ctx: PluginContext) -> Any:
+    """The recipe's detector, checked against the classes the recipe names."""
+    recipe = loaded.recipe
+    detector = make_plugin(loaded, registry, ctx, "detector", recipe.detector.plugin, "detector", detector_settings(loaded))
+    # the same check as the recipe's validation, for detectors that state their classes only once built
+    for key, name in named_classes(recipe):
+        if name not in detector.class_names:
+            raise SetupError(loaded.describe(key, unknown_class_message(name, list(detector.class_names))))
+    return detector
+
+
 def build_pipeline(loaded: LoadedRecipe, registry: Registry, device: str = "auto") -> Pipeline:
     recipe = loaded.recipe
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=recipe.name, device=resolve_device(device))
 
     def make(kind: str, name: str, key: str, settings: dict) -> Any:
-        try:
-            made = registry.get(kind, name).spec.factory(settings, ctx)
-        except Exception as exc:  # a plugin's own failure, reported against the recipe key that chose it
-            raise SetupError(f"{loaded.path}: {key}: {name}: {exc}") from exc
-        missing = missing_members(made, kind)
-        if missing:
-            raise SetupError(f"{loaded.path}: {key}: {name}: its factory returned an instance of {type(made).__name__}, which has no "
-                             f"{', '.join(missing)} (a {kind} plugin's object needs them)")
-        return made
+        return make_plugin(loaded, registry, ctx, kind, name, key, settings)
 
     camera = make("camera", recipe.camera.plugin, "camera", loaded.plugin_settings["camera"])
     stereo = make("stereo", recipe.stereo.backend, "stereo", loaded.plugin_settings["stereo"])
-    detector = make("detector", recipe.detector.plugin, "detector", detector_settings(loaded))
-    # the same check as the recipe's validation, for detectors that state their classes only once built
-    for key, name in named_classes(recipe):
-        if name not in detector.class_names:
-            raise SetupError(loaded.describe(key, unknown_class_message(name, list(detector.class_names))))
+    detector = build_detector(loaded, registry, ctx)
     outputs = [
         (o.plugin, make("output", o.plugin, f"outputs.{i}", loaded.plugin_settings[f"outputs.{i}"]))
         for i, o in enumerate(recipe.outputs)

@@ -21,7 +21,7 @@ from core.depth import DepthRule, measure_defect
 from core.types import Detection
 from drivers.sequence_folder import read_calibration, read_disparity_png
 from plugins.replay_camera import calibration_from_dict
-from plugins.yolov8.tiling import box_iou
+from core.boxes import box_iou
 
 FIXTURE = ROOT / "sim_fixtures" / "steel_plate"
 

@@ -101,6 +101,44 @@ def test_boxes_that_are_off_are_measured_there_with_the_true_boxs_floor(evaluate
     assert cli("eval", "depth", str(TEXTURED), "--box-scale", "nan").returncode == 2
 
 
+DEMO = ROOT / "sim_fixtures" / "steel_plate"
+
+
+def test_the_detectors_boxes_are_measured_and_the_defects_it_missed_counted(tmp_path):
+    result = cli("eval", "depth", str(DEMO), "--boxes", "detector", "--out", str(tmp_path), "--threads", "1",
+                 "--no-figure")
+    assert result.returncode == 0, result.stderr
+    body = json.loads((tmp_path / "depth_eval.json").read_text())
+    s = body["all"]["measurement"]
+    missed = [r for r in body["rows"] if r["status"] == ev.MISSED]
+    assert body["boxes"] == "detector" and s["missed"] == len(missed)
+    assert all(r["deviation_mm"] is None and r["note"] == "missed by the detector" for r in missed)
+    assert 0 < s["measured"] <= s["defects"] - s["missed"]  # the demo's detector finds most of its defects
+    assert f"{s['defects'] - s['missed']} of the {s['defects']} labelled defects boxed" in result.stdout
+    # rows keep the true boxes; a measured one was measured in a box of the detector's, not the true one
+    assert cli("eval", "depth", str(DEMO), "--out", str(tmp_path / "true"), "--threads", "1", "--no-figure",
+               "--quiet").returncode == 0
+    true_run = json.loads((tmp_path / "true" / "depth_eval.json").read_text())
+    by_box = {(r["frame_id"], tuple(r["box"])): r for r in true_run["rows"]}
+    measured = [r for r in body["rows"] if r["deviation_mm"] is not None]
+    assert all((r["frame_id"], tuple(r["box"])) in by_box for r in body["rows"])
+    assert any(r["deviation_mm"] != by_box[(r["frame_id"], tuple(r["box"]))]["deviation_mm"] for r in measured)
+
+
+def test_a_detector_that_finds_nothing_leaves_every_defect_missed(tmp_path):
+    result = cli("eval", "depth", str(DEMO), "--boxes", "detector", "--set", "detector.confidence=1.0",
+                 "--out", str(tmp_path), "--threads", "1", "--quiet")
+    assert result.returncode == 0, result.stderr
+    s = json.loads((tmp_path / "depth_eval.json").read_text())["all"]["measurement"]
+    assert s["measured"] == 0 and s["missed"] == s["defects"] > 0 and s["missed_beyond_a_limit"] > 0
+    assert not (tmp_path / "depth_eval.png").exists()  # nothing to plot
+
+
+def test_box_changes_and_the_detectors_boxes_do_not_mix(tmp_path):
+    result = cli("eval", "depth", str(DEMO), "--boxes", "detector", "--box-shift", "0.1", "--out", str(tmp_path))
+    assert result.returncode == 2 and "--boxes detector" in result.stderr
+
+
 class TestFloor:
     def test_the_floor_falls_with_the_gradient_energy(self):
         rng = np.random.default_rng(0)

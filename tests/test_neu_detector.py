@@ -11,7 +11,7 @@ import pytest
 from core.contracts import PluginContext
 from core.registry import default_registry
 from plugins.yolov8.detector import DEFAULT_WEIGHTS
-from plugins.yolov8.tiling import box_iou
+from core.boxes import box_iou
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "neu_val"
 STEMS = sorted(p.stem for p in FIXTURES.glob("*.jpg"))

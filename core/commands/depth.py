@@ -21,24 +21,27 @@ from core.commands.params import Finite, demo_recipe, out_folder
 @click.option("--figure/--no-figure", default=True, show_default=True, help="save error against distance and width")
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or auto (torch_sgm)")
 @click.option("--threads", type=click.IntRange(1), default=None, help="torch and OpenCV CPU threads")
+@click.option("--boxes", type=click.Choice(["true", "detector"]), default="true", show_default=True,
+              help="measure in the labels' true boxes, or in the recipe's detector's boxes that match them")
 @click.option("--box-scale", type=Finite(min=0.1, max=10.0), default=1.0, show_default=True,
               help="measure in the true boxes scaled about their centres, as a detector's looser or tighter boxes")
 @click.option("--box-shift", type=Finite(min=0.0, max=1.0), default=0.0, show_default=True,
               help="... and moved by this share of their size, each in its own direction")
 @click.option("--quiet", is_flag=True, help="no line per defect")
-def eval_depth_command(sequences, recipe, backend, overrides, out, figure, device, threads, box_scale, box_shift,
-                       quiet):
+def eval_depth_command(sequences, recipe, backend, overrides, out, figure, device, threads, boxes, box_scale,
+                       box_shift, quiet):
     """The engine's stereo and depth on labelled SEQUENCES (folders of `inspect sim generate`) with the
     true boxes: distance and deviation errors (median, p90, max), measured ÷ true, the physical floor,
     the calibration of the reported uncertainty and the decisions at the recipe's rules, for the
     recipe's depth method and for the backend's disparity alone. Saves JSON, Markdown and a figure.
 
-    --box-scale and --box-shift measure in boxes that are off as a detector's are; the floor stays the
-    true box's."""
+    --box-scale and --box-shift measure in boxes that are off as a detector's are; --boxes detector in the
+    boxes of the recipe's detector that match the labels, and counts the labelled defects it missed. The
+    floor stays the true box's."""
     from core import depth_eval as ev
     from core.commands.inspection import _load, fail
     from core.contracts import PluginContext
-    from core.engine import command_threads, resolve_device
+    from core.engine import StageFailed, command_threads, resolve_device
     from core.registry import default_registry
     from drivers.sequence_folder import SequenceError, read_labels
     from plugins.replay_camera import ReplayCamera, ReplaySettings
@@ -46,6 +49,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     overrides = list(overrides)
     if backend is not None:
         overrides += [f"stereo.backend={backend}", "stereo.settings={}"]
+    if boxes == "detector" and (box_scale != 1.0 or box_shift):
+        fail("--box-scale and --box-shift change the true boxes; with --boxes detector the detector draws them")
     for folder in sequences:
         if not folder.is_dir():
             fail(f"{folder}: not a sequence folder")
@@ -56,6 +61,14 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     stereo = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(loaded.plugin_settings["stereo"], ctx)
     rows, timings = [], []
     box_error = ev.BoxError(box_scale, box_shift)
+    detector = None
+    if boxes == "detector":
+        from core.engine import SetupError, build_detector
+
+        try:
+            detector = build_detector(loaded, registry, ctx)
+        except SetupError as exc:
+            fail(str(exc))
     for folder in sequences:
         try:
             camera = ReplayCamera(ReplaySettings(path=str(folder.resolve())))
@@ -71,7 +84,10 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
                 labels = read_labels(frame.meta["labels"])
             except SequenceError as exc:
                 fail(str(exc))
-            new = ev.evaluate_frame(frame, labels, loaded, stereo, folder.name, timings, box_error)
+            try:
+                new = ev.evaluate_frame(frame, labels, loaded, stereo, folder.name, timings, box_error, detector)
+            except StageFailed as exc:
+                fail(f"{folder}: {exc}")
             rows += new
             if not quiet:
                 for r in new:
@@ -92,7 +108,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
             "uncertain": loaded.recipe.decision.uncertain, "coverage_factor": loaded.recipe.decision.coverage_factor,
             "machine": f"{m['cpu']}, {m['cores']} cores, {torch.get_num_threads()} torch threads"
                        + (f", GPU {m['gpu']}" if "gpu" in m and ctx.device.startswith("cuda") else ""),
-            "python": platform.python_version(), "box_scale": box_scale, "box_shift": box_shift}
+            "python": platform.python_version(), "box_scale": box_scale, "box_shift": box_shift, "boxes": boxes,
+            "detector": loaded.recipe.detector.plugin, "confidence": loaded.recipe.detector.confidence}
     body = ev.report(rows, meta, sum(timings) / len(timings) if timings else None)
     written = ev.save(body, rows, out, figure)
     click.echo("")

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from drivers.sequence_folder import SequenceError, read_labels
-from plugins.yolov8.tiling import box_iou
+from core.boxes import box_iou
 
 
 @dataclass

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.boxes import box_iou
+
 
 def tile_origins(length: int, tile: int, overlap: float) -> list[int]:
     """Start offsets covering ``[0, length)`` with tiles of ``tile`` px overlapping by ``overlap`` (0..<1)."""
@@ -17,18 +19,6 @@ def tile_origins(length: int, tile: int, overlap: float) -> list[int]:
     origins = list(range(0, length - tile, step))
     origins.append(length - tile)
     return sorted(set(origins))
-
-
-def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of every box in a (N,4) with every box in b (M,4); boxes are x0, y0, x1, y1."""
-    x0 = np.maximum(a[:, None, 0], b[None, :, 0])
-    y0 = np.maximum(a[:, None, 1], b[None, :, 1])
-    x1 = np.minimum(a[:, None, 2], b[None, :, 2])
-    y1 = np.minimum(a[:, None, 3], b[None, :, 3])
-    inter = np.clip(x1 - x0, 0, None) * np.clip(y1 - y0, 0, None)
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
 
 
 def nms(boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, iou: float) -> np.ndarray:

@@ -1,0 +1,36 @@
+"""``core.boxes``: overlaps of boxes and which labelled box a detector's box found."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.boxes import box_iou, match_boxes
+
+
+class TestBoxIou:
+    def test_identical_disjoint_and_half_overlapping_boxes(self):
+        a = np.array([[0, 0, 10, 10]], float)
+        b = np.array([[0, 0, 10, 10], [20, 20, 30, 30], [5, 0, 15, 10]], float)
+        assert box_iou(a, b)[0] == pytest.approx([1.0, 0.0, 50 / 150])
+
+
+class TestMatchBoxes:
+    def test_each_truth_takes_its_best_box_and_no_box_serves_two(self):
+        truth = np.array([[0, 0, 10, 10], [1, 0, 11, 10]], float)
+        found = np.array([[1, 0, 11, 10], [50, 50, 60, 60]], float)
+        # both truths overlap the first box most; the second truth's overlap is the higher, so it takes it
+        assert match_boxes(truth, found, 0.3) == [None, 0]
+
+    def test_pairs_are_taken_by_falling_overlap(self):
+        truth = np.array([[0, 0, 10, 10], [8, 0, 18, 10]], float)
+        found = np.array([[7, 0, 17, 10], [0, 0, 9, 10]], float)
+        assert match_boxes(truth, found, 0.3) == [1, 0]
+
+    def test_an_overlap_below_the_threshold_is_no_match(self):
+        truth = np.array([[0, 0, 10, 10]], float)
+        assert match_boxes(truth, np.array([[6, 0, 16, 10]], float), 0.3) == [None]  # IoU 0.25
+        assert match_boxes(truth, np.array([[6, 0, 16, 10]], float), 0.2) == [0]
+
+    def test_nothing_found_or_nothing_to_find(self):
+        assert match_boxes(np.array([[0, 0, 1, 1]], float), np.zeros((0, 4)), 0.3) == [None]
+        assert match_boxes(np.zeros((0, 4)), np.array([[0, 0, 1, 1]], float), 0.3) == []

@@ -181,6 +181,15 @@ class TestLocalPlaneFitNumba:
         disp, image = self.scene()
         assert refine_numba.local_plane_fit_numba(disp, image, 0, 0.1, 5.0) is disp
 
+    def test_bands_of_rows_give_the_whole_images_fit(self, monkeypatch):
+        disp, image = self.scene(seed=2)
+        disp, image = torch.cat([disp, disp.flip(-1)]), torch.cat([image, image.flip(-1)])  # two images
+        whole = refine_numba.local_plane_fit_numba(disp, image, 3, 0.1, 5.0)
+        # bands of 7 rows: the pairs' weights of 24 offsets, two images of 64 columns, 8 bytes each
+        monkeypatch.setattr(refine_numba, "PAIR_WEIGHT_BYTES", 24 * 2 * 64 * 8 * 7)
+        banded = refine_numba.local_plane_fit_numba(disp, image, 3, 0.1, 5.0)
+        assert torch.equal(banded.nan_to_num(-1), whole.nan_to_num(-1))
+
     def test_refuses_mismatched_shapes(self):
         disp, image = self.scene()
         with pytest.raises(ValueError, match="must match"):

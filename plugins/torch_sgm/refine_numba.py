@@ -105,12 +105,25 @@ def _pair_slots(radius: int) -> np.ndarray:
     return slot
 
 
+PAIR_WEIGHT_BYTES = 32 * 2**20  # the most memory the pairs' weights of one band of rows take
+
+
 def _plane_fit_paired(disp, image, radius, inv_colour2, inv_space2, tolerance, out):
-    """The local plane fit from each pair's weight taken once (``_pair_weights``), as ``_windowed`` calls it."""
+    """The local plane fit from each pair's weight taken once (``_pair_weights``), as ``_windowed`` calls it:
+    in bands of rows, each with ``radius`` rows of the image above and below it, so that the weights of a
+    large image need not be held at once (a pixel's window lies inside its band's rows either way)."""
     slot = _pair_slots(radius)
-    weights = np.empty((int(slot.max()) + 1, *disp.shape), np.float64)
-    _pair_weights(image, radius, inv_colour2, inv_space2, slot, weights)
-    _plane_fit(disp, weights, slot, radius, tolerance, out)
+    pairs = int(slot.max()) + 1
+    n_b, h, w = disp.shape
+    band = max(2 * radius + 1, PAIR_WEIGHT_BYTES // (pairs * n_b * w * 8))
+    for top in range(0, h, band):
+        lo, hi = max(0, top - radius), min(h, top + band + radius)
+        weights = np.empty((pairs, n_b, hi - lo, w), np.float64)
+        part = np.empty((n_b, hi - lo, w), disp.dtype)
+        _pair_weights(image[:, :, lo:hi], radius, inv_colour2, inv_space2, slot, weights)
+        _plane_fit(disp[:, lo:hi], weights, slot, radius, tolerance, part)
+        rows = min(band, h - top)
+        out[:, top: top + rows] = part[:, top - lo: top - lo + rows]
 
 
 def local_plane_fit_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, sigma_colour: float,

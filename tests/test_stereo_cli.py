@@ -89,6 +89,14 @@ def test_stages_of_a_backend_that_does_not_time_them_is_refused(pair):
     assert result.exit_code == 2 and "does not time its stages" in result.output
 
 
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has a CUDA device")
+@pytest.mark.parametrize("command", [["stereo", "L", "R", "--max-disp", "32"], ["bench"], ["run", "recipe.yaml"],
+                                     ["eval", "depth", "sequence"], ["eval", "stereo", "--middlebury", "m"]])
+def test_cuda_asked_for_where_there_is_none_is_refused_not_run_on_the_cpu(command):
+    result = invoke(*command, "--device", "cuda")
+    assert result.exit_code == 2 and "no CUDA device" in result.output
+
+
 def test_pair_of_different_sizes_is_refused(pair, tmp_path):
     left, _, _ = pair
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((40, 72, 3), np.uint8))

@@ -9,7 +9,7 @@ import yaml
 from pydantic import ValidationError
 
 from core.commands.inspection import _load, fail
-from core.commands.params import FINITE, demo_recipe, out_folder
+from core.commands.params import FINITE, cuda_if_present, demo_recipe, out_folder
 
 
 @click.command("bench")
@@ -20,7 +20,7 @@ from core.commands.params import FINITE, demo_recipe, out_folder
 @click.option("--resolution", type=click.Choice(["wvga", "hd720"]), default="wvga", show_default=True)
 @click.option("--min-disp", type=FINITE, default=None)
 @click.option("--max-disp", type=FINITE, default=None)
-@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or auto")
+@click.option("--device", default="cpu", show_default=True, callback=cuda_if_present, help="cpu, cuda or auto")
 @click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 100))
 @click.option("--frames", default=None, type=click.IntRange(1), help="use only the first N frames")
 @click.option("--regions", default="full,defects", show_default=True,

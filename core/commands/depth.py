@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import Finite, demo_recipe, out_folder
+from core.commands.params import Finite, cuda_if_present, demo_recipe, out_folder
 
 
 @click.command("depth")
@@ -19,7 +19,8 @@ from core.commands.params import Finite, demo_recipe, out_folder
 @click.option("--out", type=click.Path(path_type=Path), default=Path("runs/depth_eval"), show_default=True,
               callback=out_folder)
 @click.option("--figure/--no-figure", default=True, show_default=True, help="save error against distance and width")
-@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or auto (torch_sgm)")
+@click.option("--device", default="cpu", show_default=True, callback=cuda_if_present,
+              help="cpu, cuda or auto (torch_sgm)")
 @click.option("--threads", type=click.IntRange(1), default=None, help="torch and OpenCV CPU threads")
 @click.option("--boxes", type=click.Choice(["true", "detector"]), default="true", show_default=True,
               help="measure in the labels' true boxes, or in the recipe's detector's boxes that match them")

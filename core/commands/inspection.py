@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import out_file
+from core.commands.params import cuda_if_present, out_file
 from core.types import Alarm, OutputEvent, Status
 
 _STYLE = {Status.PASS: "green", Status.REJECT: "bold red", Status.ERROR: "bold yellow", Status.FLAG: "bold magenta"}
@@ -58,7 +58,8 @@ def part_line(outcome) -> str:
 @click.command("run")
 @click.argument("recipe", type=click.Path(path_type=Path))
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE", help="override a recipe value (repeatable)")
-@click.option("--device", default="auto", show_default=True, help="torch device for plugins that use one")
+@click.option("--device", default="auto", show_default=True, callback=cuda_if_present,
+              help="torch device for plugins that use one")
 @click.option("--max-frames", type=int, default=None, help="stop after this many parts")
 @click.option("--plc-sim", is_flag=True, help="start the Modbus PLC simulator in-process where a modbus output finds nothing listening")
 @click.option("--quiet", is_flag=True, help="no per-part lines")

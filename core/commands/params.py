@@ -23,6 +23,18 @@ class Finite(click.FloatRange):
 FINITE = Finite()
 
 
+def cuda_if_present(ctx, param, value):
+    """``--device``: ``cuda`` only where torch sees a CUDA device. A plugin asked for ``auto`` runs on the
+    CPU without one, so a map or a benchmark said to be a GPU's would silently be the CPU's."""
+    if isinstance(value, str) and value.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise click.BadParameter("torch sees no CUDA device on this machine (cpu, or auto for what there is)",
+                                     ctx=ctx, param=param)
+    return value
+
+
 def demo_recipe() -> Path:
     """The demo recipe of the checkout this package runs from, so that a command works from any folder;
     ``recipes/steel_plate.yaml`` of the working folder where the package was installed without it."""

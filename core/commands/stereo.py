@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import FINITE, out_file, out_folder
+from core.commands.params import FINITE, cuda_if_present, out_file, out_folder
 
 
 def _fail(message: str) -> None:
@@ -98,6 +98,7 @@ def write_png(path: Path, disparity, vmin: float, vmax: float) -> None:
 threads_option = click.option("--threads", type=int, default=None,
                               help="torch CPU threads (1 is fastest when the cores are shared)")
 device_option = click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
+                             callback=cuda_if_present,
                              help="passed to the backend as the engine's device")
 
 

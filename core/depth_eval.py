@@ -26,10 +26,9 @@ from typing import Any
 import numpy as np
 
 from core.boxes import match_boxes
-from core.checks import detections_problem
 from core.decision import judge_defect, rule_applies
 from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
-from core.engine import StageFailed, frame_disparity
+from core.engine import StageFailed, frame_disparity, kept_detections
 from core.recipe import LoadedRecipe
 from core.surface_fit import gradient_x, to_grey
 from core.types import Detection, DefectMeasurement, Status, StereoFrame
@@ -203,14 +202,12 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
 
 
 def detected(detector, frame: StereoFrame, recipe) -> list[Detection]:
-    """The detector's boxes on the frame's left image at the recipe's confidence and classes; a detector
-    that breaks its contract is an error, not an empty frame."""
-    found = detector.detect(frame.left)
-    problem = detections_problem(found, getattr(detector, "class_names", None))
+    """The detector's boxes on the frame's left image as the line keeps them (``engine.kept_detections``);
+    a detector that breaks its contract is an error, not an empty frame."""
+    kept, problem = kept_detections(detector.detect(frame.left), detector, recipe)
     if problem is not None:
         raise StageFailed(f"frame {frame.frame_id}: {problem}")
-    classes = recipe.detector.classes
-    return [d for d in found if d.confidence >= recipe.detector.confidence and (classes is None or d.class_name in classes)]
+    return kept
 
 
 def missed_row(sequence: str, frame_id: str, truth: dict, box, recipe) -> DefectRow:

@@ -263,10 +263,17 @@ def detect_frame(item: StereoFrame | FrameError, pipeline: Pipeline, recipe) -> 
         found = pipeline.detector.detect(item.left)
     except Exception as exc:  # reported on the part by inspect_frame
         return Detected(None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}")
-    problem = detections_problem(found, getattr(pipeline.detector, "class_names", None))
+    kept, problem = kept_detections(found, pipeline.detector, recipe)
+    return Detected(kept, time.perf_counter() - t0, problem)
+
+
+def kept_detections(found: Any, detector: Any, recipe) -> tuple[list[Detection] | None, str | None]:
+    """What a detector returned, checked against its contract (``detections_problem``) and cut to the
+    recipe's confidence and classes: (the detections kept, None), or (None, the problem in words)."""
+    problem = detections_problem(found, getattr(detector, "class_names", None))
     if problem is not None:
-        return Detected(None, time.perf_counter() - t0, problem)
-    return Detected(_filter(found, recipe.detector.confidence, recipe.detector.classes), time.perf_counter() - t0)
+        return None, problem
+    return _filter(found, recipe.detector.confidence, recipe.detector.classes), None
 
 
 def frame_age_limit_s(loaded: LoadedRecipe, registry: Registry | None = None) -> float | None:

@@ -15,13 +15,24 @@ from plugins.torch_sgm import sgm_numba
 from plugins.torch_sgm.linalg_numba import solve3
 
 
+@njit(cache=True, inline="always")
+def _weight(image, b, y, x, yy, xx, u, v, inv_colour2, inv_space2):
+    """The weight of pixel (yy, xx), at offset (v, u), in the window of pixel (y, x): by colour similarity
+    and by distance, as ``refine.local_plane_fit`` and ``refine.weighted_median`` weigh it."""
+    colour = 0.0
+    for c in range(image.shape[1]):
+        diff = image[b, c, yy, xx] - image[b, c, y, x]
+        colour += diff * diff
+    return math.exp(-colour * inv_colour2 - (u * u + v * v) * inv_space2)
+
+
 @njit(cache=True, parallel=True)
 def _pair_weights(image, radius, inv_colour2, inv_space2, slot, weights):
     """The weight of every pair of pixels (p, p + (u, v)) with (v, u) after (0, 0) in reading order and
     within ``radius``, into ``weights[slot[v + r, u + r], b, y, x]`` (p = (y, x)): the weight is symmetric
     (the colour distance and the spatial one alike), so each pair's exponential is taken once for both
     pixels. 0 where p + (u, v) lies outside the image."""
-    n_b, channels, h, w = image.shape
+    n_b, _, h, w = image.shape
     for job in prange(n_b * h):
         b, y = job // h, job % h
         for v in range(0, radius + 1):
@@ -35,11 +46,7 @@ def _pair_weights(image, radius, inv_colour2, inv_space2, slot, weights):
                     if yy >= h or xx < 0 or xx >= w:
                         weights[k, b, y, x] = 0.0
                         continue
-                    colour = 0.0
-                    for c in range(channels):
-                        diff = image[b, c, yy, xx] - image[b, c, y, x]
-                        colour += diff * diff
-                    weights[k, b, y, x] = math.exp(-colour * inv_colour2 - (u * u + v * v) * inv_space2)
+                    weights[k, b, y, x] = _weight(image, b, y, x, yy, xx, u, v, inv_colour2, inv_space2)
 
 
 @njit(cache=True, parallel=True)
@@ -155,7 +162,6 @@ def _windowed(name, kernel, disp, image, radius, sigma_colour, sigma_space, last
 @njit(cache=True, parallel=True)
 def _weighted_median(disp, image, radius, inv_colour2, inv_space2, jump, out):
     n_b, h, w = disp.shape
-    channels = image.shape[1]
     k = 2 * radius + 1
     for job in prange(n_b * h):
         b, y = job // h, job % h
@@ -176,12 +182,8 @@ def _weighted_median(disp, image, radius, inv_colour2, inv_space2, jump, out):
                 yy = min(max(y + v, 0), h - 1)  # the border replicated, as the reference pads
                 for u in range(-radius, radius + 1):
                     xx = min(max(x + u, 0), w - 1)
-                    colour = 0.0
-                    for c in range(channels):
-                        diff = image[b, c, yy, xx] - image[b, c, y, x]
-                        colour += diff * diff
                     values[n] = disp[b, yy, xx]
-                    weights[n] = math.exp(-colour * inv_colour2 - (u * u + v * v) * inv_space2)
+                    weights[n] = _weight(image, b, y, x, yy, xx, u, v, inv_colour2, inv_space2)
                     n += 1
             order = np.argsort(values)
             total = weights.sum()

@@ -9,7 +9,8 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from plugins.torch_sgm import sgm_numba
+from plugins.torch_sgm import aggregate, sgm_numba
+from plugins.torch_sgm.cost import box_counts
 
 
 @njit(cache=True)
@@ -91,9 +92,6 @@ def _aggregate(raw, guide, wide_stats, wide_radius, detail_stats, detail_radius,
 def _statistics(guide: torch.Tensor, radius: int, eps: float) -> np.ndarray:
     """(3, B, H, W) float32: the guide's local mean, 1 / (its local variance + eps), and 1 / the pixels in
     each window -- as ``aggregate.guide_statistics`` and ``cost.box_counts`` compute them."""
-    from plugins.torch_sgm import aggregate
-    from plugins.torch_sgm.cost import box_counts
-
     _, mean_i, inv_var, _ = aggregate.guide_statistics(guide, radius, eps)
     counts = box_counts(*guide.shape[-2:], radius).expand(guide.shape[0], -1, -1)
     return np.ascontiguousarray(torch.stack([mean_i[:, 0], inv_var[:, 0], counts]).numpy())

@@ -185,7 +185,8 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     undecided_as_flag = recipe.decision.model_copy(update={"uncertain": "flag"})
     no_band = recipe.decision.model_copy(update={"coverage_factor": 0.0})
     for det, box, truth, m, ref in zip(boxed, true_boxes, truths, measured, reference):
-        floor = None if noise is None else defect_floor_mm(grey, box, frame.calib, rule, noise, truth["distance_mm"])
+        # a set rendered without noise (``--noise-sigma 0``) has no noise floor to measure against
+        floor = None if not noise else defect_floor_mm(grey, box, frame.calib, rule, noise, truth["distance_mm"])
         rows.append(DefectRow(
             sequence, frame.frame_id, truth["class"], box, truth["distance_mm"], truth["deviation_mm"], floor,
             m.method, m.distance_mm, m.deviation_mm, m.distance_sigma_mm, m.deviation_sigma_mm,

@@ -60,6 +60,18 @@ class EvalRanges:
         return self.depth_mm is not None
 
 
+@dataclass(frozen=True)
+class CameraModel:
+    """What the camera does to the light that the defaults draw or leave out. ``noise_sigma``: the grey
+    levels of Gaussian noise added to each eye (None: drawn per frame, 1.5-2; 0: none but the 8-bit
+    rounding); ``specular``: the point light's highlight and sheen on the steel (False: a matte plate);
+    ``lens_blur_px``: the optics' Gaussian blur before the pixels integrate the light (0: the pixels alone)."""
+
+    noise_sigma: float | None = None
+    specular: bool = True
+    lens_blur_px: float = 0.0
+
+
 def zed_calibration(width: int = 672, height: int = 376) -> Calibration:
     """The ZED WVGA pair, scaled to ``width`` (focal length scales with the width)."""
     f = ZED_WVGA["focal_px"] * width / ZED_WVGA["width"]
@@ -168,7 +180,7 @@ def _appearance(rng, cls: str, crops: NeuCrops | None, scale_px: float):
 
 
 def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, texture_contrast: float = 1.0,
-                flat_floor: tuple[float, float] | None = None) -> Scene:
+                flat_floor: tuple[float, float] | None = None, camera: CameraModel = CameraModel()) -> Scene:
     z0 = spec.distance_mm
     e1, e2, n = plate_axes(spec.tilt_deg, spec.yaw_deg)
     p0 = np.array([0.0, 0.0, z0])
@@ -204,17 +216,23 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
     view = -p_h / np.linalg.norm(p_h)
     m = -n
     refl = 2 * float(m @ view) * m - view
+    # every value is drawn whatever ``camera`` overrides, so that a seed renders the same plates either way
     lighting = Lighting(
         light_pos=p_h + refl * rng.uniform(350.0, 650.0),
         spec_broad=float(rng.uniform(25.0, 45.0)),
         spec_core=float(rng.uniform(35.0, 75.0)),
     )
+    if not camera.specular:
+        lighting.spec_broad = lighting.spec_core = 0.0
     sensor = Sensor(
         noise_sigma=float(rng.uniform(1.5, 2.0)),
         right_gain=float(rng.uniform(1.03, 1.08)),
         right_offset=float(rng.uniform(1.0, 5.0)),
         vignetting=float(rng.uniform(0.05, 0.12)),
+        lens_blur_px=camera.lens_blur_px,
     )
+    if camera.noise_sigma is not None:
+        sensor.noise_sigma = camera.noise_sigma
 
     scale_px = calib.width / ZED_WVGA["width"]
     mm_per_px = z0 / calib.focal_px
@@ -314,9 +332,9 @@ def quantise_disparity(disparity: np.ndarray) -> np.ndarray:
 
 def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, frame_id: str, ss: int = 2,
                  texture_contrast: float = 1.0, flat_floor: tuple[float, float] | None = None,
-                 rectification_error_px: float = 0.0):
+                 rectification_error_px: float = 0.0, camera: CameraModel = CameraModel()):
     """(left, right, gt disparity (quantised), labels dict, scene)."""
-    scene = build_scene(rng, calib, spec, crops, texture_contrast, flat_floor)
+    scene = build_scene(rng, calib, spec, crops, texture_contrast, flat_floor, camera)
     left, right, disparity, hits = render_pair(scene, rng, ss=ss, rectification_error_px=rectification_error_px)
     gt = quantise_disparity(disparity)
     defects = []
@@ -346,6 +364,8 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
                    "right_offset": round(scene.sensor.right_offset, 4)},
         "texture_contrast": texture_contrast,
         **({} if not rectification_error_px else {"rectification_error_px": rectification_error_px}),
+        **({} if camera.specular else {"specular": False}),
+        **({} if not camera.lens_blur_px else {"lens_blur_px": camera.lens_blur_px}),
         "defects": defects,
     }
     return left, right, gt, labels, scene
@@ -367,10 +387,11 @@ def generate_sequence(
     ranges: EvalRanges = EvalRanges(),
     texture_contrast: float = 1.0,
     rectification_error_px: float = 0.0,
+    camera: CameraModel = CameraModel(),
 ) -> list[dict]:
     """Write a sequence folder; returns the labels of every frame. ``neu_det=None`` uses the
-    synthetic stand-in defect appearance. ``ranges``, ``texture_contrast`` and ``rectification_error_px``
-    (the right eye's rows that far off the left's) make an evaluation set;
+    synthetic stand-in defect appearance. ``ranges``, ``texture_contrast``, ``rectification_error_px``
+    (the right eye's rows that far off the left's) and ``camera`` make an evaluation set;
     left at their defaults, the draws (and so the files) are those of the demo plan."""
     out = Path(out)
     crops = NeuCrops(Path(neu_det)) if neu_det is not None else None
@@ -390,7 +411,7 @@ def generate_sequence(
         spec = plan_frame(rng, i, distance_mm, tilt_deg, jitter, decks, ranges)
         left, right, gt, labels, _ = render_frame(rng, calib, spec, crops, frame_id, ss=supersample,
                                                   texture_contrast=texture_contrast, flat_floor=ranges.flat_floor,
-                                                  rectification_error_px=rectification_error_px)
+                                                  rectification_error_px=rectification_error_px, camera=camera)
         if image_format == "png":
             write_frame(out, frame_id, left, right, gt, labels)
         else:  # high-quality JPEG for the eyes, the rest as write_frame does it

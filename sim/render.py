@@ -112,10 +112,15 @@ def shade(scene: Scene, origin: np.ndarray, hits: Hits) -> np.ndarray:
 
 def render_radiance(scene: Scene, origin: np.ndarray, ss: int = 2, row_offset_px: float = 0.0) -> np.ndarray:
     """HxW radiance of one eye, box-filtered over ss x ss supersamples; ``row_offset_px``: the eye sees
-    every point that many rows lower than a rectified eye would (what a calibration leaves)."""
+    every point that many rows lower than a rectified eye would (what a calibration leaves). The optics'
+    blur (``scene.sensor.lens_blur_px``) acts on the light before the pixels integrate it."""
     calib = scene.calib
     uu, vv = pixel_grid(calib, ss)
     img = shade(scene, origin, trace(scene, origin, uu, vv - row_offset_px))
+    blur = scene.sensor.lens_blur_px
+    if blur > 0:
+        img = cv2.GaussianBlur(img.reshape(calib.height * ss, calib.width * ss), (0, 0), blur * ss,
+                               borderType=cv2.BORDER_REFLECT)
     return img.reshape(calib.height, ss, calib.width, ss).mean(axis=(1, 3))
 
 
@@ -127,7 +132,7 @@ def sensor(
     yy, xx = np.mgrid[0:h, 0:w]
     r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
     img = radiance * (1.0 - vignetting * r2) * gain + offset
-    if rng is not None and noise > 0:
+    if rng is not None:  # drawn at any sigma, so that a seed renders the same plates with and without noise
         img = img + rng.normal(0.0, noise, img.shape)
     grey = np.clip(np.round(img), 0, 255).astype(np.uint8)
     return cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)

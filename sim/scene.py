@@ -84,6 +84,7 @@ class Sensor:
     right_gain: float = 1.06
     right_offset: float = 3.0
     vignetting: float = 0.08
+    lens_blur_px: float = 0.0  # Gaussian sigma of the optics, before the pixels integrate the light
 
 
 @dataclass

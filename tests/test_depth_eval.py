@@ -203,3 +203,23 @@ def test_a_plate_outside_the_working_distance_gets_no_deviation(tmp_path):
     for r in rows:
         assert r["deviation_mm"] is None and r["status"] == "ERROR", r
         assert "do not match" in r["note"] or "did not settle" in r["note"]
+
+
+def test_a_set_rendered_without_noise_has_no_floor_to_compare_with(tmp_path):
+    """``inspect sim generate --noise-sigma 0`` labels its frames with no noise: the errors are reported,
+    the floor and the ratios to it are not (instead of a floor of zero and ratios of infinity)."""
+    copy = tmp_path / "seq"
+    shutil.copytree(TEXTURED, copy)
+    for f in (copy / "labels").iterdir():
+        labels = json.loads(f.read_text())
+        labels["sensor"]["noise_sigma"] = 0.0
+        f.write_text(json.dumps(labels))
+    result = cli("eval", "depth", str(copy), "--set", RANGE, "--out", str(tmp_path / "out"), "--threads", "1",
+                 "--no-figure")
+    assert result.returncode == 0, result.stderr
+    body = json.loads((tmp_path / "out" / "depth_eval.json").read_text())
+    assert all(r["floor_mm"] is None for r in body["rows"])
+    measured = body["all"]["measurement"]
+    assert measured["deviation_error_mm"]["median"] > 0 and measured["floor_mm"] == {}
+    assert measured["sigma_over_floor_median"] is None
+    assert "nan" not in (tmp_path / "out" / "depth_eval.md").read_text()

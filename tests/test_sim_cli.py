@@ -62,16 +62,25 @@ def test_evaluation_set_options(tmp_path):
     result = CliRunner().invoke(_build(), [
         "sim", "generate", str(out), "--frames", "2", "--synthetic-defects", "--width", "224", "--height", "126",
         "--distance-range-mm", "380", "460", "--defect-size-px", "8", "16", "--depth-range-mm", "0.3", "2.5",
-        "--texture-contrast", "0.3", "--supersample", "1",
+        "--texture-contrast", "0.3", "--supersample", "1", "--noise-sigma", "0.5", "--no-specular",
+        "--lens-blur-px", "0.6",
     ])
     assert result.exit_code == 0, result.output
     for f in list_frames(out):
         labels = json.loads(f.labels.read_text())
         assert 380 <= labels["distance_mm"] <= 460 and labels["texture_contrast"] == 0.3 and labels["defects"]
+        assert labels["sensor"]["noise_sigma"] == 0.5 and labels["specular"] is False and labels["lens_blur_px"] == 0.6
 
 
 def test_a_reversed_range_is_a_one_line_error(tmp_path):
     result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects",
                                            "--depth-range-mm", "2", "1"])
     assert result.exit_code == 2 and result.output.startswith("error: --depth-range-mm: MIN 2 is larger than MAX 1")
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_negative_noise_is_refused(tmp_path):
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects",
+                                           "--noise-sigma", "-1"])
+    assert result.exit_code == 2 and "--noise-sigma" in result.output
     assert not (tmp_path / "x").exists()

@@ -272,3 +272,31 @@ def test_flat_floor_must_leave_a_wall(tmp_path):
     result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects", "--frames", "1",
                                       "--depth-range-mm", "1", "2", "--flat-floor", "0.9", "1.0"])
     assert result.exit_code == 2 and "--flat-floor" in result.output and "no wall" in result.output
+
+
+def test_the_camera_model_changes_only_what_it_names(tmp_path):
+    """The same seed renders the same plates whatever the camera does; noise, highlight and lens blur
+    each change the images the way they say."""
+    from sim.generate import CameraModel, EvalRanges
+
+    ranges = EvalRanges(depth_mm=(0.5, 1.5), defects_per_frame=(1, 2))
+
+    def render(name, **camera):
+        labels = generate_sequence(tmp_path / name, frames=2, seed=4, width=W, height=H, supersample=1,
+                                   ranges=ranges, camera=CameraModel(**camera))
+        frames = list_frames(tmp_path / name)
+        return labels, [read_image(f.left).astype(np.float64)[..., 0] for f in frames]
+
+    drawn, noisy = render("drawn")
+    _, sharp = render("sharp", noise_sigma=0.0)
+    matte_labels, matte = render("matte", noise_sigma=0.0, specular=False)
+    _, blurred = render("blurred", noise_sigma=0.0, specular=False, lens_blur_px=0.8)
+    assert [lab["defects"] for lab in matte_labels] == [lab["defects"] for lab in drawn]
+    assert matte_labels[0]["sensor"]["noise_sigma"] == 0.0 and matte_labels[0]["specular"] is False
+    for lab, a, b in zip(drawn, noisy, sharp):  # the noise drawn, as the labels say, and nothing else
+        assert np.std(a - b) == pytest.approx(lab["sensor"]["noise_sigma"], rel=0.15)
+    for a, b in zip(sharp, matte):  # the highlight only adds light
+        assert (a - b).min() >= -1 and (a - b).max() > 5
+    for a, b in zip(matte, blurred):  # the optics take contrast, not light
+        assert np.mean(np.diff(b, axis=1) ** 2) < 0.7 * np.mean(np.diff(a, axis=1) ** 2)
+        assert abs(np.mean(a) - np.mean(b)) < 1.0

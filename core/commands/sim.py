@@ -68,14 +68,24 @@ def register(cli: click.Group) -> None:
     @click.option("--rectification-error-px", default=0.0, show_default=True, type=Finite(-5.0, 5.0),
                   help="The right eye's rows this far below the left's (what a real camera's rectification "
                        "leaves, a few tenths of a pixel; 0: exactly rectified).")
+    @click.option("--noise-sigma", default=None, type=Finite(0.0, 20.0),
+                  help="Grey levels of Gaussian noise added to each eye (default: drawn per frame, 1.5-2; 0: none "
+                       "but the 8-bit rounding).")
+    @click.option("--specular/--no-specular", default=True, show_default=True,
+                  help="The point light's highlight and sheen on the steel, which each eye sees elsewhere "
+                       "(off: a matte plate).")
+    @click.option("--lens-blur-px", default=0.0, show_default=True, type=Finite(0.0, 3.0),
+                  help="The optics' blur (Gaussian sigma, px) before the pixels integrate the light (0: the "
+                       "pixels alone, sharper than a real lens gives).")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
                  image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
-                 defects_per_frame, texture_contrast, flat_floor, rectification_error_px) -> None:
+                 defects_per_frame, texture_contrast, flat_floor, rectification_error_px, noise_sigma, specular,
+                 lens_blur_px) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
         options make an evaluation set for ``inspect eval depth``."""
-        from sim.generate import EvalRanges, generate_sequence
+        from sim.generate import CameraModel, EvalRanges, generate_sequence
         from sim.neu_crops import NeuDetError
 
         for name, pair, low in (("--distance-range-mm", distance_range_mm, 100.0), ("--defect-size-px", defect_size_px, 4.0),
@@ -116,6 +126,7 @@ def register(cli: click.Group) -> None:
                 neu_det=None if synthetic_defects else neu_det, width=width, height=height, jitter=jitter,
                 supersample=supersample, image_format=image_format, log=click.echo, ranges=ranges,
                 texture_contrast=texture_contrast, rectification_error_px=rectification_error_px,
+                camera=CameraModel(noise_sigma, specular, lens_blur_px),
             )
         except NeuDetError as exc:
             click.echo(f"error: {exc}", err=True)

@@ -38,6 +38,7 @@ NARROW_PX = 30.0  # boxes narrower than this count as narrow defects
 MIN_RATIO_MM = 0.3  # measured / true only for defects at least this deep
 MATCH_IOU = 0.3  # a detector's box finds a labelled defect from this overlap on
 MISSED = "missed"  # the outcome of a labelled defect the detector did not box
+HALF_NORMAL_MEDIAN = 0.6745  # the median of |e| for a normal e of unit standard deviation
 
 
 @dataclass
@@ -84,6 +85,9 @@ class Summary:
     narrow_ratio_median: float | None = None
     floor_mm: dict[str, float] = field(default_factory=dict)  # median, p90 of |error| at the floor
     error_over_floor: dict[str, float] = field(default_factory=dict)
+    # each defect's |error| over its own floor, their median over the floor's own (HALF_NORMAL_MEDIAN): 1 at
+    # the floor whatever the set's mix of floors, where a set's median error follows its few largest floors
+    error_over_floor_per_defect: float | None = None
     within_2_sigma: float | None = None
     sigma_over_floor_median: float | None = None
     # true outcome -> what the measurement proved (PASS, REJECT, undecided, ERROR) -> count
@@ -273,6 +277,9 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
         if s.deviation_error_mm:
             s.error_over_floor = {k: s.deviation_error_mm[k] / s.floor_mm[k] for k in ("median", "p90")
                                   if s.floor_mm.get(k)}
+    standardised = [abs(getattr(r, dev) - r.true_deviation_mm) / r.floor_mm for r in ok if r.floor_mm]
+    if standardised:
+        s.error_over_floor_per_defect = float(np.median(standardised)) / HALF_NORMAL_MEDIAN
     if not reference:
         sig = [r for r in ok if r.deviation_sigma_mm]
         if sig:
@@ -338,9 +345,10 @@ def markdown(body: dict[str, Any]) -> str:
         f"machine: {body['machine']}",
         "",
         "| sequence | method | defects (measured) | deviation error mm, median / p90 / max | floor mm, median / p90 "
-        "| error ÷ floor, median / p90 | measured ÷ true (narrow) | within ±2σ | σ ÷ floor | distance error, median % of Z "
-        "| clear-cut on the wrong side (silent PASS) | clear-cut on the wrong side without the guard band |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| error ÷ floor, median / p90 | error ÷ floor per defect | measured ÷ true (narrow) | within ±2σ | σ ÷ floor "
+        "| distance error, median % of Z | clear-cut on the wrong side (silent PASS) "
+        "| clear-cut on the wrong side without the guard band |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     items = [*body["sequences"].items(), ("all", body["all"])]
     for name, entry in items:
@@ -349,6 +357,7 @@ def markdown(body: dict[str, Any]) -> str:
             lines.append(
                 f"| {name} | {label} | {s['defects']} ({s['measured']}) | {_fmt3(s['deviation_error_mm'])} | "
                 f"{_fmt3(s['floor_mm'], ('median', 'p90'))} | {_fmt3(s['error_over_floor'], ('median', 'p90'), 2)} | "
+                f"{_opt(s['error_over_floor_per_defect'])} | "
                 f"{_opt(s['ratio_median'])} ({_opt(s['narrow_ratio_median'])}) | "
                 f"{_percent(s['within_2_sigma'])} | "
                 f"{_opt(s['sigma_over_floor_median'])} | {_opt(s['distance_error_percent'].get('median'), 3)} | "

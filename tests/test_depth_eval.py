@@ -183,6 +183,17 @@ class TestSummarise:
         assert s.within_2_sigma == pytest.approx(0.25)  # only the first error is within 2 sigma
         assert s.ratio_median == pytest.approx(np.median([1.45 / 1.5, 0.6 / 1.5, 1.1 / 1.5, 0.7 / 1.1]))
 
+    def test_the_error_per_defect_is_one_at_the_floor_whatever_the_mix_of_floors(self):
+        rng = np.random.default_rng(0)
+        floors = np.repeat([0.02, 0.5], 2000)  # a set whose median error follows its large floors
+        rows = [self._row(1.5, 1.5 + e * f, 3 * f, "REJECT", "REJECT", floor=f)
+                for f, e in zip(floors, rng.standard_normal(floors.size))]
+        s = ev.summarise(rows)
+        assert s.error_over_floor_per_defect == pytest.approx(1.0, abs=0.05)
+        twice = ev.summarise([self._row(1.5, 1.5 + 2 * (r.deviation_mm - 1.5), 0.1, "REJECT", "REJECT", floor=r.floor_mm)
+                              for r in rows])
+        assert twice.error_over_floor_per_defect == pytest.approx(2.0, abs=0.1)
+
 
 def test_a_plate_outside_the_working_distance_gets_no_deviation(tmp_path):
     """The demo recipe searches 350-500 mm; the first frame's plate lies at 634-645 mm. Whatever the matcher

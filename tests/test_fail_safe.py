@@ -15,7 +15,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, cli, write_recipe
+from conftest import ROOT, cli
 
 from core.contracts import PluginSpec
 from core.engine import frame_age_limit_s, inspect_frame

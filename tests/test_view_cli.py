@@ -46,7 +46,7 @@ def test_run_with_view_on_the_network_warns(tmp_path, plane_sequence, external_p
     with_token = cli("run", str(path), "--view", "--host", "0.0.0.0", "--port", str(port), "--token", "s3cret-token",
                      env_extra={"PYTHONPATH": str(external_plugin_site)})
     assert with_token.returncode == 0 and "WITHOUT AUTHENTICATION" not in with_token.stderr
-    assert f"?token=s3cret-token" in with_token.stdout
+    assert "?token=s3cret-token" in with_token.stdout
     short = cli("run", str(path), "--view", "--token", "abc", env_extra={"PYTHONPATH": str(external_plugin_site)})
     assert short.returncode == 2 and "--token" in short.stderr
     lonely = cli("run", str(path), "--keep-serving", env_extra={"PYTHONPATH": str(external_plugin_site)})

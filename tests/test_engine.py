@@ -221,11 +221,18 @@ class BrokenCameraPlugin:
         return [PluginSpec("broken", "camera", lambda s, ctx: BrokenCamera())]
 
 
-def test_camera_that_raises_ends_the_run_with_an_alarm(tmp_path, plane_sequence):
+def _with_camera(tmp_path, plane_sequence, plugin, name: str):
+    """(the loaded recipe, its registry): the engine's test recipe with the camera ``name`` that ``plugin``
+    registers in place of the replay."""
     info = plane_sequence([0.0])
-    registry = Registry(make_manager((stereo_inspect_fixed_roi, BrokenCameraPlugin())))
-    text = RECIPE.format(box=info["box"], output="log").replace("plugin: replay\n  settings: {path: seq}", "plugin: broken")
-    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, plugin)))
+    text = RECIPE.format(box=info["box"], output="log").replace("plugin: replay\n  settings: {path: seq}",
+                                                                 f"plugin: {name}")
+    return load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry), registry
+
+
+def test_camera_that_raises_ends_the_run_with_an_alarm(tmp_path, plane_sequence):
+    loaded, registry = _with_camera(tmp_path, plane_sequence, BrokenCameraPlugin(), "broken")
     summary = engine.run(loaded, registry=registry, device="cpu")
     assert summary.exit_code == engine.EXIT_ALARMS
     assert "USB device vanished" in summary.alarms[0].message
@@ -243,10 +250,7 @@ class HalfACameraPlugin:
 
 
 def test_a_plugin_object_without_its_kinds_methods_is_refused_before_the_run(tmp_path, plane_sequence):
-    info = plane_sequence([0.0])
-    registry = Registry(make_manager((stereo_inspect_fixed_roi, HalfACameraPlugin())))
-    text = RECIPE.format(box=info["box"], output="log").replace("plugin: replay\n  settings: {path: seq}", "plugin: half")
-    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
+    loaded, registry = _with_camera(tmp_path, plane_sequence, HalfACameraPlugin(), "half")
     with pytest.raises(engine.SetupError, match=r"camera: half: its factory returned an instance of object, which has no frames, "
                                                 r"close \(a camera plugin's object needs them\)"):
         engine.run(loaded, registry=registry, device="cpu")

@@ -66,6 +66,20 @@ def test_a_sequence_without_labels_is_a_one_line_error(tmp_path):
     assert cli("eval", "depth", str(tmp_path / "nowhere")).returncode == 2
 
 
+@pytest.mark.parametrize("calibration", [None, "fx: [\n"], ids=["missing", "not YAML"])
+def test_a_sequence_with_a_bad_calibration_is_a_one_line_error_naming_the_file(tmp_path, calibration):
+    copy = tmp_path / "seq"
+    shutil.copytree(TEXTURED, copy)
+    if calibration is None:
+        (copy / "calib.yaml").unlink()
+    else:
+        (copy / "calib.yaml").write_text(calibration)
+    result = cli("eval", "depth", str(copy), "--out", str(tmp_path / "out"))
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"error: {copy}") and "calib.yaml" in lines[0], lines
+
+
 class TestBoxError:
     def test_no_error_leaves_the_box_as_it_is(self):
         assert ev.BoxError().apply((10, 20, 50, 40), "a/000000/0") == (10.0, 20.0, 50.0, 40.0)

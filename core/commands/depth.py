@@ -45,7 +45,9 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     from core.engine import StageFailed, command_threads, resolve_device
     from core.registry import default_registry
     from drivers.sequence_folder import SequenceError, read_labels
-    from plugins.replay_camera import ReplayCamera, ReplaySettings
+    from pydantic import ValidationError
+
+    from core.recipe.loader import first_problem
 
     overrides = list(overrides)
     if backend is not None:
@@ -60,6 +62,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     registry = default_registry()
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, device=resolve_device(device))
     stereo = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(loaded.plugin_settings["stereo"], ctx)
+    replay = registry.get("camera", "replay")
     rows, timings = [], []
     box_error = ev.BoxError(box_scale, box_shift)
     detector = None
@@ -72,7 +75,9 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
             fail(str(exc))
     for folder in sequences:
         try:
-            camera = ReplayCamera(ReplaySettings(path=str(folder.resolve())))
+            camera = replay.spec.factory({"path": str(folder.resolve())}, ctx)
+        except ValidationError as exc:
+            fail(f"{folder}: {first_problem(exc, replay.spec.settings_model)[1]}")
         except (SequenceError, ValueError) as exc:
             fail(f"{folder}: {exc}")
         for frame in camera.frames():

@@ -32,6 +32,7 @@ class SceneScore:
     runtime_s: float
     pixels: int = 0
     extra: dict = field(default_factory=dict)
+    note: str = ""  # the scene's ``SceneData.note``
 
 
 def _bad(err: np.ndarray) -> dict[str, float]:
@@ -84,6 +85,7 @@ class SceneData:
     gt: np.ndarray
     nonocc: np.ndarray
     ndisp: int
+    note: str = ""  # what the score of this scene counts differently, said beside it
 
 
 def load_scene(folder: Path) -> SceneData:
@@ -91,13 +93,16 @@ def load_scene(folder: Path) -> SceneData:
     calib = read_middlebury_calib(folder / "calib.txt")
     gt = read_pfm(folder / "disp0GT.pfm")
     mask_path = folder / "mask0nocc.png"
-    mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE)
-    nonocc = (mask == 255) if mask is not None else np.ones(gt.shape, bool)
+    note = ""
+    if mask_path.exists():
+        nonocc = read_image(mask_path, "occlusion mask")[..., 0] == 255
+    else:  # a scene published without one: every pixel with ground truth is scored, and the line says so
+        nonocc, note = np.ones(gt.shape, bool), "no mask0nocc.png: occluded pixels scored too"
     left, right = read_image(folder / "im0.png", "left image"), read_image(folder / "im1.png", "right image")
     for name, shape in (("im1.png", right.shape[:2]), ("disp0GT.pfm", gt.shape), ("mask0nocc.png", nonocc.shape)):
         if shape != left.shape[:2]:
             raise SequenceError(f"{folder / name}: {shape[1]}x{shape[0]}, but im0.png is {left.shape[1]}x{left.shape[0]}")
-    return SceneData(folder.name, left, right, gt, nonocc, calib["ndisp"])
+    return SceneData(folder.name, left, right, gt, nonocc, calib["ndisp"], note)
 
 
 def run_backend(backend, scene: SceneData) -> tuple[np.ndarray, np.ndarray | None, float]:
@@ -113,7 +118,8 @@ def run_backend(backend, scene: SceneData) -> tuple[np.ndarray, np.ndarray | Non
 def evaluate_scene(backend, name: str, scene: SceneData) -> tuple[SceneScore, np.ndarray]:
     disp, claimed, seconds = run_backend(backend, scene)
     s = score(disp, scene.gt, scene.nonocc, claimed)
-    return SceneScore(scene.name, name, s["dense"], s["sparse"], s["coverage"], s["invalid"], seconds, s["pixels"]), disp
+    return SceneScore(scene.name, name, s["dense"], s["sparse"], s["coverage"], s["invalid"], seconds, s["pixels"],
+                       note=scene.note), disp
 
 
 def average(scores: list[SceneScore]) -> SceneScore:

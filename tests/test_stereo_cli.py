@@ -188,6 +188,23 @@ def test_eval_selects_scenes_and_passes_settings(tmp_path):
     assert not (out / "stereo_eval.png").exists()
 
 
+def test_a_scene_without_an_occlusion_mask_is_scored_over_every_pixel_and_says_so(tmp_path):
+    write_scene(tmp_path / "mb" / "Masked", seed=0)
+    write_scene(tmp_path / "mb" / "Unmasked", seed=0)
+    (tmp_path / "mb" / "Unmasked" / "mask0nocc.png").unlink()
+    out = tmp_path / "out"
+    result = invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--backend", "opencv_sgbm", "--out", out,
+                    "--no-figure")
+    assert result.exit_code == 0, result.output
+    lines = {line.split()[0]: line for line in result.output.splitlines() if "dense bad1.0" in line}
+    assert "occluded pixels scored too" in lines["Unmasked"] and "occluded" not in lines["Masked"]
+    rows = {r["scene"]: r for r in json.loads((out / "stereo_eval.json").read_text())["backends"]["opencv_sgbm"]["scenes"]}
+    assert rows["Unmasked"]["note"] and not rows["Masked"]["note"]
+    # the occluded pixels, where a matcher cannot be right, now count: more pixels, and more of them bad
+    assert rows["Unmasked"]["pixels"] > rows["Masked"]["pixels"]
+    assert rows["Unmasked"]["dense"]["bad1.0"] > rows["Masked"]["dense"]["bad1.0"]
+
+
 def test_eval_errors(tmp_path):
     _assert_error(invoke("eval", "stereo", "--middlebury", tmp_path / "nowhere"), "nowhere")
     write_scene(tmp_path / "mb" / "SceneA", seed=0)
@@ -203,6 +220,7 @@ def test_eval_errors(tmp_path):
      "disp0GT.pfm: PFM header is not 'width height' and a scale"),
     (lambda scene: cv2.imwrite(str(scene / "mask0nocc.png"), np.full((20, 30), 255, np.uint8)),
      "mask0nocc.png: 30x20, but im0.png is 64x40"),
+    (lambda scene: (scene / "mask0nocc.png").write_bytes(b"not a PNG"), "mask0nocc.png: occlusion mask is not whole"),
 ])
 def test_a_damaged_scene_is_named_not_a_traceback(tmp_path, damage, says):
     scene = tmp_path / "mb" / "SceneA"

@@ -249,7 +249,8 @@ def eval_stereo_command(folder, backends, scenes, out, settings, figure, device,
             if figure:
                 maps[n].append(disp)
             click.echo(f"{scene.name:12s} {n:12s} dense bad1.0 {s.dense['bad1.0']:6.2f}%  "
-                       f"sparse {s.sparse['bad1.0']:6.2f}% @ {s.coverage:5.1f}%  {s.runtime_s:6.2f} s")
+                       f"sparse {s.sparse['bad1.0']:6.2f}% @ {s.coverage:5.1f}%  {s.runtime_s:6.2f} s"
+                       + (f"  ({scene.note})" if scene.note else ""))
     import torch
 
     meta = {"folder": str(folder), "backends": {n: per_backend[n] for n in names},

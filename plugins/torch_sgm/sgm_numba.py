@@ -20,9 +20,32 @@ from plugins.torch_sgm import sgm
 
 
 @njit(cache=True, inline="always", fastmath=True)
+def _min(a, b):
+    # a select, which LLVM vectorises over the disparities; the builtin min's NaN rules keep it scalar
+    return a if a < b else b
+
+
+@njit(cache=True, inline="always", fastmath=True)
+def _least(values):
+    """The least of a 1-D array, as eight running minima: a single one waits on each comparison in turn."""
+    n = values.shape[0]
+    m0 = m1 = m2 = m3 = m4 = m5 = m6 = m7 = values[0]
+    whole = n - n % 8
+    for d in range(0, whole, 8):
+        m0, m1 = _min(m0, values[d]), _min(m1, values[d + 1])
+        m2, m3 = _min(m2, values[d + 2]), _min(m3, values[d + 3])
+        m4, m5 = _min(m4, values[d + 4]), _min(m5, values[d + 5])
+        m6, m7 = _min(m6, values[d + 6]), _min(m7, values[d + 7])
+    for d in range(whole, n):
+        m0 = _min(m0, values[d])
+    return _min(_min(_min(m0, m1), _min(m2, m3)), _min(_min(m4, m5), _min(m6, m7)))
+
+
+@njit(cache=True, inline="always", fastmath=True)
 def _step(cost, out, prev, cur, b, y, x, p1, p2, fresh):
     """One pixel of one path: ``cur`` from ``prev`` (the predecessor's path costs), added to ``out``.
-    cost, out: (B, H, W, D), so that a pixel's disparities lie side by side."""
+    cost, out: (B, H, W, D), so that a pixel's disparities lie side by side; p1, p2 float32 (a float64
+    operand would widen every disparity's arithmetic and keep it scalar)."""
     d_count = cost.shape[3]
     c, o = cost[b, y, x], out[b, y, x]
     if fresh:
@@ -30,52 +53,59 @@ def _step(cost, out, prev, cur, b, y, x, p1, p2, fresh):
             cur[d] = c[d]
             o[d] += c[d]
         return
-    floor = prev[0]
-    for d in range(1, d_count):
-        floor = min(floor, prev[d])
+    floor = _least(prev)
     jump = floor + p2
     if d_count == 1:
-        cur[0] = c[0] + min(prev[0], jump) - floor
+        cur[0] = c[0] + _min(prev[0], jump) - floor
         o[0] += cur[0]
         return
-    cur[0] = c[0] + min(min(prev[0], prev[1] + p1), jump) - floor
-    for d in range(1, d_count - 1):
-        cur[d] = c[d] + min(min(prev[d], min(prev[d - 1], prev[d + 1]) + p1), jump) - floor
+    cur[0] = c[0] + _min(_min(prev[0], prev[1] + p1), jump) - floor
     last = d_count - 1
-    cur[last] = c[last] + min(min(prev[last], prev[last - 1] + p1), jump) - floor
+    for d in range(1, last):
+        cur[d] = c[d] + _min(_min(prev[d], _min(prev[d - 1], prev[d + 1]) + p1), jump) - floor
+    cur[last] = c[last] + _min(_min(prev[last], prev[last - 1] + p1), jump) - floor
     for d in range(d_count):
         o[d] += cur[d]
 
 
 @njit(cache=True, parallel=True)
-def _along_rows(cost, out, p2, p1, dx):
-    """A horizontal path (dy = 0): each row on its own."""
+def _along_rows(cost, out, p2, p1, dxs):
+    """The horizontal paths (dy = 0), one per entry of ``dxs`` (+1 / -1) with its (B, H, W) map in ``p2``
+    (K, B, H, W): each row on its own, all of its paths in turn, so that the later ones read the row's
+    costs from the cache instead of memory."""
     n_b, h, w, d_count = cost.shape
+    p1 = np.float32(p1)
     for job in prange(n_b * h):
         b, y = job // h, job % h
         prev = np.empty(d_count, cost.dtype)
         cur = np.empty(d_count, cost.dtype)
-        for i in range(w):
-            x = i if dx > 0 else w - 1 - i
-            _step(cost, out, prev, cur, b, y, x, p1, p2[b, y, x], i == 0)
-            prev, cur = cur, prev
+        for k in range(len(dxs)):
+            for i in range(w):
+                x = i if dxs[k] > 0 else w - 1 - i
+                _step(cost, out, prev, cur, b, y, x, p1, p2[k, b, y, x], i == 0)
+                prev, cur = cur, prev
 
 
 @njit(cache=True, parallel=True)
-def _across_rows(cost, out, p2, p1, dy, dx):
-    """A path with dy != 0: row after row, the pixels of a row in parallel. ``state`` holds each column's
-    path costs at the previous row; a diagonal reads its neighbour's column there."""
+def _across_rows(cost, out, p2, p1, dy, dxs):
+    """The paths that step ``dy`` rows (one per entry of ``dxs``, with its map in ``p2`` (K, B, H, W)):
+    row after row, the pixels of a row in parallel, every path at each pixel while its costs are in the
+    cache. ``state`` holds each path's costs at the previous row; a diagonal reads its neighbour's column
+    there."""
     n_b, h, w, d_count = cost.shape
+    n_k = len(dxs)
+    p1 = np.float32(p1)
     for b in range(n_b):
-        state = np.empty((2, w, d_count), cost.dtype)
+        state = np.empty((2, n_k, w, d_count), cost.dtype)
         for i in range(h):
             y = i if dy > 0 else h - 1 - i
             now, before = i % 2, 1 - i % 2
             for x in prange(w):
-                px = x - dx
-                fresh = i == 0 or px < 0 or px >= w
-                _step(cost, out, state[before, px if not fresh else 0], state[now, x], b, y, x, p1,
-                      p2[b, y, x], fresh)
+                for k in range(n_k):
+                    px = x - dxs[k]
+                    fresh = i == 0 or px < 0 or px >= w
+                    _step(cost, out, state[before, k, px if not fresh else 0], state[now, k, x], b, y, x, p1,
+                          p2[k, b, y, x], fresh)
 
 
 @contextmanager
@@ -108,12 +138,15 @@ def sgm_numba(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sgm
     with torch_threads():
         c = np.ascontiguousarray(cost.numpy().transpose(0, 2, 3, 1))  # (B, H, W, D)
         out = np.zeros_like(c)
-        for dy, dx in paths:
-            p = np.ascontiguousarray(penalty[dy, dx].to(cost.dtype).numpy())
+        # paths that step alike walk the volume together: it is read from memory once per group, not per path
+        for dy in sorted({dy for dy, _ in paths}, key=lambda dy: (abs(dy), -dy)):
+            group = [path for path in paths if path[0] == dy]
+            p = np.ascontiguousarray(torch.stack([penalty[path] for path in group]).to(cost.dtype).numpy())
+            dxs = np.array([dx for _, dx in group], np.int64)
             if dy == 0:
-                _along_rows(c, out, p, float(p1), int(dx))
+                _along_rows(c, out, p, float(p1), dxs)
             else:
-                _across_rows(c, out, p, float(p1), int(dy), int(dx))
+                _across_rows(c, out, p, float(p1), int(dy), dxs)
     # a view in the (B, D, H, W) order: the winners read each pixel's disparities side by side, where the
     # numba kernels left them, instead of after a transposing copy
     return torch.from_numpy(out).permute(0, 3, 1, 2)

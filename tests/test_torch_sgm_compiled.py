@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from plugins.torch_sgm import (aggregate, aggregate_numba, planes, planes_numba, refine, refine_numba, select, select_numba,
-                               sgm, sgm_numba)
+from plugins.torch_sgm import (aggregate, aggregate_numba, cost, cost_numba, planes, planes_numba, refine, refine_numba,
+                               select, select_numba, sgm, sgm_numba)
 from plugins.torch_sgm.params import TorchSGMParams
 from plugins.torch_sgm.pipeline import bgr_to_tensor, compute_disparity
 from plugins.torch_sgm.synthetic import layered_scene
@@ -300,3 +300,51 @@ class TestPipelineUsesIt:
         assert both.mean() > 0.9
         assert (np.abs(fast[both] - ref[both]) > 0.05).mean() < 0.005
 
+
+
+class TestCostNumba:
+    @staticmethod
+    def pair(shape=(1, 3, 23, 31), seed=6):
+        g = torch.Generator().manual_seed(seed)
+        left = torch.rand(shape, generator=g)
+        return left, (left.roll(3, -1) * 0.9 + 0.05 * torch.rand(shape, generator=g)).clamp(0, 1)
+
+    @pytest.mark.parametrize("x", [np.linspace(0, 90, 1001, dtype=np.float32), np.zeros(7, np.float32)])
+    def test_the_exponential_is_that_of_the_library(self, x):
+        got, bits = x.copy(), np.empty(x.shape, np.int32)
+        cost_numba.exp_neg_(got, bits)
+        assert np.abs(got - np.exp(-x.astype(np.float64))).max() < 4e-8
+
+    @pytest.mark.parametrize("offsets", [cost.STAR_24, cost.window_offsets(4, 3)], ids=["star", "window"])
+    def test_the_features_equal_the_reference_and_the_normalised_colour_its_exact_value(self, offsets):
+        left, right = self.pair((2, 3, 17, 29))
+        ref, got = cost.cost_features(left, right, 3, offsets), cost_numba.cost_features_numba(left, right, 3, offsets)
+        for key in ("cl", "cr", "gl", "gr"):
+            assert torch.equal(got[key], ref[key]), key
+        for key, image in (("zl", left), ("zr", right)):
+            # torch's window sums are cumulative sums in float32; these are the float64 reference's
+            assert torch.allclose(got[key].double(), cost.zero_normalise(image.double(), 3), atol=1e-5)
+            assert torch.allclose(got[key], ref[key], atol=1e-3)
+
+    @pytest.mark.parametrize("d_first, count", [(0, 8), (-4, 5), (27, 6), (40, 2)])
+    @pytest.mark.parametrize("weights", [(0.1, 0.6, 0.3), (0.0, 1.0, 0.0), (0.5, 0.0, 0.5)])
+    def test_the_fused_cost_equals_the_reference_inside_and_beyond_the_image(self, d_first, count, weights):
+        left, right = self.pair()
+        features = cost.cost_features(left, right, 3, cost.window_offsets(4, 3))  # three census words
+        kw = dict(w_ad=weights[0], w_census=weights[1], w_grad=weights[2], lam_ad=1.0, lam_census=6.0, lam_grad=0.02)
+        ref = cost.fused_cost_chunk(features, d_first, count, **kw)
+        got = cost_numba.fused_cost_numba(features, d_first, count, **kw)
+        assert got.shape == ref.shape and torch.allclose(got, ref, atol=1e-6)
+        # slice k is disparity d_first + k: the neighbouring disparity's slice differs (beyond the image's width
+        # every column meets the right image's first, whatever the disparity)
+        assert d_first >= left.shape[-1] or not torch.allclose(cost_numba.fused_cost_numba(features, d_first + 1, count, **kw), ref, atol=1e-3)
+
+    def test_refuses_what_it_cannot_compute(self):
+        left, right = self.pair()
+        with pytest.raises(ValueError, match="float32 CPU pair"):
+            cost_numba.cost_features_numba(left.double(), right.double(), 3)
+        features = cost.cost_features(left.double(), right.double(), 3)
+        assert not cost_numba.available(features)
+        with pytest.raises(ValueError, match="float32 CPU features"):
+            cost_numba.fused_cost_numba(features, 0, 2, w_ad=0.1, w_census=0.6, w_grad=0.3, lam_ad=1.0, lam_census=6.0,
+                                        lam_grad=0.02)

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import (aggregate, aggregate_numba, align, cost, planes, planes_numba, refine, refine_numba,
-                               search, select, select_numba, sgm, sgm_numba)
+from plugins.torch_sgm import (aggregate, aggregate_numba, align, cost, cost_numba, planes, planes_numba, refine,
+                               refine_numba, search, select, select_numba, sgm, sgm_numba)
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -65,10 +65,11 @@ FAST_CHUNK = 8  # disparity slices per step of the fast path: its buffers stay s
 
 def cost_volume_fast(left: torch.Tensor, right: torch.Tensor, disparities: list[int], p: TorchSGMParams) -> torch.Tensor:
     """``cost_volume`` (the reference) from ``cost.fused_cost_chunk`` and ``aggregate.guided_filter_fast``
-    (on float32 CPU tensors ``aggregate_numba``): the disparities of a chunk in one strided view, the guide's
-    statistics computed once."""
+    (on float32 CPU tensors ``cost_numba`` and ``aggregate_numba``): the disparities of a chunk in one strided
+    view, the guide's statistics computed once."""
     offsets = cost.STAR_24 if p.census == "star24" else cost.window_offsets(p.census_rx, p.census_ry)
-    features = cost.cost_features(left, right, p.znorm_radius, offsets, p.znorm_eps)
+    features = (cost_numba.cost_features_numba if compiled(p, left, right) else cost.cost_features)(
+        left, right, p.znorm_radius, offsets, p.znorm_eps)
     guide = cost.to_grey(left)
     weight = texture_weight(guide, p)
     compiled_guide = (aggregate_numba.Guide(guide, p.agg_radius, p.agg_detail_radius, p.agg_eps, weight)
@@ -77,12 +78,13 @@ def cost_volume_fast(left: torch.Tensor, right: torch.Tensor, disparities: list[
         stats = aggregate.guide_statistics(guide, p.agg_radius, p.agg_eps) if p.agg_radius > 0 else None
         detail_stats = (aggregate.guide_statistics(guide, p.agg_detail_radius, p.agg_eps)
                         if weight is not None and p.agg_detail_radius > 0 else None)
+    fused_cost = cost_numba.fused_cost_numba if compiled(p, left, right) else cost.fused_cost_chunk
     volume = torch.empty(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
     step = min(p.chunk_disparities, FAST_CHUNK)
     for start in range(0, len(disparities), step):
         count = min(step, len(disparities) - start)
-        raw = cost.fused_cost_chunk(features, disparities[start], count, w_ad=p.w_ad, w_census=p.w_census,
-                                    w_grad=p.w_grad, lam_ad=p.lam_ad, lam_census=p.lam_census, lam_grad=p.lam_grad)
+        raw = fused_cost(features, disparities[start], count, w_ad=p.w_ad, w_census=p.w_census, w_grad=p.w_grad,
+                         lam_ad=p.lam_ad, lam_census=p.lam_census, lam_grad=p.lam_grad)
         if compiled_guide is not None:
             aggregate_numba.aggregate_numba(raw, compiled_guide, volume[:, start: start + count])
             continue
@@ -265,9 +267,9 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
 
 
 def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
-    """Whether the stages compiled with numba (SGM, the out-of-view check, the plane fits of the
-    slanted-plane filling, the local plane fit, the weighted median) stand in for the torch ones: the
-    fast implementation, on float32 CPU tensors."""
+    """Whether the stages compiled with numba (the cost and its aggregation, SGM, the out-of-view check, the
+    plane fits of the slanted-plane filling, the local plane fit, the weighted median) stand in for the torch
+    ones: the fast implementation, on float32 CPU tensors."""
     return p.implementation == "fast" and all(sgm_numba.available(t) for t in tensors)
 
 

@@ -102,34 +102,38 @@ class TestAggregateNumba:
                                                                                          1e-3, None))
 
 
-class TestRightViewWtaNumba:
+class TestCheckedWinnersNumba:
+    @staticmethod
+    def same(a, b):
+        return torch.equal(a.nan_to_num(-99.0), b.nan_to_num(-99.0))
+
+    @pytest.mark.parametrize("order", ["pixel-major", "cost volume"])
+    @pytest.mark.parametrize("fit", [select.parabolic_subpixel, select.equiangular_subpixel])
     @pytest.mark.parametrize("first", [0, 3, -2])
-    def test_equals_the_reference_ties_and_nan_included(self, first):
+    def test_equals_the_reference_ties_and_nan_included(self, order, fit, first):
         g = torch.Generator().manual_seed(5)
         memory = torch.randint(0, 4, (2, 7, 19, 6), generator=g).float()  # few values: many ties
+        memory += 0.25 * torch.rand(memory.shape, generator=g) * (torch.rand(memory.shape, generator=g) > 0.5)
         memory[0, 2, 5, 1] = float("nan")
-        volume = memory.permute(0, 3, 1, 2)
+        volume = memory.permute(0, 3, 1, 2) if order == "pixel-major" else memory.permute(0, 3, 1, 2).contiguous()
+        assert select_numba.pixel_major(volume) == (order == "pixel-major")
         disparities = list(range(first, first + 6))
-        assert select_numba.pixel_major(volume)
-        ref = select.right_view_wta(volume.contiguous(), disparities)
-        assert torch.equal(select_numba.right_view_wta_numba(volume, disparities).isnan(), ref.isnan())
-        assert torch.equal(torch.nan_to_num(select_numba.right_view_wta_numba(volume, disparities), -99),
-                           torch.nan_to_num(ref, -99))
+        ref = select.checked_winners(volume.contiguous(), disparities, 1.0, fit)
+        got = select_numba.checked_winners_numba(volume, disparities, 1.0, fit)
+        for name, a, b in zip(("disparity", "index", "right view", "consistent"), got, ref):
+            assert a.dtype == b.dtype and self.same(a, b), name
+        assert 0.2 < got[3].float().mean() < 0.9  # the check passes some pixels and fails others
 
     def test_disparities_beyond_the_image_land_nowhere(self):
         volume = torch.rand(1, 9, 3, 4).permute(0, 3, 1, 2)  # 4 disparities, 9 columns
-        out = select_numba.right_view_wta_numba(volume, [20, 21, 22, 23])
-        assert out.isnan().all()
-
-    def test_a_volume_in_the_cost_volumes_order_gives_the_same(self):
-        volume = torch.randint(0, 3, (1, 4, 5, 6)).float()
-        assert not select_numba.pixel_major(volume)
-        assert torch.equal(select_numba.right_view_wta_numba(volume, [1, 2, 3, 4]).nan_to_num(-1),
-                           select.right_view_wta(volume, [1, 2, 3, 4]).nan_to_num(-1))
+        _, _, right, consistent = select_numba.checked_winners_numba(volume, [20, 21, 22, 23], 1.0)
+        assert right.isnan().all() and not consistent.any()
 
     def test_refuses_what_it_cannot_compute(self):
         with pytest.raises(ValueError, match="float32 CPU"):
-            select_numba.right_view_wta_numba(torch.rand(1, 2, 3, 4, dtype=torch.float64), [0, 1])
+            select_numba.checked_winners_numba(torch.rand(1, 2, 3, 4, dtype=torch.float64), [0, 1], 1.0)
+        with pytest.raises(ValueError, match="sub-pixel fit"):
+            select_numba.checked_winners_numba(torch.rand(1, 2, 3, 4), [0, 1], 1.0, fit=lambda v, i: i.float())
 
 
 class TestUniqueMinimumNumba:

@@ -193,8 +193,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         else:
             penalty = sgm.adaptive_p2(edge_strength(left), p.p2, p.p2_alpha, p.p1)
     with clock("winners"):
-        right_wta = select_numba.right_view_wta_numba if compiled(p, volume) else select.right_view_wta
-        local = (select.local_winners(volume, disparities, p.lr_tolerance, right_wta)
+        checked = select_numba.checked_winners_numba if compiled(p, volume) else select.checked_winners
+        local = (select.local_winners(volume, disparities, p.lr_tolerance, checked)
                  if p.fill != "none" and p.plane_fill and p.plane_local else None)
     with clock("SGM"):
         if compiled(p, volume):
@@ -204,8 +204,7 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
         del volume
     with clock("winners"):
         fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel
-        disp, index, right_disp, consistent = select.checked_winners(aggregated, disparities, p.lr_tolerance, fit,
-                                                                     right_wta)
+        disp, index, right_disp, consistent = checked(aggregated, disparities, p.lr_tolerance, fit)
         if p.uniqueness > 0:
             unique = select_numba.unique_minimum_numba if compiled(p, aggregated) else select.unique_minimum
             consistent &= unique(aggregated, index, p.uniqueness)

@@ -82,22 +82,21 @@ def right_view_wta(volume: torch.Tensor, disparities) -> torch.Tensor:
 
 
 def checked_winners(volume: torch.Tensor, disparities, lr_tolerance: float, fit=parabolic_subpixel,
-                    right_wta=right_view_wta) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Winner-takes-all of both views read off one volume, and the left-right check between them.
 
     (B, D, H, W) cost over ``disparities`` (consecutive integers) -> (disparity (B, H, W) float32, refined
     by ``fit`` (``parabolic_subpixel`` or ``equiangular_subpixel``); its index (B, H, W) int64 into the
     volume; the right view's disparity (``right_view_wta``); consistent (B, H, W) bool, the pixels that
     ``left_right_check`` passes within ``lr_tolerance``). Leaves ``volume`` as it was, so that
-    ``unique_minimum`` may still be called on it afterwards. ``right_wta``: ``right_view_wta`` or a compiled
-    stand-in."""
+    ``unique_minimum`` may still be called on it afterwards."""
     index = winner_takes_all(volume)
     disp = fit(volume, index) + disparities[0]
-    right_disp = right_wta(volume, disparities)
+    right_disp = right_view_wta(volume, disparities)
     return disp, index, right_disp, left_right_check(disp, right_disp, lr_tolerance)
 
 
-def local_winners(volume: torch.Tensor, disparities, lr_tolerance: float = 1.0, right_wta=right_view_wta) -> torch.Tensor:
+def local_winners(volume: torch.Tensor, disparities, lr_tolerance: float = 1.0, checked=checked_winners) -> torch.Tensor:
     """The winners of the cost before SGM, where they pass their own left-right check.
 
     SGM carries a disparity across a textureless surface from whatever borders it, so on a flat tabletop
@@ -106,6 +105,6 @@ def local_winners(volume: torch.Tensor, disparities, lr_tolerance: float = 1.0, 
     the faint texture the surface has still lie on its plane (``planes.local_planes`` fits them).
     (B, D, H, W) cost over ``disparities`` (consecutive integers) -> (B, H, W) float32 disparity, parabolic
     sub-pixel, NaN where the right view's winner (read off the same volume) disagrees by more than
-    ``lr_tolerance``. ``right_wta`` as in ``checked_winners``."""
-    disp, _, _, consistent = checked_winners(volume, disparities, lr_tolerance, right_wta=right_wta)
+    ``lr_tolerance``. ``checked``: ``checked_winners`` or a compiled stand-in."""
+    disp, _, _, consistent = checked(volume, disparities, lr_tolerance)
     return torch.where(consistent, disp, torch.full_like(disp, float("nan")))

@@ -1,4 +1,4 @@
-"""``select.right_view_wta`` and ``select.unique_minimum`` compiled for the CPU with numba, for a volume in
+"""``select.checked_winners`` and ``select.unique_minimum`` compiled for the CPU with numba, for a volume in
 either memory order: the cost volume's (B, D, H, W), or the SGM sums as ``sgm_numba`` leaves them, each
 pixel's disparities side by side ((B, H, W, D) memory seen as a (B, D, H, W) view), which the torch versions
 read slice by slice through strided memory. The ``select`` functions stay the references the tests hold
@@ -10,22 +10,66 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from plugins.torch_sgm import sgm_numba
+from plugins.torch_sgm import refine, select, sgm_numba
 
 
 @njit(cache=True, parallel=True)
-def _right_view_wta(cost, d_first, best, disp):
+def _checked_winners(cost, d_first, parabola, disp, index, right_best, right_disp):
+    """Each row's winners of both views in one pass over its costs: (B, H, W, D) ``cost`` (any strides) ->
+    ``disp`` (sub-pixel, float32 as torch computes it), ``index`` and the right view's ``right_disp``;
+    ``right_best`` (B, H, W) scratch."""
     n_b, h, w, d_count = cost.shape
+    half, two, tiny = np.float32(0.5), np.float32(2.0), np.float32(1e-12)
     for job in prange(n_b * h):
         b, y = job // h, job % h
-        # disparities in ascending order with a strict comparison: equal costs keep the lowest, as the reference
-        for k in range(d_count):
-            d = d_first + k
-            for xr in range(max(0, -d), min(w, w - d)):
-                value = cost[b, y, xr + d, k]
-                if value < best[b, y, xr]:
-                    best[b, y, xr] = value
-                    disp[b, y, xr] = d
+        for xr in range(w):
+            right_best[b, y, xr] = np.inf
+            right_disp[b, y, xr] = np.nan
+        for x in range(w):
+            # the first of equal minima, or the first NaN, as torch's min(1).indices
+            best, i = cost[b, y, x, 0], 0
+            if best == best:
+                for d in range(1, d_count):
+                    value = cost[b, y, x, d]
+                    if value != value or value < best:
+                        best, i = value, d
+                        if value != value:
+                            break
+            index[b, y, x] = i
+            c0, c1, c2 = cost[b, y, x, max(i - 1, 0)], cost[b, y, x, i], cost[b, y, x, min(i + 1, d_count - 1)]
+            spread = (c0 - two * c1 + c2) if parabola else (max(c0, c2) - c1)
+            offset = np.float32(0.0)
+            if 0 < i < d_count - 1 and spread > 0:
+                offset = min(max((c0 - c2) / (two * max(spread, tiny)), -half), half)
+            disp[b, y, x] = (np.float32(i) + offset) + np.float32(d_first)
+            # the right view: right pixel x - d sees this cost at d; disparities arrive in ascending order at
+            # each right pixel, so a strict comparison keeps the lowest of equal costs, as the reference
+            for k in range(d_count):
+                xr = x - (d_first + k)
+                if 0 <= xr < w:
+                    value = cost[b, y, x, k]
+                    if value < right_best[b, y, xr]:
+                        right_best[b, y, xr] = value
+                        right_disp[b, y, xr] = d_first + k
+
+
+def checked_winners_numba(volume: torch.Tensor, disparities, lr_tolerance: float, fit=select.parabolic_subpixel,
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``select.checked_winners`` of a float32 CPU volume (B, D, H, W) in either memory order, ``fit``
+    ``select.parabolic_subpixel`` or ``select.equiangular_subpixel``: the same four results."""
+    if not sgm_numba.available(volume) or volume.dim() != 4:
+        raise ValueError(f"checked_winners_numba: needs a (B, D, H, W) float32 CPU tensor, got {volume.dtype} "
+                         f"of shape {tuple(volume.shape)} on {volume.device}")
+    if fit not in (select.parabolic_subpixel, select.equiangular_subpixel):
+        raise ValueError(f"checked_winners_numba: no compiled stand-in for the sub-pixel fit {fit!r}")
+    b, _, h, w = volume.shape
+    disp, right_disp, best = (np.empty((b, h, w), np.float32) for _ in range(3))
+    index = np.empty((b, h, w), np.int64)
+    with sgm_numba.torch_threads():
+        _checked_winners(volume.permute(0, 2, 3, 1).numpy(), int(disparities[0]), fit is select.parabolic_subpixel,
+                         disp, index, best, right_disp)
+    disp, right_disp = torch.from_numpy(disp), torch.from_numpy(right_disp)
+    return disp, torch.from_numpy(index), right_disp, refine.left_right_check(disp, right_disp, lr_tolerance)
 
 
 @njit(cache=True, parallel=True)
@@ -62,17 +106,3 @@ def unique_minimum_numba(volume: torch.Tensor, index: torch.Tensor, ratio: float
 def pixel_major(volume: torch.Tensor) -> bool:
     """Whether ``volume`` (B, D, H, W) is a view of (B, H, W, D) memory, as ``sgm_numba`` returns."""
     return volume.dim() == 4 and volume.permute(0, 2, 3, 1).is_contiguous()
-
-
-def right_view_wta_numba(volume: torch.Tensor, disparities) -> torch.Tensor:
-    """``select.right_view_wta`` of a float32 CPU volume over ``disparities`` (consecutive integers);
-    (B, D, H, W) in either memory order -> (B, H, W) float32, NaN where no disparity lands."""
-    if not sgm_numba.available(volume) or volume.dim() != 4:
-        raise ValueError(f"right_view_wta_numba: needs a (B, D, H, W) float32 CPU tensor, got {volume.dtype} "
-                         f"of shape {tuple(volume.shape)} on {volume.device}")
-    b, _, h, w = volume.shape
-    best = np.full((b, h, w), np.inf, np.float32)
-    disp = np.full((b, h, w), np.nan, np.float32)
-    with sgm_numba.torch_threads():
-        _right_view_wta(volume.permute(0, 2, 3, 1).numpy(), int(disparities[0]), best, disp)
-    return torch.from_numpy(disp)

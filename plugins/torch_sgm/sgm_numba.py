@@ -42,34 +42,37 @@ def _least(values):
 
 
 @njit(cache=True, inline="always", fastmath=True)
-def _step(cost, out, prev, cur, b, y, x, p1, p2, fresh):
-    """One pixel of one path: ``cur`` from ``prev`` (the predecessor's path costs), added to ``out``.
-    cost, out: (B, H, W, D), so that a pixel's disparities lie side by side; p1, p2 float32 (a float64
-    operand would widen every disparity's arithmetic and keep it scalar)."""
+def _step(cost, out, prev, cur, b, y, x, p1, p2, fresh, first):
+    """One pixel of one path: ``cur`` from ``prev`` (the predecessor's path costs), added to ``out`` (written
+    to it for the ``first`` path, so that ``out`` needs no zeroing). cost, out: (B, H, W, D), so that a
+    pixel's disparities lie side by side; p1, p2 float32 (a float64 operand would widen every disparity's
+    arithmetic and keep it scalar)."""
     d_count = cost.shape[3]
     c, o = cost[b, y, x], out[b, y, x]
     if fresh:
         for d in range(d_count):
             cur[d] = c[d]
-            o[d] += c[d]
-        return
-    floor = _least(prev)
-    jump = floor + p2
-    if d_count == 1:
-        cur[0] = c[0] + _min(prev[0], jump) - floor
-        o[0] += cur[0]
-        return
-    cur[0] = c[0] + _min(_min(prev[0], prev[1] + p1), jump) - floor
-    last = d_count - 1
-    for d in range(1, last):
-        cur[d] = c[d] + _min(_min(prev[d], _min(prev[d - 1], prev[d + 1]) + p1), jump) - floor
-    cur[last] = c[last] + _min(_min(prev[last], prev[last - 1] + p1), jump) - floor
-    for d in range(d_count):
-        o[d] += cur[d]
+    else:
+        floor = _least(prev)
+        jump = floor + p2
+        if d_count == 1:
+            cur[0] = c[0] + _min(prev[0], jump) - floor
+        else:
+            cur[0] = c[0] + _min(_min(prev[0], prev[1] + p1), jump) - floor
+            last = d_count - 1
+            for d in range(1, last):
+                cur[d] = c[d] + _min(_min(prev[d], _min(prev[d - 1], prev[d + 1]) + p1), jump) - floor
+            cur[last] = c[last] + _min(_min(prev[last], prev[last - 1] + p1), jump) - floor
+    if first:
+        for d in range(d_count):
+            o[d] = cur[d]
+    else:
+        for d in range(d_count):
+            o[d] += cur[d]
 
 
 @njit(cache=True, parallel=True)
-def _along_rows(cost, out, p2, p1, dxs):
+def _along_rows(cost, out, p2, p1, dxs, first):
     """The horizontal paths (dy = 0), one per entry of ``dxs`` (+1 / -1) with its (B, H, W) map in ``p2``
     (K, B, H, W): each row on its own, all of its paths in turn, so that the later ones read the row's
     costs from the cache instead of memory."""
@@ -82,12 +85,12 @@ def _along_rows(cost, out, p2, p1, dxs):
         for k in range(len(dxs)):
             for i in range(w):
                 x = i if dxs[k] > 0 else w - 1 - i
-                _step(cost, out, prev, cur, b, y, x, p1, p2[k, b, y, x], i == 0)
+                _step(cost, out, prev, cur, b, y, x, p1, p2[k, b, y, x], i == 0, first and k == 0)
                 prev, cur = cur, prev
 
 
 @njit(cache=True, parallel=True)
-def _across_rows(cost, out, p2, p1, dy, dxs):
+def _across_rows(cost, out, p2, p1, dy, dxs, first):
     """The paths that step ``dy`` rows (one per entry of ``dxs``, with its map in ``p2`` (K, B, H, W)):
     row after row, the pixels of a row in parallel, every path at each pixel while its costs are in the
     cache. ``state`` holds each path's costs at the previous row; a diagonal reads its neighbour's column
@@ -105,7 +108,7 @@ def _across_rows(cost, out, p2, p1, dy, dxs):
                     px = x - dxs[k]
                     fresh = i == 0 or px < 0 or px >= w
                     _step(cost, out, state[before, k, px if not fresh else 0], state[now, k, x], b, y, x, p1,
-                          p2[k, b, y, x], fresh)
+                          p2[k, b, y, x], fresh, first and k == 0)
 
 
 @contextmanager
@@ -135,18 +138,22 @@ def sgm_numba(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sgm
     if cost.dim() != 4:
         raise ValueError(f"sgm_numba: cost must be (B, D, H, W), got {tuple(cost.shape)}")
     penalty = sgm._per_path(p2, cost, paths)
+    # paths that step alike walk the volume together: it is read from memory once per group, not per path
+    groups = []
+    for dy in sorted({dy for dy, _ in paths}, key=lambda dy: (abs(dy), -dy)):
+        group = [path for path in paths if path[0] == dy]
+        maps = np.ascontiguousarray(torch.stack([penalty[path] for path in group]).to(cost.dtype).numpy())
+        groups.append((dy, np.array([dx for _, dx in group], np.int64), maps))
     with torch_threads():
+        # the transposing copy comes after the last torch operation: by the time the kernels start, torch's
+        # threads have stopped spinning for more work and leave both cores to numba's
         c = np.ascontiguousarray(cost.numpy().transpose(0, 2, 3, 1))  # (B, H, W, D)
-        out = np.zeros_like(c)
-        # paths that step alike walk the volume together: it is read from memory once per group, not per path
-        for dy in sorted({dy for dy, _ in paths}, key=lambda dy: (abs(dy), -dy)):
-            group = [path for path in paths if path[0] == dy]
-            p = np.ascontiguousarray(torch.stack([penalty[path] for path in group]).to(cost.dtype).numpy())
-            dxs = np.array([dx for _, dx in group], np.int64)
+        out = np.empty_like(c)  # the first path writes it
+        for n, (dy, dxs, maps) in enumerate(groups):
             if dy == 0:
-                _along_rows(c, out, p, float(p1), dxs)
+                _along_rows(c, out, maps, float(p1), dxs, n == 0)
             else:
-                _across_rows(c, out, p, float(p1), int(dy), dxs)
+                _across_rows(c, out, maps, float(p1), int(dy), dxs, n == 0)
     # a view in the (B, D, H, W) order: the winners read each pixel's disparities side by side, where the
     # numba kernels left them, instead of after a transposing copy
     return torch.from_numpy(out).permute(0, 3, 1, 2)

@@ -14,56 +14,64 @@ from plugins.torch_sgm.cost import box_counts
 
 
 @njit(cache=True)
-def _box_sum(src, radius, row, out):
-    """Window sums of the (H, W) ``src`` over the (2r+1)^2 window cut to the image, into ``out``;
-    ``row`` is (W,) float64 scratch for the running column sums (in float64, so that adding and taking
-    away rows down the image leaves no drift)."""
-    h, w = src.shape
+def _box_sums(first, second, radius, rows, out_first, out_second):
+    """Window sums of two (H, W) arrays over the (2r+1)^2 window cut to the image, into the two outputs;
+    ``rows`` is (2, W) float64 scratch for the running column sums (in float64, so that adding and taking
+    away rows down the image leaves no drift). The two running sums along each row wait on their own
+    previous additions only: taken together, each fills the other's wait."""
+    h, w = first.shape
+    row_a, row_b = rows[0], rows[1]
     for x in range(w):
-        row[x] = 0.0
+        row_a[x] = 0.0
+        row_b[x] = 0.0
     for y in range(min(radius, h - 1) + 1):
         for x in range(w):
-            row[x] += src[y, x]
+            row_a[x] += first[y, x]
+            row_b[x] += second[y, x]
     for y in range(h):
         # horizontal window sums of the column sums: a running sum along the row
-        total = 0.0
+        total_a, total_b = 0.0, 0.0
         for x in range(min(radius, w - 1) + 1):
-            total += row[x]
+            total_a += row_a[x]
+            total_b += row_b[x]
         for x in range(w):
-            out[y, x] = total
+            out_first[y, x] = total_a
+            out_second[y, x] = total_b
             if x + radius + 1 < w:
-                total += row[x + radius + 1]
+                total_a += row_a[x + radius + 1]
+                total_b += row_b[x + radius + 1]
             if x - radius >= 0:
-                total -= row[x - radius]
+                total_a -= row_a[x - radius]
+                total_b -= row_b[x - radius]
         if y + radius + 1 < h:
             for x in range(w):
-                row[x] += src[y + radius + 1, x]
+                row_a[x] += first[y + radius + 1, x]
+                row_b[x] += second[y + radius + 1, x]
         if y - radius >= 0:
             for x in range(w):
-                row[x] -= src[y - radius, x]
+                row_a[x] -= first[y - radius, x]
+                row_b[x] -= second[y - radius, x]
 
 
 @njit(cache=True)
-def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, row, out):
+def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, rows, out):
     """He et al.'s guided filter of the (H, W) slice ``p`` with the guide's statistics; scratch arrays
-    ip, mean_p, mean_ip (H, W) and row (W,); the result into ``out``."""
+    ip, mean_p, mean_ip (H, W) and rows (2, W); the result into ``out``."""
     h, w = p.shape
     for y in range(h):
         for x in range(w):
             ip[y, x] = guide[y, x] * p[y, x]
-    _box_sum(p, radius, row, mean_p)
-    _box_sum(ip, radius, row, mean_ip)
+    _box_sums(p, ip, radius, rows, mean_p, mean_ip)
     for y in range(h):
         for x in range(w):
             mp = mean_p[y, x] * inv_count[y, x]
             a = (mean_ip[y, x] * inv_count[y, x] - mean_i[y, x] * mp) * inv_var[y, x]
             mean_ip[y, x] = a
             mean_p[y, x] = mp - a * mean_i[y, x]
-    _box_sum(mean_ip, radius, row, ip)  # the mean of a ...
-    _box_sum(mean_p, radius, row, mean_ip)  # ... and of b
+    _box_sums(mean_ip, mean_p, radius, rows, ip, out)  # the means of a and of b
     for y in range(h):
         for x in range(w):
-            out[y, x] = (ip[y, x] * guide[y, x] + mean_ip[y, x]) * inv_count[y, x]
+            out[y, x] = (ip[y, x] * guide[y, x] + out[y, x]) * inv_count[y, x]
 
 
 @njit(cache=True, parallel=True)
@@ -72,9 +80,9 @@ def _aggregate(raw, guide, wide_stats, wide_radius, detail_stats, detail_radius,
     for job in prange(n_b * n_d):
         b, k = job // n_d, job % n_d
         ip, mean_p, mean_ip = np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.float32)
-        wide, row = np.empty((h, w), np.float32), np.empty(w, np.float64)
+        wide, rows = np.empty((h, w), np.float32), np.empty((2, w), np.float64)
         _guided(raw[b, k], guide[b], wide_stats[0, b], wide_stats[1, b], wide_stats[2, b], wide_radius, ip, mean_p,
-                mean_ip, row, wide)
+                mean_ip, rows, wide)
         if detail_radius < 0:
             out[b, k] = wide
             continue
@@ -83,7 +91,7 @@ def _aggregate(raw, guide, wide_stats, wide_radius, detail_stats, detail_radius,
         else:
             detail = np.empty((h, w), np.float32)
             _guided(raw[b, k], guide[b], detail_stats[0, b], detail_stats[1, b], detail_stats[2, b], detail_radius,
-                    ip, mean_p, mean_ip, row, detail)
+                    ip, mean_p, mean_ip, rows, detail)
         for y in range(h):
             for x in range(w):
                 out[b, k, y, x] = detail[y, x] + weight[b, y, x] * (wide[y, x] - detail[y, x])

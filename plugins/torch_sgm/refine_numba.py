@@ -12,6 +12,7 @@ import torch
 from numba import njit, prange
 
 from plugins.torch_sgm import sgm_numba
+from plugins.torch_sgm.cost_numba import exp_neg_
 from plugins.torch_sgm.linalg_numba import solve3
 
 
@@ -26,27 +27,43 @@ def _weight(image, b, y, x, yy, xx, u, v, inv_colour2, inv_space2):
     return math.exp(-colour * inv_colour2 - (u * u + v * v) * inv_space2)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=True)
 def _pair_weights(image, radius, inv_colour2, inv_space2, slot, weights):
     """The weight of every pair of pixels (p, p + (u, v)) with (v, u) after (0, 0) in reading order and
     within ``radius``, into ``weights[slot[v + r, u + r], b, y, x]`` (p = (y, x)): the weight is symmetric
     (the colour distance and the spatial one alike), so each pair's exponential is taken once for both
-    pixels. 0 where p + (u, v) lies outside the image."""
-    n_b, _, h, w = image.shape
+    pixels. 0 where p + (u, v) lies outside the image. A row of exponents at a time, then their
+    exponentials in vector registers (``cost_numba.exp_neg_``)."""
+    n_b, n_c, h, w = image.shape
+    inv_colour2, inv_space2 = np.float32(inv_colour2), np.float32(inv_space2)
     for job in prange(n_b * h):
         b, y = job // h, job % h
+        exponent, bits = np.empty(w, np.float32), np.empty(w, np.int32)
         for v in range(0, radius + 1):
             yy = y + v
             for u in range(-radius, radius + 1):
                 if v == 0 and u <= 0:
                     continue
-                k = slot[v + radius, u + radius]
-                for x in range(w):
-                    xx = x + u
-                    if yy >= h or xx < 0 or xx >= w:
-                        weights[k, b, y, x] = 0.0
-                        continue
-                    weights[k, b, y, x] = _weight(image, b, y, x, yy, xx, u, v, inv_colour2, inv_space2)
+                target = weights[slot[v + radius, u + radius], b, y]
+                lo, hi = max(0, -u), min(w, w - u)  # the pixels whose partner lies inside the image
+                if yy >= h or lo >= hi:
+                    for x in range(w):
+                        target[x] = 0.0
+                    continue
+                for x in range(lo, hi):
+                    exponent[x] = np.float32(u * u + v * v) * inv_space2
+                for c in range(n_c):
+                    here, there = image[b, c, y], image[b, c, yy]
+                    for x in range(lo, hi):
+                        diff = there[x + u] - here[x]
+                        exponent[x] += diff * diff * inv_colour2
+                exp_neg_(exponent[lo:hi], bits[lo:hi])
+                for x in range(lo):
+                    target[x] = 0.0
+                for x in range(lo, hi):
+                    target[x] = exponent[x]
+                for x in range(hi, w):
+                    target[x] = 0.0
 
 
 @njit(cache=True, parallel=True)
@@ -122,10 +139,10 @@ def _plane_fit_paired(disp, image, radius, inv_colour2, inv_space2, tolerance, o
     slot = _pair_slots(radius)
     pairs = int(slot.max()) + 1
     n_b, h, w = disp.shape
-    band = max(2 * radius + 1, PAIR_WEIGHT_BYTES // (pairs * n_b * w * 8))
+    band = max(2 * radius + 1, PAIR_WEIGHT_BYTES // (pairs * n_b * w * 4))
     for top in range(0, h, band):
         lo, hi = max(0, top - radius), min(h, top + band + radius)
-        weights = np.empty((pairs, n_b, hi - lo, w), np.float64)
+        weights = np.empty((pairs, n_b, hi - lo, w), np.float32)
         part = np.empty((n_b, hi - lo, w), disp.dtype)
         _pair_weights(image[:, :, lo:hi], radius, inv_colour2, inv_space2, slot, weights)
         _plane_fit(disp[:, lo:hi], weights, slot, radius, tolerance, part)

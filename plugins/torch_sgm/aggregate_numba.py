@@ -14,7 +14,7 @@ from plugins.torch_sgm.cost import box_counts
 
 
 @njit(cache=True)
-def _box_sums(first, second, radius, rows, out_first, out_second):
+def box_sums(first, second, radius, rows, out_first, out_second):
     """Window sums of two (H, W) arrays over the (2r+1)^2 window cut to the image, into the two outputs;
     ``rows`` is (2, W) float64 scratch for the running column sums (in float64, so that adding and taking
     away rows down the image leaves no drift). The two running sums along each row wait on their own
@@ -61,14 +61,14 @@ def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, r
     for y in range(h):
         for x in range(w):
             ip[y, x] = guide[y, x] * p[y, x]
-    _box_sums(p, ip, radius, rows, mean_p, mean_ip)
+    box_sums(p, ip, radius, rows, mean_p, mean_ip)
     for y in range(h):
         for x in range(w):
             mp = mean_p[y, x] * inv_count[y, x]
             a = (mean_ip[y, x] * inv_count[y, x] - mean_i[y, x] * mp) * inv_var[y, x]
             mean_ip[y, x] = a
             mean_p[y, x] = mp - a * mean_i[y, x]
-    _box_sums(mean_ip, mean_p, radius, rows, ip, out)  # the means of a and of b
+    box_sums(mean_ip, mean_p, radius, rows, ip, out)  # the means of a and of b
     for y in range(h):
         for x in range(w):
             out[y, x] = (ip[y, x] * guide[y, x] + out[y, x]) * inv_count[y, x]

@@ -17,6 +17,7 @@ import torch
 from numba import njit, prange
 
 from plugins.torch_sgm import cost, sgm_numba
+from plugins.torch_sgm.aggregate_numba import box_sums
 
 LOG2_E = 1.4426950408889634
 # 2^f = e^(f ln 2) on -0.5 <= f <= 0.5 by its Taylor series to the 7th power (remainder below 2e-10)
@@ -123,46 +124,28 @@ def _fused_cost(zl, zr, cl, cr, gl, gr, d_first, weights, scales, out):
         cost_row(zl, zr, cl, cr, gl, gr, b, y, d_first + k, weights, scales, out[b, k, y], shifted, words, term, bits)
 
 
-@njit(cache=True, parallel=True, fastmath=True)
+@njit(cache=True, parallel=True)
 def _zero_normalise(image, radius, eps, out):
-    """``cost.zero_normalise`` of each (H, W) plane of the (N, H, W) float32 ``image`` into ``out``: window
-    sums of x and x^2 over the (2r+1)^2 window cut to the image, the columns' running sums in float64."""
+    """``cost.zero_normalise`` of each (H, W) plane of the (N, H, W) float32 ``image`` into ``out``, from
+    window sums of x and x^2 in float64 (``aggregate_numba.box_sums``) over the (2r+1)^2 window cut to the
+    image."""
     n, h, w = image.shape
     for job in prange(n):
         plane, target = image[job], out[job]
-        col, col2 = np.zeros(w, np.float64), np.zeros(w, np.float64)
-        for y in range(min(radius, h - 1) + 1):
+        values, squares = np.empty((h, w), np.float64), np.empty((h, w), np.float64)
+        for y in range(h):
             for x in range(w):
-                v = np.float64(plane[y, x])
-                col[x] += v
-                col2[x] += v * v
+                values[y, x] = plane[y, x]
+                squares[y, x] = values[y, x] * values[y, x]
+        total, total2 = np.empty((h, w), np.float64), np.empty((h, w), np.float64)
+        box_sums(values, squares, radius, np.empty((2, w), np.float64), total, total2)
         for y in range(h):
             rows = min(y + radius, h - 1) - max(y - radius, 0) + 1
-            total, total2 = 0.0, 0.0
-            for x in range(min(radius, w - 1) + 1):
-                total += col[x]
-                total2 += col2[x]
             for x in range(w):
                 count = rows * (min(x + radius, w - 1) - max(x - radius, 0) + 1)
-                mean = total / count
-                var = max(total2 / count - mean * mean, 0.0)
+                mean = total[y, x] / count
+                var = max(total2[y, x] / count - mean * mean, 0.0)
                 target[y, x] = (plane[y, x] - mean) / (np.sqrt(var) + eps)
-                if x + radius + 1 < w:
-                    total += col[x + radius + 1]
-                    total2 += col2[x + radius + 1]
-                if x - radius >= 0:
-                    total -= col[x - radius]
-                    total2 -= col2[x - radius]
-            if y + radius + 1 < h:
-                for x in range(w):
-                    v = np.float64(plane[y + radius + 1, x])
-                    col[x] += v
-                    col2[x] += v * v
-            if y - radius >= 0:
-                for x in range(w):
-                    v = np.float64(plane[y - radius, x])
-                    col[x] -= v
-                    col2[x] -= v * v
 
 
 @njit(cache=True, parallel=True)

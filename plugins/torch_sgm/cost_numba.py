@@ -68,7 +68,7 @@ def _popcount(v):
 
 
 @njit(cache=True, inline="always", fastmath=True)
-def cost_row(zl, zr, cl, cr, gl, gr, b, y, d, weights, scales, row, shifted, words, term, bits):
+def _cost_row(zl, zr, cl, cr, gl, gr, b, y, d, weights, scales, row, shifted, words, term, bits):
     """Row y of image b's fused cost at disparity d into ``row`` (W,); shifted, term (W,) float32 and words,
     bits (W,) int32 scratch. Arguments as ``_fused_cost``'s."""
     w = row.shape[0]
@@ -121,7 +121,7 @@ def _fused_cost(zl, zr, cl, cr, gl, gr, d_first, weights, scales, out):
         b, k, y = job // (count * h), (job // h) % count, job % h
         shifted, term = np.empty(w, np.float32), np.empty(w, np.float32)
         words, bits = np.empty(w, np.int32), np.empty(w, np.int32)
-        cost_row(zl, zr, cl, cr, gl, gr, b, y, d_first + k, weights, scales, out[b, k, y], shifted, words, term, bits)
+        _cost_row(zl, zr, cl, cr, gl, gr, b, y, d_first + k, weights, scales, out[b, k, y], shifted, words, term, bits)
 
 
 @njit(cache=True, parallel=True)
@@ -190,9 +190,9 @@ def cost_features_numba(left: torch.Tensor, right: torch.Tensor, znorm_radius: i
             "gl": cost.horizontal_gradient(grey[0]), "gr": cost.horizontal_gradient(grey[1])}
 
 
-def term_arrays(features: dict, lam_ad: float, lam_census: float, lam_grad: float, w_ad: float, w_census: float,
+def _term_arrays(features: dict, lam_ad: float, lam_census: float, lam_grad: float, w_ad: float, w_census: float,
                 w_grad: float) -> tuple:
-    """What ``cost_row`` reads of ``cost.cost_features``: (zl, zr, cl, cr, gl, gr, weights, scales) as arrays."""
+    """What ``_cost_row`` reads of ``cost.cost_features``: (zl, zr, cl, cr, gl, gr, weights, scales) as arrays."""
     arrays = tuple(np.ascontiguousarray(features[k].numpy()) for k in ("zl", "zr", "cl", "cr", "gl", "gr"))
     weights = np.array([w_ad, w_census, w_grad], np.float32)
     scales = np.array([1.0 / (arrays[0].shape[1] * lam_ad), 1.0 / lam_census, 1.0 / lam_grad], np.float32)
@@ -213,7 +213,7 @@ def fused_cost_numba(features: dict, d_first: int, count: int, *, w_ad: float, w
         raise ValueError("fused_cost_numba: needs the float32 CPU features of cost.cost_features")
     b, _, h, w = features["zl"].shape
     out = np.empty((b, count, h, w), np.float32)
-    *arrays, weights, scales = term_arrays(features, lam_ad, lam_census, lam_grad, w_ad, w_census, w_grad)
+    *arrays, weights, scales = _term_arrays(features, lam_ad, lam_census, lam_grad, w_ad, w_census, w_grad)
     with sgm_numba.torch_threads():
         _fused_cost(*arrays, int(d_first), weights, scales, out)
     return torch.from_numpy(out)

@@ -145,8 +145,6 @@ def sgm_numba(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sgm
         maps = np.ascontiguousarray(torch.stack([penalty[path] for path in group]).to(cost.dtype).numpy())
         groups.append((dy, np.array([dx for _, dx in group], np.int64), maps))
     with torch_threads():
-        # the transposing copy comes after the last torch operation: by the time the kernels start, torch's
-        # threads have stopped spinning for more work and leave both cores to numba's
         c = np.ascontiguousarray(cost.numpy().transpose(0, 2, 3, 1))  # (B, H, W, D)
         out = np.empty_like(c)  # the first path writes it
         for n, (dy, dxs, maps) in enumerate(groups):

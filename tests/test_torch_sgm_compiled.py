@@ -293,6 +293,23 @@ class TestRegionPlanesNumba:
             planes_numba.region_planes_numba(disp, matched[..., :-1], labels, 40, 0.5)
 
 
+class TestEdgeMagnitudeOpencv:
+    # kornia's reference pads by half its kernel, which must stay inside the image
+    @pytest.mark.parametrize("sigma, shape", [(0.0, (2, 3, 23, 31)), (1.0, (2, 3, 23, 31)), (2.0, (2, 3, 23, 31)),
+                                              (1.0, (1, 1, 9, 5))])
+    def test_equals_the_reference(self, sigma, shape):
+        image = torch.rand(shape, generator=torch.Generator().manual_seed(7))
+        ref = planes.edge_magnitude(image, sigma)
+        got = planes_numba.edge_magnitude_opencv(image, sigma)
+        assert got.shape == ref.shape and torch.allclose(got, ref, atol=1e-6)
+        # the blur is the reference's: another sigma gives other edges
+        assert not torch.allclose(planes_numba.edge_magnitude_opencv(image, sigma + 0.5), ref, atol=1e-3)
+
+    def test_refuses_what_it_cannot_compute(self):
+        with pytest.raises(ValueError, match="float32 CPU"):
+            planes_numba.edge_magnitude_opencv(torch.rand(1, 3, 4, 5, dtype=torch.float64), 1.0)
+
+
 class TestPipelineUsesIt:
     def test_the_fast_implementation_gives_the_reference_map(self):
         """The improved preset's map with the compiled SGM (fast) and with the plain stage functions."""

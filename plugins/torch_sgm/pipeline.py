@@ -216,8 +216,9 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     raw_disp = disp
     # the edges bound the regions of both the out-of-view check and the plane filling
     with clock("edges and out-of-view check"):
-        edges = (planes.edge_magnitude(left, p.plane_sigma)
-                 if p.fill != "none" and (p.view_check_edge > 0 or p.plane_fill) else None)
+        magnitude = planes_numba.edge_magnitude_opencv if compiled(p, left) else planes.edge_magnitude
+        edges = (magnitude(left, p.plane_sigma) if p.fill != "none" and (p.view_check_edge > 0 or p.plane_fill)
+                 else None)
         if p.fill != "none" and p.view_check_edge > 0:
             labels = planes.edge_regions(edges, p.view_check_edge)
             suspect = refine_numba.out_of_view_numba if compiled(p, raw_disp) else refine.out_of_view
@@ -267,8 +268,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
 
 def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
     """Whether the stages compiled with numba (the cost and its aggregation, SGM, the out-of-view check, the
-    plane fits of the slanted-plane filling, the local plane fit, the weighted median) stand in for the torch
-    ones: the fast implementation, on float32 CPU tensors."""
+    plane fits of the slanted-plane filling, the local plane fit, the weighted median) and the edges from
+    OpenCV's filters stand in for the torch ones: the fast implementation, on float32 CPU tensors."""
     return p.implementation == "fast" and all(sgm_numba.available(t) for t in tensors)
 
 

@@ -2,12 +2,14 @@
 test, one pixel at a time instead of a few dozen tensor operations per fit (on the line's small crops
 those operations' overhead, not their arithmetic, made the slanted-plane filling a third of the stereo
 time). ``planes.region_planes`` stays the reference the tests hold this one to; the triples are drawn
-from the same seeded CPU generator, so both choose among the same hypotheses.
+from the same seeded CPU generator, so both choose among the same hypotheses. ``planes.edge_magnitude``
+on the CPU from OpenCV's filters (``edge_magnitude_opencv``), for the same reason.
 """
 from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import torch
 from numba import njit
@@ -241,3 +243,25 @@ def region_planes_numba(disp: torch.Tensor, matched: torch.Tensor, labels: torch
     _support_and_planes(x, y, d, region, coeffs, active, at, index, w, h, k, float(tolerance), float(inlier_share),
                         plane, good)
     return torch.from_numpy(plane.reshape(b, h, w)), torch.from_numpy(good[index].reshape(b, h, w))
+
+
+def edge_magnitude_opencv(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``planes.edge_magnitude`` of a (B, C, H, W) float32 CPU image -> (B, H, W): the same Gaussian blur (its
+    border mirrored without repeating the edge pixel, as kornia's) and normalised Sobel gradients (border
+    repeated), by OpenCV's filters in place of kornia's convolutions."""
+    if not sgm_numba.available(image) or image.dim() != 4:
+        raise ValueError(f"edge_magnitude_opencv: needs a (B, C, H, W) float32 CPU image, got {image.dtype} "
+                         f"{tuple(image.shape)} on {image.device}")
+    size = 2 * int(round(4 * sigma)) + 1
+    kernel = cv2.getGaussianKernel(size, sigma, cv2.CV_32F) if sigma > 0 else None
+    out = np.empty((image.shape[0], *image.shape[2:]), np.float32)
+    for b, planes_of_b in enumerate(image.numpy()):
+        best = np.zeros(out.shape[1:], np.float32)
+        for plane in planes_of_b:
+            blurred = plane if kernel is None else cv2.sepFilter2D(plane, -1, kernel, kernel,
+                                                                   borderType=cv2.BORDER_REFLECT_101)
+            gx = cv2.Sobel(blurred, -1, 1, 0, ksize=3, scale=1 / 8, borderType=cv2.BORDER_REPLICATE)
+            gy = cv2.Sobel(blurred, -1, 0, 1, ksize=3, scale=1 / 8, borderType=cv2.BORDER_REPLICATE)
+            np.maximum(best, cv2.magnitude(gx, gy), out=best)
+        out[b] = best
+    return torch.from_numpy(out)

@@ -65,11 +65,13 @@ class CameraModel:
     """What the camera does to the light that the defaults draw or leave out. ``noise_sigma``: the grey
     levels of Gaussian noise added to each eye (None: drawn per frame, 1.5-2; 0: none but the 8-bit
     rounding); ``specular``: the point light's highlight and sheen on the steel (False: a matte plate);
-    ``lens_blur_px``: the optics' Gaussian blur before the pixels integrate the light (0: the pixels alone)."""
+    ``lens_blur_px``: the optics' Gaussian blur before the pixels integrate the light (0: the pixels alone);
+    ``rectification_error_px``: the right eye's rows that far below the left's (0: exactly rectified)."""
 
     noise_sigma: float | None = None
     specular: bool = True
     lens_blur_px: float = 0.0
+    rectification_error_px: float = 0.0
 
 
 def zed_calibration(width: int = 672, height: int = 376) -> Calibration:
@@ -332,10 +334,10 @@ def quantise_disparity(disparity: np.ndarray) -> np.ndarray:
 
 def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, frame_id: str, ss: int = 2,
                  texture_contrast: float = 1.0, flat_floor: tuple[float, float] | None = None,
-                 rectification_error_px: float = 0.0, camera: CameraModel = CameraModel()):
+                 camera: CameraModel = CameraModel()):
     """(left, right, gt disparity (quantised), labels dict, scene)."""
     scene = build_scene(rng, calib, spec, crops, texture_contrast, flat_floor, camera)
-    left, right, disparity, hits = render_pair(scene, rng, ss=ss, rectification_error_px=rectification_error_px)
+    left, right, disparity, hits = render_pair(scene, rng, ss=ss, rectification_error_px=camera.rectification_error_px)
     gt = quantise_disparity(disparity)
     defects = []
     for d in scene.defects:
@@ -363,7 +365,7 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
         "sensor": {"noise_sigma": round(scene.sensor.noise_sigma, 4), "right_gain": round(scene.sensor.right_gain, 4),
                    "right_offset": round(scene.sensor.right_offset, 4)},
         "texture_contrast": texture_contrast,
-        **({} if not rectification_error_px else {"rectification_error_px": rectification_error_px}),
+        **({} if not camera.rectification_error_px else {"rectification_error_px": camera.rectification_error_px}),
         **({} if camera.specular else {"specular": False}),
         **({} if not camera.lens_blur_px else {"lens_blur_px": camera.lens_blur_px}),
         "defects": defects,
@@ -386,13 +388,11 @@ def generate_sequence(
     log=None,
     ranges: EvalRanges = EvalRanges(),
     texture_contrast: float = 1.0,
-    rectification_error_px: float = 0.0,
     camera: CameraModel = CameraModel(),
 ) -> list[dict]:
     """Write a sequence folder; returns the labels of every frame. ``neu_det=None`` uses the
-    synthetic stand-in defect appearance. ``ranges``, ``texture_contrast``, ``rectification_error_px``
-    (the right eye's rows that far off the left's) and ``camera`` make an evaluation set;
-    left at their defaults, the draws (and so the files) are those of the demo plan."""
+    synthetic stand-in defect appearance. ``ranges``, ``texture_contrast`` and ``camera`` make an evaluation
+    set; left at their defaults, the draws (and so the files) are those of the demo plan."""
     out = Path(out)
     crops = NeuCrops(Path(neu_det)) if neu_det is not None else None
     calib = zed_calibration(width, height)
@@ -411,7 +411,7 @@ def generate_sequence(
         spec = plan_frame(rng, i, distance_mm, tilt_deg, jitter, decks, ranges)
         left, right, gt, labels, _ = render_frame(rng, calib, spec, crops, frame_id, ss=supersample,
                                                   texture_contrast=texture_contrast, flat_floor=ranges.flat_floor,
-                                                  rectification_error_px=rectification_error_px, camera=camera)
+                                                  camera=camera)
         if image_format == "png":
             write_frame(out, frame_id, left, right, gt, labels)
         else:  # high-quality JPEG for the eyes, the rest as write_frame does it

@@ -125,8 +125,8 @@ def register(cli: click.Group) -> None:
                 out, frames=frames, seed=seed, distance_mm=distance_mm, tilt_deg=tilt_deg,
                 neu_det=None if synthetic_defects else neu_det, width=width, height=height, jitter=jitter,
                 supersample=supersample, image_format=image_format, log=click.echo, ranges=ranges,
-                texture_contrast=texture_contrast, rectification_error_px=rectification_error_px,
-                camera=CameraModel(noise_sigma, specular, lens_blur_px),
+                texture_contrast=texture_contrast,
+                camera=CameraModel(noise_sigma, specular, lens_blur_px, rectification_error_px),
             )
         except NeuDetError as exc:
             click.echo(f"error: {exc}", err=True)

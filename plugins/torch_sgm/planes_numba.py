@@ -254,14 +254,12 @@ def edge_magnitude_opencv(image: torch.Tensor, sigma: float) -> torch.Tensor:
                          f"{tuple(image.shape)} on {image.device}")
     size = 2 * int(round(4 * sigma)) + 1
     kernel = cv2.getGaussianKernel(size, sigma, cv2.CV_32F) if sigma > 0 else None
-    out = np.empty((image.shape[0], *image.shape[2:]), np.float32)
-    for b, planes_of_b in enumerate(image.numpy()):
-        best = np.zeros(out.shape[1:], np.float32)
+    out = np.zeros((image.shape[0], *image.shape[2:]), np.float32)
+    for best, planes_of_b in zip(out, image.numpy()):
         for plane in planes_of_b:
             blurred = plane if kernel is None else cv2.sepFilter2D(plane, -1, kernel, kernel,
                                                                    borderType=cv2.BORDER_REFLECT_101)
             gx = cv2.Sobel(blurred, -1, 1, 0, ksize=3, scale=1 / 8, borderType=cv2.BORDER_REPLICATE)
             gy = cv2.Sobel(blurred, -1, 0, 1, ksize=3, scale=1 / 8, borderType=cv2.BORDER_REPLICATE)
             np.maximum(best, cv2.magnitude(gx, gy), out=best)
-        out[b] = best
     return torch.from_numpy(out)

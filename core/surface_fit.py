@@ -37,6 +37,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from core import surface_fit_numba
+
 SATURATED = (3.0, 252.0)  # grey levels outside which a pixel carries no usable gradient
 HIGH_PASS_SIGMA = 10.0  # px
 BLUR_SIGMAS = (2.0, 1.0)  # the ring's levels before the joint fit on the images as they are
@@ -230,13 +232,20 @@ class _Problem:
         self.usable = (grey > SATURATED[0]) & (grey < SATURATED[1]) & (prior > 0)
         # the right image's saturated pixels: a sample that reads one is not usable
         self.right_saturated = (raw_right <= SATURATED[0]) | (raw_right >= SATURATED[1])
+        ring = self.m == 0
+        # the ring's cells never change; their numbering is a sort, wanted at every reweighting
+        self.ring_cell = _cell_index(self.ui[ring], self.vi[ring], RING_CELL_PX)
+        self._levels = {}
         self.level(0.0)
 
     def level(self, sigma: float) -> None:
         """Read the images blurred by ``sigma`` from now on (0: as they are)."""
-        self.L, self.R = _blurred(self.left, sigma), _blurred(self.right, sigma)
-        self.Rx, self.Ry = gradient_x(self.R), gradient_y(self.R)
-        self.lvals = self.L[self.vi, self.ui]
+        if sigma not in self._levels:
+            L, R = _blurred(self.left, sigma), _blurred(self.right, sigma)
+            Rx, Ry = gradient_x(R), gradient_y(R)
+            self._levels[sigma] = (L, R, Rx, Ry, np.dstack((R, Rx, Ry)), L[self.vi, self.ui])
+        # stack: what a sample reads, side by side
+        self.L, self.R, self.Rx, self.Ry, self.stack, self.lvals = self._levels[sigma]
 
     def residuals(self, theta, idx=None):
         """(residuals, Jacobian rows (n, 11), usable) at ``theta`` on the current level's images, for the
@@ -273,20 +282,13 @@ class _Problem:
         """Huber-weighted Gauss-Newton on the parameters ``free`` over the pixels ``select``:
         (theta, moved less than ``tolerance`` px in disparity at the end), or (None, False)."""
         idx = np.flatnonzero(select)
+        free = np.asarray(free)
         for _ in range(iterations):
-            r, J, ok = self.residuals(theta, idx)
-            if ok.sum() < len(free) + 2:
+            A, b, scale, count = self.normal_equations(theta, idx)
+            if count < len(free) + 2:
                 return None, False
-            kept = np.flatnonzero(ok)
-            # take by index, parameters as rows: boolean masks and column picks of (n, 11) arrays cost
-            # more than the rest of the step
-            r, Jt = r[kept], J.T.take(kept, axis=1)
             if len(free) < len(PARAMS):
-                Jt = Jt[free]
-            scale = _robust_scale(r)
-            w = _huber_weights(r, scale) * self.prior[idx[kept]]
-            Jw = Jt * w
-            A, b = Jw @ Jt.T, -(Jw @ r)
+                A, b = A[np.ix_(free, free)], b[free]
             if E in free:
                 k = list(free).index(E)
                 A[k, k] += _e_prior(scale)
@@ -303,6 +305,14 @@ class _Problem:
             if max(moves, default=0.0) < tolerance:
                 return theta, True
         return theta, False
+
+    def normal_equations(self, theta, idx):
+        """(A (11, 11), b (11,), scale, pixels used): the Huber-weighted system ``sum w J J^T`` and
+        ``-sum w J r`` of ``residuals`` over the usable pixels of ``idx`` (indices), each weighted by its
+        share, at the residuals' robust scale (compiled: ``surface_fit_numba``)."""
+        return surface_fit_numba.normal_equations(self.lvals, self.stack, self.right_saturated,
+                                                  self.usable, self.prior, self.u, self.v, self.du, self.dv, self.m,
+                                                  theta, idx, HUBER_K, 1e-3)
 
 
 def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.ndarray],
@@ -414,7 +424,7 @@ def _ring_cells(p: _Problem, theta: np.ndarray):
     j, ok = J[:, 0], ok & (p.prior[ring] > 0)
     scale = _robust_scale(r[ok])
     h = np.where(ok, _huber_weights(r, scale), 0.0)
-    cell = _cell_index(p.ui[ring], p.vi[ring], RING_CELL_PX)
+    cell = p.ring_cell
     k = cell.max() + 1
     info = np.bincount(cell, h * j * j, minlength=k)
     offset = -np.bincount(cell, h * j * r, minlength=k) / np.maximum(info, 1e-12)

@@ -9,6 +9,7 @@ import pytest
 from synthetic_pairs import step_pair
 
 from core import surface_fit as sf
+from core import surface_fit_numba as sfn
 from core.depth import ring_mask
 
 PLANE = (0.02, -0.01, 40.0)
@@ -49,6 +50,73 @@ class TestSample:
         out = sf.sample(image, np.array([1.0, 0.5, 4.25, 7.0, 7.5]), np.array([5.0, 5.0, 2.0, 5.0, 5.0]))
         assert out[0] == pytest.approx(51.0) and math.isnan(out[1]) and out[2] == pytest.approx(24.25, abs=0.1)
         assert out[3] == pytest.approx(57.0) and math.isnan(out[4])
+
+
+def _problem(theta_shift=0.0, saturate=False):
+    """A fit's problem on the step pair (its ring and region, the images high-passed), and a theta near the
+    truth moved ``theta_shift`` px in disparity."""
+    left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=3)
+    if saturate:  # a bright band in the right image: samples that read it are unusable
+        right = right.copy()
+        right[60:64] = 255.0
+    ring, defect = _regions()
+    centre = (80.0, 60.0)
+    prior = np.concatenate([np.ones(len(ring[0])), np.linspace(0.2, 1.0, len(defect[0]))])
+    p = sf._Problem(sf.high_pass(left), sf.high_pass(right), ring, defect, prior, left, right, centre)
+    theta = np.array([_plane_at(*centre) + theta_shift, PLANE[0], PLANE[1], -0.3, 1.05, 1e-3, -1e-3, 3.0, 0.02,
+                      0.5, 0.15])
+    return p, theta
+
+
+def _numpy_system(p, theta, idx):
+    """The Gauss-Newton system as NumPy builds it from ``_Problem.residuals`` and OpenCV's samples."""
+    r, J, ok = p.residuals(theta, idx)
+    r, J = r[ok], J[ok]
+    scale = sf._robust_scale(r)
+    w = sf._huber_weights(r, scale) * p.prior[idx[ok]]
+    return (J.T * w) @ J, -((J.T * w) @ r), scale, int(ok.sum())
+
+
+class TestNormalEquations:
+    def _compiled(self, p, theta, idx, floor=1e-3):
+        return sfn.normal_equations(p.lvals, p.stack, p.right_saturated, p.usable, p.prior, p.u, p.v, p.du, p.dv, p.m,
+                                    theta, idx, sf.HUBER_K, floor)
+
+    @pytest.mark.parametrize("level", [0.0, 2.0])
+    @pytest.mark.parametrize("shift,saturate", [(0.0, False), (60.0, False), (0.0, True)])
+    def test_equals_the_numpy_system(self, level, shift, saturate):
+        # a shift of 60 px sends a third of the samples out of the image; the band saturates some
+        p, theta = _problem(shift, saturate)
+        p.level(level)
+        idx = np.flatnonzero(np.random.default_rng(0).random(len(p.u)) < 0.7)
+        A, b, scale, count = self._compiled(p, theta, idx)
+        A_ref, b_ref, scale_ref, count_ref = _numpy_system(p, theta, idx)
+        assert 100 < count == count_ref <= len(idx)
+        assert (count < 0.95 * len(idx)) == (shift > 0 or saturate)
+        assert scale == pytest.approx(scale_ref, rel=1e-5)
+        np.testing.assert_allclose(A, A_ref, rtol=1e-5, atol=1e-6 * np.abs(A_ref).max())
+        np.testing.assert_allclose(b, b_ref, rtol=1e-5, atol=1e-6 * np.abs(b_ref).max())
+
+    def test_residuals_without_spread_take_the_floor_scale(self):
+        p, theta = _problem()
+        p.lvals = np.zeros_like(p.lvals)
+        p.stack = np.zeros_like(p.stack)  # every residual is -(o + o_m m): no spread on the ring alone
+        ring = np.flatnonzero(p.m == 0)
+        _, _, scale, count = self._compiled(p, theta, ring, floor=0.25)
+        assert scale == 0.25 and count > 100
+
+    def test_shape_checks(self):
+        p, theta = _problem()
+        idx = np.arange(10)
+        with pytest.raises(ValueError, match="prior"):
+            sfn.normal_equations(p.lvals, p.stack, p.right_saturated, p.usable, p.prior[:-1], p.u, p.v, p.du, p.dv,
+                                 p.m, theta, idx, 1.0, 1e-3)
+        with pytest.raises(ValueError, match="stack"):
+            sfn.normal_equations(p.lvals, p.R, p.right_saturated, p.usable, p.prior, p.u, p.v, p.du, p.dv, p.m,
+                                 theta, idx, 1.0, 1e-3)
+        with pytest.raises(ValueError, match="theta"):
+            sfn.normal_equations(p.lvals, p.stack, p.right_saturated, p.usable, p.prior, p.u, p.v, p.du, p.dv, p.m,
+                                 theta[:4], idx, 1.0, 1e-3)
 
 
 class TestFitSurface:

@@ -1,0 +1,147 @@
+"""The surface fit's Gauss-Newton system compiled with numba: one pass over a fit's pixels per step instead
+of some thirty NumPy operations on a few thousand of them each.
+
+``normal_equations`` is what ``surface_fit._Problem.residuals`` followed by the Huber-weighted products of
+``gauss_newton`` give; ``tests/test_surface_fit.py`` holds it to them. The right image is sampled as
+``surface_fit.samples`` samples it with OpenCV's bicubic ``remap``: its kernel, at the float32 positions
+OpenCV is given, nothing within 1 px of the left or top border or 2 px of the right or bottom one.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+CUBIC_A = -0.75  # OpenCV's INTER_CUBIC
+N_PARAMS = 11
+E = 10  # surface_fit.E: the eyes' vertical offset
+
+
+@njit(cache=True, inline="always")
+def _cubic_weights(t):
+    a = CUBIC_A
+    w0 = ((a * (t + 1) - 5 * a) * (t + 1) + 8 * a) * (t + 1) - 4 * a
+    w1 = ((a + 2) * t - (a + 3)) * t * t + 1
+    s = 1 - t
+    w2 = ((a + 2) * s - (a + 3)) * s * s + 1
+    return w0, w1, w2, 1 - w0 - w1 - w2
+
+
+@njit(cache=True, inline="always")
+def _row(stack, y, x, w0, w1, w2, w3):
+    """The three images of ``stack`` interpolated along row ``y`` at the taps x - 1 .. x + 2."""
+    out0 = w0 * stack[y, x - 1, 0] + w1 * stack[y, x, 0] + w2 * stack[y, x + 1, 0] + w3 * stack[y, x + 2, 0]
+    out1 = w0 * stack[y, x - 1, 1] + w1 * stack[y, x, 1] + w2 * stack[y, x + 1, 1] + w3 * stack[y, x + 2, 1]
+    out2 = w0 * stack[y, x - 1, 2] + w1 * stack[y, x, 2] + w2 * stack[y, x + 1, 2] + w3 * stack[y, x + 2, 2]
+    return out0, out1, out2
+
+
+@njit(cache=True)
+def _median(x):
+    return np.median(x) if x.size else np.nan
+
+
+@njit(cache=True, fastmath=True)
+def _dot(x, y):
+    # reassociated so that LLVM vectorises it: a chain of dependent additions was most of the system's time
+    total = 0.0
+    for k in range(x.size):
+        total += x[k] * y[k]
+    return total
+
+
+@njit(cache=True)
+def _system(lvals, stack, right_saturated, usable, prior, u, v, du, dv, m, theta, idx, huber_k, scale_floor):
+    h, w = stack.shape[:2]
+    n = idx.size
+    r = np.empty(n)
+    jac = np.empty((N_PARAMS, n))
+    weight = np.empty(n)
+    count = 0
+    for k in range(n):
+        i = idx[k]
+        if not usable[i]:
+            continue
+        x = u[i] - (theta[0] + theta[1] * du[i] + theta[2] * dv[i] + theta[3] * m[i])
+        y = v[i] + theta[E]
+        xf, yf = np.float64(np.float32(x)), np.float64(np.float32(y))
+        if not (xf >= 1 and xf <= w - 3 and yf >= 1 and yf <= h - 3):
+            continue
+        column = min(max(int(np.rint(x)), 0), w - 1)
+        row = min(max(int(np.rint(y)), 0), h - 1)
+        if right_saturated[row, column]:
+            continue
+        x0, y0 = int(np.floor(xf)), int(np.floor(yf))
+        wx0, wx1, wx2, wx3 = _cubic_weights(xf - x0)
+        wy0, wy1, wy2, wy3 = _cubic_weights(yf - y0)
+        r0, x0_, y0_ = _row(stack, y0 - 1, x0, wx0, wx1, wx2, wx3)
+        r1, x1_, y1_ = _row(stack, y0, x0, wx0, wx1, wx2, wx3)
+        r2, x2_, y2_ = _row(stack, y0 + 1, x0, wx0, wx1, wx2, wx3)
+        r3, x3_, y3_ = _row(stack, y0 + 2, x0, wx0, wx1, wx2, wx3)
+        rv = wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
+        gx = wy0 * x0_ + wy1 * x1_ + wy2 * x2_ + wy3 * x3_
+        gy = wy0 * y0_ + wy1 * y1_ + wy2 * y2_ + wy3 * y3_
+        if not (np.isfinite(rv) and np.isfinite(gx) and np.isfinite(gy)):
+            continue
+        gain = theta[4] + theta[5] * du[i] + theta[6] * dv[i] + theta[8] * m[i]
+        r[count] = lvals[i] - gain * rv - theta[7] - theta[9] * m[i]
+        j0, j4 = gain * gx, -rv
+        jac[0, count] = j0
+        jac[1, count] = j0 * du[i]
+        jac[2, count] = j0 * dv[i]
+        jac[3, count] = j0 * m[i]
+        jac[4, count] = j4
+        jac[5, count] = j4 * du[i]
+        jac[6, count] = j4 * dv[i]
+        jac[7, count] = -1.0
+        jac[8, count] = j4 * m[i]
+        jac[9, count] = -m[i]
+        jac[E, count] = -gain * gy
+        weight[count] = prior[i]
+        count += 1
+    res = r[:count]
+    centre = _median(res)
+    scale = 1.4826 * _median(np.abs(res - centre))
+    if not scale > 0:
+        scale = scale_floor
+    cut = huber_k * scale
+    jw = np.empty((N_PARAMS, count))
+    for k in range(count):
+        size = abs(res[k])
+        wk = weight[k] * (1.0 if size <= cut else cut / max(size, 1e-12))
+        for p in range(N_PARAMS):
+            jw[p, k] = wk * jac[p, k]
+    a = np.zeros((N_PARAMS, N_PARAMS))
+    b = np.zeros(N_PARAMS)
+    for p in range(N_PARAMS):
+        b[p] = -_dot(jw[p], res)
+        for q in range(p, N_PARAMS):
+            a[p, q] = a[q, p] = _dot(jw[p], jac[q])
+    return a, b, scale, count
+
+
+def normal_equations(lvals: np.ndarray, stack: np.ndarray, right_saturated: np.ndarray,
+                     usable: np.ndarray, prior: np.ndarray, u: np.ndarray, v: np.ndarray, du: np.ndarray,
+                     dv: np.ndarray, m: np.ndarray, theta: np.ndarray, idx: np.ndarray, huber_k: float,
+                     scale_floor: float) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """The Huber-weighted Gauss-Newton system of the surface model at ``theta`` over the pixels ``idx``.
+
+    lvals, usable, prior, u, v, du, dv, m: (N,) per pixel of the fit (left grey level, usable, share,
+    position, position from the region's centre, 1 on the defect); stack: HxWx3 float32, the right image
+    and its horizontal and vertical gradients side by side (what one sample reads); right_saturated: HxW
+    bool; theta: (11,); idx: (n,) int indices of the pixels to use.
+    Returns (A (11, 11), b (11,), the residuals' robust scale, the pixels used), ``A = sum w J J^T``,
+    ``b = -sum w J r`` with ``w`` each pixel's share times its Huber weight at that scale
+    (``scale_floor`` where the residuals' MAD is 0)."""
+    n = len(lvals)
+    for name, array in (("usable", usable), ("prior", prior), ("u", u), ("v", v), ("du", du), ("dv", dv), ("m", m)):
+        if array.shape != (n,):
+            raise ValueError(f"normal_equations: {name} {array.shape} must be ({n},) as lvals")
+    if stack.ndim != 3 or stack.shape[2] != 3 or stack.dtype != np.float32 or right_saturated.shape != stack.shape[:2]:
+        raise ValueError(f"normal_equations: stack {stack.shape} {stack.dtype} must be HxWx3 float32 and "
+                         f"right_saturated {right_saturated.shape} HxW of the same size")
+    if theta.shape != (N_PARAMS,):
+        raise ValueError(f"normal_equations: theta {theta.shape} must be ({N_PARAMS},)")
+    return _system(lvals.astype(np.float64, copy=False), stack, right_saturated, usable,
+                   prior.astype(np.float64, copy=False), u, v, du, dv, m.astype(np.float64, copy=False),
+                   theta.astype(np.float64, copy=False), np.asarray(idx, dtype=np.int64), float(huber_k),
+                   float(scale_floor))

@@ -35,12 +35,12 @@ def _row(stack, y, x, w0, w1, w2, w3):
     return out0, out1, out2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _median(x):
     return np.median(x) if x.size else np.nan
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, nogil=True, fastmath=True)
 def _dot(x, y):
     # reassociated so that LLVM vectorises it: a chain of dependent additions was most of the system's time
     total = 0.0
@@ -49,7 +49,7 @@ def _dot(x, y):
     return total
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _system(lvals, stack, right_saturated, usable, prior, u, v, du, dv, m, theta, idx, huber_k, scale_floor):
     h, w = stack.shape[:2]
     n = idx.size

@@ -13,7 +13,7 @@ from plugins.torch_sgm import aggregate, sgm_numba
 from plugins.torch_sgm.cost import box_counts
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def box_sums(first, second, radius, rows, out_first, out_second):
     """Window sums of two (H, W) arrays over the (2r+1)^2 window cut to the image, into the two outputs;
     ``rows`` is (2, W) float64 scratch for the running column sums (in float64, so that adding and taking
@@ -53,7 +53,7 @@ def box_sums(first, second, radius, rows, out_first, out_second):
                 row_b[x] -= second[y - radius, x]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, rows, out):
     """He et al.'s guided filter of the (H, W) slice ``p`` with the guide's statistics; scratch arrays
     ip, mean_p, mean_ip (H, W) and rows (2, W); the result into ``out``."""
@@ -74,7 +74,7 @@ def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, r
             out[y, x] = (ip[y, x] * guide[y, x] + out[y, x]) * inv_count[y, x]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _aggregate(raw, guide, wide_stats, wide_radius, detail_stats, detail_radius, weight, out):
     n_b, n_d, h, w = raw.shape
     for job in prange(n_b * n_d):

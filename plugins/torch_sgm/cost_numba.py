@@ -111,7 +111,7 @@ def _cost_row(zl, zr, cl, cr, gl, gr, b, y, d, weights, scales, row, shifted, wo
             row[x] -= w_grad * term[x]
 
 
-@njit(cache=True, parallel=True, fastmath=True)
+@njit(cache=True, nogil=True, parallel=True, fastmath=True)
 def _fused_cost(zl, zr, cl, cr, gl, gr, d_first, weights, scales, out):
     """out (B, K, H, W): slice k the fused cost at disparity d_first + k. zl, zr (B, C, H, W) zero-normalised
     colour; cl, cr (B, N, H, W) int32 census words; gl, gr (B, 1, H, W) horizontal gradients; weights and
@@ -124,7 +124,7 @@ def _fused_cost(zl, zr, cl, cr, gl, gr, d_first, weights, scales, out):
         _cost_row(zl, zr, cl, cr, gl, gr, b, y, d_first + k, weights, scales, out[b, k, y], shifted, words, term, bits)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _zero_normalise(image, radius, eps, out):
     """``cost.zero_normalise`` of each (H, W) plane of the (N, H, W) float32 ``image`` into ``out``, from
     window sums of x and x^2 in float64 (``aggregate_numba.box_sums``) over the (2r+1)^2 window cut to the
@@ -148,7 +148,7 @@ def _zero_normalise(image, radius, eps, out):
                 target[y, x] = (plane[y, x] - mean) / (np.sqrt(var) + eps)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _census(grey, offsets, per_word, out):
     """``cost.pack_bits(cost.census_transform(grey, offsets))`` of the (N, H, W) ``grey`` into (N, words, H, W)
     ``out``: bit k (word k // per_word, bit k % per_word) set where the neighbour at offsets[k] (border

@@ -20,7 +20,7 @@ from plugins.torch_sgm.linalg_numba import solve3
 COORD_SCALE = planes._COORD_SCALE
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _fit_pixels(index, matched, wanted, use_wanted, k, min_pixels, fit_max):
     """The regions to fit (``active``) and the matched pixels they are fitted to, as ``region_planes``
     chooses them: (active (k,) bool, pixels of active regions (flat indices), fit pixels)."""
@@ -56,7 +56,7 @@ def _fit_pixels(index, matched, wanted, use_wanted, k, min_pixels, fit_max):
     return active, at, fit_all[::step].copy()
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _eligible(region, k):
     """The regions with at least three fit pixels, ascending (the rows RANSAC draws triples for), and
     every region's count of fit pixels."""
@@ -66,7 +66,7 @@ def _eligible(region, k):
     return np.nonzero(count >= 3)[0], count
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _ransac(x, y, d, region, k, ids, count, draws, tolerance, voters_max):
     """``planes.ransac_planes`` over the fit pixels (all of them in regions of >= 3): (k, 3) float64,
     NaN for the regions not in ``ids``. ids, count: ``_eligible``'s; draws: (len(ids), samples, 3)
@@ -132,7 +132,7 @@ def _ransac(x, y, d, region, k, ids, count, draws, tolerance, voters_max):
     return best
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _irls(x, y, d, region, k, weight, radii):
     """``planes._robust_fit``'s iterations from the pixels' starting ``weight``: (k, 3) float64."""
     coeffs = np.zeros((k, 3))
@@ -172,7 +172,7 @@ def _irls(x, y, d, region, k, weight, radii):
     return coeffs
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _start_weights(x, y, d, region, start, radius):
     """Tukey's weight of each pixel's residual from its region's RANSAC plane; 0 where it has none."""
     weight = np.empty(x.size)
@@ -183,7 +183,7 @@ def _start_weights(x, y, d, region, start, radius):
     return weight
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _support_and_planes(x, y, d, region, coeffs, active, at, index, w, h, k, tolerance, inlier_share, plane, good):
     """The support test and every pixel of an active region's plane value (``plane`` float32, flat)."""
     inliers = np.zeros(k)

@@ -27,7 +27,7 @@ def _weight(image, b, y, x, yy, xx, u, v, inv_colour2, inv_space2):
     return math.exp(-colour * inv_colour2 - (u * u + v * v) * inv_space2)
 
 
-@njit(cache=True, parallel=True, fastmath=True)
+@njit(cache=True, nogil=True, parallel=True, fastmath=True)
 def _pair_weights(image, radius, inv_colour2, inv_space2, slot, weights):
     """The weight of every pair of pixels (p, p + (u, v)) with (v, u) after (0, 0) in reading order and
     within ``radius``, into ``weights[slot[v + r, u + r], b, y, x]`` (p = (y, x)): the weight is symmetric
@@ -66,7 +66,7 @@ def _pair_weights(image, radius, inv_colour2, inv_space2, slot, weights):
                     target[x] = 0.0
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _plane_fit(disp, weights, slot, radius, tolerance, out):
     n_b, h, w = disp.shape
     for job in prange(n_b * h):
@@ -176,7 +176,7 @@ def _windowed(name, kernel, disp, image, radius, sigma_colour, sigma_space, last
     return torch.from_numpy(out)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _weighted_median(disp, image, radius, inv_colour2, inv_space2, jump, out):
     n_b, h, w = disp.shape
     k = 2 * radius + 1
@@ -222,7 +222,7 @@ def weighted_median_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, 
     return _windowed("weighted_median_numba", _weighted_median, disp, image, radius, sigma_colour, sigma_space, jump)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _out_of_view(disp, matched, labels, suspect):
     n_b, h, w = disp.shape
     for job in prange(n_b * h):

@@ -13,7 +13,7 @@ from numba import njit, prange
 from plugins.torch_sgm import refine, select, sgm_numba
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _checked_winners(cost, d_first, parabola, disp, index, right_best, right_disp):
     """Each row's winners of both views in one pass over its costs: (B, H, W, D) ``cost`` (any strides) ->
     ``disp`` (sub-pixel, float32 as torch computes it), ``index`` and the right view's ``right_disp``;
@@ -72,7 +72,7 @@ def checked_winners_numba(volume: torch.Tensor, disparities, lr_tolerance: float
     return disp, torch.from_numpy(index), right_disp, refine.left_right_check(disp, right_disp, lr_tolerance)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _unique_minimum(cost, index, ratio, out):
     n_b, h, w, d_count = cost.shape
     for job in prange(n_b * h):

@@ -71,7 +71,7 @@ def _step(cost, out, prev, cur, b, y, x, p1, p2, fresh, first):
             o[d] += cur[d]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _along_rows(cost, out, p2, p1, dxs, first):
     """The horizontal paths (dy = 0), one per entry of ``dxs`` (+1 / -1) with its (B, H, W) map in ``p2``
     (K, B, H, W): each row on its own, all of its paths in turn, so that the later ones read the row's
@@ -89,7 +89,7 @@ def _along_rows(cost, out, p2, p1, dxs, first):
                 prev, cur = cur, prev
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _across_rows(cost, out, p2, p1, dy, dxs, first):
     """The paths that step ``dy`` rows (one per entry of ``dxs``, with its map in ``p2`` (K, B, H, W)):
     row after row, the pixels of a row in parallel, every path at each pixel while its costs are in the

@@ -17,7 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from core import stereo_memory
+from core import stereo_memory, surface_fit
 from core.annotate import annotate
 from core.checks import RepeatedImages, detections_problem, disparity_problem, frame_problem
 from core.contracts import PluginContext, missing_members
@@ -56,12 +56,17 @@ class Pipeline:
     outputs: list[tuple[str, Any]]
 
     def warm_up(self) -> None:
-        """Run the detector once, and the stereo backend's optional ``warm_up``, before the first part:
-        their first calls build the model and compile kernels (13 s for torch_sgm's with numba's cache
-        empty), which would make the first part late for the actuator and trip the watchdog. A stage
-        that fails here fails on the parts too, where the failure is reported per part."""
+        """Run the detector once, the stereo backend's optional ``warm_up`` and the surface fit, before the
+        first part: their first calls build the model and compile kernels (13 s for torch_sgm's and 2-3 s
+        for the surface fit's with numba's cache empty), which would make the first part late for the
+        actuator and trip the watchdog. A stage that fails here fails on the parts too, where the failure
+        is reported per part."""
         try:
             self.detector.detect(np.zeros((64, 64, 3), dtype=np.uint8))
+        except Exception:
+            pass
+        try:
+            surface_fit.warm_up()
         except Exception:
             pass
         warm_up = getattr(self.stereo, "warm_up", None)

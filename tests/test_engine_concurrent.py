@@ -179,3 +179,17 @@ def test_the_stereo_backends_optional_warm_up_runs_once_before_the_first_part(tm
     loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
     engine.run(loaded, registry=registry, device="cpu")
     assert stereo.calls[0] == "warm_up" and stereo.calls.count("warm_up") == 1 and "compute" in stereo.calls
+
+
+def test_the_surface_fit_is_warmed_up_before_the_first_part(tmp_path, plane_sequence, monkeypatch):
+    from core import depth, surface_fit
+
+    calls = []
+    warm, measure = surface_fit.warm_up, depth.measure_defect
+    monkeypatch.setattr(surface_fit, "warm_up", lambda: calls.append("warm_up") or warm())
+    monkeypatch.setattr(depth, "measure_defect", lambda *a, **k: calls.append("measure") or measure(*a, **k))
+    info = plane_sequence([0.0] * 2)
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log")),
+                         registry=Registry(make_manager((stereo_inspect_fixed_roi,))))
+    engine.run(loaded, registry=Registry(make_manager((stereo_inspect_fixed_roi,))), device="cpu")
+    assert calls[0] == "warm_up" and calls.count("warm_up") == 1 and "measure" in calls

@@ -2,7 +2,7 @@
 
 Each frame the matcher allocates and frees volumes of tens of MB. glibc serves blocks that large with
 fresh ``mmap`` pages and unmaps them on free, so every frame pays a page fault per 4 KiB again: on the
-development machine that was a quarter of torch_sgm's time on a WVGA frame (docs/research-log.md). PyTorch's
+development machine that was 17 % of torch_sgm's time on a WVGA frame (docs/research-log.md). PyTorch's
 CPU tuning guide recommends jemalloc or tcmalloc through LD_PRELOAD for the same reason; this does the
 equivalent from inside the process, with glibc's own switches, so ``inspect`` needs no launcher.
 Resident memory then stays at its peak instead of falling between frames, which for a process that

@@ -64,9 +64,11 @@ class RepeatedImages:
         return None
 
 
-def detections_problem(detections: Any, classes: Collection[str] | None = None) -> str | None:
-    """A list of ``Detection``s whose boxes are four finite numbers with x0 < x1 and y0 < y1, whose
-    confidences lie in [0, 1] and whose classes are among the detector's ``classes`` (where it states any)."""
+def detections_problem(detections: Any, classes: Collection[str] | None = None,
+                       shape: tuple[int, int] | None = None) -> str | None:
+    """A list of ``Detection``s whose boxes are four finite numbers with x0 < x1 and y0 < y1 that overlap
+    the HxW image of ``shape`` (where given), whose confidences lie in [0, 1] and whose classes are among
+    the detector's ``classes`` (where it states any)."""
     if not isinstance(detections, list):
         return f"the detector returned a {type(detections).__name__}, not a list of detections"
     for d in detections:
@@ -76,6 +78,11 @@ def detections_problem(detections: Any, classes: Collection[str] | None = None) 
         if not (len(box) == 4 and all(isinstance(v, (int, float, np.floating, np.integer)) and math.isfinite(v)
                                       for v in box) and box[0] < box[2] and box[1] < box[3]):
             return f"the detector returned a {d.class_name} box {tuple(box)}, not (x0, y0, x1, y1) with x0 < x1, y0 < y1"
+        if shape is not None and not (box[0] < shape[1] and box[2] > 0 and box[1] < shape[0] and box[3] > 0):
+            # a defect where there is no image: the detector is wrong about this frame, and nothing there can
+            # be measured
+            return (f"the detector returned a {d.class_name} box {tuple(float(v) for v in box)} outside the "
+                    f"{shape[1]}x{shape[0]} image")
         if not (isinstance(d.confidence, (int, float, np.floating, np.integer)) and 0.0 <= d.confidence <= 1.0):
             # a NaN confidence fails every threshold: the defect would be dropped and the part pass
             return f"the detector returned a {d.class_name} with confidence {d.confidence!r}, not a number in [0, 1]"

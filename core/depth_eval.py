@@ -209,7 +209,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
 def detected(detector, frame: StereoFrame, recipe) -> list[Detection]:
     """The detector's boxes on the frame's left image as the line keeps them (``engine.kept_detections``);
     a detector that breaks its contract is an error, not an empty frame."""
-    kept, problem = kept_detections(detector.detect(frame.left), detector, recipe)
+    kept, problem = kept_detections(detector.detect(frame.left), detector, recipe, frame.left.shape[:2])
     if problem is not None:
         raise StageFailed(f"frame {frame.frame_id}: {problem}")
     return kept

@@ -268,14 +268,15 @@ def detect_frame(item: StereoFrame | FrameError, pipeline: Pipeline, recipe) -> 
         found = pipeline.detector.detect(item.left)
     except Exception as exc:  # reported on the part by inspect_frame
         return Detected(None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}")
-    kept, problem = kept_detections(found, pipeline.detector, recipe)
+    kept, problem = kept_detections(found, pipeline.detector, recipe, item.left.shape[:2])
     return Detected(kept, time.perf_counter() - t0, problem)
 
 
-def kept_detections(found: Any, detector: Any, recipe) -> tuple[list[Detection] | None, str | None]:
-    """What a detector returned, checked against its contract (``detections_problem``) and cut to the
-    recipe's confidence and classes: (the detections kept, None), or (None, the problem in words)."""
-    problem = detections_problem(found, getattr(detector, "class_names", None))
+def kept_detections(found: Any, detector: Any, recipe, shape: tuple[int, int]) -> tuple[list[Detection] | None, str | None]:
+    """What a detector returned on an HxW image of ``shape``, checked against its contract
+    (``detections_problem``) and cut to the recipe's confidence and classes: (the detections kept, None),
+    or (None, the problem in words)."""
+    problem = detections_problem(found, getattr(detector, "class_names", None), shape)
     if problem is not None:
         return None, problem
     return _filter(found, recipe.detector.confidence, recipe.detector.classes), None

@@ -215,10 +215,11 @@ def write_frame(
         (folder / "labels" / f"{frame_id}.json").write_text(json.dumps(labels, indent=2))
 
 
-def read_labels(path: Path) -> dict:
+def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
     """A frame's labels: ``{"frame_id": ..., "defects": [{"class", "box": [x0, y0, x1, y1], "distance_mm",
-    "deviation_mm", ...}, ...], ...}``, checked (boxes as floats). ``SequenceError`` naming the file and the
-    entry when it is not one: the truth a result is compared with must be what it says."""
+    "deviation_mm", ...}, ...], "sensor": {"noise_sigma": ...}, ...}``, checked (boxes as floats, each
+    overlapping the HxW image of ``shape`` where given). ``SequenceError`` naming the file and the entry
+    when it is not one: the truth a result is compared with must be what it says."""
     path = Path(path)
     try:
         labels = json.loads(path.read_text())
@@ -237,9 +238,17 @@ def read_labels(path: Path) -> dict:
                 and box[0] < box[2] and box[1] < box[3]):
             raise SequenceError(f"{where}.box: expected [x0, y0, x1, y1] with x0 < x1 and y0 < y1, got {box!r}")
         defect["box"] = [float(v) for v in box]
+        if shape is not None and not (box[0] < shape[1] and box[2] > 0 and box[1] < shape[0] and box[3] > 0):
+            raise SequenceError(f"{where}.box: {defect['box']} lies outside the {shape[1]}x{shape[0]} image")
         for key in ("distance_mm", "deviation_mm"):
             if defect.get(key) is not None and not _number(defect[key]):
                 raise SequenceError(f"{where}.{key}: expected a number or null, got {defect[key]!r}")
+    sensor = labels.get("sensor")
+    if sensor is not None and not isinstance(sensor, dict):
+        raise SequenceError(f"{path}: sensor: expected a mapping, got {sensor!r}")
+    noise = (sensor or {}).get("noise_sigma")
+    if noise is not None and not (_number(noise) and noise >= 0):
+        raise SequenceError(f"{path}: sensor.noise_sigma: expected a number >= 0 or null, got {noise!r}")
     return labels
 
 

@@ -100,6 +100,16 @@ class TestDetectionsProblem:
     def test_a_broken_box_is_named(self, found, says):
         assert says in detections_problem(found)
 
+    def test_a_box_that_misses_the_image_is_named(self):
+        # a defect where there is no image: nothing there can be measured, and the detector is wrong
+        shape = (376, 672)
+        inside = [Detection("pit", 0.9, (-5, -5, 10, 10)), Detection("pit", 0.9, (660, 370, 700, 400))]
+        assert detections_problem(inside, shape=shape) is None
+        for box in [(672, 2, 700, 4), (1, 376, 3, 380), (-9, 2, 0, 4), (1, -9, 3, 0)]:
+            assert detections_problem(inside + [Detection("pit", 0.9, box)], shape=shape) == \
+                f"the detector returned a pit box {tuple(float(v) for v in box)} outside the 672x376 image"
+        assert detections_problem([Detection("pit", 0.9, (672, 2, 700, 4))]) is None  # no shape: not held to
+
     def test_a_class_the_detector_does_not_state_is_named(self):
         # a rule for one class would never cover it: the part would pass
         found = [Detection("pit", 0.9, (1, 2, 3, 4)), Detection("rust", 0.9, (1, 2, 3, 4))]

@@ -296,3 +296,34 @@ def test_the_blas_libraries_run_on_one_thread(tmp_path, plane_sequence):
         engine.run(loaded, registry=registry, device="cpu",
                    on_start=lambda _: seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"))
     assert seen and all(n == 1 for n in seen)
+
+
+class OffImageDetectorPlugin:
+    """A detector that reports a pit right of the image (a third-party detector with a coordinate bug)."""
+
+    class Detector:
+        class_names = ["pit"]
+
+        def detect(self, image):
+            from core.types import Detection
+            h, w = image.shape[:2]
+            return [Detection("pit", 0.9, (w + 10.0, 5.0, w + 40.0, 30.0))]
+
+    @hookimpl
+    def stereo_inspect_detectors(self):
+        return [PluginSpec("offimage", "detector", lambda s, ctx: self.Detector())]
+
+
+@pytest.mark.parametrize("region", ["defects", "full"])
+def test_a_detection_outside_the_image_is_an_error_naming_it_never_a_pass(tmp_path, plane_sequence, region):
+    info = plane_sequence([0.0, 0.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, OffImageDetectorPlugin())))
+    text = RECIPE.format(box=info["box"], output="log").replace("plugin: fixed_roi", "plugin: offimage")
+    overrides = [f"stereo.region={region}"] + (["stereo.schedule=on_defect"] if region == "defects" else [])
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), overrides, registry=registry)
+    seen = []
+    summary = engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.ERROR, Status.ERROR]
+    assert "detection failed: the detector returned a pit box" in seen[0].part.error
+    assert "(330.0, 5.0, 360.0, 30.0) outside the 320x192 image" in seen[0].part.error
+    assert summary.exit_code == engine.EXIT_PART_ERRORS

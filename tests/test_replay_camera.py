@@ -122,8 +122,23 @@ class TestReadLabels:
         ({"defects": [{"class": "pit", "box": [1, 2, "a", 4]}]}, "defects[0].box"),
         ({"defects": [{"class": "pit", "box": [1, 2, 3, 4], "deviation_mm": "deep"}]},
          "defects[0].deviation_mm: expected a number or null, got 'deep'"),
+        ({"defects": [], "sensor": "x"}, "000001.json: sensor: expected a mapping, got 'x'"),
+        ({"defects": [], "sensor": {"noise_sigma": "a"}}, "sensor.noise_sigma: expected a number >= 0 or null"),
+        ({"defects": [], "sensor": {"noise_sigma": -1}}, "sensor.noise_sigma: expected a number >= 0 or null"),
+        ({"defects": [{"class": "pit", "box": [700, 2, 710, 4]}]},
+         "defects[0].box: [700.0, 2.0, 710.0, 4.0] lies outside the 672x376 image"),
+        ({"defects": [{"class": "pit", "box": [-9, 2, 0, 4]}]}, "defects[0].box: [-9.0, 2.0, 0.0, 4.0] lies outside"),
     ])
     def test_a_bad_label_is_one_line_naming_the_file_and_entry(self, tmp_path, labels, message):
         with pytest.raises(SequenceError) as info:
-            read_labels(self._write(tmp_path, labels))
+            read_labels(self._write(tmp_path, labels), (376, 672))
         assert message in str(info.value) and "\n" not in str(info.value)
+
+    def test_a_box_partly_in_the_image_or_any_box_without_a_shape_reads(self, tmp_path):
+        path = self._write(tmp_path, {"defects": [{"class": "pit", "box": [-5, -5, 10, 10]},
+                                                  {"class": "pit", "box": [700, 2, 710, 4]}], "sensor": None})
+        with pytest.raises(SequenceError):
+            read_labels(path, (376, 672))
+        assert len(read_labels(path)["defects"]) == 2
+        path.write_text(json.dumps({"defects": [{"class": "pit", "box": [-5, -5, 10, 10]}]}))
+        assert read_labels(path, (376, 672))["defects"][0]["box"] == [-5.0, -5.0, 10.0, 10.0]

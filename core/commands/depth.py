@@ -87,7 +87,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
             if "labels" not in frame.meta:
                 fail(f"{folder}: frame {frame.frame_id} has no labels/{frame.frame_id}.json (the truth to compare with)")
             try:
-                labels = read_labels(frame.meta["labels"])
+                labels = read_labels(frame.meta["labels"], frame.left.shape[:2])
             except SequenceError as exc:
                 fail(str(exc))
             try:

@@ -59,3 +59,9 @@ def test_cli_on_a_rendered_sequence(tmp_path, monkeypatch):
         {"class": "crazing", "box": [1, 2, 3]}]}))
     broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
     assert broken.exit_code == 2 and "000001.json: defects[0].box: expected [x0, y0, x1, y1]" in broken.output
+    # a labelled defect where the frame has no pixels would count as one the detector missed
+    (seq / "labels" / "000001.json").write_text(json.dumps({"frame_id": "000001", "defects": [
+        {"class": "crazing", "box": [460, 2, 480, 30]}]}))
+    broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
+    assert broken.exit_code == 2 and "000001.json: defects[0].box: [460.0, 2.0, 480.0, 30.0] lies outside the " \
+                                     "448x300 image" in broken.output, broken.output

@@ -31,8 +31,9 @@ class FrameEvalRow:
         return self.other_boxes / self.frames if self.frames else 0.0
 
 
-def read_frame_labels(sequence: Path) -> list[tuple[str, list[dict]]]:
-    """(frame id, labelled defects) of every ``labels/*.json``; one-line errors name the file."""
+def read_frame_labels(sequence: Path, with_images: bool = False) -> list[tuple]:
+    """(frame id, labelled defects) of every ``labels/*.json``, or with ``with_images`` (frame id, left
+    image, labelled defects), each box checked against the image's size; one-line errors name the file."""
     labels = sorted((sequence / "labels").glob("*.json"))
     if not labels:
         raise ValueError(f"{sequence / 'labels'}: no frame labels")
@@ -40,10 +41,15 @@ def read_frame_labels(sequence: Path) -> list[tuple[str, list[dict]]]:
     for path in labels:
         try:
             label = read_labels(path)
+            # the file's own name when it does not say (the sequence's frames are named by it)
+            frame_id = str(label.get("frame_id", path.stem))
+            if not with_images:
+                frames.append((frame_id, label["defects"]))
+                continue
+            image = read_left(sequence, frame_id)
+            frames.append((frame_id, image, read_labels(path, image.shape[:2])["defects"]))
         except SequenceError as exc:
             raise ValueError(str(exc)) from None
-        # the file's own name when it does not say (the sequence's frames are named by it)
-        frames.append((str(label.get("frame_id", path.stem)), label["defects"]))
     return frames
 
 
@@ -57,7 +63,7 @@ def read_left(sequence: Path, frame_id: str) -> np.ndarray:
 
 def load_labelled_frames(sequence: Path) -> list[tuple[str, np.ndarray, list[dict]]]:
     """(frame id, left image, labelled defects) for every frame of ``sequence``."""
-    return [(frame_id, read_left(sequence, frame_id), defects) for frame_id, defects in read_frame_labels(sequence)]
+    return read_frame_labels(sequence, with_images=True)
 
 
 def score_frames(detections: list[list[tuple[str, float, tuple]]], truths: list[list[dict]],

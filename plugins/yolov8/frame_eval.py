@@ -31,26 +31,25 @@ class FrameEvalRow:
         return self.other_boxes / self.frames if self.frames else 0.0
 
 
-def read_frame_labels(sequence: Path, with_images: bool = False) -> list[tuple]:
-    """(frame id, labelled defects) of every ``labels/*.json``, or with ``with_images`` (frame id, left
-    image, labelled defects), each box checked against the image's size; one-line errors name the file."""
-    labels = sorted((sequence / "labels").glob("*.json"))
-    if not labels:
+def _read(path: Path, shape: tuple[int, int] | None = None) -> dict:
+    try:
+        return read_labels(path, shape)
+    except SequenceError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def _labels(sequence: Path) -> list[tuple[Path, str, dict]]:
+    """(file, frame id, labels) of every ``labels/*.json``; one-line errors name the file."""
+    paths = sorted((sequence / "labels").glob("*.json"))
+    if not paths:
         raise ValueError(f"{sequence / 'labels'}: no frame labels")
-    frames = []
-    for path in labels:
-        try:
-            label = read_labels(path)
-            # the file's own name when it does not say (the sequence's frames are named by it)
-            frame_id = str(label.get("frame_id", path.stem))
-            if not with_images:
-                frames.append((frame_id, label["defects"]))
-                continue
-            image = read_left(sequence, frame_id)
-            frames.append((frame_id, image, read_labels(path, image.shape[:2])["defects"]))
-        except SequenceError as exc:
-            raise ValueError(str(exc)) from None
-    return frames
+    # the file's own name when the labels do not say (the sequence's frames are named by it)
+    return [(path, str(label.get("frame_id", path.stem)), label) for path, label in ((p, _read(p)) for p in paths)]
+
+
+def read_frame_labels(sequence: Path) -> list[tuple[str, list[dict]]]:
+    """(frame id, labelled defects) of every ``labels/*.json``; one-line errors name the file."""
+    return [(frame_id, label["defects"]) for _, frame_id, label in _labels(sequence)]
 
 
 def read_left(sequence: Path, frame_id: str) -> np.ndarray:
@@ -62,8 +61,13 @@ def read_left(sequence: Path, frame_id: str) -> np.ndarray:
 
 
 def load_labelled_frames(sequence: Path) -> list[tuple[str, np.ndarray, list[dict]]]:
-    """(frame id, left image, labelled defects) for every frame of ``sequence``."""
-    return read_frame_labels(sequence, with_images=True)
+    """(frame id, left image, labelled defects) for every frame of ``sequence``, each labelled box checked
+    against its image's size (one outside it would count as a defect the detector missed)."""
+    frames = []
+    for path, frame_id, _ in _labels(sequence):
+        image = read_left(sequence, frame_id)
+        frames.append((frame_id, image, _read(path, image.shape[:2])["defects"]))
+    return frames
 
 
 def score_frames(detections: list[list[tuple[str, float, tuple]]], truths: list[list[dict]],

@@ -506,8 +506,7 @@ def _exposure(p: _Problem, theta: np.ndarray) -> tuple[float, float]:
 def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> float:
     """The defect's offset in [lo, hi] with the least Huber cost over its pixels, the ring's parameters held
     (steps of SEARCH_STEP_PX, refined by the parabola through the least cost and its neighbours)."""
-    r_ring, _, ok_ring = p.residuals(theta, np.flatnonzero(p.m == 0))
-    scale = _robust_scale(r_ring[ok_ring])
+    scale = p.normal_equations(theta, np.flatnonzero(p.m == 0))[2]  # the ring's residuals' robust scale
     sel = p.usable & (p.m == 1)
     if not sel.any():
         return float(theta[3])
@@ -516,19 +515,19 @@ def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> floa
     gain = theta[4] + theta[5] * p.du[sel] + theta[6] * p.dv[sel] + theta[8]
     lv = p.lvals[sel]
 
-    def cost(delta: float) -> float:
-        rv = sample(p.R, u - base - delta, v + theta[E])
-        r = np.where(np.isfinite(rv), lv - gain * rv - theta[7] - theta[9], 0.0)
-        return float(np.sum(w * _huber_cost(r, scale)))
+    def costs(deltas: np.ndarray) -> np.ndarray:
+        # o + o_m, the defect's exposure offset, summed once; the NumPy cost subtracted them one by one
+        return surface_fit_numba.offset_costs(lv, p.R, u, v, base, gain, theta[7] + theta[9], w, theta[E], deltas,
+                                              scale, HUBER_K)
 
     # every COARSE_STEP_PX first, then every SEARCH_STEP_PX around the least of those
     coarse = np.arange(lo, hi + COARSE_STEP_PX / 2, COARSE_STEP_PX)
-    centre = float(coarse[int(np.argmin([cost(d) for d in coarse]))])
+    centre = float(coarse[int(np.argmin(costs(coarse)))])
     candidates = np.arange(centre - COARSE_STEP_PX, centre + COARSE_STEP_PX + SEARCH_STEP_PX / 2, SEARCH_STEP_PX)
-    costs = np.array([cost(d) for d in candidates])
-    best = int(np.argmin(costs))
+    cost = costs(candidates)
+    best = int(np.argmin(cost))
     if 0 < best < len(candidates) - 1:
-        c0, c1, c2 = costs[best - 1: best + 2]
+        c0, c1, c2 = cost[best - 1: best + 2]
         curvature = c0 - 2 * c1 + c2
         if curvature > 0:
             return float(candidates[best] + 0.5 * SEARCH_STEP_PX * (c0 - c2) / curvature)

@@ -1,8 +1,10 @@
-"""The surface fit's Gauss-Newton system compiled with numba: one pass over a fit's pixels per step instead
-of some thirty NumPy operations on a few thousand of them each.
+"""The surface fit's inner loops compiled with numba: the Gauss-Newton system (one pass over a fit's pixels
+per step instead of some thirty NumPy operations on a few thousand of them each) and the costs of the
+defect's offset search.
 
 ``normal_equations`` is what ``surface_fit._Problem.residuals`` followed by the Huber-weighted products of
-``gauss_newton`` give; ``tests/test_surface_fit.py`` holds it to them. The right image is sampled as
+``gauss_newton`` give, ``offset_costs`` the Huber costs the search's NumPy version summed;
+``tests/test_surface_fit.py`` holds them to those. The right image is sampled as
 ``surface_fit.samples`` samples it with OpenCV's bicubic ``remap``: its kernel, at the float32 positions
 OpenCV is given, nothing within 1 px of the left or top border or 2 px of the right or bottom one.
 """
@@ -145,3 +147,62 @@ def normal_equations(lvals: np.ndarray, stack: np.ndarray, right_saturated: np.n
                    prior.astype(np.float64, copy=False), u, v, du, dv, m.astype(np.float64, copy=False),
                    theta.astype(np.float64, copy=False), np.asarray(idx, dtype=np.int64), float(huber_k),
                    float(scale_floor))
+
+
+@njit(cache=True, nogil=True)
+def _offset_costs(lvals, image, u, v, base, gain, offset, weight, e, deltas, scale, huber_k):
+    h, w = image.shape
+    n = u.size
+    cut = huber_k * scale
+    # every sample lies on a row v + e, so the kernel's vertical half is the same for all of them and all
+    # candidates: applied once to the rows and columns they read, each candidate then reads four columns
+    v_lo, v_hi = int(v.min()), int(v.max())
+    x_lo = max(int(np.floor((u - base).min() - deltas.max())) - 2, 0)
+    x_hi = min(int(np.ceil((u - base).max() - deltas.min())) + 3, w)
+    shift = np.floor(e)
+    wy0, wy1, wy2, wy3 = _cubic_weights(e - shift)
+    rows = np.full((v_hi - v_lo + 1, max(x_hi - x_lo, 0)), np.nan)
+    for k in range(v_hi - v_lo + 1):
+        y = v_lo + k + int(shift)
+        if y - 1 >= 0 and y + 2 <= h - 1:
+            for x in range(x_lo, x_hi):
+                rows[k, x - x_lo] = (wy0 * image[y - 1, x] + wy1 * image[y, x] + wy2 * image[y + 1, x]
+                                     + wy3 * image[y + 2, x])
+    costs = np.zeros(deltas.size)
+    for t in range(deltas.size):
+        total = 0.0
+        for i in range(n):
+            x = u[i] - base[i] - deltas[t]
+            xf, yf = np.float64(np.float32(x)), np.float64(np.float32(v[i] + e))
+            if not (xf >= 1 and xf <= w - 3 and yf >= 1 and yf <= h - 3):
+                continue  # OpenCV's sample is NaN there: the pixel costs nothing
+            x0 = int(np.floor(xf))
+            wx0, wx1, wx2, wx3 = _cubic_weights(xf - x0)
+            line = rows[int(v[i]) - v_lo]
+            c = x0 - x_lo
+            rv = wx0 * line[c - 1] + wx1 * line[c] + wx2 * line[c + 1] + wx3 * line[c + 2]
+            size = abs(lvals[i] - gain[i] * rv - offset)
+            total += weight[i] * (0.5 * size * size if size <= cut else cut * (size - 0.5 * cut))
+        costs[t] = total
+    return costs
+
+
+def offset_costs(lvals: np.ndarray, image: np.ndarray, u: np.ndarray, v: np.ndarray, base: np.ndarray,
+                 gain: np.ndarray, offset: float, weight: np.ndarray, e: float, deltas: np.ndarray, scale: float,
+                 huber_k: float) -> np.ndarray:
+    """The Huber cost ``sum weight * rho(lvals - gain * R(u - base - delta, v + e) - offset)`` of each of
+    ``deltas`` (D,) over the pixels (N,) on integer rows ``v``, ``rho`` Huber's at ``huber_k * scale``, ``R``
+    the HxW float32 ``image`` sampled as ``surface_fit.samples`` samples it; a pixel whose sample is NaN there
+    costs nothing. Returns (D,)."""
+    n = len(lvals)
+    for name, array in (("u", u), ("v", v), ("base", base), ("gain", gain), ("weight", weight)):
+        if np.shape(array) != (n,):
+            raise ValueError(f"offset_costs: {name} {np.shape(array)} must be ({n},) as lvals")
+    if image.ndim != 2 or image.dtype != np.float32:
+        raise ValueError(f"offset_costs: image {image.shape} {image.dtype} must be HxW float32")
+    if n == 0 or len(deltas) == 0:
+        return np.zeros(len(deltas))
+    f64 = np.float64
+    return _offset_costs(lvals.astype(f64), image, u.astype(f64), v.astype(f64), base.astype(f64), gain.astype(f64),
+                         float(offset), weight.astype(f64), float(e), np.asarray(deltas, f64), float(scale),
+                         float(huber_k))

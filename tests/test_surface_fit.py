@@ -124,6 +124,39 @@ class TestNormalEquations:
                                  theta[:4], idx, 1.0, 1e-3)
 
 
+class TestOffsetCosts:
+    def _numpy(self, lv, image, u, v, base, gain, offset, w, e, delta, scale):
+        """The offset search's cost as NumPy summed it, with OpenCV's samples."""
+        rv = sf.sample(image, u - base - delta, v + e)
+        r = np.where(np.isfinite(rv), lv - gain * rv - offset, 0.0)
+        return float(np.sum(w * sf._huber_cost(r, scale)))
+
+    @pytest.mark.parametrize("e", [0.0, 0.37, -1.6])
+    def test_equals_the_numpy_cost_of_each_candidate(self, e):
+        image = sf.high_pass(step_pair(seed=4)[1])
+        rng = np.random.default_rng(1)
+        v, u = (a.ravel().astype(np.float64) for a in np.mgrid[1:30, 0:160])  # the first and last columns fall off
+        base = 40.0 + 0.02 * u - 0.01 * v
+        gain, w = rng.uniform(0.9, 1.1, u.size), rng.uniform(0.0, 1.0, u.size)
+        lv = rng.normal(0, 10, u.size)
+        deltas = np.arange(-1.5, 1.51, 0.2)
+        got = sfn.offset_costs(lv, image, u, v, base, gain, 3.0, w, e, deltas, 4.0, sf.HUBER_K)
+        want = [self._numpy(lv, image, u, v, base, gain, 3.0, w, e, d, 4.0) for d in deltas]
+        np.testing.assert_allclose(got, want, rtol=1e-6)
+
+    def test_no_pixels_or_candidates_cost_nothing_and_shapes_are_checked(self):
+        image = np.zeros((20, 30), np.float32)
+        none = np.zeros(0)
+        assert sfn.offset_costs(none, image, none, none, none, none, 0.0, none, 0.0, np.array([0.0, 1.0]), 1.0,
+                                1.0).tolist() == [0.0, 0.0]
+        with pytest.raises(ValueError, match="gain"):
+            sfn.offset_costs(np.ones(3), image, np.ones(3), np.ones(3), np.ones(3), np.ones(2), 0.0, np.ones(3), 0.0,
+                             np.zeros(1), 1.0, 1.0)
+        with pytest.raises(ValueError, match="float32"):
+            sfn.offset_costs(np.ones(3), image.astype(np.float64), np.ones(3), np.ones(3), np.ones(3), np.ones(3), 0.0,
+                             np.ones(3), 0.0, np.zeros(1), 1.0, 1.0)
+
+
 class TestWarmUp:
     def test_fits_its_pair(self):
         fit = sf.warm_up()
@@ -135,17 +168,18 @@ class TestWarmUp:
             from synthetic_pairs import step_pair
             from core import surface_fit as sf, surface_fit_numba as sfn
             from test_surface_fit import PLANE, _regions
+            kernels = (sfn._system, sfn._offset_costs)
             sf.warm_up()
-            before = len(sfn._system.signatures)
+            before = sum(len(k.signatures) for k in kernels)
             left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=0)
             assert sf.fit_surface(left, right, *_regions(), PLANE, -0.3) is not None
-            print(before, len(sfn._system.signatures))
+            print(before, sum(len(k.signatures) for k in kernels))
         """)
         tests = pathlib.Path(__file__).parent
         out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                              env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent)])})
         before, after = map(int, out.stdout.split())
-        assert before == after == 1  # one signature, compiled by the warm-up
+        assert before == after == 2  # one signature each, compiled by the warm-up
 
 
 class TestFitSurface:

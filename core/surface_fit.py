@@ -174,11 +174,6 @@ def _huber_weights(r: np.ndarray, scale: float) -> np.ndarray:
     return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
 
 
-def _huber_cost(r: np.ndarray, scale: float) -> np.ndarray:
-    a, k = np.abs(r), HUBER_K * scale
-    return np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))
-
-
 def _tukey_weights(z: np.ndarray) -> np.ndarray:
     """Tukey's biweight of residuals ``z`` already divided by their cut."""
     return np.where(np.abs(z) < 1, (1 - z * z) ** 2, 0.0)
@@ -516,7 +511,7 @@ def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> floa
     lv = p.lvals[sel]
 
     def costs(deltas: np.ndarray) -> np.ndarray:
-        # o + o_m, the defect's exposure offset, summed once; the NumPy cost subtracted them one by one
+        # o + o_m: the defect's own exposure offset
         return surface_fit_numba.offset_costs(lv, p.R, u, v, base, gain, theta[7] + theta[9], w, theta[E], deltas,
                                               scale, HUBER_K)
 

@@ -136,7 +136,8 @@ class TestOffsetCosts:
     def test_equals_the_numpy_cost_of_each_candidate(self, e):
         image = sf.high_pass(step_pair(seed=4)[1])
         rng = np.random.default_rng(1)
-        v, u = (a.ravel().astype(np.float64) for a in np.mgrid[1:30, 0:160])  # the first and last columns fall off
+        # the samples of the first forty columns leave the image, and at e = -1.6 those of the first two rows
+        v, u = (a.ravel().astype(np.float64) for a in np.mgrid[1:30, 0:160])
         base = 40.0 + 0.02 * u - 0.01 * v
         gain, w = rng.uniform(0.9, 1.1, u.size), rng.uniform(0.0, 1.0, u.size)
         lv = rng.normal(0, 10, u.size)

@@ -238,8 +238,6 @@ def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
                 and box[0] < box[2] and box[1] < box[3]):
             raise SequenceError(f"{where}.box: expected [x0, y0, x1, y1] with x0 < x1 and y0 < y1, got {box!r}")
         defect["box"] = [float(v) for v in box]
-        if shape is not None and not (box[0] < shape[1] and box[2] > 0 and box[1] < shape[0] and box[3] > 0):
-            raise SequenceError(f"{where}.box: {defect['box']} lies outside the {shape[1]}x{shape[0]} image")
         for key in ("distance_mm", "deviation_mm"):
             if defect.get(key) is not None and not _number(defect[key]):
                 raise SequenceError(f"{where}.{key}: expected a number or null, got {defect[key]!r}")
@@ -249,7 +247,19 @@ def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
     noise = (sensor or {}).get("noise_sigma")
     if noise is not None and not (_number(noise) and noise >= 0):
         raise SequenceError(f"{path}: sensor.noise_sigma: expected a number >= 0 or null, got {noise!r}")
+    if shape is not None:
+        check_label_boxes(labels, shape, path)
     return labels
+
+
+def check_label_boxes(labels: dict, shape: tuple[int, int], path: Path) -> None:
+    """``SequenceError`` naming the file ``path`` and the entry where a box of ``labels`` (as ``read_labels``
+    gives them) misses the HxW image of ``shape``: a defect there could only count as one not found."""
+    h, w = shape
+    for i, defect in enumerate(labels["defects"]):
+        x0, y0, x1, y1 = defect["box"]
+        if not (x0 < w and x1 > 0 and y0 < h and y1 > 0):
+            raise SequenceError(f"{path}: defects[{i}].box: {defect['box']} lies outside the {w}x{h} image")
 
 
 def _number(value) -> bool:

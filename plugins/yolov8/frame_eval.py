@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.sequence_folder import SequenceError, read_labels
+from drivers.sequence_folder import SequenceError, check_label_boxes, read_labels
 from core.boxes import box_iou
 
 
@@ -31,9 +31,9 @@ class FrameEvalRow:
         return self.other_boxes / self.frames if self.frames else 0.0
 
 
-def _read(path: Path, shape: tuple[int, int] | None = None) -> dict:
+def _read(path: Path) -> dict:
     try:
-        return read_labels(path, shape)
+        return read_labels(path)
     except SequenceError as exc:
         raise ValueError(str(exc)) from None
 
@@ -64,9 +64,13 @@ def load_labelled_frames(sequence: Path) -> list[tuple[str, np.ndarray, list[dic
     """(frame id, left image, labelled defects) for every frame of ``sequence``, each labelled box checked
     against its image's size (one outside it would count as a defect the detector missed)."""
     frames = []
-    for path, frame_id, _ in _labels(sequence):
+    for path, frame_id, label in _labels(sequence):
         image = read_left(sequence, frame_id)
-        frames.append((frame_id, image, _read(path, image.shape[:2])["defects"]))
+        try:
+            check_label_boxes(label, image.shape[:2], path)
+        except SequenceError as exc:
+            raise ValueError(str(exc)) from None
+        frames.append((frame_id, image, label["defects"]))
     return frames
 
 

@@ -68,6 +68,14 @@ def _popcount(v):
 
 
 @njit(cache=True, inline="always", fastmath=True)
+def _take_term(row, term, bits, weight):
+    """row -= weight * exp(-term), the (W,) ``term`` overwritten; ``bits`` (W,) int32 scratch."""
+    exp_neg_(term, bits)
+    for x in range(row.shape[0]):
+        row[x] -= weight * term[x]
+
+
+@njit(cache=True, inline="always", fastmath=True)
 def _cost_row(zl, zr, cl, cr, gl, gr, b, y, d, weights, scales, row, shifted, words, term, bits):
     """Row y of image b's fused cost at disparity d into ``row`` (W,); shifted, term (W,) float32 and words,
     bits (W,) int32 scratch. Arguments as ``_fused_cost``'s."""
@@ -85,9 +93,7 @@ def _cost_row(zl, zr, cl, cr, gl, gr, b, y, d, weights, scales, row, shifted, wo
                 term[x] += abs(left[x] - shifted[x])
         for x in range(w):
             term[x] *= scales[0]
-        exp_neg_(term, bits)
-        for x in range(w):
-            row[x] -= w_ad * term[x]
+        _take_term(row, term, bits, w_ad)
     if w_census != 0:
         for x in range(w):
             bits[x] = 0
@@ -98,17 +104,13 @@ def _cost_row(zl, zr, cl, cr, gl, gr, b, y, d, weights, scales, row, shifted, wo
                 bits[x] += _popcount(left_words[x] ^ words[x])
         for x in range(w):
             term[x] = bits[x] * scales[1]
-        exp_neg_(term, bits)
-        for x in range(w):
-            row[x] -= w_census * term[x]
+        _take_term(row, term, bits, w_census)
     if w_grad != 0:
         _shifted(gr[b, 0, y], d, shifted)
         left = gl[b, 0, y]
         for x in range(w):
             term[x] = abs(left[x] - shifted[x]) * scales[2]
-        exp_neg_(term, bits)
-        for x in range(w):
-            row[x] -= w_grad * term[x]
+        _take_term(row, term, bits, w_grad)
 
 
 @njit(cache=True, nogil=True, parallel=True, fastmath=True)

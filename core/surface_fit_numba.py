@@ -29,6 +29,14 @@ def _cubic_weights(t):
 
 
 @njit(cache=True, inline="always")
+def _position(x, y, h, w):
+    """(x, y) as OpenCV reads a float32 map, and whether its sample is a number there: 1 px from the left and
+    top border, 2 px from the right and bottom one (``surface_fit.samples``)."""
+    xf, yf = np.float64(np.float32(x)), np.float64(np.float32(y))
+    return xf, yf, xf >= 1 and xf <= w - 3 and yf >= 1 and yf <= h - 3
+
+
+@njit(cache=True, inline="always")
 def _row(stack, y, x, w0, w1, w2, w3):
     """The three images of ``stack`` interpolated along row ``y`` at the taps x - 1 .. x + 2."""
     out0 = w0 * stack[y, x - 1, 0] + w1 * stack[y, x, 0] + w2 * stack[y, x + 1, 0] + w3 * stack[y, x + 2, 0]
@@ -65,8 +73,8 @@ def _system(lvals, stack, right_saturated, usable, prior, u, v, du, dv, m, theta
             continue
         x = u[i] - (theta[0] + theta[1] * du[i] + theta[2] * dv[i] + theta[3] * m[i])
         y = v[i] + theta[E]
-        xf, yf = np.float64(np.float32(x)), np.float64(np.float32(y))
-        if not (xf >= 1 and xf <= w - 3 and yf >= 1 and yf <= h - 3):
+        xf, yf, inside = _position(x, y, h, w)
+        if not inside:
             continue
         column = min(max(int(np.rint(x)), 0), w - 1)
         row = min(max(int(np.rint(y)), 0), h - 1)
@@ -173,8 +181,8 @@ def _offset_costs(lvals, image, u, v, base, gain, offset, weight, e, deltas, sca
         total = 0.0
         for i in range(n):
             x = u[i] - base[i] - deltas[t]
-            xf, yf = np.float64(np.float32(x)), np.float64(np.float32(v[i] + e))
-            if not (xf >= 1 and xf <= w - 3 and yf >= 1 and yf <= h - 3):
+            xf, _, inside = _position(x, v[i] + e, h, w)
+            if not inside:
                 continue  # OpenCV's sample is NaN there: the pixel costs nothing
             x0 = int(np.floor(xf))
             wx0, wx1, wx2, wx3 = _cubic_weights(xf - x0)

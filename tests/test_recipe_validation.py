@@ -264,3 +264,19 @@ def test_the_demo_recipe_resolves_its_limits():
 
     result = cli("validate", str(ROOT / "recipes" / "steel_plate.yaml"))
     assert result.returncode == 0 and result.stderr == ""
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("uncertain: pass", r"decision\.uncertain: warning: uncertain: pass lets a part pass whose measurement lies "
+                        r"within the guard band"),
+    ("coverage_factor: 0.5", r"decision\.coverage_factor: warning: a guard band of 0\.5 u passes a part measured "
+                             r"0\.5 u inside a limit, whose true value lies beyond it with a probability of 31%"),
+])
+def test_validate_warns_of_decisions_that_pass_unproven_parts(recipe_dir, setting, message):
+    path = write_recipe(recipe_dir / "loose.yaml", GOOD.replace("decision:\n", f"decision:\n  {setting}\n"))
+    result = cli("validate", str(path))
+    assert result.returncode == 0 and result.stdout.startswith(f"{path}: ok")
+    assert re.fullmatch(rf"{re.escape(str(path.resolve()))}:12: {message}.*\n", result.stderr), result.stderr
+    for proven in ("uncertain: flag", "coverage_factor: 1.0"):
+        assert cli("validate", str(write_recipe(recipe_dir / "proven.yaml", GOOD.replace(
+            "decision:\n", f"decision:\n  {proven}\n")))).stderr == ""

@@ -1,6 +1,7 @@
 """``inspect run``, ``validate``, ``plugins`` and ``report``."""
 from __future__ import annotations
 
+import math
 import signal
 import sys
 from pathlib import Path
@@ -253,7 +254,7 @@ def validate_command(recipe: Path, overrides: tuple[str, ...]) -> None:
         f"{recipe}: ok (recipe {r.name!r}, camera {r.camera.plugin}, stereo {r.stereo.backend}, detector {r.detector.plugin}, "
         f"{len(r.decision.rules)} rules, outputs {', '.join(o.plugin for o in r.outputs) or 'none'})"
     )
-    for line in _depth_warnings(loaded) + _coverage_warnings(loaded):
+    for line in _depth_warnings(loaded) + _coverage_warnings(loaded) + _guard_band_warnings(loaded):
         click.echo(line, err=True)
     if memory is not None:
         click.echo(loaded.describe(("stereo",), f"warning: a box covering most of the frame would be its part's "
@@ -293,6 +294,25 @@ def _coverage_warnings(loaded) -> list[str]:
     return [loaded.describe(("decision",), f"warning: no rule covers {which}: such a defect passes whatever is "
                                            f"measured (add a rule for it or for class any, or set "
                                            f"reject_unruled_defects: true)")]
+
+
+def _guard_band_warnings(loaded) -> list[str]:
+    """Lines for decision settings that let a part pass whose conformance was not proven (ISO 14253-1): an
+    undecided measurement passed (``uncertain: pass``), or a guard band narrower than the measurement's
+    standard uncertainty (``coverage_factor`` below 1)."""
+    decision = loaded.recipe.decision
+    lines = []
+    if decision.uncertain == "pass" and decision.rules:
+        lines.append(loaded.describe(("decision", "uncertain"), "warning: uncertain: pass lets a part pass whose "
+                                     "measurement lies within the guard band of a limit, so it may be out of "
+                                     "tolerance (with reject or flag only parts proven inside every limit pass)"))
+    if decision.coverage_factor < 1.0 and decision.rules:
+        k = decision.coverage_factor
+        beyond = 0.5 * math.erfc(k / math.sqrt(2.0))  # a normal error's chance to exceed k standard deviations
+        lines.append(loaded.describe(("decision", "coverage_factor"), f"warning: a guard band of {k:g} u passes a "
+                                     f"part measured {k:g} u inside a limit, whose true value lies beyond it with "
+                                     f"a probability of {beyond:.0%} (with 2 u, the default, 2 %)"))
+    return lines
 
 
 def _depth_warnings(loaded) -> list[str]:

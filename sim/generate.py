@@ -181,6 +181,20 @@ def _appearance(rng, cls: str, crops: NeuCrops | None, scale_px: float):
     return patch, pbox, "synthetic", 0.5  # stand-in patches are drawn at 2x the frame size
 
 
+PLACEMENT_SLACK = 1.15  # perspective: a defect's projected box differs a little from the estimate it is placed by
+
+
+def ring_margin_px(width: int) -> float:
+    """Pixels kept between a defect's box and the frame's border: room for the ring that ``measure_defect``
+    fits the surface on (3 + 12 px, not scaled)."""
+    return max(EDGE_MARGIN_PX * width / ZED_WVGA["width"], 16.0)
+
+
+def largest_defect_px(width: int, height: int) -> float:
+    """The side a defect's box must stay below to be placed in a width x height frame, either way round."""
+    return (min(width, height) - 2 * ring_margin_px(width)) / PLACEMENT_SLACK
+
+
 def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, texture_contrast: float = 1.0,
                 flat_floor: tuple[float, float] | None = None, camera: CameraModel = CameraModel()) -> Scene:
     z0 = spec.distance_mm
@@ -245,10 +259,9 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
         if spec.sizes_px is not None:  # the appearance is stretched over the footprint (_paste)
             bw, bh = spec.sizes_px[i]
         a, b = bw / 2 * mm_per_px, bh / 2 * mm_per_px / np.cos(np.radians(spec.tilt_deg))
-        # room for the ring measure_defect fits the surface on (3 + 12 px, not scaled)
-        margin = max(EDGE_MARGIN_PX * scale_px, 16.0)
+        margin = ring_margin_px(calib.width)
         gap = max(GAP_PX * scale_px, 16.0) * mm_per_px
-        slack = 1.15  # perspective: the projected box differs a little from the estimate
+        slack = PLACEMENT_SLACK
         ulo, uhi = margin + slack * bw / 2, calib.width - margin - slack * bw / 2
         vlo, vhi = margin + slack * bh / 2, calib.height - margin - slack * bh / 2
         if ulo >= uhi or vlo >= vhi:

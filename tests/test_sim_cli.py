@@ -84,3 +84,13 @@ def test_a_negative_noise_is_refused(tmp_path):
                                            "--noise-sigma", "-1"])
     assert result.exit_code == 2 and "--noise-sigma" in result.output
     assert not (tmp_path / "x").exists()
+
+
+def test_a_defect_larger_than_the_frame_holds_is_a_one_line_error(tmp_path):
+    # it used to be left out of every frame without a word: an evaluation set with no defects
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects",
+                                           "--width", "224", "--height", "126", "--defect-size-px", "8", "90"])
+    assert result.exit_code == 2 and result.output == (
+        "error: --defect-size-px: a side of 90 px does not fit a 224x126 frame with room for the ring around it "
+        "(below 82 px)\n")
+    assert not (tmp_path / "x").exists()

@@ -85,7 +85,7 @@ def register(cli: click.Group) -> None:
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
         options make an evaluation set for ``inspect eval depth``."""
-        from sim.generate import CameraModel, EvalRanges, generate_sequence
+        from sim.generate import CameraModel, EvalRanges, generate_sequence, largest_defect_px
         from sim.neu_crops import NeuDetError
 
         for name, pair, low in (("--distance-range-mm", distance_range_mm, 100.0), ("--defect-size-px", defect_size_px, 4.0),
@@ -99,6 +99,11 @@ def register(cli: click.Group) -> None:
             if low is not None and pair[0] < low:
                 click.echo(f"error: {name}: {pair[0]:g} is below the smallest allowed, {low:g}", err=True)
                 raise SystemExit(2)
+        largest = largest_defect_px(width, height)
+        if defect_size_px is not None and defect_size_px[1] >= largest:
+            click.echo(f"error: --defect-size-px: a side of {defect_size_px[1]:g} px does not fit a {width}x{height} "
+                       f"frame with room for the ring around it (below {largest:.0f} px)", err=True)
+            raise SystemExit(2)
         if flat_floor is not None and flat_floor[1] >= 1.0:
             click.echo(f"error: --flat-floor: {flat_floor[1]:g} leaves no wall (give a share below 1)", err=True)
             raise SystemExit(2)

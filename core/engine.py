@@ -18,13 +18,13 @@ import cv2
 import numpy as np
 
 from core import stereo_memory, surface_fit
-from core.annotate import annotate
 from core.checks import RepeatedImages, detections_problem, disparity_problem, frame_problem
 from core.contracts import PluginContext, missing_members
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
 from core.frame_source import DetectAhead, OneAtATime
 from core.image_quality import image_problem, image_stats
+from core.part_images import PartImages
 from core.recipe import LoadedRecipe
 from core.recipe.loader import (camera_answer, detector_settings, file_sha256, named_classes, output_delays_s,
                                 unknown_class_message)
@@ -442,6 +442,7 @@ def run(
                              [getattr(output, "name", name) for name, output in pipeline.outputs])
     age_limit = frame_age_limit_s(loaded, registry)
     rule = DepthRule.from_recipe(recipe)
+    images = PartImages(store.image_dir, recipe.results.save_images, recipe.results.min_free_mb)
     counts: Counter = Counter()
     alarms: list[Alarm] = []
     stage_seconds: Counter = Counter()
@@ -540,8 +541,11 @@ def run(
         nonlocal current
         part = outcome.part
         if not store_down:
+            alarm = images.save(outcome.image, part, outcome.defect_status)
+            if alarm is not None:
+                record([alarm])
+        if not store_down:
             try:
-                _save_image(store, recipe.results.save_images, outcome)
                 store.record_part(run_id, part, outcome.per_defect)
             except Exception as exc:
                 lose_store(exc)
@@ -671,13 +675,3 @@ def _model_hashes(loaded: LoadedRecipe, detector: Any) -> dict[str, str]:
         path = loaded.resolve(loaded.recipe.detector.weights)
     digest = None if path is None else _sha256_or_none(path)
     return {} if digest is None else {str(path): digest}
-
-
-def _save_image(store: ResultsStore, policy: str, outcome: FrameOutcome) -> None:
-    part = outcome.part
-    if outcome.image is None or policy == "none" or (policy == "rejected" and not part.verdict.status.rejects):
-        return
-    store.image_dir.mkdir(parents=True, exist_ok=True)
-    path = store.image_dir / f"{part.part_id}.jpg"
-    cv2.imwrite(str(path), annotate(outcome.image, part, outcome.defect_status))
-    part.image_path = str(path)

@@ -187,7 +187,8 @@ class Alarm:
     (the PLC or line cannot be reached), late (a part was decided after its command was due), release (a
     pulse's end not sent), pulse, busy, closed, camera, engine, crash, stall (a part stayed in inspection
     longer than the recipe's ``watchdog_s``), frozen (the camera handed over its last images again), image
-    (frames in a row whose images could not show a defect), store (the results store could not be written)."""
+    (frames in a row whose images could not show a defect), store (the results store could not be written),
+    images (the parts' annotated images could not be saved)."""
 
     source: str
     message: str

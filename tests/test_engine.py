@@ -1,8 +1,10 @@
 """The whole loop on exact synthetic plates, with the example detector registered in-process."""
 from __future__ import annotations
 
+import re
 import shutil
 import sqlite3
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -184,6 +186,58 @@ def test_a_dead_disk_still_sends_the_decided_reject_then_stops_with_an_alarm(tmp
     assert summary.exit_code == engine.EXIT_ALARMS
     from core.commands.inspection import alarm_hints
     assert any("results store" in h for h in alarm_hints(summary.alarms, loaded, plc_sim_given=False))
+
+
+def _run_with_images_refused(tmp_path, registry, info, refuse, settings=""):
+    """The run with ``refuse(results folder)`` done first: every part, every event and the summary."""
+    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log") + settings)
+    refuse(tmp_path / "results")
+    seen, events = [], []
+    summary = engine.run(load_recipe(path, registry=registry), registry=registry, on_part=seen.append,
+                         on_event=events.append, device="cpu")
+    with sqlite3.connect(tmp_path / "results" / "results.db") as db:
+        stored = dict(db.execute("SELECT part_id, verdict FROM parts").fetchall())
+    return summary, seen, events, stored
+
+
+def _refused(kind):
+    def refuse(results):
+        images = results / "images"
+        results.mkdir()
+        if kind == "full disk":  # the first reject's image lands on /dev/full, which answers every write ENOSPC
+            images.mkdir()
+            (images / "R1-000001.jpg").symlink_to("/dev/full")
+        elif kind == "a file in the way":
+            images.write_text("not a folder")
+    return refuse
+
+
+@pytest.mark.parametrize("kind, why", [
+    ("full disk", r"R1-000001\.jpg could not be written"),
+    ("a file in the way", r"images/R1-000001\.jpg could not be written \((FileExistsError|NotADirectoryError)"),
+    ("below results.min_free_mb", r"the results disk has \d+ MB free, less than results\.min_free_mb \(1e\+12\)"),
+])
+def test_images_the_disk_refuses_cost_one_alarm_and_never_a_decision(tmp_path, plane_sequence, registry, kind, why):
+    if kind == "full disk" and not Path("/dev/full").exists():
+        pytest.skip("no /dev/full on this system to answer writes with a full disk")
+    info = plane_sequence([0.0, 6.0, 6.0, 0.0, 6.0])
+    settings = "  min_free_mb: 1.0e+12\n" if kind.startswith("below") else ""
+    summary, seen, events, stored = _run_with_images_refused(tmp_path, registry, info, _refused(kind), settings)
+    statuses = [o.part.verdict.status for o in seen]
+    assert statuses == [Status.PASS, Status.REJECT, Status.REJECT, Status.PASS, Status.REJECT]  # the run went on
+    assert stored == {o.part.part_id: o.part.verdict.status.value for o in seen}  # every decision stored
+    sent = [e.part_id for e in events if isinstance(e, OutputEvent) and e.outcome == "delivered"]
+    assert sent == [o.part.part_id for o in seen if o.part.verdict.status is Status.REJECT]
+    (alarm,) = summary.alarms  # once, not once per reject
+    assert alarm.cause == "images" and alarm.part_id == seen[1].part.part_id
+    assert re.search(rf"annotated images are no longer saved: .*{why}.*; every part's decision is still stored",
+                     alarm.message), alarm.message
+    assert all(o.part.image_path is None for o in seen)
+    assert not list((tmp_path / "results" / "images").glob("*.jpg"))
+    from core.commands.inspection import alarm_hints
+    hints = alarm_hints(summary.alarms, load_recipe(tmp_path / "r.yaml", registry=registry), plc_sim_given=False)
+    assert any("every decision was still stored and sent" in h for h in hints)
+    assert not any("results store could not be written" in h for h in hints)
 
 
 def test_part_is_stored_before_outputs_see_it(tmp_path, plane_sequence, registry):

@@ -208,6 +208,9 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
     if "store" in causes:
         lines.append("  the results store could not be written (a full disk, its permissions, a removed drive): the "
                      "parts decided until then went to the outputs unrecorded; free the disk and start again")
+    if "images" in causes:
+        lines.append("  the parts' annotated images could no longer be saved (the results disk nearly full, the images "
+                     "folder not writable): every decision was still stored and sent; free the disk")
     if "stall" in causes:
         lines.append(f"  a stage, plugin or camera stopped returning for longer than watchdog_s "
                      f"({loaded.recipe.watchdog_s:g} s; the alarm names the frame or the camera): the outputs told the "

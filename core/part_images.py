@@ -6,6 +6,7 @@ decisions. (A store that cannot write its decisions stops the run: ``core.engine
 """
 from __future__ import annotations
 
+import contextlib
 import shutil
 import time
 from pathlib import Path
@@ -46,11 +47,15 @@ class PartImages:
             if free_mb < self.min_free_mb:
                 return self._stop(part, f"the results disk has {free_mb:.0f} MB free, less than results.min_free_mb "
                                         f"({self.min_free_mb:g})")
-            if not cv2.imwrite(str(path), annotate(image, part, defect_status)):
+            ok, encoded = cv2.imencode(".jpg", annotate(image, part, defect_status))
+            if not ok:
+                return self._stop(part, f"{path} could not be encoded")
+            path.write_bytes(encoded.tobytes())
+        except Exception as exc:  # whatever it is, a picture is not worth the run
+            with contextlib.suppress(OSError):
                 path.unlink(missing_ok=True)  # what a full disk left of it
-                return self._stop(part, f"{path} could not be written")
-        except (OSError, cv2.error) as exc:
-            return self._stop(part, f"{path} could not be written ({type(exc).__name__}: {exc})")
+            reason = getattr(exc, "strerror", None) or exc
+            return self._stop(part, f"{path} could not be written ({type(exc).__name__}: {reason})")
         part.image_path = str(path)
         return None
 

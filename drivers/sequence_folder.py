@@ -13,6 +13,8 @@ This module imports nothing from the rest of stereo-inspect, so it can be tried 
 """
 from __future__ import annotations
 
+import contextlib
+
 import json
 import re
 from dataclasses import dataclass
@@ -188,10 +190,26 @@ def read_disparity_png(path: Path) -> np.ndarray:
     return disp
 
 
+def write_image(path: Path, image: np.ndarray, params: tuple[int, ...] = ()) -> None:
+    """The image encoded by its file's extension and written; OSError naming the file where it was not (a
+    full disk, a folder removed under it). ``cv2.imwrite`` returns False at most, and True for a small PNG
+    whose bytes the full disk refused only when the file was closed: a sequence would silently lack it."""
+    path = Path(path)
+    ok, encoded = cv2.imencode(path.suffix, image, list(params))
+    if not ok:
+        raise OSError(f"{path}: could not be encoded as {path.suffix}")
+    try:
+        path.write_bytes(encoded.tobytes())
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            path.unlink(missing_ok=True)  # what a full disk left of it
+        raise OSError(f"{path}: could not be written ({exc.strerror or exc})") from None
+
+
 def write_disparity_png(path: Path, disparity: np.ndarray) -> None:
     values = np.nan_to_num(np.asarray(disparity, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     raw = np.clip(np.round(values * 256.0), 0, 65535).astype(np.uint16)
-    cv2.imwrite(str(path), raw)
+    write_image(path, raw)
 
 
 def write_frame(
@@ -205,8 +223,8 @@ def write_frame(
     folder = Path(folder)
     for sub in ("left", "right"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(folder / "left" / f"{frame_id}.png"), left)
-    cv2.imwrite(str(folder / "right" / f"{frame_id}.png"), right)
+    write_image(folder / "left" / f"{frame_id}.png", left)
+    write_image(folder / "right" / f"{frame_id}.png", right)
     if gt_disparity is not None:
         (folder / "gt").mkdir(exist_ok=True)
         write_disparity_png(folder / "gt" / f"{frame_id}.png", gt_disparity)

@@ -213,7 +213,7 @@ def _refused(kind):
 
 
 @pytest.mark.parametrize("kind, why", [
-    ("full disk", r"R1-000001\.jpg could not be written"),
+    ("full disk", r"R1-000001\.jpg could not be written \(OSError: No space left on device\)"),
     ("a file in the way", r"images/R1-000001\.jpg could not be written \((FileExistsError|NotADirectoryError)"),
     ("below results.min_free_mb", r"the results disk has \d+ MB free, less than results\.min_free_mb \(1e\+12\)"),
 ])

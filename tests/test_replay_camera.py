@@ -142,3 +142,20 @@ class TestReadLabels:
         assert len(read_labels(path)["defects"]) == 2
         path.write_text(json.dumps({"defects": [{"class": "pit", "box": [-5, -5, 10, 10]}]}))
         assert read_labels(path, (376, 672))["defects"][0]["box"] == [-5.0, -5.0, 10.0, 10.0]
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system to answer writes with a full disk")
+def test_a_frame_the_disk_refuses_is_an_error_naming_it_not_a_missing_frame(tmp_path):
+    # OpenCV's imwrite only returns False: `inspect camera record` and `inspect sim generate` used to report
+    # every pair written while the sequence lacked them
+    import numpy as np
+
+    from drivers.sequence_folder import write_frame
+
+    (tmp_path / "left").mkdir()
+    (tmp_path / "left" / "000001.png").symlink_to("/dev/full")
+    image = np.zeros((8, 8, 3), np.uint8)
+    write_frame(tmp_path, "000000", image, image)
+    with pytest.raises(OSError, match=re.escape(f"{tmp_path / 'left' / '000001.png'}: could not be written (No space left on device)")):
+        write_frame(tmp_path, "000001", image, image)
+    assert not (tmp_path / "left" / "000001.png").exists() and not (tmp_path / "right" / "000001.png").exists()

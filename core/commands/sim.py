@@ -136,6 +136,9 @@ def register(cli: click.Group) -> None:
         except NeuDetError as exc:
             click.echo(f"error: {exc}", err=True)
             raise SystemExit(2) from None
+        except OSError as exc:  # a full disk, the folder removed under it
+            click.echo(f"error: {exc}", err=True)
+            raise SystemExit(2) from None
         click.echo(f"wrote {frames} frames to {out} in {time.perf_counter() - start:.1f} s")
 
     @sim_group.command("faults")

@@ -94,3 +94,13 @@ def test_a_defect_larger_than_the_frame_holds_is_a_one_line_error(tmp_path):
         "error: --defect-size-px: a side of 90 px does not fit a 224x126 frame with room for the ring around it "
         "(below 82 px)\n")
     assert not (tmp_path / "x").exists()
+
+
+def test_a_frame_that_cannot_be_written_is_a_one_line_error(tmp_path):
+    out = tmp_path / "x"
+    out.mkdir()
+    (out / "left").write_text("a file where the left images go")
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(out), "--synthetic-defects", "--frames", "1",
+                                           "--width", "224", "--height", "126", "--supersample", "1"])
+    assert result.exit_code == 2 and result.output.startswith("error: ") and result.output.count("\n") == 1
+    assert str(out / "left") in result.output and "Traceback" not in result.output

@@ -280,3 +280,14 @@ def test_validate_warns_of_decisions_that_pass_unproven_parts(recipe_dir, settin
     for proven in ("uncertain: flag", "coverage_factor: 1.0"):
         assert cli("validate", str(write_recipe(recipe_dir / "proven.yaml", GOOD.replace(
             "decision:\n", f"decision:\n  {proven}\n")))).stderr == ""
+
+
+def test_a_recipe_without_outputs_is_warned_of_by_validate_and_run(recipe_dir):
+    # a reject it decides is stored, and no actuator hears of it
+    path = write_recipe(recipe_dir / "mute.yaml", GOOD.replace("outputs:\n  - plugin: log\n", "outputs: []\n"))
+    warning = f"{path.resolve()}:14: outputs: warning: no output: a rejected part is stored but reaches no actuator"
+    result = cli("validate", str(path))
+    assert result.returncode == 0 and result.stderr.startswith(warning), result.stderr
+    run = cli("run", str(path), "--quiet", "--max-frames", "1", "--set", f"results.path={recipe_dir / 'res'}")
+    assert run.stderr.startswith(warning), run.stderr
+    assert "outputs:" not in cli("validate", str(write_recipe(recipe_dir / "good.yaml", GOOD))).stderr

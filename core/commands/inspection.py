@@ -82,6 +82,8 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
 
     loaded = _load(recipe, overrides + ((f"threads={threads}",) if threads else ()))
     console = Console(highlight=False, soft_wrap=True)
+    for line in recipe_warnings(loaded):  # what inspect validate would say: the line runs as the recipe says
+        click.echo(line, err=True)
     if token is not None and len(token) < 8:
         fail("--token: use at least 8 characters")
     feed = server = None
@@ -257,7 +259,7 @@ def validate_command(recipe: Path, overrides: tuple[str, ...]) -> None:
         f"{recipe}: ok (recipe {r.name!r}, camera {r.camera.plugin}, stereo {r.stereo.backend}, detector {r.detector.plugin}, "
         f"{len(r.decision.rules)} rules, outputs {', '.join(o.plugin for o in r.outputs) or 'none'})"
     )
-    for line in _depth_warnings(loaded) + _coverage_warnings(loaded) + _guard_band_warnings(loaded):
+    for line in recipe_warnings(loaded):
         click.echo(line, err=True)
     if memory is not None:
         click.echo(loaded.describe(("stereo",), f"warning: a box covering most of the frame would be its part's "
@@ -278,6 +280,19 @@ def _stereo_memory_problem(loaded) -> str | None:
     except Exception:
         return None
     return recipe_problem(loaded, backend, registry)
+
+
+def recipe_warnings(loaded) -> list[str]:
+    """What the recipe lets through without an error: limits the camera cannot resolve at the working
+    distance, classes no rule covers, decisions that pass unproven parts, rejects that reach no actuator."""
+    return _depth_warnings(loaded) + _coverage_warnings(loaded) + _guard_band_warnings(loaded) + _output_warnings(loaded)
+
+
+def _output_warnings(loaded) -> list[str]:
+    if loaded.recipe.outputs:
+        return []
+    return [loaded.describe(("outputs",), "warning: no output: a rejected part is stored but reaches no actuator "
+                                          "(add a modbus or serial output, or log to see the commands)")]
 
 
 def _coverage_warnings(loaded) -> list[str]:

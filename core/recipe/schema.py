@@ -170,7 +170,7 @@ class ResultsSection(Section):
     save_images: Literal["rejected", "all", "none"] = "rejected"
     # below this much free space on the results disk no more images are saved (one alarm): the decisions
     # that the store still has to write matter more
-    min_free_mb: float = Field(500.0, ge=0)
+    min_free_mb: float = Field(200.0, ge=0)
 
 
 class ViewSection(Section):

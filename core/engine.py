@@ -544,7 +544,7 @@ def run(
             alarm = images.save(outcome.image, part, outcome.defect_status)
             if alarm is not None:
                 record([alarm])
-        if not store_down:
+        if not store_down:  # recording that alarm may have found the store down
             try:
                 store.record_part(run_id, part, outcome.per_defect)
             except Exception as exc:

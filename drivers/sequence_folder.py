@@ -14,7 +14,6 @@ This module imports nothing from the rest of stereo-inspect, so it can be tried 
 from __future__ import annotations
 
 import contextlib
-
 import json
 import re
 from dataclasses import dataclass

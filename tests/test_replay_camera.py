@@ -146,8 +146,8 @@ class TestReadLabels:
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system to answer writes with a full disk")
 def test_a_frame_the_disk_refuses_is_an_error_naming_it_not_a_missing_frame(tmp_path):
-    # OpenCV's imwrite only returns False: `inspect camera record` and `inspect sim generate` used to report
-    # every pair written while the sequence lacked them
+    # cv2.imwrite's False went unchecked (and it is True for a small PNG that a full disk refuses at close):
+    # `inspect camera record` and `inspect sim generate` reported pairs written that the sequence lacked
     import numpy as np
 
     from drivers.sequence_folder import write_frame
@@ -156,6 +156,7 @@ def test_a_frame_the_disk_refuses_is_an_error_naming_it_not_a_missing_frame(tmp_
     (tmp_path / "left" / "000001.png").symlink_to("/dev/full")
     image = np.zeros((8, 8, 3), np.uint8)
     write_frame(tmp_path, "000000", image, image)
-    with pytest.raises(OSError, match=re.escape(f"{tmp_path / 'left' / '000001.png'}: could not be written (No space left on device)")):
+    refused = f"{tmp_path / 'left' / '000001.png'}: could not be written (No space left on device)"
+    with pytest.raises(OSError, match=re.escape(refused)):
         write_frame(tmp_path, "000001", image, image)
     assert not (tmp_path / "left" / "000001.png").exists() and not (tmp_path / "right" / "000001.png").exists()

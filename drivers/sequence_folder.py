@@ -218,12 +218,15 @@ def write_frame(
     right: np.ndarray,
     gt_disparity: np.ndarray | None = None,
     labels: dict | list | None = None,
+    image_format: str = "png",
 ) -> None:
+    """The pair as ``image_format`` images (``png``, or ``jpg`` at quality 95), the ground truth as a 16-bit
+    PNG and the labels as JSON, each where given."""
     folder = Path(folder)
-    for sub in ("left", "right"):
+    params = (cv2.IMWRITE_JPEG_QUALITY, 95) if image_format == "jpg" else ()
+    for sub, image in (("left", left), ("right", right)):
         (folder / sub).mkdir(parents=True, exist_ok=True)
-    write_image(folder / "left" / f"{frame_id}.png", left)
-    write_image(folder / "right" / f"{frame_id}.png", right)
+        write_image(folder / sub / f"{frame_id}.{image_format}", image, params)
     if gt_disparity is not None:
         (folder / "gt").mkdir(exist_ok=True)
         write_disparity_png(folder / "gt" / f"{frame_id}.png", gt_disparity)

@@ -20,7 +20,7 @@ import numpy as np
 
 from core.depth import DepthRule, measure_defect
 from core.types import Calibration, Detection
-from drivers.sequence_folder import write_calibration, write_frame, write_image
+from drivers.sequence_folder import write_calibration, write_frame
 from sim.neu_crops import NEU_CLASSES, NeuCrops
 from sim.render import render_pair
 from sim.scene import CLASS_SHAPES, PLATEAU_R0, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, plate_axes
@@ -425,13 +425,7 @@ def generate_sequence(
         left, right, gt, labels, _ = render_frame(rng, calib, spec, crops, frame_id, ss=supersample,
                                                   texture_contrast=texture_contrast, flat_floor=ranges.flat_floor,
                                                   camera=camera)
-        if image_format == "png":
-            write_frame(out, frame_id, left, right, gt, labels)
-        else:  # high-quality JPEG for the eyes, the rest as write_frame does it
-            write_frame(out, frame_id, left, right, gt, labels)
-            for eye, img in (("left", left), ("right", right)):
-                (out / eye / f"{frame_id}.png").unlink()
-                write_image(out / eye / f"{frame_id}.jpg", img, (cv2.IMWRITE_JPEG_QUALITY, 95))
+        write_frame(out, frame_id, left, right, gt, labels, image_format)
         all_labels.append(labels)
         if log is not None:
             summary = ", ".join(f"{d['class']} {d['deviation_mm']:+.2f} mm" for d in labels["defects"]) or "no defect"

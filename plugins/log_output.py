@@ -8,11 +8,12 @@ import logging
 import time
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
 from core.types import Alarm, OutputEvent, PartResult
+from plugins.command_format import checked_format, command_text
 
 
 class LogSettings(BaseModel):
@@ -22,6 +23,8 @@ class LogSettings(BaseModel):
     on_pass: bool = Field(False, description="also log a PASS command for parts that pass")
     reject_format: str = "REJECT {part_id} {status}"
     pass_format: str = "PASS {part_id}"
+
+    _formats = field_validator("reject_format", "pass_format")(checked_format)
 
 
 class LogOutput:
@@ -40,9 +43,9 @@ class LogOutput:
 
     def submit(self, part: PartResult) -> None:
         if part.verdict.status.rejects:
-            command = self.settings.reject_format.format(part_id=part.part_id, status=part.verdict.status.value)
+            command = command_text(self.settings.reject_format, part)
         elif self.settings.on_pass:
-            command = self.settings.pass_format.format(part_id=part.part_id)
+            command = command_text(self.settings.pass_format, part)
         else:
             return
         self.logger.info(command)

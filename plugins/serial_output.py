@@ -14,7 +14,8 @@ Recipe example::
           ack_timeout_ms: 300
           delay_ms: 1500
 
-Fields in the formats: ``{part_id}``, ``{status}`` (PASS/REJECT/ERROR), ``{frame_id}``, ``{index}``.
+Fields in the formats: ``{part_id}``, ``{status}`` (PASS/REJECT/ERROR/FLAG), ``{frame_id}``, ``{index}``
+(``plugins.command_format``).
 """
 from __future__ import annotations
 
@@ -27,10 +28,8 @@ from core.hookspecs import hookimpl
 from core.types import PartResult
 from drivers.reject_scheduler import Command, RejectScheduler
 from drivers.serial_line import LineCommand, SerialLine
+from plugins.command_format import checked_format, command_text
 from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay
-
-_FIELDS = {"part_id": "P1", "status": "REJECT", "frame_id": "f", "index": 0}
-
 
 class SerialSettings(TimingSettings):
     port: str = Field(min_length=1, description="serial port or pyserial URL")
@@ -44,15 +43,7 @@ class SerialSettings(TimingSettings):
     ack_format: str | None = None
     ack_timeout_ms: float = Field(300.0, gt=0)
 
-    @field_validator("reject_format", "pass_format", "ack_format")
-    @classmethod
-    def _format(cls, value: str | None) -> str | None:
-        if value is not None:
-            try:
-                value.format(**_FIELDS)
-            except (KeyError, IndexError, ValueError) as exc:
-                raise ValueError(f"bad format {value!r}: unknown field {exc}; use {', '.join('{' + k + '}' for k in _FIELDS)}") from None
-        return value
+    _formats = field_validator("reject_format", "pass_format", "ack_format")(checked_format)
 
 
 class SerialOutput(ScheduledOutput):
@@ -73,9 +64,8 @@ class SerialOutput(ScheduledOutput):
         fmt = self.settings.reject_format if part.verdict.status.rejects else self.settings.pass_format
         if fmt is None:
             return None
-        fields = {"part_id": part.part_id, "status": part.verdict.status.value, "frame_id": part.frame_id, "index": part.index}
-        text = fmt.format(**fields)
-        ack = self.settings.ack_format.format(**fields) if self.settings.ack_format else None
+        text = command_text(fmt, part)
+        ack = command_text(self.settings.ack_format, part) if self.settings.ack_format else None
         return Command(LineCommand(text, ack), f"serial {text!r}" + (f" (ack {ack!r})" if ack else ""))
 
 

@@ -194,6 +194,7 @@ def test_another_plugin_by_set_starts_from_its_own_settings():
         ("plugin: yolov8", "plugin: yolov8\n  weights: nope.pt"),
         ("path: seq", "path: nope"),
         ("  backend: opencv_sgbm", "  backend: [opencv_sgbm"),
+        ("  - plugin: log", "  - plugin: log\n    settings: {reject_format: 'REJECT {part}'}"),  # not at the first reject
     ],
 )
 def test_cli_validate_exit_2_one_line(recipe_dir, change):

@@ -82,6 +82,32 @@ class ModbusSettings(TimingSettings):
             raise ValueError("transport rtu needs serial_port")
         return self
 
+    @model_validator(mode="after")
+    def _addresses(self):
+        """Two signals on one coil or register: the PLC could not tell them apart (a pass read as a reject,
+        the ready signal holding the gate's coil on). A reject and a pass may share one address only as
+        different values of a level (not a counter, not pulsed)."""
+        writes = [(key, action) for key, action in (("on_reject", self.on_reject), ("on_pass", self.on_pass))
+                  if action is not None]
+        for key, action in writes:
+            table = "coil" if action.write == "coil" else "register"
+            if table == "coil" and action.address == self.ready_coil:
+                raise ValueError(f"{key} writes coil {action.address}, which is also ready_coil")
+            if table == "register" and self.heartbeat is not None and action.address == self.heartbeat.address:
+                raise ValueError(f"{key} writes register {action.address}, which is also heartbeat.address")
+        if len(writes) == 2:
+            (_, reject), (_, passed) = writes
+            table = "coil" if reject.write == "coil" else "register"
+            if (table == "coil") == (passed.write == "coil") and reject.address == passed.address:
+                if "counter" in (reject.write, passed.write) or reject.value == passed.value:
+                    raise ValueError(f"on_reject and on_pass both write to {table} {reject.address} "
+                                     f"({reject.write} {reject.value}, {passed.write} {passed.value}): the PLC "
+                                     f"could not tell a pass from a reject")
+                if reject.pulse_ms or passed.pulse_ms:
+                    raise ValueError(f"on_reject and on_pass both write to {table} {reject.address}, one of them "
+                                     f"pulsed: a pass could cut short the pulse of the reject before it")
+        return self
+
 
 def make_command(action: WriteAction, unit: int, count: int = 0) -> Command:
     if action.write == "counter":

@@ -291,6 +291,37 @@ def test_settings_are_checked():
         ModbusSettings.model_validate({"delay_ms": 0})
 
 
+GATE = {"write": "coil", "address": 0, "pulse_ms": 100}
+
+
+@pytest.mark.parametrize("settings, message", [
+    ({"on_reject": GATE, "ready_coil": 0}, "on_reject writes coil 0, which is also ready_coil"),
+    ({"on_pass": {"write": "coil", "address": 4}, "ready_coil": 4}, "on_pass writes coil 4, which is also ready_coil"),
+    ({"on_reject": {"write": "counter", "address": 7}, "heartbeat": {"address": 7}},
+     "on_reject writes register 7, which is also heartbeat.address"),
+    ({"on_reject": GATE, "on_pass": GATE}, "could not tell a pass from a reject"),
+    ({"on_reject": {"write": "counter", "address": 2}, "on_pass": {"write": "register", "address": 2, "value": 9}},
+     "could not tell a pass from a reject"),
+    ({"on_reject": GATE, "on_pass": {"write": "coil", "address": 0, "value": 0}}, "cut short the pulse"),
+])
+def test_two_signals_on_one_address_are_refused(settings, message):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match=message):
+        ModbusSettings.model_validate({"delay_ms": 500, **settings})
+
+
+@pytest.mark.parametrize("settings", [
+    # one register whose value says which: a level the PLC reads at its own pace
+    {"on_reject": {"write": "register", "address": 3, "value": 1}, "on_pass": {"write": "register", "address": 3, "value": 2}},
+    # coil 0 and register 0 are different tables
+    {"on_reject": GATE, "on_pass": {"write": "register", "address": 0, "value": 2}, "heartbeat": {"address": 1},
+     "ready_coil": 1},
+])
+def test_signals_the_plc_can_tell_apart_are_accepted(settings):
+    ModbusSettings.model_validate({"delay_ms": 500, **settings})
+
+
 def test_registered_as_output_plugin():
     from core.registry import default_registry
 

@@ -117,6 +117,11 @@ def test_a_threshold_that_is_not_a_finite_number_is_an_error(recipe_dir, value):
     assert ":13: decision.rules.0.threshold: must be a finite number" in message, message
 
 
+def test_an_empty_class_list_is_an_error_not_a_line_that_passes_everything(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("plugin: yolov8", "plugin: yolov8\n  classes: []"))
+    assert ":11: detector.classes: an empty list keeps no class" in message, message
+
+
 def test_no_plugin_setting_or_override_may_be_nan(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("    path: seq", "    path: seq\n    rate_fps: .nan"))
     assert ":6: camera.settings.rate_fps: must be a finite number (got nan)" in message, message

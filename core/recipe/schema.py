@@ -112,6 +112,14 @@ class DetectorSection(Section):
     classes: list[str] | None = None
     settings: dict[str, Any] = Field(default_factory=dict)
 
+    @field_validator("classes")
+    @classmethod
+    def _some_class(cls, value):
+        if value is not None and not value:
+            raise ValueError("an empty list keeps no class: nothing would be detected and every part pass "
+                             "(null keeps every class)")
+        return value
+
     @field_validator("sha256", mode="before")
     @classmethod
     def _quoted(cls, value):

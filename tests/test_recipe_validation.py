@@ -297,3 +297,18 @@ def test_a_recipe_without_outputs_is_warned_of_by_validate_and_run(recipe_dir):
     run = cli("run", str(path), "--quiet", "--max-frames", "1", "--set", f"results.path={recipe_dir / 'res'}")
     assert run.stderr.startswith(warning), run.stderr
     assert "outputs:" not in cli("validate", str(write_recipe(recipe_dir / "good.yaml", GOOD))).stderr
+
+
+@pytest.mark.parametrize("key, off, what", [
+    ("min_mean_grey", 0, "a dark image"),
+    ("max_saturated", 1, "a blinded image"),
+    ("min_texture", 0, "an image without detail"),
+])
+def test_validate_warns_of_an_image_check_turned_off(recipe_dir, key, off, what):
+    # a frame of nothing then finds no defect: its part passes unseen
+    path = write_recipe(recipe_dir / "r.yaml", GOOD)
+    result = cli("validate", str(path), "--set", f"camera.image_check.{key}={off}")
+    assert result.returncode == 0
+    assert re.fullmatch(rf"{re.escape(str(path.resolve()))} \(--set camera\.image_check\.{key}\): camera\.image_check\."
+                        rf"{key}: warning: off: {what}.*passes instead of being an ERROR\n", result.stderr), result.stderr
+    assert cli("validate", str(path), "--set", f"camera.image_check.{key}=0.5").stderr == ""

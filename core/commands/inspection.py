@@ -285,7 +285,21 @@ def _stereo_memory_problem(loaded) -> str | None:
 def recipe_warnings(loaded) -> list[str]:
     """What the recipe lets through without an error: limits the camera cannot resolve at the working
     distance, classes no rule covers, decisions that pass unproven parts, rejects that reach no actuator."""
-    return _depth_warnings(loaded) + _coverage_warnings(loaded) + _guard_band_warnings(loaded) + _output_warnings(loaded)
+    return (_depth_warnings(loaded) + _coverage_warnings(loaded) + _guard_band_warnings(loaded)
+            + _image_check_warnings(loaded) + _output_warnings(loaded))
+
+
+def _image_check_warnings(loaded) -> list[str]:
+    """A line for each of ``camera.image_check``'s tests that the recipe turns off: a frame that shows no
+    plate is then decided on its (absent) detections, and its part passes."""
+    check = loaded.recipe.camera.image_check
+    off = [(key, what) for key, value, limit, what in (
+        ("min_mean_grey", check.min_mean_grey, 0.0, "a dark image (the lights off, a covered lens)"),
+        ("max_saturated", check.max_saturated, 1.0, "a blinded image"),
+        ("min_texture", check.min_texture, 0.0, "an image without detail (out of focus, fogged)"),
+    ) if value == limit]
+    return [loaded.describe(("camera", "image_check", key), f"warning: off: {what} finds no defect, and its part "
+                            f"passes instead of being an ERROR") for key, what in off]
 
 
 def _output_warnings(loaded) -> list[str]:

@@ -30,6 +30,7 @@ from typing import Any, Literal
 import numpy as np
 
 from core import surface_fit
+from core.surface_scan import scan_surface
 from core.types import Calibration, DefectMeasurement, Detection, StereoFrame
 
 
@@ -143,6 +144,7 @@ def _ring_window(shape, box, gap, width) -> tuple[tuple[int, int], np.ndarray]:
 
 SCORED_POINTS = 1024
 INTERIOR_MARGIN_PX = 1.0  # a region's interior: its pixels at least this far inside its border
+SCAN_MARGIN_PX = 32  # rows above and below the ring high-passed with it: beyond 3 of the high-pass's sigma
 
 
 def fit_plane_robust(
@@ -336,13 +338,14 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     fit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)
     # no fallback to the backend's map: where the images cannot be fitted, its value is not one to vouch for
     if fit is None:
-        return _unavailable(reference, "the surface fit did not settle")
+        return _unavailable(reference, "the surface fit did not settle" + _elsewhere(pair, ring_all, plane, calib))
     if not fit.matches:
         return _unavailable(reference, f"the images do not match at the fitted surface (residuals "
                             f"{fit.residual_sigma:.1f} grey levels against a texture of {fit.signal_sigma:.1f}, the "
                             f"right eye's gain {fit.params[4]:.2f} on the surface and {fit.params[4] + fit.params[8]:.2f} "
                             f"on the defect): too little texture, the plate outside the stereo search range "
-                            f"(working distance), or the matcher far off on the defect")
+                            f"(working distance), or the matcher far off on the defect"
+                            + _elsewhere(pair, ring_all, plane, calib))
     # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a
     # sheen upsets only the cells, the crop's edge only the backend's map there. The ring kept above holds
     # only the backend's pixels within tolerance, so a matched pixel of it is one the backend agrees with.
@@ -395,6 +398,23 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         reference.area_mm2 * (distance / reference.distance_mm) ** 2,
         distance_sigma_mm=float(fb / d**2 * np.sqrt(var_d)), deviation_sigma_mm=deviation_sigma, method="surface",
     )
+
+
+def _elsewhere(pair, ring: tuple[np.ndarray, np.ndarray], plane: Plane, calib: Calibration) -> str:
+    """Where the fit found nothing: a clause saying where the surface around the box does match, when that
+    is more than 2 px of disparity from the backend's plane (a plate outside the searched range), else ''."""
+    left, right = pair
+    u, v = ring
+    top, bottom = max(0, int(v.min()) - SCAN_MARGIN_PX), min(left.shape[0], int(v.max()) + SCAN_MARGIN_PX + 1)
+    found = scan_surface(surface_fit.high_pass(left[top:bottom]), surface_fit.high_pass(right[top:bottom]), u, v - top)
+    backend = plane(float(np.mean(u)), float(np.mean(v))) - calib.doffs
+    if found is None or abs(found.disparity - backend) <= 2.0 or found.disparity + calib.doffs <= 0:
+        return ""
+    fb = calib.focal_px * calib.baseline_mm
+    said = f" ({fb / (backend + calib.doffs):.0f} mm)" if backend + calib.doffs > 0 else ""
+    return (f"; the surface around the box matches at {found.disparity:.0f} px of disparity "
+            f"({fb / (found.disparity + calib.doffs):.0f} mm), the stereo map says {backend:.0f} px{said}: "
+            f"is the plate outside the working distance?")
 
 
 def _unavailable(reference: DefectMeasurement, why: str) -> DefectMeasurement:

@@ -173,8 +173,20 @@ def test_a_pair_that_does_not_match_at_any_surface_has_no_deviation():
     m = _surface(left, other, disparity)
     assert m.deviation_mm is None and m.deviation_sigma_mm is None and m.method == "surface"
     assert "do not match" in m.note or "did not settle" in m.note
+    assert "matches at" not in m.note  # nowhere: no surface to point to
     good = _surface(left, right, disparity)
     assert good.deviation_mm is not None and good.note == ""
+
+
+def test_a_plate_beyond_the_searched_range_is_named_where_it_lies():
+    """A plate at 700 mm under a recipe that searches 350-500 mm: the backend's map puts it at the range's
+    end (here 84 px, 500 mm), the fit cannot start from there, and the note says where the plate is."""
+    left, right, disparity = render(CALIB, 700.0, 3.0, [Pit(160, 96, 25.0, 2.0)])
+    at_range_end = np.full_like(disparity, CALIB.focal_px * CALIB.baseline_mm / 500.0)
+    m = _surface(left, right, at_range_end)
+    assert m.deviation_mm is None
+    assert m.note.endswith("; the surface around the box matches at 60 px of disparity (700 mm), the stereo map "
+                           "says 84 px (500 mm): is the plate outside the working distance?"), m.note
 
 
 def test_a_region_with_no_interior_has_no_deviation():

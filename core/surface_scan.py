@@ -1,0 +1,66 @@
+"""Where the surface around a box matches, searched over every disparity: what to tell the operator when
+the surface fit did not settle.
+
+The fit starts from the stereo backend's disparity, which searches only the recipe's working distance;
+a plate outside it (a part of another thickness, a camera knocked on its mount) leaves the backend's map
+meaningless and the fit without a start. The ring's pixels, correlated with the right image at every
+horizontal shift, show where the plate really is: a part's note can then say so instead of only that
+the fit did not settle.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MIN_PEAK = 0.4  # zero-mean normalised correlation of the best shift; 0.5-0.95 on the evaluation sets
+MIN_CONTRAST = 2.0  # ... and this many times the best shift more than 2 px from it (0.1-0.36 there)
+MIN_OVERLAP = 0.5  # a shift is scored where at least this share of the ring lies in the right image
+
+
+@dataclass(frozen=True)
+class SurfaceMatch:
+    """The shift (image disparity, px, without doffs) at which the ring's pixels match best, and its
+    correlation."""
+
+    disparity: float
+    correlation: float
+
+
+def scan_surface(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarray,
+                 max_disparity: int | None = None) -> SurfaceMatch | None:
+    """The whole-pixel disparity at which the pixels (u, v) of ``left`` best match ``right``, as one
+    fronto-parallel surface, by zero-mean normalised correlation over 0 <= d < max_disparity (half the
+    image's width if not given); None without a distinct best (a correlation below MIN_PEAK, or less than
+    MIN_CONTRAST times that of any shift 3 px or more away from it).
+
+    left, right: HxW float images (high-passed grey: the eyes' exposures may differ). u, v: (N,) integer
+    pixel coordinates, inside the image."""
+    if left.shape != right.shape or left.ndim != 2:
+        raise ValueError(f"scan_surface: left {left.shape} and right {right.shape} must be the same HxW")
+    if u.shape != v.shape or u.ndim != 1:
+        raise ValueError(f"scan_surface: u {u.shape} and v {v.shape} must be the same (N,)")
+    if u.size == 0:
+        return None
+    h, w = left.shape
+    top = w // 2 if max_disparity is None else min(int(max_disparity), w)
+    d = np.arange(top)
+    columns = u[None, :] - d[:, None]  # (D, N)
+    inside = columns >= 0
+    a = np.where(inside, left[v, u].astype(np.float32)[None, :], np.float32(0))
+    b = np.where(inside, right[v[None, :], np.maximum(columns, 0)].astype(np.float32), np.float32(0))
+    n = inside.sum(axis=1)
+    scored = n >= MIN_OVERLAP * u.size
+    n = np.maximum(n, 1)
+    a = np.where(inside, a - (a.sum(axis=1) / n)[:, None], 0.0)
+    b = np.where(inside, b - (b.sum(axis=1) / n)[:, None], 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = (a * b).sum(axis=1) / np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
+    r = np.where(scored & np.isfinite(r), r, -np.inf)
+    best = int(np.argmax(r))
+    peak = float(r[best])
+    away = np.abs(d - best) > 2
+    second = float(np.max(r[away], initial=-np.inf))
+    if not peak >= MIN_PEAK or second * MIN_CONTRAST > peak:
+        return None
+    return SurfaceMatch(float(best), peak)

@@ -21,6 +21,13 @@ class TestScanSurface:
         found = scan_surface(left, right, *ring(150, 35, 200, 65))
         assert found is not None and found.disparity == shift and found.correlation > 0.8
 
+    def test_a_ring_of_many_thousand_pixels_is_read_in_part_and_found_all_the_same(self):
+        left, right, _ = step_pair(width=420, height=300, plane=(0.0, 0.0, 44.0), step_box=None)
+        u, v = ring(150, 60, 350, 240, width=12)
+        assert u.size > 2 * 4096
+        found = scan_surface(left, right, u, v)
+        assert found is not None and found.disparity == 44.0
+
     def test_a_gently_slanted_plane_is_found_at_its_mean(self):
         left, right, _ = step_pair(width=240, height=100, plane=(0.0, 0.02, 30.0), step_box=None)
         found = scan_surface(left, right, *ring(150, 35, 200, 65))

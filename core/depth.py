@@ -338,14 +338,13 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     fit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)
     # no fallback to the backend's map: where the images cannot be fitted, its value is not one to vouch for
     if fit is None:
-        return _unavailable(reference, "the surface fit did not settle" + _elsewhere(pair, ring_all, plane, calib))
+        return _not_fitted(reference, "the surface fit did not settle", pair, ring_all, plane, calib)
     if not fit.matches:
-        return _unavailable(reference, f"the images do not match at the fitted surface (residuals "
-                            f"{fit.residual_sigma:.1f} grey levels against a texture of {fit.signal_sigma:.1f}, the "
-                            f"right eye's gain {fit.params[4]:.2f} on the surface and {fit.params[4] + fit.params[8]:.2f} "
-                            f"on the defect): too little texture, the plate outside the stereo search range "
-                            f"(working distance), or the matcher far off on the defect"
-                            + _elsewhere(pair, ring_all, plane, calib))
+        return _not_fitted(reference, f"the images do not match at the fitted surface (residuals "
+                           f"{fit.residual_sigma:.1f} grey levels against a texture of {fit.signal_sigma:.1f}, the "
+                           f"right eye's gain {fit.params[4]:.2f} on the surface and {fit.params[4] + fit.params[8]:.2f} "
+                           f"on the defect): too little texture, the plate outside the stereo search range "
+                           f"(working distance), or the matcher far off on the defect", pair, ring_all, plane, calib)
     # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a
     # sheen upsets only the cells, the crop's edge only the backend's map there. The ring kept above holds
     # only the backend's pixels within tolerance, so a matched pixel of it is one the backend agrees with.
@@ -400,21 +399,26 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     )
 
 
-def _elsewhere(pair, ring: tuple[np.ndarray, np.ndarray], plane: Plane, calib: Calibration) -> str:
-    """Where the fit found nothing: a clause saying where the surface around the box does match, when that
-    is more than 2 px of disparity from the backend's plane (a plate outside the searched range), else ''."""
+def _not_fitted(reference: DefectMeasurement, why: str, pair, ring: tuple[np.ndarray, np.ndarray], plane: Plane,
+                calib: Calibration) -> DefectMeasurement:
+    """No deviation, the fit having found nothing. Where the surface around the box matches the images more
+    than 2 px of disparity from the backend's plane (a plate outside the searched range), the note says
+    where, and the backend's distance (and the area from it) goes too: a rule on them would decide on a
+    plate the map puts where it is not."""
     left, right = pair
     u, v = ring
     top, bottom = max(0, int(v.min()) - SCAN_MARGIN_PX), min(left.shape[0], int(v.max()) + SCAN_MARGIN_PX + 1)
     found = scan_surface(surface_fit.high_pass(left[top:bottom]), surface_fit.high_pass(right[top:bottom]), u, v - top)
     backend = plane(float(np.mean(u)), float(np.mean(v))) - calib.doffs
     if found is None or abs(found.disparity - backend) <= 2.0 or found.disparity + calib.doffs <= 0:
-        return ""
+        return _unavailable(reference, why)
     fb = calib.focal_px * calib.baseline_mm
     said = f" ({fb / (backend + calib.doffs):.0f} mm)" if backend + calib.doffs > 0 else ""
-    return (f"; the surface around the box matches at {found.disparity:.0f} px of disparity "
+    why += (f"; the surface around the box matches at {found.disparity:.0f} px of disparity "
             f"({fb / (found.disparity + calib.doffs):.0f} mm), the stereo map says {backend:.0f} px{said}: "
             f"is the plate outside the working distance?")
+    return replace(_unavailable(reference, why), distance_mm=None, distance_sigma_mm=None, area_mm2=None,
+                   depth_resolution_mm=None)
 
 
 def _unavailable(reference: DefectMeasurement, why: str) -> DefectMeasurement:

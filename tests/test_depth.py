@@ -187,6 +187,8 @@ def test_a_plate_beyond_the_searched_range_is_named_where_it_lies():
     assert m.deviation_mm is None
     assert m.note.endswith("; the surface around the box matches at 60 px of disparity (700 mm), the stereo map "
                            "says 84 px (500 mm): is the plate outside the working distance?"), m.note
+    # the map's 500 mm is no distance to decide on either: a rule on it is an ERROR, not a PASS
+    assert m.distance_mm is None and m.distance_sigma_mm is None and m.area_mm2 is None
 
 
 def test_a_region_with_no_interior_has_no_deviation():

@@ -45,7 +45,7 @@ def scan_surface(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarr
         return None
     step = -(-u.size // MAX_PIXELS)  # a few thousand pixels tell a correlation; the (D, N) arrays stay small
     u, v = u[::step], v[::step]
-    h, w = left.shape
+    w = left.shape[1]
     top = w // 2 if max_disparity is None else min(int(max_disparity), w)
     d = np.arange(top)
     columns = u[None, :] - d[:, None]  # (D, N)
@@ -54,9 +54,9 @@ def scan_surface(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarr
     b = np.where(inside, right[v[None, :], np.maximum(columns, 0)].astype(np.float32), np.float32(0))
     n = inside.sum(axis=1)
     scored = n >= MIN_OVERLAP * u.size
-    n = np.maximum(n, 1)
-    a = np.where(inside, a - (a.sum(axis=1) / n)[:, None], 0.0)
-    b = np.where(inside, b - (b.sum(axis=1) / n)[:, None], 0.0)
+    n = np.maximum(n, 1).astype(np.float32)
+    a = np.where(inside, a - (a.sum(axis=1) / n)[:, None], np.float32(0))
+    b = np.where(inside, b - (b.sum(axis=1) / n)[:, None], np.float32(0))
     with np.errstate(invalid="ignore", divide="ignore"):
         r = (a * b).sum(axis=1) / np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
     r = np.where(scored & np.isfinite(r), r, -np.inf)

@@ -31,6 +31,7 @@ from drivers.serial_line import LineCommand, SerialLine
 from plugins.command_format import checked_format, command_text
 from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay
 
+
 class SerialSettings(TimingSettings):
     port: str = Field(min_length=1, description="serial port or pyserial URL")
     baudrate: int = Field(9600, gt=0)

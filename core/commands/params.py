@@ -19,6 +19,10 @@ class Finite(click.FloatRange):
             self.fail(f"{value!r} is not a finite number", param, ctx)
         return number
 
+    def _describe_range(self) -> str:
+        # click writes an unbounded range as "x<=None" in the help
+        return "finite" if self.min is None and self.max is None else super()._describe_range()
+
 
 FINITE = Finite()
 

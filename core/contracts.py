@@ -114,3 +114,7 @@ class PluginSpec:
     # alone, so that a recipe whose delay is shorter than a frame period is refused and a frame older
     # than the delay is an ERROR (its part is past the actuator).
     actuator_delay: Callable[[dict[str, Any], PluginContext], float | None] | None = None
+    # Optional, outputs: the shortest time between two parts' commands that the actuator can be given
+    # apart (a reject pulse and the low after it), from the settings alone, so that a camera delivering
+    # parts faster than that is warned of; None where any rate will do (a counter, a level).
+    part_interval: Callable[[dict[str, Any], PluginContext], float | None] | None = None

@@ -50,6 +50,9 @@ class Link(Protocol):
         Raise ``LinkError``/``OSError`` when it fails (the scheduler reconnects and retries)."""
 
 
+MIN_PULSE_GAP_S = 0.02  # a coil low at least this long between two pulses, so that the PLC sees two rising edges
+
+
 @dataclass
 class Command:
     """What to send for a part. ``follow_up`` is sent ``follow_up_after_s`` after it succeeds."""
@@ -107,7 +110,7 @@ class RejectScheduler:
         heartbeat: Callable[[int], Command] | None = None,
         heartbeat_period_s: float = 1.0,
         record_failures: bool = True,
-        min_pulse_gap_s: float = 0.02,
+        min_pulse_gap_s: float = MIN_PULSE_GAP_S,
     ):
         self.link, self.name = link, name
         self.max_late_s = max_late_s

@@ -28,7 +28,7 @@ from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
 from core.types import PartResult
 from drivers.modbus_link import ModbusLink, ModbusWrite
-from drivers.reject_scheduler import Command, RejectScheduler
+from drivers.reject_scheduler import MIN_PULSE_GAP_S, Command, RejectScheduler
 from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay
 
 
@@ -109,6 +109,13 @@ class ModbusSettings(TimingSettings):
         return self
 
 
+def part_interval(settings: dict, ctx: PluginContext) -> float | None:
+    """``PluginSpec.part_interval``: a pulsed coil's pulse and the low the PLC needs before the next one."""
+    model = ModbusSettings.model_validate(settings)
+    pulses = [a.pulse_ms for a in (model.on_reject, model.on_pass) if a is not None and a.pulse_ms]
+    return max(pulses) / 1000.0 + MIN_PULSE_GAP_S if pulses else None
+
+
 def make_command(action: WriteAction, unit: int, count: int = 0) -> Command:
     if action.write == "counter":
         write = ModbusWrite("register", action.address, count & 0xFFFF, unit)
@@ -184,6 +191,7 @@ def stereo_inspect_outputs() -> list[PluginSpec]:
             factory=_factory,
             settings_model=ModbusSettings,
             actuator_delay=actuator_delay(ModbusSettings),
+            part_interval=part_interval,
             description="reject via Modbus TCP/RTU: coil pulse or register write at the actuator's due time",
         )
     ]

@@ -4,7 +4,7 @@ from __future__ import annotations
 import re
 
 import pytest
-from conftest import cli, write_recipe
+from conftest import ROOT, cli, write_recipe
 
 from core.recipe import RecipeError, load_recipe
 
@@ -178,7 +178,6 @@ def test_set_override_applies_and_is_located(recipe_dir):
 def test_another_plugin_by_set_starts_from_its_own_settings():
     """The demo recipe's stereo settings are torch_sgm's: switching the backend leaves them behind, unless
     the command line gives the new one settings of its own."""
-    from conftest import ROOT
 
     demo = ROOT / "recipes" / "steel_plate.yaml"
     assert load_recipe(demo).plugin_settings["stereo"]["align"] == "none"
@@ -266,7 +265,6 @@ def test_validate_warns_of_classes_that_no_rule_covers(recipe_dir):
 
 
 def test_the_demo_recipe_resolves_its_limits():
-    from conftest import ROOT
 
     result = cli("validate", str(ROOT / "recipes" / "steel_plate.yaml"))
     assert result.returncode == 0 and result.stderr == ""
@@ -312,3 +310,19 @@ def test_validate_warns_of_an_image_check_turned_off(recipe_dir, key, off, what)
     assert re.fullmatch(rf"{re.escape(str(path.resolve()))} \(--set camera\.image_check\.{key}\): camera\.image_check\."
                         rf"{key}: warning: off: {what}.*passes instead of being an ERROR\n", result.stderr), result.stderr
     assert cli("validate", str(path), "--set", f"camera.image_check.{key}=0.5").stderr == ""
+
+
+def test_validate_warns_where_plates_come_closer_than_a_reject_pulse_allows():
+    # the demo's 100 ms pulse and the 20 ms low after it need 120 ms: at 12 plates a second (83 ms) a run
+    # of rejects falls 37 ms further behind with each one; at 8 (125 ms) it does not
+    demo = str(ROOT / "recipes" / "steel_plate.yaml")
+    fast = cli("validate", demo, "--set", "camera.settings.rate_fps=12")
+    assert fast.returncode == 0
+    assert re.fullmatch(r".*steel_plate\.yaml:\d+: outputs\.0\.settings: warning: a part's pulse and the low after it "
+                        r"take 120 ms, longer than the 83 ms between two plates at 12 per second: each reject right "
+                        r"after another is 37 ms later than the one before, until beyond max_late_ms it is alarmed "
+                        r"instead of sent.*\n", fast.stderr), fast.stderr
+    assert cli("validate", demo, "--set", "camera.settings.rate_fps=8").stderr == ""
+    counted = cli("validate", demo, "--set", "camera.settings.rate_fps=12",
+                  "--set", "outputs.0.settings.on_reject={write: counter, address: 3}")
+    assert counted.returncode == 0 and counted.stderr == "", counted.stderr

@@ -286,7 +286,33 @@ def recipe_warnings(loaded) -> list[str]:
     """What the recipe lets through without an error: limits the camera cannot resolve at the working
     distance, classes no rule covers, decisions that pass unproven parts, rejects that reach no actuator."""
     return (_depth_warnings(loaded) + _coverage_warnings(loaded) + _guard_band_warnings(loaded)
-            + _image_check_warnings(loaded) + _output_warnings(loaded))
+            + _image_check_warnings(loaded) + _output_warnings(loaded) + _pulse_warnings(loaded))
+
+
+def _pulse_warnings(loaded) -> list[str]:
+    """A line for each output whose actuator cannot be given two parts as close together as the camera
+    delivers them (``PluginSpec.part_interval``): a run of rejects falls behind, one pulse after another,
+    until the output alarms them instead of sending them."""
+    from core.contracts import PluginContext
+    from core.recipe.loader import camera_answer
+    from core.registry import default_registry
+
+    registry = default_registry()
+    fps = camera_answer(loaded, registry, "frame_rate")
+    if not fps:
+        return []
+    period = 1.0 / fps
+    lines = []
+    for index, output in enumerate(loaded.recipe.outputs):
+        ask = registry.get("output", output.plugin).spec.part_interval
+        interval = ask(loaded.plugin_settings[f"outputs.{index}"], PluginContext(recipe_dir=loaded.directory)) if ask else None
+        if interval is not None and interval > period:
+            lines.append(loaded.describe(("outputs", index, "settings"), f"warning: a part's pulse and the low after it "
+                                         f"take {1000 * interval:.0f} ms, longer than the {1000 * period:.0f} ms between "
+                                         f"two plates at {fps:g} per second: each reject right after another is "
+                                         f"{1000 * (interval - period):.0f} ms later than the one before, until beyond "
+                                         f"max_late_ms it is alarmed instead of sent (a shorter pulse_ms, or write: counter)"))
+    return lines
 
 
 def _image_check_warnings(loaded) -> list[str]:

@@ -114,7 +114,8 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
                 if stereo is not None and (region == "full" or detections):
                     disparity = frame_disparity(stereo, frame, section, detections, rule)
                     t["stereo"] = time.perf_counter()
-                    measurements = measure_frame(disparity, detections, frame, rule)
+                    measurements = measure_frame(disparity, detections, frame, rule,
+                                                 disparity_range(section, frame.calib))
                     t["depth"] = time.perf_counter()
                 else:
                     t["stereo"] = t["depth"] = t["detection"]

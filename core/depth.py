@@ -246,13 +246,14 @@ def region_weights(box: tuple[float, float, float, float], clipped: tuple[int, i
 
 def measure_defect(
     disparity: np.ndarray, detection: Detection, calib: Calibration, rule: DepthRule = DepthRule(),
-    pair: tuple[np.ndarray, np.ndarray] | None = None,
+    pair: tuple[np.ndarray, np.ndarray] | None = None, searched: tuple[float, float] | None = None,
 ) -> DefectMeasurement:
     """Distance and deviation of one detection, with their standard uncertainties.
 
     disparity: HxW float, NaN/inf/0 = invalid. pair: the rectified (left, right) HxW float32 grey
     images (``surface_fit.to_grey``), needed by ``method: surface``; without it the backend's
-    disparity alone is used (``method: disparity``)."""
+    disparity alone is used (``method: disparity``). searched: the disparities (lo, hi, px) the backend
+    searched; where given, a measurement without a deviation says whether the plate lies outside them."""
     shape = disparity.shape
     if pair is not None and (pair[0].shape != shape or pair[1].shape != shape):
         raise ValueError(f"measure_defect: images {pair[0].shape} / {pair[1].shape} and disparity {shape} differ")
@@ -262,11 +263,14 @@ def measure_defect(
     total = region.size
     valid = valid_mask(region, calib.doffs)
     valid_fraction = float(valid.sum() / total) if total else 0.0
+    surface = rule.method == "surface" and pair is not None
     if total == 0 or valid_fraction < rule.min_valid_fraction:
-        return DefectMeasurement(
+        m = DefectMeasurement(
             detection, None, None, valid_fraction, None, None,
             note=f"depth unavailable: {valid_fraction:.0%} of the region valid, {rule.min_valid_fraction:.0%} needed",
         )
+        return _outside_search(m, pair, ring_pixels(shape, detection.box, rule.ring_gap_px, rule.ring_width_px),
+                               calib, searched) if surface else m
 
     fb = calib.focal_px * calib.baseline_mm
     d_defect = region[valid].astype(np.float64) + calib.doffs
@@ -286,13 +290,13 @@ def measure_defect(
             tolerance=rule.plane_tolerance_px,
         )
     if plane is None:
-        return DefectMeasurement(
+        m = DefectMeasurement(
             detection, distance, None, valid_fraction, resolution, area,
             note=f"deviation unavailable: {ru.size} valid surface points around the box, {rule.min_ring_points} needed",
             distance_sigma_mm=resolution,
         )
+        return _outside_search(m, pair, ring_all, calib, searched) if surface else m
     how, share = worst_side(plane, ru, rv, d_ring + calib.doffs, _clip_box(detection.box, shape), rule.plane_tolerance_px)
-    surface = rule.method == "surface" and pair is not None
     # the surface fit judges the ring from the images itself (below); the backend's judgement only where
     # the ring is not in view, or for the reference
     if share < rule.min_plane_inliers and (not surface or "outside the image" in how):
@@ -310,11 +314,11 @@ def measure_defect(
     if not surface:
         return reference
     return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, matched, inner,
-                                (x0, y0, x1, y1), d_plane - d_defect, reference)
+                                (x0, y0, x1, y1), d_plane - d_defect, reference, searched)
 
 
 def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, matched, inner, clipped, offsets,
-                         reference: DefectMeasurement) -> DefectMeasurement:
+                         reference: DefectMeasurement, searched: tuple[float, float] | None) -> DefectMeasurement:
     """``method: surface``: the ring's plane and the defect's offset fitted to the images, from the backend's
     plane and median offset. No deviation where the fit does not settle or the images do not match at it.
     ring_all: the ring's pixels (u, v); matched: (ring pixels,) bool, those the backend matched."""
@@ -338,13 +342,14 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     fit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)
     # no fallback to the backend's map: where the images cannot be fitted, its value is not one to vouch for
     if fit is None:
-        return _not_fitted(reference, "the surface fit did not settle", pair, ring_all, plane, calib)
+        return _outside_search(_unavailable(reference, "the surface fit did not settle"), pair, ring_all, calib,
+                               searched)
     if not fit.matches:
-        return _not_fitted(reference, f"the images do not match at the fitted surface (residuals "
-                           f"{fit.residual_sigma:.1f} grey levels against a texture of {fit.signal_sigma:.1f}, the "
-                           f"right eye's gain {fit.params[4]:.2f} on the surface and {fit.params[4] + fit.params[8]:.2f} "
-                           f"on the defect): too little texture, the plate outside the stereo search range "
-                           f"(working distance), or the matcher far off on the defect", pair, ring_all, plane, calib)
+        why = (f"the images do not match at the fitted surface (residuals {fit.residual_sigma:.1f} grey levels "
+               f"against a texture of {fit.signal_sigma:.1f}, the right eye's gain {fit.params[4]:.2f} on the surface "
+               f"and {fit.params[4] + fit.params[8]:.2f} on the defect): too little texture, the plate outside the "
+               f"stereo search range (working distance), or the matcher far off on the defect")
+        return _outside_search(_unavailable(reference, why), pair, ring_all, calib, searched)
     # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a
     # sheen upsets only the cells, the crop's edge only the backend's map there. The ring kept above holds
     # only the backend's pixels within tolerance, so a matched pixel of it is one the backend agrees with.
@@ -399,26 +404,27 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     )
 
 
-def _not_fitted(reference: DefectMeasurement, why: str, pair, ring: tuple[np.ndarray, np.ndarray], plane: Plane,
-                calib: Calibration) -> DefectMeasurement:
-    """No deviation, the fit having found nothing. Where the surface around the box matches the images more
-    than 2 px of disparity from the backend's plane (a plate outside the searched range), the note says
-    where, and the backend's distance (and the area from it) goes too: a rule on them would decide on a
-    plate the map puts where it is not."""
-    left, right = pair
+def _outside_search(m: DefectMeasurement, pair, ring: tuple[np.ndarray, np.ndarray], calib: Calibration,
+                    searched: tuple[float, float] | None) -> DefectMeasurement:
+    """``m``, a measurement without a deviation; where the images show the surface around the box
+    (``core.surface_scan``, every shift tried) at a disparity outside ``searched`` (lo, hi: the backend's
+    search range, px without doffs), the note says where, and the map's distance (and the area from it)
+    goes: it is that of a plate where there is none, and no rule may decide on it."""
     u, v = ring
+    if searched is None or pair is None or u.size == 0:
+        return m
+    left, right = pair
     top, bottom = max(0, int(v.min()) - SCAN_MARGIN_PX), min(left.shape[0], int(v.max()) + SCAN_MARGIN_PX + 1)
     found = scan_surface(surface_fit.high_pass(left[top:bottom]), surface_fit.high_pass(right[top:bottom]), u, v - top)
-    backend = plane(float(np.mean(u)), float(np.mean(v))) - calib.doffs
-    if found is None or abs(found.disparity - backend) <= 2.0 or found.disparity + calib.doffs <= 0:
-        return _unavailable(reference, why)
-    fb = calib.focal_px * calib.baseline_mm
-    said = f" ({fb / (backend + calib.doffs):.0f} mm)" if backend + calib.doffs > 0 else ""
-    why += (f"; the surface around the box matches at {found.disparity:.0f} px of disparity "
-            f"({fb / (found.disparity + calib.doffs):.0f} mm), the stereo map says {backend:.0f} px{said}: "
-            f"is the plate outside the working distance?")
-    return replace(_unavailable(reference, why), distance_mm=None, distance_sigma_mm=None, area_mm2=None,
-                   depth_resolution_mm=None)
+    lo, hi = searched
+    if found is None or lo - 1.0 <= found.disparity <= hi + 1.0 or found.disparity + calib.doffs <= 0:
+        return m
+    z = calib.focal_px * calib.baseline_mm / (found.disparity + calib.doffs)
+    clause = (f"; the surface around the box matches the images at {found.disparity:.0f} px of disparity "
+              f"({z:.0f} mm), outside the {lo:.0f}-{hi:.0f} px the stereo search covers: the plate lies outside "
+              f"the working distance")
+    return replace(m, note=m.note + clause, distance_mm=None, distance_sigma_mm=None, area_mm2=None,
+                   depth_resolution_mm=None, surface_elsewhere_mm=z)
 
 
 def _unavailable(reference: DefectMeasurement, why: str) -> DefectMeasurement:
@@ -428,11 +434,11 @@ def _unavailable(reference: DefectMeasurement, why: str) -> DefectMeasurement:
 
 
 def measure_frame(disparity: np.ndarray, detections: list[Detection], frame: StereoFrame,
-                  rule: DepthRule = DepthRule()) -> list[DefectMeasurement]:
+                  rule: DepthRule = DepthRule(), searched: tuple[float, float] | None = None) -> list[DefectMeasurement]:
     """``measure_defect`` for every detection of a frame (its pair converted to grey once)."""
     if not detections:
         return []
     pair = None
     if rule.method == "surface":
         pair = (surface_fit.to_grey(frame.left), surface_fit.to_grey(frame.right))
-    return [measure_defect(disparity, d, frame.calib, rule, pair) for d in detections]
+    return [measure_defect(disparity, d, frame.calib, rule, pair, searched) for d in detections]

@@ -28,7 +28,7 @@ import numpy as np
 from core.boxes import match_boxes
 from core.decision import judge_defect, rule_applies
 from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
-from core.engine import StageFailed, frame_disparity, kept_detections
+from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
 from core.recipe import LoadedRecipe
 from core.surface_fit import gradient_x, to_grey
 from core.types import Detection, DefectMeasurement, Status, StereoFrame
@@ -180,7 +180,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     truths, true_boxes, boxed = (list(t) for t in zip(*kept))
     disparity = frame_disparity(backend, frame, recipe.stereo, detections, rule)
     start = time.perf_counter()
-    measured = measure_frame(disparity, boxed, frame, rule)
+    measured = measure_frame(disparity, boxed, frame, rule, disparity_range(recipe.stereo, frame.calib))
     timings.append((time.perf_counter() - start) / len(boxed))
     reference = measure_frame(disparity, boxed, frame, reference_rule)
     grey = to_grey(frame.left)

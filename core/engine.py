@@ -336,7 +336,7 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
             timings["stereo"] = time.perf_counter() - t0
             stage = "depth"
             t0 = time.perf_counter()
-            measurements = measure_frame(disparity, detections, item, rule)
+            measurements = measure_frame(disparity, detections, item, rule, disparity_range(recipe.stereo, item.calib))
             timings["depth"] = time.perf_counter() - t0
         stage = "decision"
         verdict, per_defect = decide(measurements, recipe.decision)
@@ -358,6 +358,36 @@ def capture_time_problem(timestamp: Any, now: float) -> str | None:
         return (f"the camera stamped it {timestamp - now:.1f} s ahead of this computer's clock: a frame's stamp must "
                 f"be time.time() at its capture")
     return None
+
+
+class PlatesOutOfRange:
+    """Parts in a row whose defects' surroundings the images show away from where the stereo map put them
+    (``DefectMeasurement.surface_elsewhere_mm``: a plate outside the searched range). A part with a measured
+    deviation ends such a run; a part without defects says nothing of the plate's distance."""
+
+    def __init__(self, stereo: StereoSection):
+        self.stereo = stereo
+        self.run = 0
+
+    def alarm(self, part: PartResult) -> Alarm | None:
+        """The alarm for the run's CAMERA_LOST_AFTER-th part, once per run; None otherwise."""
+        found = [m.surface_elsewhere_mm for m in part.measurements if m.surface_elsewhere_mm is not None]
+        if found:
+            self.run += 1
+        elif any(m.deviation_mm is not None for m in part.measurements):
+            self.run = 0
+        if not found or self.run != CAMERA_LOST_AFTER:
+            return None
+        if self.stereo.working_distance_mm is not None:
+            near, far = self.stereo.working_distance_mm
+            searched = f"stereo.working_distance_mm ({near:g}-{far:g} mm)"
+        else:
+            searched = "the disparities stereo.min_disparity and max_disparity search"
+        return Alarm("depth", f"plates outside the working distance: {CAMERA_LOST_AFTER} parts in a row whose defects' "
+                              f"surroundings the images show at about {float(np.median(found)):.0f} mm (last: frame "
+                              f"{part.frame_id}), outside {searched}; their defects cannot be measured and the parts "
+                              f"are rejected as ERROR until the plates or the recipe are set right",
+                     time.time(), part.part_id, "range")
 
 
 def frame_refusal(item: StereoFrame | FrameError, repeats: RepeatedImages, check) -> tuple[str | None, str | None]:
@@ -497,6 +527,7 @@ def run(
     started = time.perf_counter()
     failed_in_a_row = unusable_in_a_row = 0
     repeats = RepeatedImages()
+    out_of_range = PlatesOutOfRange(recipe.stereo)
 
     def part_id(item: StereoFrame | FrameError) -> str:
         return f"R{run_id}-{item.index:06d}"
@@ -591,6 +622,8 @@ def run(
                 record([Alarm("camera", f"images unusable: {CAMERA_LOST_AFTER} frames in a row (last: frame "
                                         f"{item.frame_id}: {unusable}); parts are rejected as ERROR until they "
                                         f"show the plate", time.time(), part.part_id, "image")])
+            if (alarm := out_of_range.alarm(part)) is not None:
+                record([alarm])
             finish(outcome)
             stage_seconds.update(outcome.timings)
             frames += 1

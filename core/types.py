@@ -114,6 +114,9 @@ class DefectMeasurement:
     distance_sigma_mm: float | None = None
     deviation_sigma_mm: float | None = None
     method: str = "disparity"
+    # where the images show the surface around the box when the stereo map put it elsewhere and the fit
+    # found nothing (a plate outside the working distance); the engine alarms when that persists
+    surface_elsewhere_mm: float | None = None
 
     def quantity(self, name: str) -> float | None:
         if name == "confidence":
@@ -188,7 +191,8 @@ class Alarm:
     pulse's end not sent), pulse, busy, closed, camera, engine, crash, stall (a part stayed in inspection
     longer than the recipe's ``watchdog_s``), frozen (the camera handed over its last images again), image
     (frames in a row whose images could not show a defect), store (the results store could not be written),
-    images (the parts' annotated images could not be saved)."""
+    images (the parts' annotated images could not be saved), range (plates in a row outside the stereo search
+    range)."""
 
     source: str
     message: str

@@ -170,25 +170,36 @@ def test_a_pair_that_does_not_match_at_any_surface_has_no_deviation():
     the backend's map does not stand in."""
     left, right, disparity = render(CALIB, 400.0, 4.0, [Pit(160, 96, 25.0, 2.0)])
     other, _, _ = render(CALIB, 400.0, 4.0, seed=5)  # another plate's texture
-    m = _surface(left, other, disparity)
+    m = measure_defect(disparity, Detection("pit", 0.9, BOX), CALIB, DepthRule(), (_grey(left), _grey(other)),
+                       searched=(80.0, 130.0))
     assert m.deviation_mm is None and m.deviation_sigma_mm is None and m.method == "surface"
     assert "do not match" in m.note or "did not settle" in m.note
-    assert "matches at" not in m.note  # nowhere: no surface to point to
+    assert "matches the images at" not in m.note  # nowhere: no surface to point to
     good = _surface(left, right, disparity)
     assert good.deviation_mm is not None and good.note == ""
 
 
-def test_a_plate_beyond_the_searched_range_is_named_where_it_lies():
-    """A plate at 700 mm under a recipe that searches 350-500 mm: the backend's map puts it at the range's
-    end (here 84 px, 500 mm), the fit cannot start from there, and the note says where the plate is."""
+@pytest.mark.parametrize("backend_says", [
+    "the range's end",  # a matcher that keeps its best within the range (torch_sgm): 84 px, 500 mm
+    "nothing",  # one that leaves it unmatched (opencv_sgbm's uniqueness)
+])
+def test_a_plate_beyond_the_searched_range_is_named_where_it_lies(backend_says):
+    """A plate at 700 mm under a recipe that searches 350-500 mm (78-126 px with a margin): the fit cannot
+    start from the backend's map, and the note says where the plate is."""
     left, right, disparity = render(CALIB, 700.0, 3.0, [Pit(160, 96, 25.0, 2.0)])
-    at_range_end = np.full_like(disparity, CALIB.focal_px * CALIB.baseline_mm / 500.0)
-    m = _surface(left, right, at_range_end)
+    value = CALIB.focal_px * CALIB.baseline_mm / 500.0 if backend_says == "the range's end" else np.nan
+    backend = np.full_like(disparity, value)
+    pair = (_grey(left), _grey(right))
+    m = measure_defect(backend, Detection("pit", 0.9, BOX), CALIB, DepthRule(), pair, searched=(78.0, 126.0))
     assert m.deviation_mm is None
-    assert m.note.endswith("; the surface around the box matches at 60 px of disparity (700 mm), the stereo map "
-                           "says 84 px (500 mm): is the plate outside the working distance?"), m.note
+    assert m.note.endswith("; the surface around the box matches the images at 60 px of disparity (700 mm), outside "
+                           "the 78-126 px the stereo search covers: the plate lies outside the working distance"), m.note
     # the map's 500 mm is no distance to decide on either: a rule on it is an ERROR, not a PASS
     assert m.distance_mm is None and m.distance_sigma_mm is None and m.area_mm2 is None
+    assert m.surface_elsewhere_mm == pytest.approx(700.0, abs=12)  # whole pixels of disparity
+    # a search range that held it: the fit's own reasons alone
+    held = measure_defect(backend, Detection("pit", 0.9, BOX), CALIB, DepthRule(), pair, searched=(40.0, 126.0))
+    assert "matches the images at" not in held.note and held.surface_elsewhere_mm is None
 
 
 def test_a_region_with_no_interior_has_no_deviation():

@@ -161,6 +161,28 @@ def test_frames_that_cannot_show_a_defect_are_errors_and_an_outage_one_alarm(tmp
     assert any("could not show a defect" in h for h in hints) and not any("stopped delivering" in h for h in hints)
 
 
+def test_plates_outside_the_working_distance_are_errors_and_a_run_of_them_one_alarm(tmp_path, plane_sequence,
+                                                                                     registry):
+    # the plates lie at 400 mm, the recipe searches 200-300 mm (a part of another thickness, a camera moved)
+    info = plane_sequence([0.0, 6.0, 0.0, 0.0, 6.0])
+    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log"))
+    loaded = load_recipe(path, ["stereo.working_distance_mm=[200, 300]"], registry=registry)
+    seen = []
+    summary = engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.ERROR] * 5
+    first = seen[0].part.measurements[0]
+    assert first.distance_mm is None and first.surface_elsewhere_mm == pytest.approx(400, abs=4)
+    assert "the plate lies outside the working distance" in first.note
+    (alarm,) = summary.alarms
+    assert alarm.cause == "range" and alarm.part_id == seen[2].part.part_id
+    assert alarm.message.startswith("plates outside the working distance: 3 parts in a row whose defects' "
+                                    "surroundings the images show at about 40"), alarm.message
+    assert "outside stereo.working_distance_mm (200-300 mm)" in alarm.message
+    from core.commands.inspection import alarm_hints
+    hints = alarm_hints(summary.alarms, loaded, plc_sim_given=False)
+    assert any("outside the stereo search range" in h for h in hints)
+
+
 def test_a_dead_disk_still_sends_the_decided_reject_then_stops_with_an_alarm(tmp_path, plane_sequence, registry,
                                                                               monkeypatch):
     info = plane_sequence([0.0, 6.0, 0.0, 0.0, 0.0])

@@ -207,6 +207,9 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
     if "image" in causes:
         lines.append("  the camera's images could not show a defect (too dark, washed out or without texture): check "
                      "the lights, the exposure and the lens (camera.image_check, docs/recipe-reference.md)")
+    if "range" in causes:
+        lines.append("  the plates lie outside the stereo search range (the alarm says at what distance): set "
+                     "stereo.working_distance_mm to where they are, or the camera back where the recipe expects it")
     if "store" in causes:
         lines.append("  the results store could not be written (a full disk, its permissions, a removed drive): the "
                      "parts decided until then went to the outputs unrecorded; free the disk and start again")

@@ -1,11 +1,10 @@
 """Where the surface around a box matches, searched over every disparity: what to tell the operator when
-the surface fit did not settle.
+a defect could not be measured.
 
-The fit starts from the stereo backend's disparity, which searches only the recipe's working distance;
-a plate outside it (a part of another thickness, a camera knocked on its mount) leaves the backend's map
-meaningless and the fit without a start. The ring's pixels, correlated with the right image at every
-horizontal shift, show where the plate really is: a part's note can then say so instead of only that
-the fit did not settle.
+The stereo backend searches only the recipe's working distance; a plate outside it (a part of another
+thickness, a camera knocked on its mount) leaves the backend's map meaningless there, and the surface fit
+without a start. The ring's pixels, correlated with the right image at every horizontal shift, show where
+the plate really is, so that a part's note can say so instead of only that the fit did not settle.
 """
 from __future__ import annotations
 

@@ -114,8 +114,9 @@ class DefectMeasurement:
     distance_sigma_mm: float | None = None
     deviation_sigma_mm: float | None = None
     method: str = "disparity"
-    # where the images show the surface around the box when the stereo map put it elsewhere and the fit
-    # found nothing (a plate outside the working distance); the engine alarms when that persists
+    # where the images show the surface around a box that could not be measured, when that lies outside the
+    # disparities the stereo backend searched (a plate outside the working distance); the engine alarms when
+    # that persists
     surface_elsewhere_mm: float | None = None
 
     def quantity(self, name: str) -> float | None:

@@ -15,7 +15,7 @@ import numpy as np
 MIN_PEAK = 0.4  # zero-mean normalised correlation of the best shift; 0.5-0.95 on the evaluation sets
 MIN_CONTRAST = 2.0  # ... and this many times the best shift more than 2 px from it (0.1-0.36 there)
 MIN_OVERLAP = 0.5  # a shift is scored where at least this share of the ring lies in the right image
-MAX_PIXELS = 4096  # every k-th pixel of a larger ring
+MAX_PIXELS = 1024  # every k-th pixel of a larger ring: as many tell the correlation, at a quarter of the time of 4096
 
 
 @dataclass(frozen=True)

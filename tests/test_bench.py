@@ -19,6 +19,8 @@ def test_bench_times_every_stage_and_saves_tables(tmp_path):
     parts = sum(stages[k]["median"] for k in stages if k != "loop")
     assert abs(parts - stages["loop"]["median"]) < 0.05 * stages["loop"]["median"] + 1.0
     assert stages["stereo"]["median"] > 0 and result["fps"] > 0 and result["peak_rss_mb"] > 0
+    ratio = (stages["stereo"]["median"] + stages["depth"]["median"]) / stages["detection"]["median"]
+    assert result["stereo_and_depth_over_detection"] == ratio
     assert report["machine"]["cores"] >= 1 and report["resolution"] == "672x376"
     assert "| opencv_sgbm |" in (tmp_path / "bench-wvga-cpu.md").read_text()
 
@@ -41,6 +43,7 @@ def test_bench_defect_region_is_compared_with_full_frame_and_detection_alone(tmp
     results = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())["results"]
     assert [(r["backend"], r["region"]) for r in results] == [("none", "-"), ("opencv_sgbm", "defects")]
     assert results[0]["stages_ms"]["stereo"]["median"] == 0.0 and results[0]["stages_ms"]["detection"]["median"] > 0
+    assert results[0]["stereo_and_depth_over_detection"] is None and results[1]["stereo_and_depth_over_detection"] > 0
     versus = results[1]["depth_vs_full_frame"]
     assert versus["defects"] >= 1 and versus["availability_differs"] == 0
     assert versus["distance_mm"] < 0.05 and versus["deviation_mm"] < 0.05

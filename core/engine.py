@@ -361,9 +361,9 @@ def capture_time_problem(timestamp: Any, now: float) -> str | None:
 
 
 class PlatesOutOfRange:
-    """Parts in a row whose defects' surroundings the images show away from where the stereo map put them
-    (``DefectMeasurement.surface_elsewhere_mm``: a plate outside the searched range). A part with a measured
-    deviation ends such a run; a part without defects says nothing of the plate's distance."""
+    """Parts in a row whose defects' surroundings the images show outside the disparities the stereo backend
+    searched (``DefectMeasurement.surface_elsewhere_mm``: a plate outside the working distance). A part with
+    a measured deviation ends such a run; a part without defects says nothing of the plate's distance."""
 
     def __init__(self, stereo: StereoSection):
         self.stereo = stereo

@@ -313,7 +313,8 @@ def test_two_signals_on_one_address_are_refused(settings, message):
 
 @pytest.mark.parametrize("settings", [
     # one register whose value says which: a level the PLC reads at its own pace
-    {"on_reject": {"write": "register", "address": 3, "value": 1}, "on_pass": {"write": "register", "address": 3, "value": 2}},
+    {"on_reject": {"write": "register", "address": 3, "value": 1},
+     "on_pass": {"write": "register", "address": 3, "value": 2}},
     # coil 0 and register 0 are different tables
     {"on_reject": GATE, "on_pass": {"write": "register", "address": 0, "value": 2}, "heartbeat": {"address": 1},
      "ready_coil": 1},

@@ -309,13 +309,15 @@ def _pulse_warnings(loaded) -> list[str]:
     lines = []
     for index, output in enumerate(loaded.recipe.outputs):
         ask = registry.get("output", output.plugin).spec.part_interval
-        interval = ask(loaded.plugin_settings[f"outputs.{index}"], PluginContext(recipe_dir=loaded.directory)) if ask else None
+        settings = loaded.plugin_settings[f"outputs.{index}"]
+        interval = ask(settings, PluginContext(recipe_dir=loaded.directory)) if ask else None
         if interval is not None and interval > period:
-            lines.append(loaded.describe(("outputs", index, "settings"), f"warning: a part's pulse and the low after it "
-                                         f"take {1000 * interval:.0f} ms, longer than the {1000 * period:.0f} ms between "
-                                         f"two plates at {fps:g} per second: each reject right after another is "
-                                         f"{1000 * (interval - period):.0f} ms later than the one before, until beyond "
-                                         f"max_late_ms it is alarmed instead of sent (a shorter pulse_ms, or write: counter)"))
+            lines.append(loaded.describe(
+                ("outputs", index, "settings"),
+                f"warning: a part's pulse and the low after it take {1000 * interval:.0f} ms, longer than the "
+                f"{1000 * period:.0f} ms between two plates at {fps:g} per second: each reject right after another "
+                f"is {1000 * (interval - period):.0f} ms later than the one before, until beyond max_late_ms it is "
+                f"alarmed instead of sent (a shorter pulse_ms, or write: counter)"))
     return lines
 
 

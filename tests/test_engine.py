@@ -403,3 +403,27 @@ def test_a_detection_outside_the_image_is_an_error_naming_it_never_a_pass(tmp_pa
     assert "detection failed: the detector returned a pit box" in seen[0].part.error
     assert "(330.0, 5.0, 360.0, 30.0) outside the 320x192 image" in seen[0].part.error
     assert summary.exit_code == engine.EXIT_PART_ERRORS
+
+
+def _part(index, *measured):
+    """A part with one defect per value of ``measured``: 'far' (the images show the plate outside the search),
+    'ok' (a deviation measured) or 'none' (no deviation, the plate nowhere else)."""
+    from core.types import DefectMeasurement, Detection, PartResult, Verdict
+
+    ms = [DefectMeasurement(Detection("pit", 0.9, (0, 0, 9, 9)), None if m != "ok" else 400.0,
+                            0.5 if m == "ok" else None, 1.0, None, None, surface_elsewhere_mm=700.0 if m == "far" else None)
+          for m in measured]
+    return PartResult(f"P{index}", f"{index:06d}", index, 0.0, Verdict(Status.ERROR), ms)
+
+
+def test_plates_out_of_range_alarm_once_per_run_of_them_and_a_measured_plate_ends_it():
+    from core.recipe.schema import StereoSection
+
+    watch = engine.PlatesOutOfRange(StereoSection(working_distance_mm=(350.0, 500.0)))
+    alarms = [watch.alarm(_part(i, *m)) for i, m in enumerate([
+        ("far",), (), ("far", "none"), ("far",),  # a part without defects neither counts nor ends the run: 3rd far
+        ("far",), ("ok",), ("far",), ("far",), ("none",), ("far",)])]  # the 4th stays quiet; "ok" ends the run,
+    # a defect that could not be measured for another reason does not
+    assert [i for i, a in enumerate(alarms) if a is not None] == [3, 9]
+    assert alarms[3].cause == "range" and alarms[3].part_id == "P3" and "about 700 mm" in alarms[3].message
+    assert "outside stereo.working_distance_mm (350-500 mm)" in alarms[3].message

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from click.testing import CliRunner
 
 from core.cli import _build
@@ -65,3 +66,16 @@ def test_cli_on_a_rendered_sequence(tmp_path, monkeypatch):
     broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
     assert broken.exit_code == 2 and "000001.json: defects[0].box: [460.0, 2.0, 480.0, 30.0] lies outside the " \
                                      "448x300 image" in broken.output, broken.output
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--confidence", "1.5"], "each threshold is a number from 0 to 1"),
+    (["--tile-size", "10"], "0 (the whole frame) or at least 32"),
+    (["--tile-overlap", "0.95"], "0.95 is not in the range"),
+    (["--imgsz", "8"], "8 is not in the range"),
+])
+def test_cli_options_out_of_range_are_one_line_errors(args, message):
+    # they reached the detector's settings and ended in a traceback
+    result = CliRunner().invoke(_build(), ["eval", "detector-frames", "sim_fixtures/steel_plate", *args])
+    assert result.exit_code == 2 and message in result.output, result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit), result.exception

@@ -88,9 +88,12 @@ def convert_voc_command(src: Path, dst: Path, split_files: tuple[Path, Path] | N
 @click.argument("sequence", type=click.Path(path_type=Path))
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--split", default="train", show_default=True)
-@click.option("--tile", default=224, show_default=True, help="tile edge in frame pixels, as the recipe's tile_size")
-@click.option("--overlap", default=0.25, show_default=True, help="as the recipe's tile_overlap")
-@click.option("--margin", default=32.0, show_default=True, help="px kept clear around every labelled defect")
+@click.option("--tile", default=224, show_default=True, type=click.IntRange(min=32),
+              help="tile edge in frame pixels, as the recipe's tile_size")
+@click.option("--overlap", default=0.25, show_default=True, type=Finite(0.0, 0.9, max_open=True),
+              help="as the recipe's tile_overlap")
+@click.option("--margin", default=32.0, show_default=True, type=Finite(min=0.0),
+              help="px kept clear around every labelled defect")
 @click.option("--all-clear", is_flag=True, help="no labels: every part in SEQUENCE is sound (recorded good parts)")
 def add_backgrounds_command(sequence: Path, dataset: Path, split: str, tile: int, overlap: float, margin: float,
                             all_clear: bool) -> None:
@@ -108,23 +111,25 @@ def add_backgrounds_command(sequence: Path, dataset: Path, split: str, tile: int
 
 @click.command("detector")
 @click.option("--data", "data", required=True, type=click.Path(path_type=Path), help="YOLO dataset folder or its data.yaml")
-@click.option("--epochs", default=100, show_default=True)
-@click.option("--patience", default=20, show_default=True)
-@click.option("--imgsz", default=200, show_default=True)
-@click.option("--batch", default=16, show_default=True)
+@click.option("--epochs", default=100, show_default=True, type=click.IntRange(min=1))
+@click.option("--patience", default=20, show_default=True, type=click.IntRange(min=0))
+@click.option("--imgsz", default=200, show_default=True, type=click.IntRange(32, 4096))
+@click.option("--batch", default=16, show_default=True, type=click.IntRange(min=1))
 @click.option("--device", default="auto", show_default=True)
 @click.option("--out", default=Path("runs/detector"), type=click.Path(path_type=Path), show_default=True)
-@click.option("--workers", default=2, show_default=True, help="data-loader processes")
+@click.option("--workers", default=2, show_default=True, type=click.IntRange(min=0), help="data-loader processes")
 @click.option("--name", default="yolov8n-neu", show_default=True)
 @click.option("--init", "init", default=None, type=click.Path(path_type=Path),
               help="start from these weights (an earlier run of ours, never a downloaded checkpoint) with a fresh schedule")
 @click.option("--optimizer", default="auto", show_default=True,
               type=click.Choice(["auto", "SGD", "Adam", "Adamax", "AdamW", "NAdam", "RAdam", "RMSProp"]),
               help="SGD, AdamW, ...; 'auto' lets ultralytics choose the optimiser and its learning rate (lr0 unused)")
-@click.option("--lr0", default=0.01, show_default=True, help="initial learning rate (with a named --optimizer)")
-@click.option("--lrf", default=0.01, show_default=True, help="final learning rate as a fraction of lr0 (linear decay)")
-@click.option("--warmup-epochs", default=3.0, show_default=True)
-@click.option("--save-period", default=-1, show_default=True,
+@click.option("--lr0", default=0.01, show_default=True, type=Finite(0.0, min_open=True),
+              help="initial learning rate (with a named --optimizer)")
+@click.option("--lrf", default=0.01, show_default=True, type=Finite(0.0, 1.0, min_open=True),
+              help="final learning rate as a fraction of lr0 (linear decay)")
+@click.option("--warmup-epochs", default=3.0, show_default=True, type=Finite(min=0.0))
+@click.option("--save-period", default=-1, show_default=True, type=click.IntRange(min=-1),
               help="also keep the weights of every Nth epoch (for `inspect train average`); -1: only best and last")
 def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int, device: str, out: Path,
                   workers: int, name: str, init: Path | None, optimizer: str, lr0: float, lrf: float,
@@ -166,7 +171,7 @@ def average_command(weights: tuple[Path, ...], out: Path) -> None:
 @click.option("--data", "data", required=True, type=click.Path(path_type=Path))
 @click.option("--weights", required=True, type=click.Path(path_type=Path))
 @click.option("--split", default="val", show_default=True)
-@click.option("--imgsz", default=224, show_default=True)
+@click.option("--imgsz", default=224, show_default=True, type=click.IntRange(32, 4096))
 @click.option("--iou", default=YoloSettings.model_fields["iou"].default, show_default=True, type=Finite(0, 1, min_open=True),
               help="NMS IoU; the default is what the yolov8 detector runs with (detector.settings.iou); ultralytics' own val uses 0.7")
 @click.option("--out", default=Path("runs/detector-eval"), type=click.Path(path_type=Path), show_default=True,
@@ -191,11 +196,13 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
 @click.option("--weights", default=None, type=click.Path(path_type=Path), help="default: the committed model")
 @click.option("--confidence", "confidences", default="0.3,0.4,0.5,0.6,0.7", show_default=True,
               help="comma-separated thresholds to score")
-@click.option("--tile-size", default=224, show_default=True, help="0: the whole frame in one piece")
-@click.option("--tile-overlap", default=0.25, show_default=True)
-@click.option("--imgsz", type=int, default=None, help="network input size; default: the tile's size, or the frame's "
-              "long side (the model sees the frame at its own scale)")
-@click.option("--iou", default=0.3, show_default=True, help="a box this close to a labelled defect finds it")
+@click.option("--tile-size", default=224, show_default=True, type=click.IntRange(min=0),
+              help="0: the whole frame in one piece; else at least 32")
+@click.option("--tile-overlap", default=0.25, show_default=True, type=Finite(0.0, 0.9, max_open=True))
+@click.option("--imgsz", type=click.IntRange(32, 4096), default=None, help="network input size; default: the tile's "
+              "size, or the frame's long side (the model sees the frame at its own scale)")
+@click.option("--iou", default=0.3, show_default=True, type=Finite(0.0, 1.0, min_open=True),
+              help="a box this close to a labelled defect finds it")
 def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, tile_size: int, tile_overlap: float,
                         imgsz: int | None, iou: float) -> None:
     """The detector on whole frames of a labelled sequence, tiled as on the line: defects found, boxes on sound surface."""
@@ -205,6 +212,10 @@ def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, 
         thresholds = sorted(float(c) for c in confidences.split(","))
     except ValueError:
         _fail(f"--confidence: {confidences!r} is not a comma-separated list of numbers")
+    if not all(0.0 <= t <= 1.0 for t in thresholds):
+        _fail(f"--confidence: {confidences!r}: each threshold is a number from 0 to 1")
+    if 0 < tile_size < 32:
+        _fail(f"--tile-size {tile_size}: 0 (the whole frame) or at least 32")
     if weights is not None and not weights.is_file():
         _fail(f"{weights}: weights file not found")
     try:

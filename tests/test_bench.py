@@ -28,6 +28,8 @@ def test_bench_times_every_stage_and_saves_tables(tmp_path):
 def test_bench_hd720_and_unknown_backend(tmp_path):
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "nope", "--out", str(tmp_path))
     assert out.returncode == 2 and "unknown stereo backend nope" in out.stderr
+    out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", " ,", "--out", str(tmp_path))
+    assert out.returncode == 2 and "--backends: give at least one of" in out.stderr
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "opencv_sgbm",
               "--resolution", "hd720", "--frames", "1", "--repeats", "1", "--out", str(tmp_path))
     assert out.returncode == 0, out.stderr

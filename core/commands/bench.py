@@ -75,6 +75,8 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
     names = [b.strip() for b in backends.split(",") if b.strip()]
     known = registry.names("stereo")
     unknown = [b for b in names if b not in known and b != NO_STEREO]
+    if not names:
+        fail(f"--backends: give at least one of {', '.join(known)}, or {NO_STEREO}")
     if unknown:
         fail(f"--backends: unknown stereo backend {', '.join(unknown)}; known: {', '.join(known)}, or {NO_STEREO}")
     region_names = tuple(r.strip() for r in regions.split(",") if r.strip())

@@ -83,6 +83,8 @@ def bench_view_command(recipe: Path, frames: int, browsers: str, port: int | Non
         counts = [int(n) for n in browsers.split(",")]
     except ValueError:
         fail(f"--browsers: {browsers!r} is not a comma-separated list of numbers")
+    if any(n < 0 for n in counts):
+        fail(f"--browsers: {browsers!r}: a number of browsers is 0 or more")
 
     def label(n: int) -> str:
         return f"{n} browser{'' if n == 1 else 's'}"

@@ -37,3 +37,13 @@ def test_sim_generate_says_it_cannot_make_its_folder(blocked):
     result = CliRunner().invoke(_build(), ["sim", "generate", str(blocked), "--frames", "1", "--synthetic-defects"])
     assert result.exit_code == 2
     assert f"error: {blocked}: cannot create the folder" in result.output
+
+
+@pytest.mark.parametrize("args, option", [
+    (["run", "recipes/steel_plate.yaml", "--max-frames", "0"], "--max-frames"),  # it inspected one part
+    (["stereo", *PAIR, "--max-disp", "64", "--threads", "0"], "--threads"),  # it ran
+    (["plc-sim", "--baudrate", "0"], "--baudrate"),
+])
+def test_counts_below_one_are_usage_errors_not_something_else(args, option):
+    result = CliRunner().invoke(_build(), args)
+    assert result.exit_code == 2 and f"Invalid value for '{option}'" in result.output, result.output

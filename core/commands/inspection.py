@@ -61,7 +61,7 @@ def part_line(outcome) -> str:
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE", help="override a recipe value (repeatable)")
 @click.option("--device", default="auto", show_default=True, callback=cuda_if_present,
               help="torch device for plugins that use one")
-@click.option("--max-frames", type=int, default=None, help="stop after this many parts")
+@click.option("--max-frames", type=click.IntRange(min=1), default=None, help="stop after this many parts")
 @click.option("--plc-sim", is_flag=True, help="start the Modbus PLC simulator in-process where a modbus output finds nothing listening")
 @click.option("--quiet", is_flag=True, help="no per-part lines")
 @click.option("--view", "view", is_flag=True, help="serve the operator web page (as the recipe's view.enabled)")

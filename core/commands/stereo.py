@@ -95,7 +95,7 @@ def write_png(path: Path, disparity, vmin: float, vmax: float) -> None:
         _fail(f"{path}: cannot write PNG")
 
 
-threads_option = click.option("--threads", type=int, default=None,
+threads_option = click.option("--threads", type=click.IntRange(min=1), default=None,
                               help="torch CPU threads (1 is fastest when the cores are shared)")
 device_option = click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
                              callback=cuda_if_present,

@@ -1,5 +1,5 @@
-"""Every command that writes files says so in one line when it cannot make their folder, before its work
-(an evaluation of minutes would otherwise end in a traceback)."""
+"""Command-line values a command cannot use are refused in one line before its work: a folder for its files
+that cannot be made (an evaluation of minutes would otherwise end in a traceback), a count below one."""
 from __future__ import annotations
 
 import pytest

@@ -270,7 +270,7 @@ def measure_defect(
             note=f"depth unavailable: {valid_fraction:.0%} of the region valid, {rule.min_valid_fraction:.0%} needed",
         )
         return _outside_search(m, pair, ring_pixels(shape, detection.box, rule.ring_gap_px, rule.ring_width_px),
-                               calib, searched) if surface else m
+                               calib, searched)
 
     fb = calib.focal_px * calib.baseline_mm
     d_defect = region[valid].astype(np.float64) + calib.doffs
@@ -295,7 +295,7 @@ def measure_defect(
             note=f"deviation unavailable: {ru.size} valid surface points around the box, {rule.min_ring_points} needed",
             distance_sigma_mm=resolution,
         )
-        return _outside_search(m, pair, ring_all, calib, searched) if surface else m
+        return _outside_search(m, pair, ring_all, calib, searched)
     how, share = worst_side(plane, ru, rv, d_ring + calib.doffs, _clip_box(detection.box, shape), rule.plane_tolerance_px)
     # the surface fit judges the ring from the images itself (below); the backend's judgement only where
     # the ring is not in view, or for the reference
@@ -312,7 +312,9 @@ def measure_defect(
     reference = DefectMeasurement(detection, distance, float(np.median(deviation)), valid_fraction, resolution, area,
                                   distance_sigma_mm=resolution, deviation_sigma_mm=float(np.sqrt(2.0) * resolution))
     if not surface:
-        return reference
+        # the map alone: nothing in it tells a plate outside the searched range, whose disparities it keeps
+        # inside the range, from one within it; the images do
+        return _outside_search(reference, pair, ring_all, calib, searched)
     return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, matched, inner,
                                 (x0, y0, x1, y1), d_plane - d_defect, reference, searched)
 
@@ -406,10 +408,10 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
 
 def _outside_search(m: DefectMeasurement, pair, ring: tuple[np.ndarray, np.ndarray], calib: Calibration,
                     searched: tuple[float, float] | None) -> DefectMeasurement:
-    """``m``, a measurement without a deviation; where the images show the surface around the box
-    (``core.surface_scan``, every shift tried) at a disparity outside ``searched`` (lo, hi: the backend's
-    search range, px without doffs), the note says where, and the map's distance (and the area from it)
-    goes: it is that of a plate where there is none, and no rule may decide on it."""
+    """``m``; where the images show the surface around the box (``core.surface_scan``, every shift tried) at
+    a disparity outside ``searched`` (lo, hi: the backend's search range, px without doffs), the note says
+    where, and what the map gave goes (its distance, the area from it, a deviation from it): it is that of
+    a plate where there is none, and no rule may decide on it."""
     u, v = ring
     if searched is None or pair is None or u.size == 0:
         return m
@@ -420,11 +422,12 @@ def _outside_search(m: DefectMeasurement, pair, ring: tuple[np.ndarray, np.ndarr
     if found is None or lo - 1.0 <= found.disparity <= hi + 1.0 or found.disparity + calib.doffs <= 0:
         return m
     z = calib.focal_px * calib.baseline_mm / (found.disparity + calib.doffs)
-    clause = (f"; the surface around the box matches the images at {found.disparity:.0f} px of disparity "
+    clause = (f"the surface around the box matches the images at {found.disparity:.0f} px of disparity "
               f"({z:.0f} mm), outside the {lo:.0f}-{hi:.0f} px the stereo search covers: the plate lies outside "
               f"the working distance")
-    return replace(m, note=m.note + clause, distance_mm=None, distance_sigma_mm=None, area_mm2=None,
-                   depth_resolution_mm=None, surface_elsewhere_mm=z)
+    note = f"{m.note}; {clause}" if m.deviation_mm is None else f"deviation unavailable: {clause}"
+    return replace(m, note=note, distance_mm=None, distance_sigma_mm=None, area_mm2=None, depth_resolution_mm=None,
+                   deviation_mm=None, deviation_sigma_mm=None, surface_elsewhere_mm=z)
 
 
 def _unavailable(reference: DefectMeasurement, why: str) -> DefectMeasurement:
@@ -439,6 +442,6 @@ def measure_frame(disparity: np.ndarray, detections: list[Detection], frame: Ste
     if not detections:
         return []
     pair = None
-    if rule.method == "surface":
+    if rule.method == "surface" or searched is not None:  # the images: to fit, or to say the plate is elsewhere
         pair = (surface_fit.to_grey(frame.left), surface_fit.to_grey(frame.right))
     return [measure_defect(disparity, d, frame.calib, rule, pair, searched) for d in detections]

@@ -202,6 +202,24 @@ def test_a_plate_beyond_the_searched_range_is_named_where_it_lies(backend_says):
     assert "matches the images at" not in held.note and held.surface_elsewhere_mm is None
 
 
+def test_the_backends_map_alone_says_so_too_where_the_plate_lies_outside_the_search():
+    """``method: disparity`` decides on the map, which keeps a plate beyond the range at the range's end: flat,
+    so a 2 mm pit would pass. With the search range given, the images say where the plate is."""
+    left, right, _ = render(CALIB, 700.0, 3.0, [Pit(160, 96, 25.0, 2.0)])
+    at_range_end = np.full((CALIB.height, CALIB.width), CALIB.focal_px * CALIB.baseline_mm / 500.0, np.float32)
+    pair, rule = (_grey(left), _grey(right)), DepthRule(method="disparity")
+    blind = measure_defect(at_range_end, Detection("pit", 0.9, BOX), CALIB, rule, pair)
+    assert blind.deviation_mm == pytest.approx(0.0, abs=0.01)  # what it decided on before
+    m = measure_defect(at_range_end, Detection("pit", 0.9, BOX), CALIB, rule, pair, searched=(78.0, 126.0))
+    assert m.deviation_mm is None and m.deviation_sigma_mm is None and m.distance_mm is None
+    assert m.note.startswith("deviation unavailable: the surface around the box matches the images at 60 px"), m.note
+    # inside the range the map alone is measured as before
+    left, right, disparity = render(CALIB, 400.0, 3.0, [Pit(160, 96, 25.0, 2.0)])
+    inside = measure_defect(disparity, Detection("pit", 0.9, BOX), CALIB, rule, (_grey(left), _grey(right)),
+                            searched=(78.0, 126.0))
+    assert inside == measure_defect(disparity, Detection("pit", 0.9, BOX), CALIB, rule)
+
+
 def test_a_region_with_no_interior_has_no_deviation():
     """A box so small that its inner region has no pixel a pixel inside its border: nothing of its own to
     measure, so no deviation (and no infinite uncertainty in the store or on the page)."""

@@ -312,8 +312,8 @@ def measure_defect(
     reference = DefectMeasurement(detection, distance, float(np.median(deviation)), valid_fraction, resolution, area,
                                   distance_sigma_mm=resolution, deviation_sigma_mm=float(np.sqrt(2.0) * resolution))
     if not surface:
-        # the map alone: nothing in it tells a plate outside the searched range, whose disparities it keeps
-        # inside the range, from one within it; the images do
+        # the map alone: nothing in it tells a plate outside the searched range, which it keeps at the range's
+        # end (flat: any defect proven inside a wide enough limit), from one within it; the images do
         return _outside_search(reference, pair, ring_all, calib, searched)
     return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, matched, inner,
                                 (x0, y0, x1, y1), d_plane - d_defect, reference, searched)

@@ -204,7 +204,8 @@ def test_a_plate_beyond_the_searched_range_is_named_where_it_lies(backend_says):
 
 def test_the_backends_map_alone_says_so_too_where_the_plate_lies_outside_the_search():
     """``method: disparity`` decides on the map, which keeps a plate beyond the range at the range's end: flat,
-    so a 2 mm pit would pass. With the search range given, the images say where the plate is."""
+    so the 2 mm pit reads 0 ± its resolution, proven inside any limit wider than twice that. With the search
+    range given, the images say where the plate is."""
     left, right, _ = render(CALIB, 700.0, 3.0, [Pit(160, 96, 25.0, 2.0)])
     at_range_end = np.full((CALIB.height, CALIB.width), CALIB.focal_px * CALIB.baseline_mm / 500.0, np.float32)
     pair, rule = (_grey(left), _grey(right)), DepthRule(method="disparity")

@@ -253,7 +253,8 @@ def measure_defect(
     disparity: HxW float, NaN/inf/0 = invalid. pair: the rectified (left, right) HxW float32 grey
     images (``surface_fit.to_grey``), needed by ``method: surface``; without it the backend's
     disparity alone is used (``method: disparity``). searched: the disparities (lo, hi, px) the backend
-    searched; where given, a measurement without a deviation says whether the plate lies outside them."""
+    searched; where given with the pair, a plate the images show outside them is said to be so, and not
+    measured (the surface fit's measurements, which the images vouch for, are not checked again)."""
     shape = disparity.shape
     if pair is not None and (pair[0].shape != shape or pair[1].shape != shape):
         raise ValueError(f"measure_defect: images {pair[0].shape} / {pair[1].shape} and disparity {shape} differ")
@@ -300,12 +301,13 @@ def measure_defect(
     # the surface fit judges the ring from the images itself (below); the backend's judgement only where
     # the ring is not in view, or for the reference
     if share < rule.min_plane_inliers and (not surface or "outside the image" in how):
-        return DefectMeasurement(
+        m = DefectMeasurement(
             detection, distance, None, valid_fraction, resolution, area,
             note=f"deviation unavailable: {how}" if "outside the image" in how else
             f"deviation unavailable: the surface around the box is not one plane ({how}, {rule.min_plane_inliers:.0%} needed)",
             distance_sigma_mm=resolution,
         )
+        return _outside_search(m, pair, ring_all, calib, searched)
     vv, uu = np.nonzero(valid)
     d_plane = plane((uu + x0).astype(np.float64), (vv + y0).astype(np.float64))
     deviation = fb * (d_plane / d_defect - 1.0) / plane.normal_length(calib)

@@ -297,8 +297,7 @@ def _pulse_warnings(loaded) -> list[str]:
     """A line for each output whose actuator cannot be given two parts as close together as the camera
     delivers them (``PluginSpec.part_interval``): a run of rejects falls behind, one pulse after another,
     until the output alarms them instead of sending them."""
-    from core.contracts import PluginContext
-    from core.recipe.loader import camera_answer
+    from core.recipe.loader import camera_answer, output_answers
     from core.registry import default_registry
 
     registry = default_registry()
@@ -307,11 +306,8 @@ def _pulse_warnings(loaded) -> list[str]:
         return []
     period = 1.0 / fps
     lines = []
-    for index, output in enumerate(loaded.recipe.outputs):
-        ask = registry.get("output", output.plugin).spec.part_interval
-        settings = loaded.plugin_settings[f"outputs.{index}"]
-        interval = ask(settings, PluginContext(recipe_dir=loaded.directory)) if ask else None
-        if interval is not None and interval > period:
+    for index, interval in output_answers(loaded, registry, "part_interval"):
+        if interval > period:
             lines.append(loaded.describe(
                 ("outputs", index, "settings"),
                 f"warning: a part's pulse and the low after it take {1000 * interval:.0f} ms, longer than the "

@@ -409,20 +409,26 @@ def unknown_class_message(name: str, known: list[str]) -> str:
     return f"unknown class {name!r}{hint} The detector knows: {', '.join(known)} (or any)"
 
 
-def output_delays_s(loaded: LoadedRecipe, registry: Registry) -> list[tuple[int, float]]:
-    """(index, seconds from a part's capture to its command) of every output that states it
-    (``PluginSpec.actuator_delay``)."""
+def output_answers(loaded: LoadedRecipe, registry: Registry, question: str) -> list[tuple[int, Any]]:
+    """(index, answer) of every output whose plugin answers one of ``PluginSpec``'s optional questions
+    (``actuator_delay``, ``part_interval``) from its settings alone, where the answer is not None."""
     from core.contracts import PluginContext
 
     ctx = PluginContext(recipe_dir=loaded.directory)
-    delays = []
+    answers = []
     for index, output in enumerate(loaded.recipe.outputs):
-        spec = registry.get("output", output.plugin).spec
-        if spec.actuator_delay is not None:
-            delay = spec.actuator_delay(loaded.plugin_settings[f"outputs.{index}"], ctx)
-            if delay is not None:
-                delays.append((index, delay))
-    return delays
+        ask = getattr(registry.get("output", output.plugin).spec, question)
+        if ask is not None:
+            answer = ask(loaded.plugin_settings[f"outputs.{index}"], ctx)
+            if answer is not None:
+                answers.append((index, answer))
+    return answers
+
+
+def output_delays_s(loaded: LoadedRecipe, registry: Registry) -> list[tuple[int, float]]:
+    """(index, seconds from a part's capture to its command) of every output that states it
+    (``PluginSpec.actuator_delay``)."""
+    return output_answers(loaded, registry, "actuator_delay")
 
 
 def camera_answer(loaded: LoadedRecipe, registry: Registry, question: str) -> Any:

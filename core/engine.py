@@ -33,6 +33,7 @@ from core.registry import Registry, default_registry
 from core.store import ResultsStore, StoreError, store_problem
 from core.stereo_region import disparity_around
 from core.types import Alarm, Calibration, Detection, FrameError, OutputEvent, PartResult, Status, StereoFrame
+from core.unread_frames import UnreadFrame, UnreadFrames
 from core.watchdog import StallWatch
 
 EXIT_OK, EXIT_USAGE, EXIT_PART_ERRORS, EXIT_ALARMS, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
@@ -530,12 +531,13 @@ def run(
     out_of_range = PlatesOutOfRange(recipe.stereo)
 
     def part_id(item: StereoFrame | FrameError) -> str:
-        return f"R{run_id}-{item.index:06d}"
+        return f"R{run_id}-{item.index:06d}" + (f"+{item.slot}" if isinstance(item, UnreadFrame) else "")
 
     watch = StallWatch(recipe.watchdog_s, stalled, resumed).start()
     # a camera that runs free (it states a frame rate) owes a frame every period: a wait of watchdog_s is
     # a driver that stopped returning; one triggered by the parts may wait as long as the line stands
     rate = camera_answer(loaded, registry, "frame_rate")
+    unread = UnreadFrames(rate)
 
     def watched(frames):
         """The camera's frames, each timed from when it is read; a free-running camera's waits too."""
@@ -561,7 +563,7 @@ def run(
     source = (DetectAhead(frames_in, lambda item: detect_frame(item, pipeline, recipe), max_frames)
               if recipe.stereo.concurrent else OneAtATime(frames_in, max_frames))
 
-    current = None  # the frame being inspected: one the run leaves unfinished is rejected, never lost
+    in_hand: list = []  # the frames read and not yet decided: one the run leaves unfinished is rejected, never lost
     # [part, the outputs it has still to reach, the one being handed it]: an interrupt in between still
     # reaches the rest, and the one it interrupted raises an alarm
     handing: list = []
@@ -569,7 +571,6 @@ def run(
     def finish(outcome: FrameOutcome) -> None:
         """Store the part, then hand it to the outputs. A store that fails does not keep a decided part's reject
         from the actuator: it is handed over unrecorded (and the loop stops the run)."""
-        nonlocal current
         part = outcome.part
         if not store_down:
             alarm = images.save(outcome.image, part, outcome.defect_status)
@@ -580,7 +581,8 @@ def run(
                 store.record_part(run_id, part, outcome.per_defect)
             except Exception as exc:
                 lose_store(exc)
-        current = None  # stored (or the store is gone): from here on it is a decided part, whatever stops the run
+        if in_hand and in_hand[0].frame_id == part.frame_id and in_hand[0].index == part.index:
+            in_hand.pop(0)  # stored (or the store is gone): from here on it is a decided part, whatever stops the run
         counts[part.verdict.status] += 1
         handing[:] = [part, list(pipeline.outputs), None]
         hand_to_outputs()
@@ -601,7 +603,14 @@ def run(
 
     try:
         for item, detected in source:
-            current = item
+            # the frames a free-running camera captured while the loop was busy are plates that went by unseen
+            in_hand[:] = unread.between(item) + [item]
+            for missed in in_hand[:-1]:
+                finish(missed_outcome := inspect_frame(missed, part_id(missed), pipeline, loaded, rule))
+                if on_part:
+                    on_part(missed_outcome)
+            if (alarm := unread.alarm(part_id(item))) is not None:
+                record([alarm])
             repeated, unusable = frame_refusal(item, repeats, recipe.camera.image_check)
             outcome = inspect_frame(item, part_id(item), pipeline, loaded, rule, detected, age_limit,
                                     refused=repeated or unusable)
@@ -651,7 +660,7 @@ def run(
                     handing[2] = None
                 hand_to_outputs()
             left = source.close()
-            unfinished = ([current] if current is not None else []) + [item for item, _ in left]
+            unfinished = in_hand + [item for item, _ in left]
             for item in unfinished:
                 message = f"frame {item.frame_id}: not inspected: the run stopped first"
                 try:

@@ -193,7 +193,7 @@ class Alarm:
     longer than the recipe's ``watchdog_s``), frozen (the camera handed over its last images again), image
     (frames in a row whose images could not show a defect), store (the results store could not be written),
     images (the parts' annotated images could not be saved), range (plates in a row outside the stereo search
-    range)."""
+    range), behind (a free-running camera's frames went unread while the loop was busy)."""
 
     source: str
     message: str

@@ -65,6 +65,15 @@ def is_file_source(device: int | str) -> bool:
     return not str(path).startswith("/dev/") and "://" not in str(device)
 
 
+def is_recording(device: int | str, backend: str = "uvc") -> bool:
+    """A recorded file rather than a live camera: a video file for UVC, an SVO file for the SDK (to which
+    any other string is a serial number such as SN11338)."""
+    device = parse_device(device)
+    if backend == "sdk":
+        return isinstance(device, str) and device.endswith((".svo", ".svo2"))
+    return is_file_source(device)
+
+
 def split_side_by_side(frame: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     if frame.ndim == 2:
         frame = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
@@ -234,7 +243,8 @@ class ZedSdk:
         self.width, self.height = RESOLUTIONS[resolution]
         self.camera = None
         self.ended = False
-        self.is_file = isinstance(self.device, str) and self.device.endswith((".svo", ".svo2"))
+        self.is_file = is_recording(self.device, "sdk")
+        self.last_capture = 0.0  # capture time of the last grabbed pair (wall clock)
 
     @property
     def name(self) -> str:
@@ -277,15 +287,24 @@ class ZedSdk:
         sl = self.sl
         if self.camera is None:
             raise ZedError(f"{self.name}: not open")
+        asked = time.time()
         status = self.camera.grab(self._runtime)
         if status != sl.ERROR_CODE.SUCCESS:
             if status == getattr(sl.ERROR_CODE, "END_OF_SVOFILE_REACHED", None):
                 self.ended = True
             raise ZedError(f"{self.name}: grab failed ({status})")
+        # a recording's stamps are when it was recorded: its frames are captured when asked for
+        self.last_capture = asked if self.is_file else self._capture_time(asked)
         self.camera.retrieve_image(self._left, sl.VIEW.LEFT)
         self.camera.retrieve_image(self._right, sl.VIEW.RIGHT)
         return (np.ascontiguousarray(self._left.get_data()[:, :, :3]),
                 np.ascontiguousarray(self._right.get_data()[:, :, :3]))
+
+    def _capture_time(self, asked: float) -> float:
+        """The image's capture time as the SDK stamps it (Unix time in ns), or when it was asked for where that
+        stamp is implausible (as ``capture_time``)."""
+        stamp = self.camera.get_timestamp(self.sl.TIME_REFERENCE.IMAGE).get_nanoseconds() / 1e9
+        return stamp if 0.0 <= time.time() - stamp < 10.0 else asked
 
     def close(self) -> None:
         if self.camera is not None:

@@ -29,7 +29,7 @@ from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
 from core.types import Calibration, FrameError, StereoFrame
 from drivers.zed_calibration import CalibrationError, StereoRectifier, read_conf, serial_number
-from drivers.zed_uvc import Grab, ZedError, ZedSdk, ZedUvc, is_file_source, parse_device
+from drivers.zed_uvc import Grab, ZedError, ZedSdk, ZedUvc, is_file_source, is_recording, parse_device
 
 
 class ZedSettings(BaseModel):
@@ -140,6 +140,13 @@ def _calibration(settings: dict, ctx: PluginContext) -> Calibration:
         raise ValueError(str(exc)) from None
 
 
+def _frame_rate(settings: dict, ctx: PluginContext) -> float | None:
+    """The camera's frames a second; None for a recording, which is read as fast as the loop asks (its frames
+    are stamped when read, so a slow loop must not read as frames gone by)."""
+    s = ZedSettings.model_validate(settings, context={"recipe_dir": ctx.recipe_dir})
+    return None if is_recording(s.device, s.backend) else s.fps
+
+
 @hookimpl
 def stereo_inspect_cameras() -> list[PluginSpec]:
     return [
@@ -150,7 +157,7 @@ def stereo_inspect_cameras() -> list[PluginSpec]:
             settings_model=ZedSettings,
             description="Stereolabs ZED over UVC (OpenCV) rectified with its SN<serial>.conf, or through pyzed.sl",
             calibration=_calibration,
-            frame_rate=lambda settings, ctx: settings.get("fps"),
+            frame_rate=_frame_rate,
         )
     ]
 

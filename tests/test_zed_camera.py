@@ -206,6 +206,110 @@ def test_sdk_backend_is_optional(tmp_path):
         pytest.skip("pyzed.sl installed: nothing to check without a camera")
 
 
+def _stand_in_sdk(stamps_s: list[float]):
+    """A stand-in for the vendor's ``pyzed.sl`` (which needs the ZED SDK, CUDA and the camera) with the calls
+    ``ZedSdk`` makes: its camera grabs one grey WVGA pair per entry of ``stamps_s``, each stamped, as the SDK
+    stamps an image, in Unix nanoseconds, then reports the end of an SVO file."""
+    import types
+    from enum import Enum
+
+    class ErrorCode(Enum):
+        SUCCESS = 0
+        END_OF_SVOFILE_REACHED = 1
+
+    class Stamp:
+        def __init__(self, ns):
+            self.ns = ns
+
+        def get_nanoseconds(self):
+            return self.ns
+
+    class Mat:
+        def get_data(self):
+            return self.data
+
+    class Camera:
+        grabbed = -1
+
+        def open(self, init):
+            return ErrorCode.SUCCESS
+
+        def grab(self, runtime):
+            self.grabbed += 1
+            return ErrorCode.SUCCESS if self.grabbed < len(stamps_s) else ErrorCode.END_OF_SVOFILE_REACHED
+
+        def retrieve_image(self, mat, view):
+            mat.data = np.full((H, W, 4), 100 + self.grabbed, np.uint8)
+
+        def get_timestamp(self, reference):
+            assert reference == "image"
+            return Stamp(int(stamps_s[self.grabbed] * 1e9))
+
+        def close(self):
+            pass
+
+    class InitParameters:
+        def set_from_camera_id(self, index):
+            self.source = index
+
+        def set_from_svo_file(self, path):
+            self.source = path
+
+        def set_from_serial_number(self, serial):
+            self.source = serial
+
+    names = types.SimpleNamespace
+    sl = types.ModuleType("pyzed.sl")
+    sl.__dict__.update(
+        Camera=Camera, InitParameters=InitParameters, Mat=Mat, RuntimeParameters=names, ERROR_CODE=ErrorCode,
+        RESOLUTION=names(VGA="VGA", HD720="HD720", HD1080="HD1080", HD2K="HD2K"), DEPTH_MODE=names(NONE="none"),
+        UNIT=names(MILLIMETER="mm"), VIEW=names(LEFT="left", RIGHT="right"), TIME_REFERENCE=names(IMAGE="image"),
+        VIDEO_SETTINGS=names(EXPOSURE="exposure", GAIN="gain"))
+    package = types.ModuleType("pyzed")
+    package.sl = sl
+    return package, sl
+
+
+@pytest.mark.parametrize("device", ["SN11338", 0, "line.svo2"])
+def test_the_sdk_backend_stamps_each_pair_with_its_capture(monkeypatch, device):
+    """A live camera's pairs carry the SDK's image stamps (from which the engine tells the frames it never
+    read); a recording's, which are when it was recorded, the time each was asked for."""
+    import sys
+    import time
+
+    from drivers.zed_uvc import ZedSdk
+
+    now = time.time()
+    stamps = [now - 0.5, now - 0.4, now - 0.1]  # the two periods between the last two went by unread
+    package, sl = _stand_in_sdk(stamps)
+    monkeypatch.setitem(sys.modules, "pyzed", package)
+    monkeypatch.setitem(sys.modules, "pyzed.sl", sl)
+    camera = ZedSdk(device, "WVGA", fps=10)
+    camera.open()
+    asked = time.time()
+    grabs = list(camera.stream())
+    assert [g.index for g in grabs] == [0, 1, 2] and camera.ended
+    assert grabs[0].left.shape == (H, W, 3) and grabs[2].right[0, 0, 0] == 102
+    if device == "line.svo2":
+        assert all(asked <= g.timestamp <= time.time() for g in grabs)
+    else:
+        assert [g.timestamp for g in grabs] == pytest.approx(stamps, abs=1e-6)
+
+
+@pytest.mark.parametrize("settings, rate", [
+    ({"device": 0}, 15.0), ({"device": "/dev/video2", "fps": 30}, 30.0), ({"device": "line.avi"}, None),
+    ({"device": "SN11338", "backend": "sdk"}, 15.0), ({"device": "line.svo", "backend": "sdk"}, None)])
+def test_a_live_zed_states_its_frame_rate_and_a_recording_none(tmp_path, settings, rate):
+    """A recording is read as fast as the loop asks, its frames stamped when read: its frame rate would make a
+    slow loop's reads look like frames the camera captured and nobody read."""
+    from core.contracts import PluginContext
+    from core.registry import default_registry
+
+    spec = default_registry().get("camera", "zed").spec
+    calibration = {} if settings.get("backend") == "sdk" else {"calibration": str(CONF)}
+    assert spec.frame_rate({**settings, **calibration}, PluginContext(recipe_dir=tmp_path)) == rate
+
+
 def test_missing_camera_reports_each_frame_period_then_reconnects(dots_video, tmp_path):
     """The camera is away at start: one FrameError per frame period (fps 20 -> 50 ms) naming the
     device, until it appears; then frames flow. No part is silently skipped: indices are contiguous."""

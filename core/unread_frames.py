@@ -1,0 +1,80 @@
+"""Frames a free-running camera captured that the loop never read.
+
+A camera that runs at its own rate (a ZED at 15 frames a second) does not wait for the inspection: when
+a frame takes longer than the camera's period, the driver keeps only the newest frame and the ones before
+it are gone (a V4L2 queue of one, the ZED SDK's grab). Each frame is a part, so a frame nobody read is a
+plate that went by uninspected, and nothing else in the loop would notice. The capture times say it:
+consecutive frames more than one period apart had frames between them.
+
+``UnreadFrames.between(item)`` gives one ``UnreadFrame`` (a ``FrameError``, so an ERROR part whose reject
+is timed from when its plate passed the camera) for every period with no frame since the one before;
+``alarm`` raises one alarm per spell of them. The replay camera stamps the schedule it plays, so a replay
+never shows a gap; a camera that states no frame rate (one triggered by the parts) is never checked.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+from core.types import Alarm, FrameError, StereoFrame
+
+
+@dataclass
+class UnreadFrame(FrameError):
+    """The ``slot``-th frame period after the frame at ``index``, in which no frame was read."""
+
+    slot: int = 1
+
+
+class UnreadFrames:
+    """rate_fps: the camera's frame rate (None or 0: nothing to check)."""
+
+    def __init__(self, rate_fps: float | None):
+        self.rate = float(rate_fps) if rate_fps else None
+        self._last: StereoFrame | FrameError | None = None
+        self._read_in_time = 0  # frames read in a row, each one period after the one before
+        self._in_spell = False
+        self._new_spell: list[UnreadFrame] = []  # the gap that began a spell, until its alarm is taken
+
+    def between(self, item: StereoFrame | FrameError) -> list[UnreadFrame]:
+        """The frame periods between the last item's capture and ``item``'s in which no frame was read, in
+        order, each stamped with its period's capture time (the last one's plus k periods). A capture time
+        that is not a number or goes back restarts the count from ``item``."""
+        last, self._last = self._last, item
+        if self.rate is None or last is None or not (_finite(item.timestamp) and _finite(last.timestamp)):
+            return []
+        periods = math.floor((item.timestamp - last.timestamp) * self.rate + 0.5)
+        unread = [UnreadFrame(f"{last.frame_id}+{k}", last.index,
+                              f"frame period {k} of {periods - 1} after frame {last.frame_id} was never read: the "
+                              f"camera runs at {self.rate:g} frames a second and the loop was still busy, so its "
+                              f"part went by uninspected", last.timestamp + k / self.rate, item.source, k)
+                  for k in range(1, periods)]
+        if not unread:
+            self._read_in_time += 1
+            if self._read_in_time >= math.ceil(self.rate):  # a second of frames read in time ends a spell
+                self._in_spell = False
+        else:
+            if not self._in_spell:
+                self._new_spell = unread
+            self._in_spell, self._read_in_time = True, 0
+        return unread
+
+    def alarm(self, part_id: str | None = None) -> Alarm | None:
+        """The alarm for the gap that began a spell of unread frames, once; None otherwise. A spell ends when
+        a second of the camera's frames has been read in time."""
+        if not self._new_spell:
+            return None
+        first, self._new_spell = self._new_spell, []
+        return Alarm("camera", f"inspection fell behind the camera: {len(first)} frame(s) after frame "
+                               f"{self._frame_before(first[0])} were never read (the camera runs at {self.rate:g} "
+                               f"frames a second); each is its part's ERROR, rejected unseen, and so are the frames "
+                               f"missed until a second of them is read in time", time.time(), part_id, "behind")
+
+    @staticmethod
+    def _frame_before(unread: UnreadFrame) -> str:
+        return unread.frame_id.rsplit("+", 1)[0]
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value)

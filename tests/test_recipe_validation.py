@@ -312,6 +312,24 @@ def test_validate_warns_of_an_image_check_turned_off(recipe_dir, key, off, what)
     assert cli("validate", str(path), "--set", f"camera.image_check.{key}=0.5").stderr == ""
 
 
+@pytest.mark.parametrize("key, value, message", [
+    ("confidence", "1.0", r"detector\.confidence: warning: 1 keeps only detections scored 1 or more, which a "
+                          r"detector's scores do not reach: nothing is detected and every part passes"),
+    ("classes", "[crazing, scratches]", r"detector\.classes: warning: leaves out inclusion, patches, pitted_surface, "
+                                        r"rolled-in_scale, which the detector reports: such a defect is not kept, "
+                                        r"and its part passes"),
+])
+def test_validate_warns_of_detector_settings_that_drop_defects_before_any_rule(recipe_dir, key, value, message):
+    path = write_recipe(recipe_dir / "r.yaml", GOOD)
+    result = cli("validate", str(path), "--set", f"detector.{key}={value}")
+    assert result.returncode == 0
+    assert re.fullmatch(rf"{re.escape(str(path.resolve()))} \(--set detector\.{key}\): {message}.*\n",
+                        result.stderr), result.stderr
+    every = "[crazing, inclusion, patches, pitted_surface, rolled-in_scale, scratches]"
+    for kept in ("detector.confidence=0.99", f"detector.classes={every}"):
+        assert cli("validate", str(path), "--set", kept).stderr == ""
+
+
 def test_validate_warns_where_plates_come_closer_than_a_reject_pulse_allows():
     # the demo's 100 ms pulse and the 20 ms low after it need 120 ms: at 12 plates a second (83 ms) a run
     # of rejects falls 37 ms further behind with each one; at 8 (125 ms) it does not

@@ -293,8 +293,28 @@ def recipe_warnings(loaded) -> list[str]:
     """What the recipe lets through without an error: limits the camera cannot resolve at the working
     distance, classes no rule covers, decisions that pass unproven parts, image checks turned off, rejects
     that reach no actuator or come faster than it can be pulsed."""
-    return (_depth_warnings(loaded) + _coverage_warnings(loaded) + _guard_band_warnings(loaded)
-            + _image_check_warnings(loaded) + _output_warnings(loaded) + _pulse_warnings(loaded))
+    return (_depth_warnings(loaded) + _detector_warnings(loaded) + _coverage_warnings(loaded)
+            + _guard_band_warnings(loaded) + _image_check_warnings(loaded) + _output_warnings(loaded)
+            + _pulse_warnings(loaded))
+
+
+def _detector_warnings(loaded) -> list[str]:
+    """Lines for detector settings that drop defects before any rule sees them: a confidence no score
+    reaches, classes the detector reports that ``detector.classes`` leaves out."""
+    detector = loaded.recipe.detector
+    lines = []
+    if detector.confidence >= 1.0:
+        lines.append(loaded.describe(("detector", "confidence"), f"warning: {detector.confidence:g} keeps only "
+                                     f"detections scored {detector.confidence:g} or more, which a detector's scores "
+                                     f"do not reach: nothing is detected and every part passes"))
+    known = loaded.detector_classes
+    if known is not None and detector.classes is not None:
+        left_out = [c for c in known if c not in detector.classes]
+        if left_out:
+            lines.append(loaded.describe(("detector", "classes"), f"warning: leaves out {', '.join(left_out)}, which "
+                                         f"the detector reports: such a defect is not kept, and its part passes "
+                                         f"(null keeps every class)"))
+    return lines
 
 
 def _pulse_warnings(loaded) -> list[str]:

@@ -46,9 +46,9 @@ class UnreadFrames:
             return []
         periods = math.floor((item.timestamp - last.timestamp) * self.rate + 0.5)
         unread = [UnreadFrame(f"{last.frame_id}+{k}", last.index,
-                              f"frame period {k} of {periods - 1} after frame {last.frame_id} was never read: the "
-                              f"camera runs at {self.rate:g} frames a second and the loop was still busy, so its "
-                              f"part went by uninspected", last.timestamp + k / self.rate, item.source, k)
+                              f"frame period {k} of {periods - 1} after frame {last.frame_id}: no frame was read "
+                              f"(the camera runs at {self.rate:g} frames a second), so its part went by uninspected",
+                              last.timestamp + k / self.rate, item.source, k)
                   for k in range(1, periods)]
         if not unread:
             self._read_in_time += 1
@@ -66,10 +66,10 @@ class UnreadFrames:
         if not self._new_spell:
             return None
         first, self._new_spell = self._new_spell, []
-        return Alarm("camera", f"inspection fell behind the camera: {len(first)} frame(s) after frame "
-                               f"{self._frame_before(first[0])} were never read (the camera runs at {self.rate:g} "
-                               f"frames a second); each is its part's ERROR, rejected unseen, and so are the frames "
-                               f"missed until a second of them is read in time", time.time(), part_id, "behind")
+        return Alarm("camera", f"frames not read: {len(first)} frame period(s) after frame "
+                               f"{self._frame_before(first[0])} without a frame read (the camera runs at {self.rate:g} "
+                               f"frames a second); each is its part's ERROR, rejected unseen, and so are the periods "
+                               f"missed until a second of frames is read in time", time.time(), part_id, "behind")
 
     @staticmethod
     def _frame_before(unread: UnreadFrame) -> str:

@@ -202,9 +202,10 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
     if any(a.source == "camera" and a.cause not in ("frozen", "image", "behind") for a in alarms):
         lines.append("  the camera stopped delivering frames")
     if "behind" in causes:
-        lines.append("  the camera delivered frames faster than the inspection read them, and the plates in the frames "
-                     "it missed went by unseen (rejected as ERROR): lower the camera's frame rate to the plates' "
-                     "rate, or speed the inspection up (`inspect bench`; stereo.region: defects, stereo.scale, threads)")
+        lines.append("  frames the camera captured were not read, and their plates went by unseen (rejected as "
+                     "ERROR): the inspection is slower than the camera (lower its frame rate to the plates' rate, or "
+                     "speed the inspection up: `inspect bench`, stereo.region: defects, stereo.scale, threads), or "
+                     "its driver stalled")
     if "frozen" in causes:
         lines.append("  the camera delivered the same images again (a stalled driver or USB stream): check its "
                      "cable and driver; the parts it did not see were rejected")

@@ -10,11 +10,16 @@ consecutive frames more than one period apart had frames between them.
 is timed from when its plate passed the camera) for every period with no frame since the one before;
 ``alarm`` raises one alarm per spell of them. The replay camera stamps the schedule it plays, so a replay
 never shows a gap; a camera that states no frame rate (one triggered by the parts) is never checked.
+
+Capture stamps are wall-clock times, which a clock set forward (NTP) moves by as much as it was set: the
+gap counted is never more than the time that passed on the monotonic clock since the frame before reached
+the loop, plus that frame's age then, so setting the clock cannot make an hour of frames out of a step.
 """
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from core.types import Alarm, FrameError, StereoFrame
@@ -30,9 +35,12 @@ class UnreadFrame(FrameError):
 class UnreadFrames:
     """rate_fps: the camera's frame rate (None or 0: nothing to check)."""
 
-    def __init__(self, rate_fps: float | None):
+    def __init__(self, rate_fps: float | None, clock: Callable[[], float] = time.time,
+                 monotonic: Callable[[], float] = time.monotonic):
         self.rate = float(rate_fps) if rate_fps else None
+        self._clock, self._monotonic = clock, monotonic
         self._last: StereoFrame | FrameError | None = None
+        self._last_reached: tuple[float, float] = (0.0, 0.0)  # (monotonic time, its age) when it reached the loop
         self._read_in_time = 0  # frames read in a row, each one period after the one before
         self._in_spell = False
         self._new_spell: list[UnreadFrame] = []  # the gap that began a spell, until its alarm is taken
@@ -42,9 +50,12 @@ class UnreadFrames:
         order, each stamped with its period's capture time (the last one's plus k periods). A capture time
         that is not a number or goes back restarts the count from ``item``."""
         last, self._last = self._last, item
+        (then, age), now = self._last_reached, self._monotonic()
+        self._last_reached = (now, self._clock() - item.timestamp if _finite(item.timestamp) else 0.0)
         if self.rate is None or last is None or not (_finite(item.timestamp) and _finite(last.timestamp)):
             return []
-        periods = math.floor((item.timestamp - last.timestamp) * self.rate + 0.5)
+        gap = min(item.timestamp - last.timestamp, now - then + max(age, 0.0))
+        periods = math.floor(gap * self.rate + 0.5)
         unread = [UnreadFrame(f"{last.frame_id}+{k}", last.index,
                               f"frame period {k} of {periods - 1} after frame {last.frame_id}: no frame was read "
                               f"(the camera runs at {self.rate:g} frames a second), so its part went by uninspected",

@@ -25,6 +25,20 @@ def _frame(index: int, stamp: float) -> FrameError:
     return FrameError(f"{index:06d}", index, "stands in for a frame: only its stamp is read", stamp)
 
 
+class Clocks:
+    """The wall clock and the monotonic one of a loop that receives each frame 30 ms after its capture."""
+
+    def __init__(self, rate=10.0):
+        self.wall = self.mono = 0.0
+        self.unread = UnreadFrames(rate, clock=lambda: self.wall, monotonic=lambda: self.mono)
+
+    def between(self, frame, step_s=0.0):
+        """``frame`` reaches the loop; ``step_s``: the wall clock was set forward by that much before."""
+        elapsed = frame.timestamp + 0.03 - step_s - self.wall if self.wall else 0.0
+        self.wall, self.mono = frame.timestamp + 0.03, self.mono + elapsed
+        return self.unread.between(frame)
+
+
 class TestUnreadFrames:
     def test_frames_a_period_apart_leave_nothing_unread(self):
         unread = UnreadFrames(10.0)
@@ -56,6 +70,18 @@ class TestUnreadFrames:
         assert unread.between(_frame(1, bad)) == []
         assert unread.between(_frame(2, 100.5)) == []  # not counted from a stamp that is not a time
         assert len(unread.between(_frame(3, 100.8))) == 2
+
+    def test_a_clock_set_forward_is_no_gap(self):
+        clocks = Clocks()
+        clocks.between(_frame(0, 100.0))
+        # the next frame, a period later, stamped after the clock was set an hour forward
+        assert clocks.between(_frame(1, 3700.1), step_s=3600.0) == []
+        assert len(clocks.between(_frame(2, 3700.4))) == 2  # and frames missed after it still count
+
+    def test_a_stall_on_both_clocks_is_every_period_of_it(self):
+        clocks = Clocks()
+        clocks.between(_frame(0, 100.0))
+        assert len(clocks.between(_frame(1, 105.0))) == 49
 
     def test_a_stamp_that_goes_back_is_no_gap(self):
         unread = UnreadFrames(10.0)

@@ -213,6 +213,8 @@ def _stand_in_sdk(stamps_s: list[float]):
     import types
     from enum import Enum
 
+    names = types.SimpleNamespace
+
     class ErrorCode(Enum):
         SUCCESS = 0
         END_OF_SVOFILE_REACHED = 1
@@ -245,6 +247,11 @@ def _stand_in_sdk(stamps_s: list[float]):
             assert reference == "image"
             return Stamp(int(stamps_s[self.grabbed] * 1e9))
 
+        def get_camera_information(self):
+            left = names(fx=350.06, cx=335.5, cy=187.5)
+            calibration = names(left_cam=left, get_camera_baseline=lambda: 120.0)
+            return names(camera_configuration=names(calibration_parameters=calibration))
+
         def close(self):
             pass
 
@@ -258,7 +265,6 @@ def _stand_in_sdk(stamps_s: list[float]):
         def set_from_serial_number(self, serial):
             self.source = serial
 
-    names = types.SimpleNamespace
     sl = types.ModuleType("pyzed.sl")
     sl.__dict__.update(
         Camera=Camera, InitParameters=InitParameters, Mat=Mat, RuntimeParameters=names, ERROR_CODE=ErrorCode,
@@ -294,6 +300,28 @@ def test_the_sdk_backend_stamps_each_pair_with_its_capture(monkeypatch, device):
         assert all(asked <= g.timestamp <= time.time() for g in grabs)
     else:
         assert [g.timestamp for g in grabs] == pytest.approx(stamps, abs=1e-6)
+
+
+def test_the_sdk_backend_yields_frames_with_the_sdks_geometry(monkeypatch, tmp_path):
+    import sys
+    import time
+
+    from core.contracts import PluginContext
+    from core.registry import default_registry
+    from core.types import StereoFrame
+
+    stamps = [time.time() - 0.2, time.time() - 0.1]
+    package, sl = _stand_in_sdk(stamps)
+    monkeypatch.setitem(sys.modules, "pyzed", package)
+    monkeypatch.setitem(sys.modules, "pyzed.sl", sl)
+    spec = default_registry().get("camera", "zed").spec
+    cam = spec.factory({"backend": "sdk", "device": "SN11338", "fps": 10}, PluginContext(recipe_dir=tmp_path))
+    frames = list(cam.frames())
+    cam.close()
+    assert [type(f) for f in frames] == [StereoFrame, StereoFrame]
+    assert [f.timestamp for f in frames] == pytest.approx(stamps, abs=1e-6)
+    calib = frames[0].calib
+    assert (calib.focal_px, calib.baseline_mm, calib.width, calib.height) == (350.06, 120.0, W, H)
 
 
 @pytest.mark.parametrize("settings, rate", [

@@ -54,4 +54,13 @@ def main() -> None:
     from core.memory import keep_freed_memory
 
     keep_freed_memory()  # before the first frame's volumes are allocated
-    sys.exit(_build().main(standalone_mode=True))
+    try:
+        sys.exit(_build().main(standalone_mode=True))
+    except BrokenPipeError:  # the reader of the output went away (`| head`): nothing left to tell
+        sys.exit(1)
+    except OSError as exc:
+        # a path the system refuses (a name too long, a folder without permission) that no command checked
+        # first: one line naming it, as for any other bad input, not a traceback
+        where = f"{exc.filename}: " if exc.filename else ""
+        click.echo(f"error: {where}{exc.strerror or exc}", err=True)
+        sys.exit(2)

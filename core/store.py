@@ -16,6 +16,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+from core.file_checks import unwritable
 from core.types import Alarm, OutputEvent, PartResult, Status
 
 DB_NAME = "results.db"
@@ -158,8 +159,11 @@ def store_problem(location: Path, tables: tuple[str, ...] = ()) -> str | None:
     there is none yet, why it could not be made there (a file in its path, a folder not writable); in one
     line naming it, else None. Creates and changes nothing."""
     path = db_path(location)
-    if not path.is_file():
-        return _folder_problem(location, path)
+    try:
+        if not path.is_file():
+            return _folder_problem(location, path)
+    except OSError as exc:  # a folder that cannot be looked into
+        return f"{location}: cannot be used ({exc.strerror or exc})"
     try:
         db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)
         try:
@@ -173,15 +177,10 @@ def store_problem(location: Path, tables: tuple[str, ...] = ()) -> str | None:
 
 def _folder_problem(location: Path, path: Path) -> str | None:
     """Why no store could be made at ``path`` (``location``'s database file, not there yet), or None."""
-    existing = path
-    while not existing.exists():
-        existing = existing.parent
-    if existing != path and not existing.is_dir():
-        return f"{location}: cannot be created ({existing} is a file, not a folder)"
-    folder = existing if existing.is_dir() else existing.parent
-    if not os.access(folder, os.W_OK | os.X_OK):
-        return f"{location}: cannot be written ({folder} is not writable)"
-    return None
+    problem = unwritable(path)
+    if problem is None:
+        return None
+    return f"{location}: cannot be {'written' if problem.endswith('not writable') else 'created'} ({problem})"
 
 
 def db_path(location: Path) -> Path:

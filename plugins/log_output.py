@@ -8,9 +8,10 @@ import logging
 import time
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from core.contracts import PluginContext, PluginSpec
+from core.file_checks import unwritable
 from core.hookspecs import hookimpl
 from core.types import Alarm, OutputEvent, PartResult
 from plugins.command_format import checked_format, command_text
@@ -25,6 +26,19 @@ class LogSettings(BaseModel):
     pass_format: str = "PASS {part_id}"
 
     _formats = field_validator("reject_format", "pass_format")(checked_format)
+
+    @field_validator("file")
+    @classmethod
+    def _writable(cls, value: str | None, info: ValidationInfo) -> str | None:
+        """A file the commands cannot be appended to is said with the recipe, not as an alarm per reject."""
+        recipe_dir = (info.context or {}).get("recipe_dir")
+        if value is None or recipe_dir is None:
+            return value
+        path = Path(value).expanduser()
+        problem = unwritable(path if path.is_absolute() else Path(recipe_dir) / path)
+        if problem is not None:
+            raise ValueError(f"cannot log to it: {problem}")
+        return value
 
 
 class LogOutput:
@@ -69,7 +83,7 @@ class LogOutput:
 
 
 def _factory(settings: dict, ctx: PluginContext) -> LogOutput:
-    return LogOutput(LogSettings(**settings), Path(ctx.recipe_dir))
+    return LogOutput(LogSettings.model_validate(settings, context={"recipe_dir": ctx.recipe_dir}), Path(ctx.recipe_dir))
 
 
 @hookimpl

@@ -2,8 +2,12 @@
 that cannot be made (an evaluation of minutes would otherwise end in a traceback), a count below one."""
 from __future__ import annotations
 
+import re
+
 import pytest
 from click.testing import CliRunner
+
+from conftest import cli
 
 from core.cli import _build
 
@@ -47,3 +51,11 @@ def test_sim_generate_says_it_cannot_make_its_folder(blocked):
 def test_counts_below_one_are_usage_errors_not_something_else(args, option):
     result = CliRunner().invoke(_build(), args)
     assert result.exit_code == 2 and f"Invalid value for '{option}'" in result.output, result.output
+
+
+@pytest.mark.parametrize("command", [("report",), ("eval", "depth"), ("eval", "stereo", "--middlebury"), ("view",)])
+def test_a_path_the_file_system_refuses_is_one_line_not_a_traceback(command):
+    """A name longer than the file system takes raises OSError at the first look, in whichever command."""
+    result = cli(*command, "x" * 300)
+    assert result.returncode == 2
+    assert re.fullmatch(r"error: x{300}(/results.db)?: File name too long\n", result.stderr), result.stderr

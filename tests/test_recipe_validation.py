@@ -344,3 +344,29 @@ def test_validate_warns_where_plates_come_closer_than_a_reject_pulse_allows():
     counted = cli("validate", demo, "--set", "camera.settings.rate_fps=12",
                   "--set", "outputs.0.settings.on_reject={write: counter, address: 3}")
     assert counted.returncode == 0 and counted.stderr == "", counted.stderr
+
+
+@pytest.mark.parametrize("key, says", [
+    ("camera.settings.path", r"camera\.settings\.path: .*x{40}.*: File name too long"),
+    ("detector.weights", r"detector\.weights: .*x{40}.*: File name too long"),
+    ("results.path", r"results\.path: .*cannot be .*File name too long"),
+    ("outputs.0.settings.file", r"outputs\.0\.settings\.file: cannot log to it: .*File name too long"),
+])
+def test_a_path_the_file_system_refuses_is_a_recipe_error_naming_its_key(recipe_dir, key, says):
+    """A name longer than the file system takes raised OSError from the first look at it: a traceback."""
+    path = write_recipe(recipe_dir / "r.yaml", GOOD)
+    result = cli("validate", str(path), "--set", f"{key}={'x' * 300}")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert re.fullmatch(rf"error: .*r\.yaml \(--set {re.escape(key)}\): {says}.*\n", result.stderr), result.stderr
+
+
+@pytest.mark.parametrize("file, says", [
+    ("{dir}", r"is a folder"),
+    ("r.yaml/rejects.log", r"r\.yaml is a file, not a folder"),
+])
+def test_a_log_file_that_cannot_be_written_is_said_with_the_recipe_not_at_the_first_reject(recipe_dir, file, says):
+    path = write_recipe(recipe_dir / "r.yaml", GOOD)
+    with pytest.raises(RecipeError, match=rf"outputs\.0\.settings\.file: cannot log to it: .*{says}"):
+        load_recipe(path, [f"outputs.0.settings.file={file.format(dir=recipe_dir)}"])
+    load_recipe(path, ["outputs.0.settings.file=logs/new/rejects.log"])  # a folder still to be made is fine
+    assert not (recipe_dir / "logs").exists()  # and checking made nothing

@@ -238,6 +238,9 @@ def _validate_plugin(
         return model.model_validate(settings, context=context).model_dump()
     except ValidationError as exc:
         raise _first_error(exc, key + ("settings",), locator, model) from None
+    except OSError as exc:  # a validator that looked at a path the system refuses (a name too long, no permission)
+        named = [k for k, v in settings.items() if isinstance(v, str) and v and v in str(exc.filename)]
+        raise locator.error(key + ("settings",) + tuple(named[:1]), f"{exc.filename or ''}: {exc.strerror or exc}") from None
 
 
 def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None) -> LoadedRecipe:
@@ -285,8 +288,14 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     registry = registry or default_registry()
     context = {"recipe_dir": loaded.directory}
 
-    if recipe.detector.weights is not None and not loaded.resolve(recipe.detector.weights).is_file():
-        raise locator.error(("detector", "weights"), f"weights file not found: {loaded.resolve(recipe.detector.weights)}")
+    if recipe.detector.weights is not None:
+        weights = loaded.resolve(recipe.detector.weights)
+        try:
+            found = weights.is_file()
+        except OSError as exc:  # a name too long for the file system, a folder that cannot be looked into
+            raise locator.error(("detector", "weights"), f"{weights}: {exc.strerror or exc}") from None
+        if not found:
+            raise locator.error(("detector", "weights"), f"weights file not found: {weights}")
     loaded.plugin_settings["camera"] = _validate_plugin(
         registry, "camera", recipe.camera.plugin, recipe.camera.settings, ("camera",), locator, context
     )

@@ -44,6 +44,13 @@ def test_report_on_missing_store(tmp_path):
     assert out.returncode == 2 and out.stderr.startswith("error: ") and "no results store" in out.stderr
 
 
+@pytest.mark.parametrize("run", ["2", "0", "-1"])
+def test_a_run_the_store_does_not_hold_is_an_error_not_a_run_without_parts(results, run):
+    out = cli("report", str(results), "--run", run)
+    assert out.returncode == 2 and out.stdout == ""
+    assert out.stderr == f"error: {results / 'results.db'}: no run {run} (runs 1-1)\n"
+
+
 def test_report_csv_of_one_run(results, tmp_path):
     from core.recipe import load_recipe as load
     from core.registry import Registry, make_manager

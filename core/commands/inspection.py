@@ -448,8 +448,12 @@ def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> 
         db = store.open_readonly(results)
     except (FileNotFoundError, store.StoreError) as exc:
         fail(str(exc))
-    s = store.summary(db, run_id)
     runs = db.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
+    if run_id is not None and db.execute("SELECT 1 FROM runs WHERE id = ?", (run_id,)).fetchone() is None:
+        # a mistyped run would otherwise read as a run without parts
+        first, last = db.execute("SELECT MIN(id), MAX(id) FROM runs").fetchone()
+        fail(f"{store.db_path(results)}: no run {run_id} (" + (f"runs {first}-{last})" if runs else "no runs yet)"))
+    s = store.summary(db, run_id)
     click.echo(f"{store.db_path(results)}: {runs} run(s){'' if run_id is None else f', run {run_id}'}")
     yield_text = "n/a" if s["yield_percent"] is None else f"{s['yield_percent']:.1f}%"
     for row in store.crashed_runs(db, run_id):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from click.testing import CliRunner
 
 from core.cli import _build
@@ -83,6 +84,13 @@ def test_a_negative_noise_is_refused(tmp_path):
     result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects",
                                            "--noise-sigma", "-1"])
     assert result.exit_code == 2 and "--noise-sigma" in result.output
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("command", ["generate", "faults"])
+def test_a_negative_seed_is_refused_not_a_traceback(tmp_path, command):
+    result = CliRunner().invoke(_build(), ["sim", command, str(tmp_path / "x"), "--seed", "-1"])
+    assert result.exit_code == 2 and "Invalid value for '--seed': -1 is not in the range x>=0" in result.output
     assert not (tmp_path / "x").exists()
 
 

@@ -30,7 +30,7 @@ def register(cli: click.Group) -> None:
     @sim_group.command("generate")
     @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
     @click.option("--frames", default=10, show_default=True, type=click.IntRange(min=1), help="Number of frames.")
-    @click.option("--seed", default=0, show_default=True, type=int, help="Random seed (the output is a function of it).")
+    @click.option("--seed", default=0, show_default=True, type=click.IntRange(0), help="Random seed (the output is a function of it).")
     @click.option("--distance-mm", default=400.0, show_default=True, type=Finite(min=100.0),
                   help="Plate distance at the image centre (jittered by -20..+50 mm per frame unless --no-jitter).")
     @click.option("--tilt-deg", default=5.0, show_default=True, type=Finite(-30.0, 30.0),
@@ -148,7 +148,7 @@ def register(cli: click.Group) -> None:
     @click.option("--damage", default=0.1, show_default=True, type=Finite(0.0, 1.0),
                   help="share of the frames whose left or right image is cut short")
     @click.option("--rate-fps", default=6.0, show_default=True, type=Finite(min=0.5))
-    @click.option("--seed", default=0, show_default=True, type=int)
+    @click.option("--seed", default=0, show_default=True, type=click.IntRange(0))
     @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE", help="passed to inspect run")
     def faults(out, parts, kills, damage, rate_fps, seed, overrides) -> None:
         """The demo line under faults (damaged frames, a PLC link cut at random, the process killed and

@@ -204,11 +204,13 @@ def _start(
         servers = []
         try:
             if port is not None:
+                box["where"] = f"{host or '127.0.0.1'}:{port}"
                 tcp = ModbusTcpServer(_build_server_device(state, unit_ids), address=(host or "127.0.0.1", int(port)),
                                       trace_pdu=state.trace_pdu)
                 await tcp.serve_forever(background=True)
                 servers.append(tcp)
             if rtu:
+                box["where"] = rtu
                 serial_server = ModbusSerialServer(
                     _build_server_device(state, unit_ids), port=rtu, baudrate=baudrate, timeout=0.5, reconnect_delay=0.5,
                     trace_pdu=state.trace_pdu,
@@ -246,8 +248,7 @@ def _start(
         raise RuntimeError("PLC simulator did not start within 10 s")
     if "error" in box:
         thread.join(2.0)
-        where = f"{host}:{port}" if port is not None else rtu
-        raise OSError(f"PLC simulator cannot serve on {where}: {box['error']}")
+        raise OSError(f"PLC simulator cannot serve on {box['where']}: {box['error']}")
     if port is not None and not _wait_listening(host or "127.0.0.1", int(port), 3.0):
         raise OSError(f"PLC simulator does not listen on {host}:{port}")
     parts = ([f"tcp {host}:{port}"] if port is not None else []) + ([f"rtu {rtu}"] if rtu else [])

@@ -91,6 +91,19 @@ def test_cli_port_in_use_is_one_line_error():
     assert len(result.stderr.strip().splitlines()) == 1
 
 
+def test_cli_names_the_serial_port_it_cannot_serve_on_not_the_tcp_address(tmp_path):
+    from click.testing import CliRunner
+
+    from core.commands.hardware import plc_sim_command
+
+    missing = str(tmp_path / "no-such-tty")
+    result = CliRunner().invoke(plc_sim_command, ["--port", str(plc_sim.free_port()), "--rtu", missing,
+                                                  "--duration", "1"])
+    assert result.exit_code == 2
+    assert result.stderr.startswith(f"error: PLC simulator cannot serve on {missing}: ")
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
 def test_cli_serves_modbus_rtu_on_a_serial_port(tmp_path):
     pair, a, b = start_pty_pair(tmp_path)
     try:

@@ -49,6 +49,10 @@ class OpenCVSGBM:
         lo = math.floor(min_disp)
         # OpenCV wants the search width as a positive multiple of 16.
         num = max(16, int(math.ceil((max_disp - lo) / 16.0)) * 16)
+        narrowest = lo + num + s.block_size // 2 + 1  # below it OpenCV fails an assertion in C++
+        if left.shape[1] < narrowest:
+            raise ValueError(f"the pair is {left.shape[1]} px wide; searching disparities {lo}..{lo + num - 1} "
+                             f"(a multiple of 16) with block_size {s.block_size} needs {narrowest} px at least")
         area = 3 * s.block_size * s.block_size
         matcher = cv2.StereoSGBM_create(
             minDisparity=lo,

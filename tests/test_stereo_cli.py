@@ -103,6 +103,18 @@ def test_pair_of_different_sizes_is_refused(pair, tmp_path):
     _assert_error(invoke("stereo", left, tmp_path / "small.png", "--max-disp", 16), "small.png", "72x40")
 
 
+def test_a_pair_narrower_than_opencvs_search_is_refused_and_torch_sgm_matches_it(tmp_path):
+    # OpenCV failed an assertion in C++ (a traceback); torch_sgm's coarse pass pooled it to nothing
+    left, right, _, _ = layered_scene(6, 9, seed=2)
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
+    _assert_error(invoke("stereo", tmp_path / "l.png", tmp_path / "r.png", "--max-disp", 4, "--backend", "opencv_sgbm"),
+                  "l.png: opencv_sgbm: the pair is 9 px wide", "disparities 0..15", "needs 19 px at least")
+    result = invoke("stereo", tmp_path / "l.png", tmp_path / "r.png", "--max-disp", 4, "--out", tmp_path / "d.pfm")
+    assert result.exit_code == 0, result.output
+    assert read_pfm(tmp_path / "d.pfm").shape == (6, 9)
+
+
 def test_a_pair_too_large_for_the_memory_is_refused_before_matching(tmp_path):
     # 4000 x 2000 over 3999 disparities: 24 bytes each for torch_sgm, 715 GiB, more than any machine has
     grey = np.full((2000, 4000, 3), 128, np.uint8)

@@ -66,6 +66,20 @@ def test_without_filling_invalid_pixels_are_nan():
     assert 0 < (~consistent).sum() < consistent.size * 0.3
 
 
+@pytest.mark.parametrize("settings", [{}, {"two_view": True}, {"preset": "seed"}, {"align": "projective"},
+                                      {"search": "full", "align": "none"}])
+@pytest.mark.parametrize("shape", [(1, 1), (3, 40), (40, 3), (9, 9)])
+def test_a_pair_of_any_size_gives_a_map_of_its_size(settings, shape):
+    """A crop at a frame's corner can be a few pixels: the coarse pass pooled a pair of fewer rows than its
+    factor to nothing, and the two views' neighbour shifts wrapped around a pair narrower than their reach."""
+    left, right, _, _ = layered_scene(40, 40, seed=1)
+    h, w = shape
+    disp, consistent = compute_disparity(np.ascontiguousarray(left[:h, :w]), np.ascontiguousarray(right[:h, :w]),
+                                         0, 4, TorchSGMParams(**settings), device="cpu")
+    assert disp.shape == consistent.shape == shape
+    assert np.all(np.isnan(disp) | ((disp >= 0) & (disp <= 4)))
+
+
 def test_registered_through_the_hook_and_the_entry_point():
     manager = pluggy.PluginManager(hookspecs.PROJECT)
     manager.add_hookspecs(hookspecs)

@@ -149,17 +149,20 @@ def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings,
         import torch
 
         torch.cuda.reset_peak_memory_stats()
-    if stages:
-        # the first map loads the compiled kernels; until the heap has grown to hold a map's volumes, fresh
-        # pages fault in on first touch (40 ms of SGM's kernel on a WVGA frame): time the map after both, as
-        # a line's frames run
-        for _ in range(2):
-            matcher.compute(left_img, right_img, min_disp, max_disp)
-    start = time.perf_counter()
-    if stages:
-        disp, stage_seconds = matcher.compute_timed(left_img, right_img, min_disp, max_disp)
-    else:
-        disp = matcher.compute(left_img, right_img, min_disp, max_disp)
+    try:
+        if stages:
+            # the first map loads the compiled kernels; until the heap has grown to hold a map's volumes, fresh
+            # pages fault in on first touch (40 ms of SGM's kernel on a WVGA frame): time the map after both,
+            # as a line's frames run
+            for _ in range(2):
+                matcher.compute(left_img, right_img, min_disp, max_disp)
+        start = time.perf_counter()
+        if stages:
+            disp, stage_seconds = matcher.compute_timed(left_img, right_img, min_disp, max_disp)
+        else:
+            disp = matcher.compute(left_img, right_img, min_disp, max_disp)
+    except ValueError as exc:  # the backend refuses this pair (e.g. narrower than its search)
+        _fail(f"{left}: {backend}: {exc}")
     disp = np.asarray(disp, np.float32)
     seconds = time.perf_counter() - start
     valid = np.isfinite(disp)

@@ -128,10 +128,10 @@ def coarse_pass(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_di
     (B, h, w) disparity in coarse pixels (NaN where unmatched) and matched mask; None when the image is
     too small to shrink."""
     factor = p.coarse_factor
-    small_l, small_r = search.downsample(left, factor), search.downsample(right, factor)
-    h, w = small_l.shape[-2:]
-    if min(h, w) < 8:
+    if min(left.shape[-2:]) // factor < 8:  # before pooling: an image narrower than the factor pools to nothing
         return None
+    small_l, small_r = search.downsample(left, factor), search.downsample(right, factor)
+    w = small_l.shape[-1]
     lo, hi = search.coarse_bounds(min_disp, max_disp, factor, w)
     coarse = p.model_copy(update={"search": "full", "fill": "none", "align": "none"})
     return compute_tensors(small_l, small_r, lo, hi, coarse)

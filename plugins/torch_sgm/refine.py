@@ -260,6 +260,8 @@ def _shifted(disp: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
     """(B, H, W) -> the value of the pixel (y + dy, x + dx) at (y, x); NaN where that lies outside."""
     h, w = disp.shape[-2:]
     out = torch.full_like(disp, float("nan"))
+    if abs(dy) >= h or abs(dx) >= w:  # every such pixel lies outside (and a negative slice end would wrap)
+        return out
     out[:, max(0, -dy):h - max(0, dy), max(0, -dx):w - max(0, dx)] = \
         disp[:, max(0, dy):h - max(0, -dy), max(0, dx):w - max(0, -dx)]
     return out

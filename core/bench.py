@@ -37,6 +37,11 @@ from core.registry import Registry
 from core.types import FrameError, PartResult, StereoFrame
 
 STAGES = ("capture", "detection", "stereo", "depth", "decision", "outputs", "loop")
+
+
+class BenchInputError(Exception):
+    """A frame of the sequence timed cannot be read; the message names it. Timings of a loop that skipped
+    it would be of other frames than the table says."""
 RESOLUTIONS = {"wvga": (672, 376), "hd720": (1280, 720)}
 
 
@@ -105,7 +110,7 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
                 if item is None:
                     break
                 if isinstance(item, FrameError):
-                    raise RuntimeError(f"bench input: {item.message}")
+                    raise BenchInputError(item.message)
                 frame = resize_frame(item, size)
                 t = {"capture": time.perf_counter()}
                 detections = detector.detect(frame.left)

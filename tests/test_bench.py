@@ -99,3 +99,18 @@ def test_live_runs_the_real_loop_with_and_without_depth(tmp_path):
     assert {"detection", "stereo", "depth"} <= set(depth["mean_ms"]) and depth["counts"].get("REJECT", 0) > 0
     assert live["ratio"] == depth["fps"] / alone["fps"] > 0
     assert "with depth ÷ detection alone" in out.stdout and not (ROOT / "results" / "steel_plate" / "live").exists()
+
+
+def test_a_frame_that_cannot_be_read_is_one_line_naming_it(tmp_path):
+    """Timings of a loop that skipped it would be of other frames than the table says: refused, not a traceback."""
+    import shutil
+
+    sequence = tmp_path / "seq"
+    shutil.copytree(ROOT / "sim_fixtures" / "steel_plate", sequence)
+    cut = sequence / "left" / "000001.jpg"
+    cut.write_bytes(cut.read_bytes()[:500])
+    out = cli("bench", "--sequence", str(sequence), "--backends", "none", "--repeats", "1", "--out", str(tmp_path / "o"))
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert out.stderr == f"error: {sequence}: {cut}: left image of frame 000001 is not whole: truncated JPEG (no " \
+                         "end-of-image marker)\n"
+    assert list((tmp_path / "o").iterdir()) == []  # no table of other frames

@@ -46,7 +46,7 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
                   soak, soak_every, quiet, live, threads, overrides, versus):
     """Time capture, detection, stereo, depth, decision, outputs and the whole loop; print and save
     a table (JSON + Markdown). Backend "none" times detection alone."""
-    from core.bench import NO_STEREO, live_markdown, markdown, run_bench, run_live, run_soak
+    from core.bench import NO_STEREO, BenchInputError, live_markdown, markdown, run_bench, run_live, run_soak
     from core.registry import default_registry
 
     overrides = list(overrides)
@@ -97,7 +97,10 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
                 spec.settings_model(**{**loaded.plugin_settings["stereo"], **reference})
         except ValidationError as exc:
             fail(f"--versus: {exc.errors()[0]['loc'][0]}: {exc.errors()[0]['msg']}")
-    report = run_bench(loaded, registry, names, resolution, device, repeats, frames, region_names, reference or None)
+    try:
+        report = run_bench(loaded, registry, names, resolution, device, repeats, frames, region_names, reference or None)
+    except BenchInputError as exc:
+        fail(f"{loaded.recipe.camera.settings.get('path', 'the camera')}: {exc}")
     table = markdown(report)
     if live is not None:
         report["live"] = run_live(loaded, registry, live, report["device"])

@@ -69,6 +69,17 @@ def test_a_checkpoint_that_would_run_code_is_refused_and_never_run(tmp_path):
     assert marker.exists()
 
 
+@pytest.mark.parametrize("content, says", [(b"", "this one is empty"), (b"<html>", "this one starts with b'<htm'")])
+def test_weights_that_are_no_torch_file_are_said_to_be_so(tmp_path, content, says):
+    # a download that saved an error page, a file cut to nothing: the loader's own words were "KeyError: 60"
+    weights = tmp_path / "model.pt"
+    weights.write_bytes(content)
+    _one_line_error(cli("validate", str(DEMO), "--set", f"detector.weights={weights}"), "detector.weights",
+                    f"{weights}: not a YOLO checkpoint: a torch file is a zip archive or a pickle, and {says}")
+    _one_line_error(cli("eval", "detector-frames", str(ROOT / "sim_fixtures" / "steel_plate"), "--weights",
+                        str(weights)), f"{weights}: not a YOLO checkpoint")
+
+
 def test_the_weights_can_be_pinned_and_every_run_records_what_it_ran(tmp_path):
     bad = cli("validate", str(DEMO), "--set", "detector.sha256=" + "ab" * 32)
     _one_line_error(bad, "detector.sha256", "yolov8n-neu-det.pt has SHA-256", "not the pinned")

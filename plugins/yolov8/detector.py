@@ -69,6 +69,12 @@ def read_checkpoint(weights: Path, trust_pickle: bool = False) -> dict:
     weights = Path(weights)
     if not weights.is_file():
         raise FileNotFoundError(f"{weights}: detector weights not found")
+    with open(weights, "rb") as f:
+        head = f.read(4)
+    if not head.startswith((b"PK\x03\x04", b"\x80")):  # what torch.save writes: a zip archive, or a pickle
+        what = "is empty" if not head else f"starts with {head!r}"
+        raise ValueError(f"{weights}: not a YOLO checkpoint: a torch file is a zip archive or a pickle, and this "
+                         f"one {what}")
     import_yolo()
     from ultralytics.nn.tasks import torch_safe_load
 
@@ -101,7 +107,12 @@ def checkpoint_class_names(weights: Path, trust_pickle: bool = False) -> list[st
 
 
 def _first_line(exc: Exception) -> str:
-    return next((line for line in str(exc).splitlines() if line.strip()), exc.__class__.__name__).strip()
+    """The exception's first line of text, with its type where that line alone says nothing (a pickle's
+    KeyError reads ``101``, the byte it did not expect)."""
+    line = next((line for line in str(exc).splitlines() if line.strip()), "").strip()
+    if not line or not any(c.isalpha() for c in line):
+        return f"{exc.__class__.__name__}: {line}".rstrip(": ")
+    return line
 
 
 def load_model(weights: Path, trust_pickle: bool = False):

@@ -222,9 +222,12 @@ def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, 
         frames = load_labelled_frames(sequence)
     except ValueError as exc:
         _fail(str(exc))
-    detector = YoloDetector(YoloSettings(weights=str(weights) if weights else None, confidence=min(thresholds),
-                                         tile_size=tile_size or None, tile_overlap=tile_overlap, imgsz=imgsz),
-                            device="cpu")
+    try:
+        detector = YoloDetector(YoloSettings(weights=str(weights) if weights else None, confidence=min(thresholds),
+                                             tile_size=tile_size or None, tile_overlap=tile_overlap, imgsz=imgsz),
+                                device="cpu")
+    except ValueError as exc:  # not a checkpoint, or one that would run code (its message names the file)
+        _fail(" ".join(str(exc).split()))
     detections = [[(d.class_name, d.confidence, d.box) for d in detector.detect(image)] for _, image, _ in frames]
     click.echo(f"{sequence}: {len(frames)} frames, weights {weights or 'the committed model'}")
     click.echo(markdown(score_frames(detections, [t for _, _, t in frames], thresholds, iou)))

@@ -392,6 +392,28 @@ def test_camera_record_builds_a_replayable_sequence(dots_video, tmp_path):
     assert again.exit_code == 2 and "already holds" in again.output
 
 
+def test_camera_record_says_how_many_frames_it_did_not_record(monkeypatch, tmp_path):
+    """A live camera keeps only its newest frame while a pair is written: the recording's gaps are counted from
+    the capture stamps (the SDK's here) and said, so that a test set is not taken for the line as it ran."""
+    import sys
+    import time
+
+    from core.cli import _build
+
+    now = time.time()
+    package, sl = _stand_in_sdk([now - 0.6, now - 0.5, now - 0.2, now - 0.1])  # 0.5 -> 0.2 s: two frames gone
+    monkeypatch.setitem(sys.modules, "pyzed", package)
+    monkeypatch.setitem(sys.modules, "pyzed.sl", sl)
+    recipe = tmp_path / "line.yaml"
+    recipe.write_text("name: line\ncamera:\n  plugin: zed\n  settings: {backend: sdk, device: SN11338, fps: 10}\n"
+                      "stereo: {min_disparity: 0, max_disparity: 64}\noutputs: []\n")
+    out = tmp_path / "recorded"
+    result = CliRunner().invoke(_build(), ["camera", "record", str(recipe), "--frames", "4", str(out)])
+    assert result.exit_code == 0, result.output
+    assert len(list((out / "left").iterdir())) == 4
+    assert f"{out}: 2 frame(s) the camera captured were not recorded" in result.stderr
+
+
 def test_camera_record_reports_a_bad_recipe(tmp_path):
     from core.cli import _build
 

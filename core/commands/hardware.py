@@ -74,6 +74,7 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
     from core.contracts import PluginContext
     from core.registry import UnknownPlugin, default_registry
     from core.types import StereoFrame
+    from core.unread_frames import UnreadFrames
     from drivers import sequence_folder as seq
 
     plugin_name, settings, recipe_dir = _camera_section(recipe, overrides)
@@ -93,8 +94,11 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
 
     written = errors = in_a_row = 0
     calib_written = False
+    unread = UnreadFrames(_frame_rate(plugin.spec, settings, recipe_dir))
+    not_recorded = 0
     try:
         for item in camera.frames():
+            not_recorded += len(unread.between(item))  # captured while a pair was being written
             if not isinstance(item, StereoFrame):
                 errors += 1
                 in_a_row += 1
@@ -118,10 +122,23 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
         _fail(f"{out}: cannot write pair {written} ({exc.strerror or exc}); {written} of {count} recorded")
     finally:
         camera.close()
+    if not_recorded:
+        click.echo(f"{out}: {not_recorded} frame(s) the camera captured were not recorded (writing a pair took longer "
+                   f"than the camera's frame period, or its driver stalled): the sequence has gaps", err=True)
     if written < count:
         click.echo(f"{out}: {written} of {count} pairs recorded (the camera stopped), {errors} missed", err=True)
         raise click.exceptions.Exit(1 if written else 2)
     click.echo(f"{out}: {written} rectified pairs and calib.yaml recorded ({errors} missed frames)")
+
+
+def _frame_rate(spec, settings: dict, recipe_dir: Path) -> float | None:
+    """The camera's frames a second where its plugin states them; None for a recording or a triggered camera."""
+    from core.contracts import PluginContext
+
+    try:
+        return spec.frame_rate(dict(settings), PluginContext(recipe_dir=recipe_dir)) if spec.frame_rate else None
+    except Exception:  # a plugin that cannot say: nothing to check
+        return None
 
 
 def _camera_section(recipe: Path, overrides: tuple[str, ...]) -> tuple[str, dict, Path]:

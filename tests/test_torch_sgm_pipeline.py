@@ -100,6 +100,8 @@ def test_settings_reject_unknown_keys_and_bad_values():
         TorchSGMParams(preset="seed", p3=1.0)
     with pytest.raises(ValidationError):
         TorchSGMParams(preset="seed", paths=6)
+    with pytest.raises(ValidationError, match="less than or equal to 10"):
+        TorchSGMParams(median_radius=1000)  # its window stack asked for more memory than the machine has
     assert TorchSGMParams(preset="seed").model_dump()["w_census"] == 0.60
 
 

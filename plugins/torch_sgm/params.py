@@ -78,7 +78,7 @@ class TorchSGMParams(BaseModel):
     refine_scope: Literal["all", "holes"] = Field("all", description="all: the seed filters the whole map; holes: "
                                                   "only pixels that failed the LR check, so matched pixels keep "
                                                   "their sub-pixel value")
-    median_radius: int = Field(2, ge=0, description="median over filled pixels, 0 = off")
+    median_radius: int = Field(2, ge=0, le=10, description="median over filled pixels, 0 = off")
     plane_fill: bool = Field(False, description="holes inside a region of the left image bounded by colour edges "
                              "take the robust plane of that region's matched pixels, where it has one")
     plane_edge: float = Field(0.0025, gt=0, description="finest normalised Sobel magnitude (of [0, 1] "

@@ -29,7 +29,8 @@ from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
 from core.types import Calibration, FrameError, StereoFrame
 from drivers.zed_calibration import CalibrationError, StereoRectifier, read_conf, serial_number
-from drivers.zed_uvc import Grab, ZedError, ZedSdk, ZedUvc, is_file_source, is_recording, parse_device
+from drivers.zed_uvc import (FPS_BY_RESOLUTION, Grab, ZedError, ZedSdk, ZedUvc, is_file_source, is_recording,
+                             parse_device)
 
 
 class ZedSettings(BaseModel):
@@ -77,6 +78,11 @@ class ZedSettings(BaseModel):
                              "(download from https://calib.stereolabs.com/?SN=<serial>)")
         if self.reconnect_max_ms < self.reconnect_min_ms:
             raise ValueError("reconnect_max_ms must be at least reconnect_min_ms")
+        rates = FPS_BY_RESOLUTION[self.resolution]
+        if self.fps not in rates and not is_recording(self.device, self.backend):
+            # the camera would run at a rate of its own, and the frame periods counted from fps would not be its
+            raise ValueError(f"fps {self.fps:g}: a ZED at {self.resolution} runs at {', '.join(map(str, rates))} frames "
+                             f"a second")
         return self
 
 

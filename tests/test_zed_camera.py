@@ -315,13 +315,30 @@ def test_the_sdk_backend_yields_frames_with_the_sdks_geometry(monkeypatch, tmp_p
     monkeypatch.setitem(sys.modules, "pyzed", package)
     monkeypatch.setitem(sys.modules, "pyzed.sl", sl)
     spec = default_registry().get("camera", "zed").spec
-    cam = spec.factory({"backend": "sdk", "device": "SN11338", "fps": 10}, PluginContext(recipe_dir=tmp_path))
+    cam = spec.factory({"backend": "sdk", "device": "SN11338", "fps": 15}, PluginContext(recipe_dir=tmp_path))
     frames = list(cam.frames())
     cam.close()
     assert [type(f) for f in frames] == [StereoFrame, StereoFrame]
     assert [f.timestamp for f in frames] == pytest.approx(stamps, abs=1e-6)
     calib = frames[0].calib
     assert (calib.focal_px, calib.baseline_mm, calib.width, calib.height) == (350.06, 120.0, W, H)
+
+
+@pytest.mark.parametrize("fps, resolution", [(20, "WVGA"), (100, "HD720"), (30, "2K")])
+def test_a_frame_rate_the_zed_does_not_have_is_refused(tmp_path, fps, resolution):
+    """It would run at one of its own, and the periods in which no frame was read would be counted wrong."""
+    from pydantic import ValidationError
+
+    from core.contracts import PluginContext
+    from core.registry import default_registry
+
+    spec = default_registry().get("camera", "zed").spec
+    with pytest.raises(ValidationError, match=f"fps {fps}: a ZED at {resolution} runs at"):
+        spec.factory({"device": 0, "calibration": str(CONF), "fps": fps, "resolution": resolution},
+                     PluginContext(recipe_dir=tmp_path))
+    # a recording is read as fast as asked: its fps is only the period of the reconnect's reports
+    settings = {"device": str(tmp_path / "line.avi"), "calibration": str(CONF), "fps": fps, "resolution": resolution}
+    assert spec.frame_rate(settings, PluginContext(recipe_dir=tmp_path)) is None
 
 
 @pytest.mark.parametrize("settings, rate", [
@@ -401,11 +418,11 @@ def test_camera_record_says_how_many_frames_it_did_not_record(monkeypatch, tmp_p
     from core.cli import _build
 
     now = time.time()
-    package, sl = _stand_in_sdk([now - 0.6, now - 0.5, now - 0.2, now - 0.1])  # 0.5 -> 0.2 s: two frames gone
+    package, sl = _stand_in_sdk([now - k / 15 for k in (9, 8, 5, 4)])  # 8 -> 5 periods back: two frames gone
     monkeypatch.setitem(sys.modules, "pyzed", package)
     monkeypatch.setitem(sys.modules, "pyzed.sl", sl)
     recipe = tmp_path / "line.yaml"
-    recipe.write_text("name: line\ncamera:\n  plugin: zed\n  settings: {backend: sdk, device: SN11338, fps: 10}\n"
+    recipe.write_text("name: line\ncamera:\n  plugin: zed\n  settings: {backend: sdk, device: SN11338, fps: 15}\n"
                       "stereo: {min_disparity: 0, max_disparity: 64}\noutputs: []\n")
     out = tmp_path / "recorded"
     result = CliRunner().invoke(_build(), ["camera", "record", str(recipe), "--frames", "4", str(out)])

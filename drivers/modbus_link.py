@@ -17,7 +17,19 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-from drivers.reject_scheduler import LinkError
+from drivers.reject_scheduler import LinkError, LinkRefused
+
+
+# the standard exception codes (Modbus application protocol, section 7), in the words a commissioning engineer
+# acts on
+MODBUS_EXCEPTIONS = {1: "it does not take this write (illegal function)",
+                     2: "it has no such address (illegal data address)",
+                     3: "it does not take this value (illegal data value)",
+                     4: "it failed while doing it (server device failure)",
+                     6: "it is busy (server device busy)",
+                     10: "its gateway has no path to that unit (gateway path unavailable)",
+                     11: "the unit behind its gateway did not answer (gateway target device failed to respond)"}
+ADDRESS_HINT = "- check the recipe's address against the PLC's (Modbus addresses count from 0)"
 
 
 @dataclass(frozen=True)
@@ -100,7 +112,10 @@ class ModbusLink:
             text = str(exc).replace("Modbus Error: ", "")
             raise LinkError(f"{self.where}: {text}") from None
         if response.isError():
-            raise LinkError(f"{self.where}: PLC answered with an exception ({response})")
+            code = getattr(response, "exception_code", None)
+            meaning = MODBUS_EXCEPTIONS.get(code, "an exception") if code is not None else "an exception"
+            raise LinkRefused(f"{self.where}: the PLC refused {command.describe()}: {meaning} (Modbus exception "
+                            f"{code}){' ' + ADDRESS_HINT if code == 2 else ''}")
         return ""
 
     def read(self, table: str, address: int, count: int = 1, unit: int = 1) -> list[int]:

@@ -39,6 +39,11 @@ class LinkError(Exception):
     """The link could not connect or a command was not acknowledged; the message says why."""
 
 
+class LinkRefused(LinkError):
+    """The peer answered and refused the command (an address, a value or a function it does not have): a
+    setting to correct, not a cable to check."""
+
+
 class Link(Protocol):
     def connect(self) -> None:
         """Open the connection; raise ``LinkError`` (or ``OSError``) when it cannot."""
@@ -74,8 +79,8 @@ class Record:
     detail: str = ""
     alarm: str | None = None  # set when the operator must hear about it
     late_s: float | None = None  # sent this long after the due time (delivered records)
-    # why an alarm was raised: link (unreachable), late (handed over after its due time), busy, pulse
-    # (would merge with the previous), release (a pulse's end not sent), closed
+    # why an alarm was raised: link (unreachable), refused (the peer refused a command), late (handed over after
+    # its due time), busy, pulse (would merge with the previous), release (a pulse's end not sent), closed
     cause: str | None = None
 
 
@@ -131,6 +136,7 @@ class RejectScheduler:
         self._backoff = reconnect_min_s
         self._next_connect = 0.0
         self._last_connect_error = ""
+        self._refused = False  # the last error was the peer refusing a command, not the link failing
         self._down_reported = False
         self._closing = False
         self._stop = False
@@ -298,15 +304,20 @@ class RejectScheduler:
                     self._records.append(Record(None, command.text, "delivered", time.time(), detail or ""))
         except Exception as exc:  # LinkError, OSError, or anything a library raises: keep the worker alive
             self._last_connect_error = str(exc) or exc.__class__.__name__
+            self._refused = isinstance(exc, LinkRefused)
             self._next_connect = time.monotonic() + self._backoff
             self._backoff = min(self.reconnect_max_s, self._backoff * 2)
             if not self._down_reported:
                 self._down_reported = True
+                if isinstance(exc, LinkRefused):
+                    cause, alarm = "refused", (f"{self.where} refuses the output's commands ({self._last_connect_error}): "
+                                               "rejects cannot reach the actuator until the recipe or the PLC is set right")
+                else:
+                    cause, alarm = "link", (f"{self.where} cannot be reached ({self._last_connect_error}): rejects cannot "
+                                            "reach the actuator until it answers")
                 with self._cond:
-                    self._records.append(Record(
-                        None, "connect", "alarm", time.time(), self._last_connect_error, cause="link",
-                        alarm=f"{self.where} cannot be reached ({self._last_connect_error}): rejects cannot reach the "
-                              "actuator until it answers"))
+                    self._records.append(Record(None, "connect", "alarm", time.time(), self._last_connect_error,
+                                                cause=cause, alarm=alarm))
             return
         self._connected = True
         self._backoff = self.reconnect_min_s
@@ -328,6 +339,7 @@ class RejectScheduler:
     def _lost(self, exc: Exception) -> None:
         self._connected = False
         self._last_connect_error = str(exc) or exc.__class__.__name__
+        self._refused = isinstance(exc, LinkRefused)
         try:
             self.link.close()
         except Exception:
@@ -353,7 +365,7 @@ class RejectScheduler:
                 elif self._connected:
                     cause, kind = "earlier commands kept the link busy", "busy"
                 else:
-                    cause, kind = self._last_connect_error or "link down", "link"
+                    cause, kind = self._last_connect_error or "link down", "refused" if self._refused else "link"
                 why = f"not sent by its deadline ({self.max_late_s * 1000:.0f} ms after due): {cause}"
                 with self._cond:
                     self._alarm_locked(job, time.time(), why, kind)

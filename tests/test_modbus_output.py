@@ -181,6 +181,32 @@ def test_plc_never_there_every_reject_is_an_alarm(port):
     assert [e.part_id for e in alarm_events] == [p.part_id for p in parts]
 
 
+def test_an_address_the_plc_does_not_have_is_a_refusal_that_says_so_not_an_unreachable_plc(sim, port):
+    """The PLC answers with Modbus exception 2 (illegal data address): a setting to correct, not a cable."""
+    out = output(port, delay_ms=100, max_late_ms=100, on_reject={"write": "coil", "address": plc_sim.SIZE,
+                                                                 "pulse_ms": 60})
+    parts = [part(i) for i in range(2)]
+    for p in parts:
+        out.submit(p)
+    events = out.poll() + out.close(timeout_s=2)
+    alarms = events_of(events, Alarm)
+    assert {a.cause for a in alarms} == {"refused"}
+    (link,) = [a for a in alarms if a.part_id is None]
+    assert link.message.startswith(f"the PLC at {HOST}:{port} refuses the output's commands ({HOST}:{port}: the PLC "
+                                   f"refused write_coil {plc_sim.SIZE} = 0 unit 1: it has no such address (illegal "
+                                   f"data address) (Modbus exception 2) - check the recipe's address")
+    assert [a.part_id for a in alarms if a.part_id] == [p.part_id for p in parts]
+    assert coil_on_times(sim, plc_sim.SIZE) == []
+    from conftest import ROOT
+
+    from core.commands.inspection import alarm_hints
+    from core.recipe import load_recipe
+
+    hints = alarm_hints(alarms, load_recipe(ROOT / "recipes" / "steel_plate.yaml"), plc_sim_given=True)
+    assert any("refused a command" in h and "addresses, unit and values" in h for h in hints)
+    assert not any("did not answer" in h for h in hints)
+
+
 def test_plc_killed_mid_run_and_restarted(port):
     """Parts every 80 ms for 1.6 s; the PLC is stopped after 0.5 s and back at 0.9 s. Every reject
     is delivered (on time) or alarmed, in order, and the output reconnects by itself."""

@@ -190,6 +190,9 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
         elif "serial" in outputs:
             text += " (the serial port, its cable and the device at its other end)"
         lines.append(text)
+    if "refused" in causes:
+        lines.append("  the PLC answered but refused a command (the alarm says which and why): check the recipe's "
+                     "addresses, unit and values against the PLC's program")
     if "late" in causes:
         lines.append("  parts were decided after their reject was due: the inspection takes longer than the time from "
                      "the camera to the actuator; lengthen the delay, or speed it up (stereo.region: defects, "

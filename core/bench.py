@@ -37,12 +37,12 @@ from core.registry import Registry
 from core.types import FrameError, PartResult, StereoFrame
 
 STAGES = ("capture", "detection", "stereo", "depth", "decision", "outputs", "loop")
+RESOLUTIONS = {"wvga": (672, 376), "hd720": (1280, 720)}
 
 
 class BenchInputError(Exception):
     """A frame of the sequence timed cannot be read; the message names it. Timings of a loop that skipped
     it would be of other frames than the table says."""
-RESOLUTIONS = {"wvga": (672, 376), "hd720": (1280, 720)}
 
 
 def resize_frame(frame: StereoFrame, size: tuple[int, int]) -> StereoFrame:

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 from drivers.reject_scheduler import LinkError, LinkRefused
 
-
 # the standard exception codes (Modbus application protocol, section 7), in the words a commissioning engineer
 # acts on
 MODBUS_EXCEPTIONS = {1: "it does not take this write (illegal function)",
@@ -115,7 +114,7 @@ class ModbusLink:
             code = getattr(response, "exception_code", None)
             meaning = MODBUS_EXCEPTIONS.get(code, "an exception") if code is not None else "an exception"
             raise LinkRefused(f"{self.where}: the PLC refused {command.describe()}: {meaning} (Modbus exception "
-                            f"{code}){' ' + ADDRESS_HINT if code == 2 else ''}")
+                              f"{code}){' ' + ADDRESS_HINT if code == 2 else ''}")
         return ""
 
     def read(self, table: str, address: int, count: int = 1, unit: int = 1) -> list[int]:

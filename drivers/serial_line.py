@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-from drivers.reject_scheduler import LinkError
+from drivers.reject_scheduler import LinkError, LinkRefused
 
 
 @dataclass(frozen=True)
@@ -80,5 +80,7 @@ class SerialLine:
                     return f"ack {line!r}"
                 if line:
                     seen.append(line)
-        got = f"; got {', '.join(repr(s) for s in seen[-3:])}" if seen else ""
-        raise LinkError(f"{self.port}: no acknowledgement {expected.strip()!r} within {self.ack_timeout_s * 1000:.0f} ms{got}")
+        if seen:  # the device answered, with something else: it refused the line, it is not away
+            raise LinkRefused(f"{self.port}: answered {', '.join(repr(s) for s in seen[-3:])}, not the acknowledgement "
+                              f"{expected.strip()!r}, within {self.ack_timeout_s * 1000:.0f} ms")
+        raise LinkError(f"{self.port}: no acknowledgement {expected.strip()!r} within {self.ack_timeout_s * 1000:.0f} ms")

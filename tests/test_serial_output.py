@@ -28,10 +28,11 @@ def make(port: str, **settings) -> SerialOutput:
 class Peer(threading.Thread):
     """The PLC end of the line: records each line with its arrival time; acknowledges if asked."""
 
-    def __init__(self, path: str, ack: str | None = "ACK {id}", ignore: set[str] = frozenset()):
+    def __init__(self, path: str, ack: str | None = "ACK {id}", ignore: set[str] = frozenset(),
+                 refuse: set[str] = frozenset()):
         super().__init__(daemon=True)
         self.port = serial.Serial(path, 115200, timeout=0.05)
-        self.ack, self.ignore = ack, ignore
+        self.ack, self.ignore, self.refuse = ack, ignore, refuse
         self.lines: list[tuple[float, str]] = []
         self.running = True
         self.start()
@@ -45,7 +46,9 @@ class Peer(threading.Thread):
                 line = raw.decode().strip()
                 self.lines.append((time.time(), line))
                 part_id = line.split()[-1]
-                if self.ack and part_id not in self.ignore:
+                if part_id in self.refuse:
+                    self.port.write(f"ERR {part_id}\n".encode())
+                elif self.ack and part_id not in self.ignore:
                     self.port.write((self.ack.format(id=part_id) + "\n").encode())
 
     def stop(self) -> None:
@@ -93,6 +96,22 @@ def test_missing_acknowledgement_is_an_alarm(pty_pair):
     assert "no acknowledgement 'ACK P0001'" in alarms[0].message
     failed = [e for e in events if isinstance(e, OutputEvent) and e.outcome == "failed"]
     assert failed and all(e.part_id == "P0001" for e in failed)
+
+
+def test_an_answer_other_than_the_acknowledgement_is_a_refusal_not_a_silent_line(pty_pair):
+    plc_end, our_end = pty_pair
+    peer = Peer(plc_end, refuse={"P0001"})
+    try:
+        out = make(our_end, ack_format="ACK {part_id}", ack_timeout_ms=60, max_late_ms=150)
+        for p in (part(0), part(1)):
+            out.submit(p)
+        time.sleep(0.02)
+        events = out.close(timeout_s=3)
+    finally:
+        peer.stop()
+    alarms = [e for e in events if isinstance(e, Alarm)]
+    assert [(a.part_id, a.cause) for a in alarms] == [("P0001", "refused")]
+    assert "answered 'ERR P0001', not the acknowledgement 'ACK P0001'" in alarms[0].message
 
 
 def test_port_missing_at_start_then_present(tmp_path):

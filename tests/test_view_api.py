@@ -64,6 +64,15 @@ def test_review_state_counts_verdict_filmstrip_and_alarms(results):
     assert [a["message"] for a in state["alarms"]] == ["PLC 127.0.0.1:5020 unreachable"]
 
 
+@pytest.mark.parametrize("method, url", [("get", "/api/parts?run=99999999999999999999"), ("get", "/api/parts?run=-1"),
+                                         ("get", "/api/export.csv?run=99999999999999999999"),
+                                         ("post", "/api/alarms/99999999999999999999/ack")])
+def test_an_id_beyond_the_stores_integers_is_a_bad_request_not_a_server_error(results, method, url):
+    # SQLite's integers end at 2**63 - 1: a larger one raised OverflowError inside the query (a 500)
+    response = getattr(TestClient(create_app(results), raise_server_exceptions=False), method)(url)
+    assert response.status_code == 422
+
+
 def test_parts_filter_by_verdict_and_class_and_page(results):
     client = TestClient(create_app(results))
     rejected = client.get("/api/parts", params={"verdict": "REJECT"}).json()

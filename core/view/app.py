@@ -18,6 +18,7 @@ from urllib.parse import urlsplit
 import cv2
 import numpy as np
 from fastapi import FastAPI, HTTPException, Query, Request
+from fastapi import Path as FastApiPath
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
@@ -29,6 +30,7 @@ from core.view.feed import LiveFeed, encode_jpeg
 from core.view.queries import StoreReader, counters
 
 STATIC = Path(__file__).parent / "static"
+ROW_ID_MAX = 2**63 - 1  # SQLite's largest integer: a larger id in a URL overflowed into a 500
 VerdictName = Literal["PASS", "REJECT", "ERROR", "FLAG"]
 
 
@@ -116,7 +118,8 @@ def create_app(results: Path, feed: LiveFeed | None = None, *, token: str | None
         return Response(data, media_type="image/jpeg", headers={"X-Frame-Seq": str(seq), "Cache-Control": "no-store"})
 
     @app.get("/api/parts")
-    def parts(run: int | None = None, verdict: VerdictName | None = None, defect_class: str | None = Query(None, alias="class"),
+    def parts(run: int | None = Query(None, ge=0, le=ROW_ID_MAX), verdict: VerdictName | None = None,
+              defect_class: str | None = Query(None, alias="class"),
               page: int = Query(1, ge=1), per_page: int = Query(25, ge=1, le=500)) -> dict:
         return reader.parts(run_or_latest(run), verdict, defect_class, page, per_page)
 
@@ -137,13 +140,13 @@ def create_app(results: Path, feed: LiveFeed | None = None, *, token: str | None
         return Response(data, media_type="image/jpeg", headers={"Cache-Control": "max-age=3600"})
 
     @app.post("/api/alarms/{alarm_id}/ack")
-    def acknowledge(alarm_id: int) -> dict:
+    def acknowledge(alarm_id: int = FastApiPath(ge=0, le=ROW_ID_MAX)) -> dict:
         if not reader.acknowledge(alarm_id):
             raise HTTPException(404, f"no alarm {alarm_id}")
         return {"acknowledged": alarm_id}
 
     @app.get("/api/export.csv")
-    def export(run: int | None = None, verdict: VerdictName | None = None,
+    def export(run: int | None = Query(None, ge=0, le=ROW_ID_MAX), verdict: VerdictName | None = None,
                defect_class: str | None = Query(None, alias="class")) -> Response:
         run_id = run_or_latest(run)
         buf = io.StringIO()

@@ -79,18 +79,22 @@ def test_reject_lines_arrive_in_order_at_their_delay_and_are_acknowledged(pty_pa
     assert not [e for e in events if isinstance(e, Alarm)]
 
 
-def test_missing_acknowledgement_is_an_alarm(pty_pair):
+def _two_rejects_to(pty_pair, **peer) -> list:
+    """The events of two rejects, P0000 and P0001, sent with acknowledgement to a ``Peer(**peer)``."""
     plc_end, our_end = pty_pair
-    peer = Peer(plc_end, ignore={"P0001"})
+    other_end = Peer(plc_end, **peer)
     try:
         out = make(our_end, ack_format="ACK {part_id}", ack_timeout_ms=60, max_late_ms=150)
-        parts = [part(0), part(1)]
-        for p in parts:
+        for p in (part(0), part(1)):
             out.submit(p)
         time.sleep(0.02)
-        events = out.close(timeout_s=3)
+        return out.close(timeout_s=3)
     finally:
-        peer.stop()
+        other_end.stop()
+
+
+def test_missing_acknowledgement_is_an_alarm(pty_pair):
+    events = _two_rejects_to(pty_pair, ignore={"P0001"})
     alarms = [e for e in events if isinstance(e, Alarm)]
     assert [a.part_id for a in alarms] == ["P0001"]
     assert "no acknowledgement 'ACK P0001'" in alarms[0].message
@@ -99,17 +103,7 @@ def test_missing_acknowledgement_is_an_alarm(pty_pair):
 
 
 def test_an_answer_other_than_the_acknowledgement_is_a_refusal_not_a_silent_line(pty_pair):
-    plc_end, our_end = pty_pair
-    peer = Peer(plc_end, refuse={"P0001"})
-    try:
-        out = make(our_end, ack_format="ACK {part_id}", ack_timeout_ms=60, max_late_ms=150)
-        for p in (part(0), part(1)):
-            out.submit(p)
-        time.sleep(0.02)
-        events = out.close(timeout_s=3)
-    finally:
-        peer.stop()
-    alarms = [e for e in events if isinstance(e, Alarm)]
+    alarms = [e for e in _two_rejects_to(pty_pair, refuse={"P0001"}) if isinstance(e, Alarm)]
     assert [(a.part_id, a.cause) for a in alarms] == [("P0001", "refused")]
     assert "answered 'ERR P0001', not the acknowledgement 'ACK P0001'" in alarms[0].message
 

@@ -118,3 +118,14 @@ class PluginSpec:
     # apart (a reject pulse and the low after it), from the settings alone, so that a camera delivering
     # parts faster than that is warned of; None where any rate will do (a counter, a level).
     part_interval: Callable[[dict[str, Any], PluginContext], float | None] | None = None
+
+    def answer(self, question: str, settings: dict[str, Any], recipe_dir: Path) -> Any:
+        """The answer to one of the optional questions above (``calibration``, ``frame_rate``, ...) from the
+        plugin's ``settings`` alone; None where it has none or cannot give one."""
+        ask = getattr(self, question)
+        if ask is None:
+            return None
+        try:
+            return ask(settings, PluginContext(recipe_dir=recipe_dir))
+        except Exception:
+            return None

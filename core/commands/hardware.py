@@ -94,7 +94,7 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
 
     written = errors = in_a_row = 0
     calib_written = False
-    unread = UnreadFrames(_frame_rate(plugin.spec, settings, recipe_dir))
+    unread = UnreadFrames(plugin.spec.answer("frame_rate", dict(settings), recipe_dir))
     not_recorded = 0
     try:
         for item in camera.frames():
@@ -129,16 +129,6 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
         click.echo(f"{out}: {written} of {count} pairs recorded (the camera stopped), {errors} missed", err=True)
         raise click.exceptions.Exit(1 if written else 2)
     click.echo(f"{out}: {written} rectified pairs and calib.yaml recorded ({errors} missed frames)")
-
-
-def _frame_rate(spec, settings: dict, recipe_dir: Path) -> float | None:
-    """The camera's frames a second where its plugin states them; None for a recording or a triggered camera."""
-    from core.contracts import PluginContext
-
-    try:
-        return spec.frame_rate(dict(settings), PluginContext(recipe_dir=recipe_dir)) if spec.frame_rate else None
-    except Exception:  # a plugin that cannot say: nothing to check
-        return None
 
 
 def _camera_section(recipe: Path, overrides: tuple[str, ...]) -> tuple[str, dict, Path]:

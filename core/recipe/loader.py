@@ -443,15 +443,8 @@ def output_delays_s(loaded: LoadedRecipe, registry: Registry) -> list[tuple[int,
 def camera_answer(loaded: LoadedRecipe, registry: Registry, question: str) -> Any:
     """The camera plugin's answer to one of ``PluginSpec``'s optional questions (``calibration``,
     ``frame_rate``) from its settings alone; None where it has no answer or cannot give one."""
-    from core.contracts import PluginContext
-
-    ask = getattr(registry.get("camera", loaded.recipe.camera.plugin).spec, question)
-    if ask is None:
-        return None
-    try:
-        return ask(loaded.plugin_settings["camera"], PluginContext(recipe_dir=loaded.directory))
-    except Exception:
-        return None
+    spec = registry.get("camera", loaded.recipe.camera.plugin).spec
+    return spec.answer(question, loaded.plugin_settings["camera"], loaded.directory)
 
 
 def _check_output_delays(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from core.types import Detection, StereoFrame
+from drivers.stereo_geometry import calibration_problem
 
 
 def _size(image: np.ndarray) -> str:
@@ -35,6 +36,10 @@ def frame_problem(frame: StereoFrame) -> str | None:
         value = getattr(calib, key)
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             return f"the camera's calibration has {key} {value!r}: not a positive number, so no distance can be measured"
+    problem = calibration_problem(calib.focal_px, calib.baseline_mm, calib.cx, calib.cy, calib.width, calib.height,
+                                  calib.doffs)
+    if problem is not None:
+        return f"the camera's calibration is no camera's: {problem}"
     if frame.left.shape[:2] != (calib.height, calib.width):
         return f"the camera's images are {_size(frame.left)} but its calibration is for {calib.width}x{calib.height}"
     return None

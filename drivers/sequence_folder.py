@@ -23,6 +23,8 @@ import cv2
 import numpy as np
 import yaml
 
+from drivers.stereo_geometry import calibration_problem
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 CALIB_KEYS = ("focal_px", "baseline_mm", "cx", "cy", "width", "height")
 
@@ -68,8 +70,9 @@ def read_middlebury_calib(path: Path) -> dict:
 
 
 def _checked_calibration(path: Path, data: dict) -> dict:
-    """``data`` when its values are a camera's; else ``SequenceError`` naming the file and the value. A
-    negative focal length or a zero baseline would otherwise turn every distance into nonsense."""
+    """``data`` when its values are a camera's (``stereo_geometry.calibration_problem``); else
+    ``SequenceError`` naming the file and the value. A negative focal length or a zero baseline would
+    otherwise turn every distance into nonsense."""
     def number(key):
         value = _as_number(data[key])
         if value is None:
@@ -85,9 +88,9 @@ def _checked_calibration(path: Path, data: dict) -> dict:
         data[key] = int(data[key])
     for key in ("cx", "cy", "doffs"):
         number(key)
-    if abs(data["doffs"]) >= data["width"]:
-        # the principal points' offset between the eyes is a fraction of the image, never the whole of it
-        raise SequenceError(f"{path}: doffs must lie within the image's width, {data['width']} px (got {data['doffs']!r})")
+    problem = calibration_problem(*(data[k] for k in CALIB_KEYS), data["doffs"])
+    if problem is not None:
+        raise SequenceError(f"{path}: {problem}")
     return data
 
 

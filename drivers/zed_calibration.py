@@ -29,6 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from drivers.stereo_geometry import calibration_problem
+
 # resolution name -> (width, height) of one eye
 RESOLUTIONS: dict[str, tuple[int, int]] = {
     "WVGA": (672, 376),
@@ -161,6 +163,10 @@ def read_conf(path: str | Path, resolution: str = "WVGA") -> ZedCalibration:
     )
     if calib.baseline_mm <= 0:
         raise CalibrationError(f"{path}: [STEREO] Baseline must be positive (mm), got {calib.baseline_mm}")
+    for name, eye_ in ((f"LEFT_CAM_{suffix}", calib.left), (f"RIGHT_CAM_{suffix}", calib.right)):
+        problem = calibration_problem(eye_.fx, calib.baseline_mm, eye_.cx, eye_.cy, width, height)
+        if problem is not None:
+            raise CalibrationError(f"{path}: {problem} (from [{name}] fx, cx, cy and [STEREO] Baseline)")
     return calib
 
 

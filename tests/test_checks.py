@@ -13,7 +13,7 @@ from core import engine
 from core.checks import RepeatedImages, detections_problem, disparity_problem, frame_problem
 from core.contracts import PluginSpec
 from core.hookspecs import hookimpl
-from core.recipe import load_recipe
+from core.recipe import RecipeError, load_recipe
 from core.registry import Registry, make_manager
 from core.types import Calibration, Detection, Status, StereoFrame
 
@@ -43,6 +43,14 @@ class TestFrameProblem:
     def test_a_calibration_no_camera_has_is_named(self, key, value):
         calib = Calibration(**{**CALIB.__dict__, key: value})
         assert f"calibration has {key} {value!r}: not a positive number" in frame_problem(_frame(calib=calib))
+
+    @pytest.mark.parametrize("key, value, says", [
+        ("cx", 1e30, "cx 1e+30 lies far outside the 160 px wide image"),
+        ("baseline_mm", 0.12, "baseline_mm 0.12 lies outside 1-10000 mm (metres written for millimetres?)"),
+    ])
+    def test_a_geometry_no_camera_has_is_named(self, key, value, says):
+        calib = Calibration(**{**CALIB.__dict__, key: value})
+        assert frame_problem(_frame(calib=calib)).startswith(f"the camera's calibration is no camera's: {says}")
 
 
 class TestRepeatedImages:
@@ -167,10 +175,25 @@ class NarrowRight:
         self.replay.close()
 
 
+class FarCentre(NarrowRight):
+    """A camera whose calibration puts the principal point far outside the image: every deviation would be
+    about 0 mm, every plate passed."""
+
+    def frames(self):
+        for frame in self.replay.frames():
+            frame.calib = Calibration(**{**frame.calib.__dict__, "cx": 1e30})
+            yield frame
+
+
+def _far_centre_calibration(settings, ctx):
+    return Calibration(focal_px=350.0, baseline_mm=120.0, cx=1e30, cy=96.0, width=320, height=192)
+
+
 class Plugins:
     @hookimpl
     def stereo_inspect_cameras(self):
-        return [PluginSpec("narrow_right", "camera", NarrowRight)]
+        return [PluginSpec("narrow_right", "camera", NarrowRight), PluginSpec("far_centre", "camera", FarCentre),
+                PluginSpec("far_centre_stated", "camera", FarCentre, calibration=_far_centre_calibration)]
 
     @hookimpl
     def stereo_inspect_stereo_backends(self):
@@ -186,6 +209,8 @@ class Plugins:
     ("plugin: fixed_roi", "plugin: nan_boxes", "detection failed: the detector returned a pit box (10.0, 10.0, nan, 40.0)"),
     ("plugin: replay\n  settings: {path: seq}", "plugin: narrow_right",
      "the camera's left and right images differ in size (320x192, 310x192)"),
+    ("plugin: replay\n  settings: {path: seq}", "plugin: far_centre",
+     "the camera's calibration is no camera's: cx 1e+30 lies far outside the 320 px wide image"),
 ])
 def test_a_plugin_that_breaks_its_contract_costs_its_part_an_error(tmp_path, plane_sequence, old, new, says):
     info = plane_sequence([0.0, 0.0])
@@ -199,3 +224,12 @@ def test_a_plugin_that_breaks_its_contract_costs_its_part_an_error(tmp_path, pla
     assert [o.part.verdict.status for o in seen] == [Status.ERROR, Status.ERROR]
     assert all(says in o.part.verdict.reasons[0] for o in seen), seen[0].part.verdict.reasons
     assert summary.exit_code == engine.EXIT_PART_ERRORS
+
+
+def test_a_camera_stating_a_geometry_no_camera_has_is_refused_before_the_run(tmp_path, plane_sequence):
+    info = plane_sequence([0.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, Plugins())))
+    text = RECIPE.format(box=info["box"], output="log").replace("plugin: replay\n  settings: {path: seq}",
+                                                                "plugin: far_centre_stated")
+    with pytest.raises(RecipeError, match=r"camera: the camera's calibration is no camera's: cx 1e\+30 lies far outside"):
+        load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)

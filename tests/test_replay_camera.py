@@ -72,6 +72,10 @@ class TestReadCalibration:
         ("cx", "centre", "cx must be a number (got 'centre')"),
         ("doffs", float("nan"), "doffs must be a number"),
         ("doffs", 1000.0, "doffs must lie within the image's width, 320 px (got 1000.0)"),
+        # a principal point far off made every deviation about 0 mm: every defective plate passed
+        ("cx", 1e30, "cx 1e+30 lies far outside the 320 px wide image"),
+        ("baseline_mm", 0.12, "baseline_mm 0.12 lies outside 1-10000 mm (metres written for millimetres?)"),
+        ("focal_px", 1e300, "focal_px 1e+300 is no camera's for a 320 px wide image"),
     ])
     def test_a_value_no_camera_has_is_named(self, plane_sequence, key, value, says):
         info = plane_sequence([0.0])

@@ -116,6 +116,8 @@ def test_bad_conf_names_file_and_key(tmp_path):
     ("Baseline=120.0", "Baseline=nan", r"\[STEREO\] Baseline = 'nan' is not a number"),
     ("Baseline=120.0", "Baseline=inf", r"\[STEREO\] Baseline = 'inf' is not a number"),
     ("Baseline=120.0", "Baseline=-120.0", r"\[STEREO\] Baseline must be positive"),
+    ("Baseline=120.0", "Baseline=0.12", r"baseline_mm 0.12 lies outside 1-10000 mm \(metres written for millimetres\?\) "
+                                        r"\(from \[LEFT_CAM_VGA\] fx, cx, cy and \[STEREO\] Baseline\)"),
 ])
 def test_a_value_no_camera_has_is_refused_on_reading(tmp_path, old, new, says):
     # NaN passes every "must be positive" comparison: it would reach the frames as a nonsense geometry

@@ -19,6 +19,7 @@ from pydantic import BaseModel, ValidationError
 
 from core.recipe.schema import Recipe
 from core.registry import Registry, UnknownPlugin, default_registry
+from drivers.stereo_geometry import calibration_problem
 
 
 class RecipeError(Exception):
@@ -333,6 +334,10 @@ def _check_search_range(loaded: LoadedRecipe, registry: Registry, locator: _Loca
     calib = camera_answer(loaded, registry, "calibration")
     if calib is None:
         return
+    problem = calibration_problem(calib.focal_px, calib.baseline_mm, calib.cx, calib.cy, calib.width, calib.height,
+                                  calib.doffs)
+    if problem is not None:
+        raise locator.error(("camera",), f"the camera's calibration is no camera's: {problem}")
     stereo = loaded.recipe.stereo
     try:
         stereo.search_range(calib)
@@ -342,7 +347,7 @@ def _check_search_range(loaded: LoadedRecipe, registry: Registry, locator: _Loca
             nearest = fb / (calib.width - 1 - stereo.RANGE_MARGIN_PX + calib.doffs)
             raise locator.error(("stereo", "working_distance_mm"), (
                 f"the camera cannot see {stereo.working_distance_mm[0]:g} mm with both eyes: at its geometry "
-                f"(f {calib.focal_px:.1f} px, baseline {calib.baseline_mm:.1f} mm) that is "
+                f"(f {calib.focal_px:.4g} px, baseline {calib.baseline_mm:.4g} mm) that is "
                 f"{calib.disparity_px(stereo.working_distance_mm[0]):.0f} px of disparity in a {calib.width} px wide "
                 f"image; the nearest it can match is {math.ceil(nearest)} mm")) from None
         raise locator.error(("stereo", "max_disparity"), f"{stereo.max_disparity:g} px of disparity does not fit the "

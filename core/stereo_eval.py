@@ -102,6 +102,12 @@ def load_scene(folder: Path) -> SceneData:
     for name, shape in (("im1.png", right.shape[:2]), ("disp0GT.pfm", gt.shape), ("mask0nocc.png", nonocc.shape)):
         if shape != left.shape[:2]:
             raise SequenceError(f"{folder / name}: {shape[1]}x{shape[0]}, but im0.png is {left.shape[1]}x{left.shape[0]}")
+    known = gt[np.isfinite(gt)]
+    if known.size and (known.min() < 0 or not 0.5 <= known.max() < gt.shape[1]):
+        # what a PFM read in the wrong byte order, or another scene's, gives: every score would be nonsense
+        raise SequenceError(f"{folder / 'disp0GT.pfm'}: disparities from {known.min():.4g} to {known.max():.4g} px, not "
+                            f"within the image's 0-{gt.shape[1]} or all under half a pixel: not this scene's disparity "
+                            f"map (or its scale's sign gives the wrong byte order)")
     return SceneData(folder.name, left, right, gt, nonocc, calib["ndisp"], note)
 
 

@@ -55,7 +55,7 @@ def read_middlebury_calib(path: Path) -> dict:
             values[key.strip()] = value.strip()
     try:
         cam0 = [float(x) for x in re.split(r"[\s;\[\]]+", values["cam0"]) if x]
-        return {
+        calib = {
             "focal_px": cam0[0],
             "cx": cam0[2],
             "cy": cam0[5],
@@ -67,6 +67,11 @@ def read_middlebury_calib(path: Path) -> dict:
         }
     except (KeyError, IndexError, ValueError) as exc:
         raise SequenceError(f"{path}: not a Middlebury calibration ({exc})") from None
+    if not 0 < calib["ndisp"] <= calib["width"]:
+        # the disparities searched: none, or more than the image holds, would score a backend on nothing
+        raise SequenceError(f"{path}: ndisp must be a number of disparities from 1 to the width, {calib['width']} "
+                            f"(got {calib['ndisp']})")
+    return calib
 
 
 def _checked_calibration(path: Path, data: dict) -> dict:
@@ -317,6 +322,9 @@ def read_pfm(path: Path) -> np.ndarray:
             scale = float(f.readline().decode("latin-1").strip())
         except (ValueError, IndexError):
             raise SequenceError(f"{path}: PFM header is not 'width height' and a scale") from None
+        if scale == 0 or not np.isfinite(scale):
+            # its sign is the byte order: without one, the pixels could be read in either
+            raise SequenceError(f"{path}: PFM scale must be a non-zero number, its sign the byte order (got {scale})")
         dtype = "<f4" if scale < 0 else ">f4"
         channels = 3 if header == "PF" else 1
         payload = f.read()

@@ -217,6 +217,11 @@ def test_a_scene_without_an_occlusion_mask_is_scored_over_every_pixel_and_says_s
     assert rows["Unmasked"]["dense"]["bad1.0"] > rows["Masked"]["dense"]["bad1.0"]
 
 
+def _rescale_pfm(path, scale: bytes):
+    magic, size, _, pixels = path.read_bytes().split(b"\n", 3)
+    path.write_bytes(b"\n".join([magic, size, scale, pixels]))
+
+
 def test_eval_errors(tmp_path):
     _assert_error(invoke("eval", "stereo", "--middlebury", tmp_path / "nowhere"), "nowhere")
     write_scene(tmp_path / "mb" / "SceneA", seed=0)
@@ -233,6 +238,13 @@ def test_eval_errors(tmp_path):
     (lambda scene: cv2.imwrite(str(scene / "mask0nocc.png"), np.full((20, 30), 255, np.uint8)),
      "mask0nocc.png: 30x20, but im0.png is 64x40"),
     (lambda scene: (scene / "mask0nocc.png").write_bytes(b"not a PNG"), "mask0nocc.png: occlusion mask is not whole"),
+    # each scored the backend against nothing, silently (99-100 % bad pixels)
+    (lambda scene: _rescale_pfm(scene / "disp0GT.pfm", b"0"),
+     "disp0GT.pfm: PFM scale must be a non-zero number, its sign the byte order (got 0.0)"),
+    (lambda scene: _rescale_pfm(scene / "disp0GT.pfm", b"1"),  # little-endian pixels said to be big-endian
+     "disp0GT.pfm: disparities from"),
+    (lambda scene: (scene / "calib.txt").write_text((scene / "calib.txt").read_text().replace("ndisp=32", "ndisp=-32")),
+     "calib.txt: ndisp must be a number of disparities from 1 to the width, 64 (got -32)"),
 ])
 def test_a_damaged_scene_is_named_not_a_traceback(tmp_path, damage, says):
     scene = tmp_path / "mb" / "SceneA"

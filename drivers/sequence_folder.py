@@ -202,7 +202,11 @@ def write_image(path: Path, image: np.ndarray, params: tuple[int, ...] = ()) -> 
     full disk, a folder removed under it). ``cv2.imwrite`` returns False at most, and True for a small PNG
     whose bytes the full disk refused only when the file was closed: a sequence would silently lack it."""
     path = Path(path)
-    ok, encoded = cv2.imencode(path.suffix, image, list(params))
+    try:
+        ok, encoded = cv2.imencode(path.suffix, image, list(params))
+    except cv2.error:  # no encoder for the extension: OpenCV raises rather than returning False
+        raise OSError(f"{path}: no image format has the extension {path.suffix!r} (give .png, .jpg, .bmp or "
+                      f".tif)") from None
     if not ok:
         raise OSError(f"{path}: could not be encoded as {path.suffix}")
     try:

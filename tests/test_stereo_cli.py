@@ -45,6 +45,14 @@ def test_stereo_writes_middlebury_pfm_and_png(pair, tmp_path):
     assert view.shape == (48, 72, 3)
 
 
+@pytest.mark.parametrize("name, says", [("d.pngx", "no image format has the extension '.pngx'"),
+                                         ("d", "no image format has the extension ''")])
+def test_a_view_with_no_image_format_is_one_line(pair, tmp_path, name, says):
+    left, right, _ = pair
+    result = invoke("stereo", left, right, "--backend", "opencv_sgbm", "--max-disp", 32, "--png", tmp_path / name)
+    _assert_error(result, "--png", says)  # before the map is computed
+
+
 def test_pfm_round_trip_keeps_invalid_as_inf(tmp_path):
     disp = np.arange(12, dtype=np.float32).reshape(3, 4)
     disp[1, 2] = np.nan

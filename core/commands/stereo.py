@@ -86,13 +86,15 @@ def check_disparity_range(min_disp: float, max_disp: float, width: int) -> None:
 
 def write_png(path: Path, disparity, vmin: float, vmax: float) -> None:
     """Colour-mapped view: the disparity range spans the colour map, invalid pixels are black."""
-    import cv2
     import numpy as np
 
     from core.stereo_eval import colourise
+    from drivers.sequence_folder import write_image
 
-    if not cv2.imwrite(str(path), colourise(np.asarray(disparity) - vmin, vmax - vmin)):
-        _fail(f"{path}: cannot write PNG")
+    try:
+        write_image(path, colourise(np.asarray(disparity) - vmin, vmax - vmin))
+    except OSError as exc:
+        _fail(str(exc))
 
 
 threads_option = click.option("--threads", type=click.IntRange(min=1), default=None,
@@ -119,10 +121,13 @@ device_option = click.option("--device", type=click.Choice(["auto", "cpu", "cuda
 @threads_option
 def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings, stages, device, threads):
     """Disparity map of the LEFT image of a rectified pair."""
+    import cv2
     import numpy as np
 
     from drivers.sequence_folder import SequenceError, read_image, write_pfm
 
+    if png and not cv2.haveImageWriter(str(png)):  # said before the map is computed, not after
+        _fail(f"--png {png}: no image format has the extension {png.suffix!r} (give .png, .jpg, .bmp or .tif)")
     try:
         left_img, right_img = read_image(left, "left image"), read_image(right, "right image")
     except SequenceError as exc:

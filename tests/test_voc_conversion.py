@@ -38,6 +38,8 @@ def _dataset(root: Path) -> Path:
     add("noimage_7", [("patches", (1, 1, 9, 9))], image=False)
     (src / "images" / "malformed_8.jpg").write_bytes(cv2.imencode(".jpg", img)[1].tobytes())
     (src / "annotations" / "malformed_8.xml").write_text("<annotation><object><name>patches</name>")
+    # 'nan' reads as a float: its label line was "2 nan 0.35 nan 0.5"
+    add("nan_9", [("patches", ("nan", 20, 110, 120)), ("patches", (10, 20, 110, 120))])
     return src
 
 
@@ -51,17 +53,19 @@ def test_faults_reported_none_fatal(tmp_path):
     report = convert_voc(src, dst)
     assert report.faults == {
         "box_clamped": 1, "empty_box": 1, "unknown_class": 1, "image_without_xml": 1,
-        "xml_without_image": 1, "malformed_xml": 1,
+        "xml_without_image": 1, "malformed_xml": 2,
     }
     messages = "\n".join(report.messages)
     for name in ("outside_3.xml", "empty_4.xml", "unknown_5.xml", "noxml_6", "noimage_7.xml", "malformed_8.xml"):
         assert name in messages
+    assert "nan_9.xml object 0: bndbox [nan, 20.0, 110.0, 120.0] is not finite" in messages
+    assert _labels(dst, "nan_9") == [[2, 0.3, 0.35, 0.5, 0.5]]
     assert _labels(dst, "crazing_1") == [[2, 0.3, 0.35, 0.5, 0.5]]
     assert _labels(dst, "outside_3") == [[5, 0.5, 0.2, 1.0, 0.2]]
     assert len(_labels(dst, "empty_4")) == 1 and _labels(dst, "unknown_5") == []
     data = yaml.safe_load((dst / "data.yaml").read_text())
     assert data["names"][2] == "patches" and data["train"] == "images/train"
-    assert report.images == 5  # malformed and the two orphans are left out
+    assert report.images == 6  # malformed and the two orphans are left out
 
 
 def test_split_files_and_cli(tmp_path):

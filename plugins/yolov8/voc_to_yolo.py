@@ -6,6 +6,8 @@ Every fault is reported with the file it came from; none stops the conversion.
 """
 from __future__ import annotations
 
+import math
+
 import shutil
 import xml.etree.ElementTree as ET
 from collections import Counter
@@ -90,6 +92,9 @@ def parse_voc(
             box = [float(obj.findtext(f"bndbox/{k}")) for k in ("xmin", "ymin", "xmax", "ymax")]
         except (TypeError, ValueError):
             report.fault("malformed_xml", f"{name} object {index}: missing or non-numeric bndbox")
+            continue
+        if not all(math.isfinite(v) for v in box):  # 'nan' parses, and would reach the labels as nan
+            report.fault("malformed_xml", f"{name} object {index}: bndbox {box} is not finite")
             continue
         clamped = [
             min(max(box[0], 0.0), width),

@@ -419,9 +419,12 @@ def _outside_search(m: DefectMeasurement, pair, ring: tuple[np.ndarray, np.ndarr
         return m
     left, right = pair
     top, bottom = max(0, int(v.min()) - SCAN_MARGIN_PX), min(left.shape[0], int(v.max()) + SCAN_MARGIN_PX + 1)
-    found = scan_surface(surface_fit.high_pass(left[top:bottom]), surface_fit.high_pass(right[top:bottom]), u, v - top)
+    left, right = surface_fit.high_pass(left[top:bottom]), surface_fit.high_pass(right[top:bottom])
+    found = scan_surface(left, right, u, v - top)
     lo, hi = searched
-    if found is None or lo - 1.0 <= found.disparity <= hi + 1.0 or found.disparity + calib.doffs <= 0:
+    if found is None or found.disparity + calib.doffs <= 0:
+        return _eyes_swapped(m, left, right, (u, v - top), searched)
+    if lo - 1.0 <= found.disparity <= hi + 1.0:
         return m
     z = calib.focal_px * calib.baseline_mm / (found.disparity + calib.doffs)
     clause = (f"the surface around the box matches the images at {found.disparity:.0f} px of disparity "
@@ -430,6 +433,26 @@ def _outside_search(m: DefectMeasurement, pair, ring: tuple[np.ndarray, np.ndarr
     note = f"{m.note}; {clause}" if m.deviation_mm is None else f"deviation unavailable: {clause}"
     return replace(m, note=note, distance_mm=None, distance_sigma_mm=None, area_mm2=None, depth_resolution_mm=None,
                    deviation_mm=None, deviation_sigma_mm=None, surface_elsewhere_mm=z)
+
+
+def _eyes_swapped(m: DefectMeasurement, left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.ndarray],
+                  searched: tuple[float, float]) -> DefectMeasurement:
+    """``m``; where the surface around the box matches nowhere as the images are given but, with them mirrored
+    (a left pixel's match then lies to its right: the left image is the right eye's), at a disparity the
+    backend searched, the note says so and what the map gave goes. left, right: the high-passed rows the ring
+    (u, v) lies in."""
+    u, v = ring
+    found = scan_surface(left[:, ::-1], right[:, ::-1], left.shape[1] - 1 - u, v)
+    lo, hi = searched
+    # within the working distance, where the plate was meant to be: what a mere chance peak would not be
+    if found is None or not lo - 1.0 <= found.disparity <= hi + 1.0:
+        return m
+    clause = (f"the surface around the box matches the images only with the left and right images swapped, at "
+              f"{found.disparity:.0f} px of disparity (within the {lo:.0f}-{hi:.0f} px the stereo search covers): the "
+              f"camera delivers its right eye's image as the left")
+    note = f"{m.note}; {clause}" if m.deviation_mm is None else f"deviation unavailable: {clause}"
+    return replace(m, note=note, distance_mm=None, distance_sigma_mm=None, area_mm2=None, depth_resolution_mm=None,
+                   deviation_mm=None, deviation_sigma_mm=None, eyes_swapped=True)
 
 
 def _unavailable(reference: DefectMeasurement, why: str) -> DefectMeasurement:

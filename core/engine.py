@@ -361,34 +361,45 @@ def capture_time_problem(timestamp: Any, now: float) -> str | None:
     return None
 
 
-class PlatesOutOfRange:
-    """Parts in a row whose defects' surroundings the images show outside the disparities the stereo backend
-    searched (``DefectMeasurement.surface_elsewhere_mm``: a plate outside the working distance). A part with
-    a measured deviation ends such a run; a part without defects says nothing of the plate's distance."""
+class SurfaceElsewhere:
+    """Parts in a row whose defects' surroundings the images show where the stereo backend did not search: at
+    disparities outside its range (``DefectMeasurement.surface_elsewhere_mm``: a plate outside the working
+    distance), or only with the left and right images swapped (``eyes_swapped``: a camera delivering its eyes
+    the other way round). A part with a measured deviation ends such a run; a part without defects says
+    nothing of the plate."""
 
     def __init__(self, stereo: StereoSection):
         self.stereo = stereo
-        self.run = 0
+        self.runs = {"range": 0, "swapped": 0}
 
     def alarm(self, part: PartResult) -> Alarm | None:
-        """The alarm for the run's CAMERA_LOST_AFTER-th part, once per run; None otherwise."""
+        """The alarm for a run's CAMERA_LOST_AFTER-th part, once per run; None otherwise."""
         found = [m.surface_elsewhere_mm for m in part.measurements if m.surface_elsewhere_mm is not None]
-        if found:
-            self.run += 1
-        elif any(m.deviation_mm is not None for m in part.measurements):
-            self.run = 0
-        if not found or self.run != CAMERA_LOST_AFTER:
-            return None
+        seen = {"range": bool(found), "swapped": any(m.eyes_swapped for m in part.measurements)}
+        measured = any(m.deviation_mm is not None for m in part.measurements)
+        for cause, now in seen.items():
+            if now:
+                self.runs[cause] += 1
+            elif measured:
+                self.runs[cause] = 0
         if self.stereo.working_distance_mm is not None:
             near, far = self.stereo.working_distance_mm
             searched = f"stereo.working_distance_mm ({near:g}-{far:g} mm)"
         else:
             searched = "the disparities stereo.min_disparity and max_disparity search"
-        return Alarm("depth", f"plates outside the working distance: {CAMERA_LOST_AFTER} parts in a row whose defects' "
-                              f"surroundings the images show at about {float(np.median(found)):.0f} mm (last: frame "
-                              f"{part.frame_id}), outside {searched}; their defects cannot be measured and the parts "
-                              f"are rejected as ERROR until the plates or the recipe are set right",
-                     time.time(), part.part_id, "range")
+        if seen["range"] and self.runs["range"] == CAMERA_LOST_AFTER:
+            return Alarm("depth", f"plates outside the working distance: {CAMERA_LOST_AFTER} parts in a row whose "
+                                  f"defects' surroundings the images show at about {float(np.median(found)):.0f} mm "
+                                  f"(last: frame {part.frame_id}), outside {searched}; their defects cannot be "
+                                  f"measured and the parts are rejected as ERROR until the plates or the recipe are "
+                                  f"set right", time.time(), part.part_id, "range")
+        if seen["swapped"] and self.runs["swapped"] == CAMERA_LOST_AFTER:
+            return Alarm("depth", f"left and right images swapped: {CAMERA_LOST_AFTER} parts in a row whose defects' "
+                                  f"surroundings the images show within {searched} only with the camera's left and "
+                                  f"right images exchanged (last: frame {part.frame_id}); their defects cannot be "
+                                  f"measured and the parts are rejected as ERROR until the camera delivers its left "
+                                  f"eye's image as the left", time.time(), part.part_id, "swapped")
+        return None
 
 
 def frame_refusal(item: StereoFrame | FrameError, repeats: RepeatedImages, check) -> tuple[str | None, str | None]:
@@ -528,7 +539,7 @@ def run(
     started = time.perf_counter()
     failed_in_a_row = unusable_in_a_row = 0
     repeats = RepeatedImages()
-    out_of_range = PlatesOutOfRange(recipe.stereo)
+    elsewhere = SurfaceElsewhere(recipe.stereo)
 
     def part_id(item: StereoFrame | FrameError) -> str:
         return f"R{run_id}-{item.index:06d}" + (f"+{item.slot}" if isinstance(item, UnreadFrame) else "")
@@ -631,7 +642,7 @@ def run(
                 record([Alarm("camera", f"images unusable: {CAMERA_LOST_AFTER} frames in a row (last: frame "
                                         f"{item.frame_id}: {unusable}); parts are rejected as ERROR until they "
                                         f"show the plate", time.time(), part.part_id, "image")])
-            if (alarm := out_of_range.alarm(part)) is not None:
+            if (alarm := elsewhere.alarm(part)) is not None:
                 record([alarm])
             finish(outcome)
             stage_seconds.update(outcome.timings)

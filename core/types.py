@@ -118,6 +118,9 @@ class DefectMeasurement:
     # disparities the stereo backend searched (a plate outside the working distance); the engine alarms when
     # that persists
     surface_elsewhere_mm: float | None = None
+    # the images show that surface at the searched disparities only with the left and right images swapped
+    # (a camera's eyes wired or configured the other way round); the engine alarms when that persists
+    eyes_swapped: bool = False
 
     def quantity(self, name: str) -> float | None:
         if name == "confidence":

@@ -202,6 +202,25 @@ def test_a_plate_beyond_the_searched_range_is_named_where_it_lies(backend_says):
     assert "matches the images at" not in held.note and held.surface_elsewhere_mm is None
 
 
+def test_a_camera_delivering_its_eyes_swapped_is_named():
+    """The left image is the right eye's (a camera wired or configured the other way round): nothing matches
+    at a positive disparity, and the note says the images match with the eyes exchanged."""
+    left, right, disparity = render(CALIB, 400.0, 3.0, [Pit(160, 96, 25.0, 2.0)])
+    backend = np.full_like(disparity, np.nan)  # what a matcher leaves of such a pair: nothing it vouches for
+    m = measure_defect(backend, Detection("pit", 0.9, BOX), CALIB, DepthRule(), (_grey(right), _grey(left)),
+                       searched=(78.0, 126.0))
+    assert m.deviation_mm is None and m.distance_mm is None and m.eyes_swapped
+    assert "matches the images only with the left and right images swapped, at 105 px of disparity (within the " \
+           "78-126 px the stereo search covers)" in m.note, m.note
+    # the eyes as they should be: nothing of the kind
+    good = _surface(left, right, disparity)
+    assert good.deviation_mm is not None and not good.eyes_swapped
+    # swapped, but the plate's disparity outside the search: no claim (a chance peak is no evidence)
+    far = measure_defect(backend, Detection("pit", 0.9, BOX), CALIB, DepthRule(), (_grey(right), _grey(left)),
+                         searched=(20.0, 60.0))
+    assert not far.eyes_swapped and "swapped" not in far.note
+
+
 def test_the_backends_map_alone_says_so_too_where_the_plate_lies_outside_the_search():
     """``method: disparity`` decides on the map, which keeps a plate beyond the range at the range's end: flat,
     so the 2 mm pit reads 0 ± its resolution, proven inside any limit wider than twice that. With the search

@@ -183,6 +183,25 @@ def test_plates_outside_the_working_distance_are_errors_and_a_run_of_them_one_al
     assert any("outside the stereo search range" in h for h in hints)
 
 
+def test_a_camera_with_its_eyes_swapped_costs_errors_and_a_run_of_them_one_alarm(tmp_path, plane_sequence, registry):
+    info = plane_sequence([0.0, 6.0, 0.0, 0.0])
+    folder = info["folder"]
+    (folder / "left").rename(folder / "was_left")
+    (folder / "right").rename(folder / "left")
+    (folder / "was_left").rename(folder / "right")
+    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log"))
+    loaded = load_recipe(path, ["stereo.working_distance_mm=[350, 500]"], registry=registry)
+    seen = []
+    summary = engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.ERROR] * 4
+    assert all(o.part.measurements[0].eyes_swapped for o in seen)
+    (alarm,) = summary.alarms
+    assert alarm.cause == "swapped" and alarm.part_id == seen[2].part.part_id
+    from core.commands.inspection import alarm_hints
+    hints = alarm_hints(summary.alarms, loaded, plc_sim_given=False)
+    assert any("delivers its right eye's image as the left" in h for h in hints)
+
+
 def test_a_dead_disk_still_sends_the_decided_reject_then_stops_with_an_alarm(tmp_path, plane_sequence, registry,
                                                                               monkeypatch):
     info = plane_sequence([0.0, 6.0, 0.0, 0.0, 0.0])
@@ -407,11 +426,13 @@ def test_a_detection_outside_the_image_is_an_error_naming_it_never_a_pass(tmp_pa
 
 def _part(index, *measured):
     """A part with one defect per value of ``measured``: 'far' (the images show the plate outside the search),
-    'ok' (a deviation measured) or 'none' (no deviation, the plate nowhere else)."""
+    'swapped' (they show it only with the eyes exchanged), 'ok' (a deviation measured) or 'none' (no deviation,
+    the plate nowhere else)."""
     from core.types import DefectMeasurement, Detection, PartResult, Verdict
 
     ms = [DefectMeasurement(Detection("pit", 0.9, (0, 0, 9, 9)), None if m != "ok" else 400.0,
-                            0.5 if m == "ok" else None, 1.0, None, None, surface_elsewhere_mm=700.0 if m == "far" else None)
+                            0.5 if m == "ok" else None, 1.0, None, None, surface_elsewhere_mm=700.0 if m == "far" else None,
+                            eyes_swapped=m == "swapped")
           for m in measured]
     return PartResult(f"P{index}", f"{index:06d}", index, 0.0, Verdict(Status.ERROR), ms)
 
@@ -419,7 +440,7 @@ def _part(index, *measured):
 def test_plates_out_of_range_alarm_once_per_run_of_them_and_a_measured_plate_ends_it():
     from core.recipe.schema import StereoSection
 
-    watch = engine.PlatesOutOfRange(StereoSection(working_distance_mm=(350.0, 500.0)))
+    watch = engine.SurfaceElsewhere(StereoSection(working_distance_mm=(350.0, 500.0)))
     alarms = [watch.alarm(_part(i, *m)) for i, m in enumerate([
         ("far",), (), ("far", "none"), ("far",),  # a part without defects neither counts nor ends the run: 3rd far
         ("far",), ("ok",), ("far",), ("far",), ("none",), ("far",)])]  # the 4th stays quiet; "ok" ends the run,
@@ -427,3 +448,16 @@ def test_plates_out_of_range_alarm_once_per_run_of_them_and_a_measured_plate_end
     assert [i for i, a in enumerate(alarms) if a is not None] == [3, 9]
     assert alarms[3].cause == "range" and alarms[3].part_id == "P3" and "about 700 mm" in alarms[3].message
     assert "outside stereo.working_distance_mm (350-500 mm)" in alarms[3].message
+
+
+def test_eyes_swapped_alarm_once_per_run_of_them_apart_from_the_range_s():
+    from core.recipe.schema import StereoSection
+
+    watch = engine.SurfaceElsewhere(StereoSection(working_distance_mm=(350.0, 500.0)))
+    alarms = [watch.alarm(_part(i, *m)) for i, m in enumerate([
+        ("swapped",), ("none",), ("swapped", "far"), ("swapped",), ("far",), ("far",),  # two runs side by side
+        ("ok",), ("swapped",), ("swapped",)])]  # a measured plate ends both
+    assert [(i, a.cause) for i, a in enumerate(alarms) if a is not None] == [(3, "swapped"), (5, "range")]
+    assert alarms[3].message.startswith("left and right images swapped: 3 parts in a row whose defects' surroundings "
+                                        "the images show within stereo.working_distance_mm (350-500 mm) only with "
+                                        "the camera's left and right images exchanged (last: frame 000003)")

@@ -219,8 +219,9 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
         lines.append("  the plates lie outside the stereo search range (the alarm says at what distance): set "
                      "stereo.working_distance_mm to where they are, or the camera back where the recipe expects it")
     if "swapped" in causes:
-        lines.append("  the camera delivers its right eye's image as the left: exchange the eyes in the camera's "
-                     "settings or wiring (a ZED's left eye is the one on the left seen from behind the camera)")
+        lines.append("  the camera delivers its right eye's image as the left, or hangs upside down: exchange the eyes "
+                     "in the camera's settings or wiring (its left eye is the one on the left seen from behind it), "
+                     "or turn it")
     if "store" in causes:
         lines.append("  the results store could not be written (a full disk, its permissions, a removed drive): the "
                      "parts decided until then went to the outputs unrecorded; free the disk and start again")

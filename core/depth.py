@@ -38,9 +38,8 @@ from core.types import Calibration, DefectMeasurement, Detection, StereoFrame
 class DepthRule:
     """How a box becomes a measurement region (the recipe's ``depth`` section)."""
 
-    roi: Literal["box", "inner"] = "inner"
-    # For roi="inner": the central share of the box's width and height taken as the defect;
-    # detector boxes include a margin of intact surface that would pull the median towards zero.
+    # the central share of the box's width and height taken as the defect: detector boxes include the
+    # defect's walls and a margin of intact surface, which would pull it towards zero (1: the whole box)
     inner_fraction: float = 0.6
     ring_gap_px: int = 3
     ring_width_px: int = 12
@@ -101,8 +100,7 @@ def _clip_box(box: tuple[float, float, float, float], shape: tuple[int, int]) ->
 
 
 def roi_box(box: tuple[float, float, float, float], rule: DepthRule) -> tuple[float, float, float, float]:
-    if rule.roi == "box":
-        return box
+    """The region of ``box`` (x0, y0, x1, y1) measured as the defect: its central ``rule.inner_fraction``."""
     x0, y0, x1, y1 = box
     shrink = (1.0 - rule.inner_fraction) / 2.0
     dx, dy = (x1 - x0) * shrink, (y1 - y0) * shrink

@@ -34,13 +34,13 @@ def test_flat_plate_distance_and_zero_deviation(tilt):
 def test_pit_centre_deviation_matches_design_depth_on_tilted_plate(depth):
     _, _, disparity = render(CALIB, 420.0, 6.0, [Pit(160, 96, 25.0, depth)])
     # A small region at the cap's centre sees (almost) its full depth; sign: + below, - raised.
-    m = _measure(disparity, box=(157.0, 93.0, 163.0, 99.0), roi="box", ring_gap_px=30)
+    m = _measure(disparity, box=(157.0, 93.0, 163.0, 99.0), inner_fraction=1.0, ring_gap_px=30)
     assert m.deviation_mm == pytest.approx(depth, rel=0.03)
 
 
 def test_inner_roi_sees_more_of_the_pit_than_the_whole_box():
     _, _, disparity = render(CALIB, 400.0, 0.0, [Pit(160, 96, 25.0, 3.0)])
-    inner, whole = _measure(disparity, roi="inner"), _measure(disparity, roi="box")
+    inner, whole = _measure(disparity), _measure(disparity, inner_fraction=1.0)
     assert 0 < whole.deviation_mm < inner.deviation_mm < 3.0
 
 
@@ -57,7 +57,7 @@ def test_zero_and_inf_count_as_invalid():
     _, _, disparity = render(CALIB, 400.0)
     disparity[71:121, 135:160] = 0.0
     disparity[71:121, 160:182] = np.inf
-    m = _measure(disparity, roi="box")
+    m = _measure(disparity, inner_fraction=1.0)
     assert m.valid_fraction == pytest.approx(3 / 50, abs=0.01)
     assert m.distance_mm is None
 

@@ -80,6 +80,15 @@ def test_out_of_range(recipe_dir):
     assert "decision.rules.1.quantity" in message and ":14:" in message
 
 
+@pytest.mark.parametrize("setting, says", [
+    # a share of the box that takes in the defect's walls reads it shallower: defective plates passed
+    ("depth.inner_fraction=0.8", "depth.inner_fraction: Input should be less than or equal to 0.6 (got 0.8)"),
+    ("depth.roi=box", "depth.roi: unknown key"),  # the whole box: no longer a setting
+])
+def test_a_measurement_region_that_passed_defective_plates_is_refused(recipe_dir, setting, says):
+    assert _error(recipe_dir, GOOD, [setting]).endswith(says)
+
+
 def test_unknown_plugin_lists_known_ones(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("plugin: yolov8", "plugin: yolo9"))
     assert ":10: detector.plugin: unknown detector plugin 'yolo9'; known:" in message

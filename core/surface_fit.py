@@ -50,6 +50,7 @@ HUBER_K = 1.345  # 95 % efficiency for Gaussian noise
 TUKEY_K = 4.685  # likewise
 CLUSTER_PX = 4  # blocks over which residuals may be correlated
 CELL_PX = 4  # cells of the defect's region whose offsets are combined robustly
+RADIAL_MIN_CELLS = 6  # cells that tell a bowl from a plane and a constant
 RING_CELL_PX = 6  # cells of the ring that are kept or left out together
 MATCH_RATIO = 1.0  # residual / texture spread: 0.2-0.83 on the evaluation sets, 1.55 for a plate outside the range
 MIN_GAIN = 0.25  # the right eye's fitted gain: above 0.34 on the evaluation sets, ~0 on noise alone, 0.21 on a
@@ -719,10 +720,14 @@ def weighting_variance(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, 
 
 def unevenness_variance(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, z: float = 2.0) -> float:
     """How much the defect's offset varies over its region beyond what the cells' noise explains, as a
-    variance (px^2) to add to the offset's: a plane is fitted to the cells' offsets (weights 1 / sd^2),
-    and each of its two slopes adds its spread over the region (the rms of a linear ramp over the cells)
-    where it is more than ``z`` of its own standard deviations from 0 (those from the cells' scatter about
-    the plane where it exceeds their sds); 0 for a flat floor.
+    variance (px^2) to add to the offset's: a surface is fitted to the cells' offsets (weights 1 / sd^2), a
+    plane and, with RADIAL_MIN_CELLS cells or more, a bowl (the square of the distance from the region's
+    centre, in its half-widths), and each term adds its spread over the region (its rms over the cells)
+    where its coefficient is more than ``z`` of its own standard deviations from 0 (those from the cells'
+    scatter about the surface where it exceeds their sds); 0 for a flat floor.
+
+    The plane is a box cut through a wall on one side; the bowl a box larger than the defect, whose region
+    holds its walls all round: the region's mean then lies between the floor and the surface around it.
 
     offsets, sds: (K,) as ``cell_offsets`` gives them; centres: (K, 2) their (u, v)."""
     ok = np.isfinite(sds) & (sds > 0)
@@ -731,18 +736,22 @@ def unevenness_variance(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarra
     x, s, c = offsets[ok], sds[ok], centres[ok]
     w = 1.0 / (s * s)
     du, dv = c[:, 0] - np.average(c[:, 0], weights=w), c[:, 1] - np.average(c[:, 1], weights=w)
-    design = np.stack([np.ones_like(x), du, dv], axis=1)
+    terms = [du, dv]
+    if len(x) >= RADIAL_MIN_CELLS:
+        r2 = (du / max(np.abs(du).max(), 1.0)) ** 2 + (dv / max(np.abs(dv).max(), 1.0)) ** 2
+        terms.append(r2 - np.average(r2, weights=w))
+    design = np.stack([np.ones_like(x), *terms], axis=1)
     normal = (design * w[:, None]).T @ design
     try:
         cov = np.linalg.inv(normal)
     except np.linalg.LinAlgError:
         return 0.0
     beta = cov @ ((design * w[:, None]).T @ x)
-    # the slopes' uncertainty from the cells' own scatter about the plane where that is the larger
-    chi2 = float(np.sum(w * (x - design @ beta) ** 2) / (len(x) - 3))
+    # the coefficients' uncertainty from the cells' own scatter about the surface where that is the larger
+    chi2 = float(np.sum(w * (x - design @ beta) ** 2) / max(len(x) - design.shape[1], 1))
     cov = cov * max(1.0, chi2)
     excess = 0.0
-    for i, spread in ((1, du), (2, dv)):
+    for i, spread in enumerate(terms, start=1):
         if cov[i, i] > 0 and abs(beta[i]) > z * np.sqrt(cov[i, i]):
             excess += (beta[i] ** 2 - z * z * cov[i, i]) * float(np.mean(spread * spread))
     return float(excess)

@@ -411,3 +411,17 @@ class TestUnevennessVariance:
         ramp = flat + 0.01 * (centres[:, 0] - centres[:, 0].mean())  # a wall across the region
         spread = float(np.std(0.01 * centres[:, 0]))
         assert sf.unevenness_variance(ramp, sds, centres) == pytest.approx(spread**2, rel=0.3)
+
+    def test_a_bowl_adds_the_spread_of_its_depth(self):
+        # a box larger than the defect: its region holds the walls all round, shallower than the floor
+        v, u = np.mgrid[0:6, 0:8].astype(float)
+        centres = np.stack([4 * u.ravel(), 4 * v.ravel()], axis=1)
+        sds = np.full(48, 0.02)
+        r2 = ((u.ravel() - 3.5) / 3.5) ** 2 + ((v.ravel() - 2.5) / 2.5) ** 2
+        bowl = -0.4 + 0.15 * r2 + np.random.default_rng(3).normal(0, 0.02, 48)
+        # a plane alone sees no slope in it: the variance is the bowl's own spread over the region
+        assert sf.unevenness_variance(bowl, sds, centres) == pytest.approx(float(np.var(0.15 * r2)), rel=0.3)
+        # too few cells to tell a bowl: the plane's terms alone, which see nothing here
+        few = np.flatnonzero((np.abs(u.ravel() - 3.5) < 2) & (np.abs(v.ravel() - 2.5) < 1))[:5]
+        assert len(few) < sf.RADIAL_MIN_CELLS
+        assert sf.unevenness_variance(bowl[few], sds[few], centres[few]) < 0.02**2

@@ -428,9 +428,7 @@ def _outside_search(m: DefectMeasurement, pair, ring: tuple[np.ndarray, np.ndarr
     clause = (f"the surface around the box matches the images at {found.disparity:.0f} px of disparity "
               f"({z:.0f} mm), outside the {lo:.0f}-{hi:.0f} px the stereo search covers: the plate lies outside "
               f"the working distance")
-    note = f"{m.note}; {clause}" if m.deviation_mm is None else f"deviation unavailable: {clause}"
-    return replace(m, note=note, distance_mm=None, distance_sigma_mm=None, area_mm2=None, depth_resolution_mm=None,
-                   deviation_mm=None, deviation_sigma_mm=None, surface_elsewhere_mm=z)
+    return _not_where_searched(m, clause, surface_elsewhere_mm=z)
 
 
 def _eyes_swapped(m: DefectMeasurement, left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.ndarray],
@@ -448,9 +446,16 @@ def _eyes_swapped(m: DefectMeasurement, left: np.ndarray, right: np.ndarray, rin
     clause = (f"the surface around the box matches the images only with the left and right images swapped, at "
               f"{found.disparity:.0f} px of disparity (within the {lo:.0f}-{hi:.0f} px the stereo search covers): the "
               f"camera delivers its right eye's image as the left")
+    return _not_where_searched(m, clause, eyes_swapped=True)
+
+
+def _not_where_searched(m: DefectMeasurement, clause: str, **found: Any) -> DefectMeasurement:
+    """``m`` with ``clause`` (where the images show the plate) ending its note and ``found`` set, without
+    what the map gave (its distance, the area from it, a deviation from it): it is that of a plate where
+    there is none, and no rule may decide on it."""
     note = f"{m.note}; {clause}" if m.deviation_mm is None else f"deviation unavailable: {clause}"
     return replace(m, note=note, distance_mm=None, distance_sigma_mm=None, area_mm2=None, depth_resolution_mm=None,
-                   deviation_mm=None, deviation_sigma_mm=None, eyes_swapped=True)
+                   deviation_mm=None, deviation_sigma_mm=None, **found)
 
 
 def _unavailable(reference: DefectMeasurement, why: str) -> DefectMeasurement:

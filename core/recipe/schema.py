@@ -130,8 +130,8 @@ class DetectorSection(Section):
 
 class DepthSection(Section):
     # the box's central share measured as the defect: a larger one takes in the defect's walls and reads it
-    # shallower than it is (on the evaluation sets 0.7 proved 2 of 609 defects inside a limit they lie beyond,
-    # the whole box 10 of 78; docs/research-log.md), a smaller one costs only pixels
+    # shallower than it is (on the evaluation sets 0.7 proved 2 of 633 defects inside a limit they lie beyond,
+    # 0.8 one of 219, the whole box 2 of 78; docs/research-log.md), a smaller one costs only pixels
     inner_fraction: float = Field(0.6, gt=0.0, le=0.6)
     ring_gap_px: int = Field(3, ge=0, le=200)
     ring_width_px: int = Field(12, ge=2, le=200)

@@ -92,8 +92,9 @@ def test_part_detail_names_the_rule_and_serves_its_image(results):
     assert part["verdict"] == "REJECT" and part["reasons"] and "deviation_mm" in part["reasons"][0]
     (defect,) = part["defects"]
     assert defect["class"] == "pit" and defect["verdict"] == "REJECT" and defect["deviation_mm"] > 1.5
-    # measured from the images, with the uncertainty the decision used
-    assert defect["depth_method"] == "surface" and 0 < defect["deviation_sigma_mm"] < 0.5
+    # measured from the images, with the uncertainty the decision used: a 6 mm spherical cap, whose region
+    # spans millimetres of depth (the uncertainty counts that bowl), still proven beyond the 1.5 mm limit
+    assert defect["depth_method"] == "surface" and 0 < defect["deviation_sigma_mm"] < 1.5
     assert defect["deviation_mm"] - 2 * defect["deviation_sigma_mm"] > 1.5
     assert part["output_events"] and part["output_events"][0]["output"] == "log"
     full = client.get(part["image_url"])

@@ -84,8 +84,10 @@ def test_out_of_range(recipe_dir):
     # a share of the box that takes in the defect's walls reads it shallower: defective plates passed
     ("depth.inner_fraction=0.8", "depth.inner_fraction: Input should be less than or equal to 0.6 (got 0.8)"),
     ("depth.roi=box", "depth.roi: unknown key"),  # the whole box: no longer a setting
+    # a disparity noise the map does not have proves what it cannot tell
+    ("depth.disparity_noise_px=0.05", "depth.disparity_noise_px: Input should be greater than or equal to 0.25 (got 0.05)"),
 ])
-def test_a_measurement_region_that_passed_defective_plates_is_refused(recipe_dir, setting, says):
+def test_a_depth_setting_that_passed_defective_plates_is_refused(recipe_dir, setting, says):
     assert _error(recipe_dir, GOOD, [setting]).endswith(says)
 
 

@@ -191,12 +191,14 @@ class OutputEvent:
 @dataclass
 class Alarm:
     """Something the operator must hear about. ``cause`` names its kind where the source knows it: link
-    (the PLC or line cannot be reached), refused (it answered and refused a command), late (a part was decided after its command was due), release (a
-    pulse's end not sent), pulse, busy, closed, camera, engine, crash, stall (a part stayed in inspection
-    longer than the recipe's ``watchdog_s``), frozen (the camera handed over its last images again), image
-    (frames in a row whose images could not show a defect), store (the results store could not be written),
-    images (the parts' annotated images could not be saved), range (plates in a row outside the stereo search
-    range), behind (a free-running camera's frames went unread while the loop was busy)."""
+    (the PLC or line cannot be reached), refused (it answered and refused a command), late (a part was
+    decided after its command was due), release (a pulse's end not sent), pulse, busy, closed, camera,
+    engine, crash, stall (a part stayed in inspection longer than the recipe's ``watchdog_s``), frozen (the
+    camera handed over its last images again), image (frames in a row whose images could not show a
+    defect), store (the results store could not be written), images (the parts' annotated images could not
+    be saved), range (plates in a row outside the stereo search range), swapped (parts in a row whose
+    images match only with the left and right exchanged), behind (a free-running camera's frames went
+    unread while the loop was busy)."""
 
     source: str
     message: str

@@ -309,7 +309,7 @@ class RejectScheduler:
             self._backoff = min(self.reconnect_max_s, self._backoff * 2)
             if not self._down_reported:
                 self._down_reported = True
-                if isinstance(exc, LinkRefused):
+                if self._refused:
                     cause, alarm = "refused", (f"{self.where} refuses the output's commands ({self._last_connect_error}): "
                                                "rejects cannot reach the actuator until the recipe or the PLC is set right")
                 else:

@@ -313,7 +313,7 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     _check_weights_pin(loaded, locator)
     _check_classes(loaded, registry, locator)
     _check_output_delays(loaded, registry, locator)
-    _check_search_range(loaded, registry, locator)
+    _check_camera_geometry(loaded, registry, locator)
     return loaded
 
 
@@ -327,10 +327,11 @@ def _check_finite(node: Any, key: KeyPath, locator: _Locator) -> None:
         _check_finite(value, key + (k,), locator)
 
 
-def _check_search_range(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:
-    """The stereo search range must fit the camera's image (where the camera plugin states its geometry
-    from its settings): otherwise every part would be an ERROR. A camera that cannot state it is not
-    checked here (``inspect validate`` says so)."""
+def _check_camera_geometry(loaded: LoadedRecipe, registry: Registry, locator: _Locator) -> None:
+    """Where the camera plugin states its geometry from its settings: it must be one a camera can have
+    (``drivers.stereo_geometry``; else every deviation could read about 0 mm), and the stereo search range
+    must fit its image (else every part would be an ERROR). A camera that cannot state it is not checked
+    here (``inspect validate`` says so)."""
     calib = camera_answer(loaded, registry, "calibration")
     if calib is None:
         return

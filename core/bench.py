@@ -27,7 +27,7 @@ from typing import Any
 
 import cv2
 
-from core import surface_fit
+from core import depth
 from core.contracts import PluginContext
 from core.decision import decide
 from core.depth import DepthRule, measure_frame
@@ -180,7 +180,7 @@ def _compare_to_full(diffs: dict[str, Any], stereo: Any, frame: StereoFrame, sec
 def _warm_up(camera_spec, loaded: LoadedRecipe, ctx: PluginContext, detector: Any, stereo: Any, size: tuple[int, int]) -> None:
     """One untimed frame: first calls build models, allocate buffers and compile kernels (the surface fit's
     too)."""
-    surface_fit.warm_up()
+    depth.warm_up()
     camera = camera_spec.factory({**loaded.plugin_settings["camera"], "rate_fps": 0.0, "loop": False, "max_frames": 1}, ctx)
     for item in camera.frames():
         if isinstance(item, StereoFrame):

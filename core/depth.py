@@ -29,7 +29,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from core import surface_fit
+from core import depth_numba, surface_fit
 from core.surface_scan import scan_surface
 from core.types import Calibration, DefectMeasurement, Detection, StereoFrame
 
@@ -166,12 +166,9 @@ def fit_plane_robust(
     if not solvable.any():
         return None
     candidates = np.linalg.solve(systems[solvable], d[picks][solvable][..., None])[..., 0]
-    # Elementwise, not ``candidates @ design.T``: a matrix product goes to the multi-threaded BLAS,
-    # whose threads keep spinning after it returns and slow the detector running next (35 -> 10 ms
-    # of depth per frame and detection back to its own speed on a 2-core machine, docs/benchmarks.md).
-    inliers = np.abs(candidates[:, :1] * u[scored] + candidates[:, 1:2] * v[scored] + candidates[:, 2:3] - d[scored]) \
-        <= tolerance
-    best = candidates[np.argmax(inliers.sum(axis=1))]
+    # Compiled, not ``candidates @ design.T``: a matrix product goes to the multi-threaded BLAS, whose
+    # threads keep spinning after it returns and slow the detector running next (docs/benchmarks.md).
+    best = candidates[np.argmax(depth_numba.inlier_counts(candidates, u[scored], v[scored], d[scored], tolerance))]
     keep = np.abs(best[0] * u + best[1] * v + best[2] - d) <= tolerance
     coeffs = None
     for _ in range(3):
@@ -187,6 +184,14 @@ def fit_plane_robust(
     if coeffs is None:
         return None
     return Plane(*map(float, coeffs))
+
+
+def warm_up() -> None:
+    """Load the compiled kernels of a measurement (the ring plane's consensus, the surface fit's) before the
+    first part rather than during it (numba compiles each in seconds where its cache is empty)."""
+    u = np.arange(8.0)
+    fit_plane_robust(u, u % 3, u)
+    surface_fit.warm_up()
 
 
 def _least_squares_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray | None:

@@ -17,7 +17,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from core import stereo_memory, surface_fit
+from core import depth, stereo_memory
 from core.checks import RepeatedImages, detections_problem, disparity_problem, frame_problem
 from core.contracts import PluginContext, missing_members
 from core.decision import decide, error_verdict
@@ -67,7 +67,7 @@ class Pipeline:
         except Exception:
             pass
         try:
-            surface_fit.warm_up()
+            depth.warm_up()
         except Exception:
             pass
         warm_up = getattr(self.stereo, "warm_up", None)

@@ -1,12 +1,19 @@
 """Depth per defect against exact geometry."""
 from __future__ import annotations
 
+import os
+import pathlib
+import subprocess
+import sys
+import textwrap
+
 import cv2
 import numpy as np
 import pytest
 from conftest import ROOT
 from synthetic_pairs import Pit, calib_for, render
 
+from core import depth_numba
 from core.depth import DepthRule, fit_plane_robust, measure_defect, ring_mask
 from core.recipe import load_recipe
 from core.types import Detection
@@ -80,6 +87,48 @@ def test_plane_fit_ignores_outliers():
     assert plane.a == pytest.approx(0.02, abs=0.002)
     assert plane.b == pytest.approx(-0.03, abs=0.002)
     assert plane.c == pytest.approx(50, abs=0.1)
+
+
+class TestInlierCounts:
+    def test_counts_what_numpy_counts_on_the_tolerance_too(self):
+        rng = np.random.default_rng(2)
+        u, v = rng.uniform(0, 200, 900), rng.uniform(0, 80, 900)
+        planes = rng.normal(0, [0.05, 0.05, 1.0], (64, 3)) + [0.0, 0.0, 60.0]
+        d = 0.01 * u - 0.02 * v + 60 + rng.normal(0, 0.7, 900)
+        # points exactly on a hypothesis's tolerance: both counts must agree on them as well
+        d[:20] = planes[0, 0] * u[:20] + planes[0, 1] * v[:20] + planes[0, 2] - 1.0
+        expected = (np.abs(planes[:, :1] * u + planes[:, 1:2] * v + planes[:, 2:3] - d) <= 1.0).sum(axis=1)
+        assert np.array_equal(depth_numba.inlier_counts(planes, u, v, d, 1.0), expected)
+
+    def test_shapes_are_checked(self):
+        with pytest.raises(ValueError, match="planes"):
+            depth_numba.inlier_counts(np.zeros((4, 2)), np.zeros(3), np.zeros(3), np.zeros(3), 1.0)
+        with pytest.raises(ValueError, match="must be"):
+            depth_numba.inlier_counts(np.zeros((4, 3)), np.zeros(3), np.zeros(2), np.zeros(3), 1.0)
+
+
+class TestWarmUp:
+    def test_compiles_what_a_measurement_runs(self):
+        # in a process of its own: here other tests may have compiled every signature already
+        script = textwrap.dedent("""
+            import numpy as np
+            from synthetic_pairs import step_pair
+            from core import depth, depth_numba, surface_fit as sf, surface_fit_numba as sfn
+            from test_surface_fit import PLANE, _regions
+            kernels = (sfn._system, sfn._offset_costs, depth_numba._inlier_counts)
+            depth.warm_up()
+            before = sum(len(k.signatures) for k in kernels)
+            left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=0)
+            assert sf.fit_surface(left, right, *_regions(), PLANE, -0.3) is not None
+            u, v = np.meshgrid(np.arange(60.0), np.arange(40.0))
+            assert depth.fit_plane_robust(u.ravel(), v.ravel(), 0.1 * u.ravel() + 50) is not None
+            print(before, sum(len(k.signatures) for k in kernels))
+        """)
+        tests = pathlib.Path(__file__).parent
+        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                             env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent)])})
+        before, after = map(int, out.stdout.split())
+        assert before == after == 3  # one signature each, compiled by the warm-up
 
 
 def test_area_in_square_mm():

@@ -3,11 +3,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
-import pathlib
-import subprocess
-import sys
-import textwrap
 
 import numpy as np
 import pytest
@@ -163,25 +158,6 @@ class TestWarmUp:
     def test_fits_its_pair(self):
         fit = sf.warm_up()
         assert fit is not None and fit.c == pytest.approx(4.0, abs=0.01) and abs(fit.delta) < 0.01
-
-    def test_compiles_what_a_fit_runs(self):
-        # in a process of its own: here other tests may have compiled every signature already
-        script = textwrap.dedent("""
-            from synthetic_pairs import step_pair
-            from core import surface_fit as sf, surface_fit_numba as sfn
-            from test_surface_fit import PLANE, _regions
-            kernels = (sfn._system, sfn._offset_costs)
-            sf.warm_up()
-            before = sum(len(k.signatures) for k in kernels)
-            left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=0)
-            assert sf.fit_surface(left, right, *_regions(), PLANE, -0.3) is not None
-            print(before, sum(len(k.signatures) for k in kernels))
-        """)
-        tests = pathlib.Path(__file__).parent
-        out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
-                             env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent)])})
-        before, after = map(int, out.stdout.split())
-        assert before == after == 2  # one signature each, compiled by the warm-up
 
 
 class TestFitSurface:

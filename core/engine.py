@@ -213,16 +213,16 @@ def match_pair(backend: Any, left: np.ndarray, right: np.ndarray, lo: float, hi:
     if problem is not None:
         raise StageFailed(problem)
     if shift == 0:
-        return _checked(backend.compute(left, right, lo, hi), left.shape[:2])
+        return _checked(backend.compute(left, right, lo, hi), left.shape[:2], (lo, hi))
     pair = np.ascontiguousarray(left[:, shift:]), np.ascontiguousarray(right[:, :width])
-    matched = _checked(backend.compute(*pair, lo - shift, hi - shift), pair[0].shape[:2])
+    matched = _checked(backend.compute(*pair, lo - shift, hi - shift), pair[0].shape[:2], (lo - shift, hi - shift))
     out = np.full(left.shape[:2], np.nan, dtype=np.float32)
     out[:, shift:] = matched + shift
     return out
 
 
-def _checked(disparity: Any, shape: tuple[int, int]) -> np.ndarray:
-    problem = disparity_problem(disparity, shape)
+def _checked(disparity: Any, shape: tuple[int, int], searched: tuple[float, float]) -> np.ndarray:
+    problem = disparity_problem(disparity, shape, searched)
     if problem is not None:
         raise StageFailed(problem)
     return disparity if disparity.dtype == np.float32 else disparity.astype(np.float32)

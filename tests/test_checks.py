@@ -141,6 +141,23 @@ class TestDisparityProblem:
     def test_a_broken_map_is_named(self, disparity, says):
         assert says in disparity_problem(disparity, (120, 160))
 
+    def test_matches_lie_in_the_searched_range_or_a_pixel_beyond(self):
+        disparity = np.full((120, 160), 20.0, np.float32)
+        disparity[:, :80] = np.nan  # unmatched
+        disparity[:, 80:90] = 0.0  # "no match" for many matchers
+        disparity[0, 100] = 41.0  # one overshoot among thousands: a refinement's, not the map's scale
+        disparity[1, 100:105] = 9.2
+        assert disparity_problem(disparity, (120, 160), (10.0, 40.0)) is None
+
+    @pytest.mark.parametrize("scale, says", [
+        (16.0, "disparities of 320 to 320 px, 100% of them outside the 10 to 40 px it was asked to search"),
+        (-1.0, "disparities of -20 to -20 px"),
+    ])
+    def test_a_map_in_other_units_or_sign_is_named(self, scale, says):
+        disparity = np.full((120, 160), 20.0 * scale, np.float32)
+        assert says in disparity_problem(disparity, (120, 160), (10.0, 40.0))
+        assert disparity_problem(disparity, (120, 160)) is None  # no range given: none checked
+
 
 # -- the part a breach costs: an ERROR naming it, the run going on ------------------------------------------
 
@@ -149,6 +166,18 @@ class HalfMap:
 
     def compute(self, left, right, min_disp, max_disp):
         return np.full((left.shape[0] // 2, left.shape[1] // 2), 90.0, np.float32)
+
+
+class FixedPoint:
+    """A backend that hands over its matcher's fixed-point map (disparity x 16) as it is."""
+
+    def __init__(self, ctx):
+        from core.registry import default_registry
+
+        self.sgbm = default_registry().get("stereo", "opencv_sgbm").spec.factory({}, ctx)
+
+    def compute(self, left, right, min_disp, max_disp):
+        return self.sgbm.compute(left, right, min_disp, max_disp) * 16.0
 
 
 class NanBoxes:
@@ -197,7 +226,8 @@ class Plugins:
 
     @hookimpl
     def stereo_inspect_stereo_backends(self):
-        return [PluginSpec("half_map", "stereo", lambda s, ctx: HalfMap())]
+        return [PluginSpec("half_map", "stereo", lambda s, ctx: HalfMap()),
+                PluginSpec("fixed_point", "stereo", lambda s, ctx: FixedPoint(ctx))]
 
     @hookimpl
     def stereo_inspect_detectors(self):
@@ -206,6 +236,7 @@ class Plugins:
 
 @pytest.mark.parametrize("old, new, says", [
     ("backend: opencv_sgbm", "backend: half_map", "stereo failed: the stereo backend returned a map of shape"),
+    ("backend: opencv_sgbm", "backend: fixed_point", "stereo failed: the stereo backend returned disparities of"),
     ("plugin: fixed_roi", "plugin: nan_boxes", "detection failed: the detector returned a pit box (10.0, 10.0, nan, 40.0)"),
     ("plugin: replay\n  settings: {path: seq}", "plugin: narrow_right",
      "the camera's left and right images differ in size (320x192, 310x192)"),

@@ -162,7 +162,7 @@ class WarmStereo:
 
     def compute(self, left, right, min_disp, max_disp):
         self.calls.append("compute")
-        return np.full(left.shape[:2], 90.0, dtype=np.float32)
+        return np.full(left.shape[:2], (min_disp + max_disp) / 2, dtype=np.float32)
 
 
 def test_the_stereo_backends_optional_warm_up_runs_once_before_the_first_part(tmp_path, plane_sequence):

@@ -50,12 +50,13 @@ def _build() -> click.Group:
     return cli
 
 
-def main() -> None:
+def main(args: list[str] | None = None) -> None:
+    """The ``inspect`` console script, on ``args`` (default: the command line)."""
     from core.memory import keep_freed_memory
 
     keep_freed_memory()  # before the first frame's volumes are allocated
     try:
-        sys.exit(_build().main(standalone_mode=True))
+        sys.exit(_build().main(args, prog_name="inspect", standalone_mode=True))
     except BrokenPipeError:  # the reader of the output went away (`| head`): nothing left to tell
         sys.exit(1)
     except OSError as exc:

@@ -79,6 +79,31 @@ def cli(*args: str, env_extra: dict | None = None, cwd: Path | None = None) -> s
     return subprocess.run([str(exe), *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=300)
 
 
+def cli_here(*args: str) -> subprocess.CompletedProcess:
+    """``cli`` in this process: the console script's own entry point (``core.cli.main``) with its output
+    captured. For the commands that are refused before they do any work, whose start as a process of their
+    own (torch imported again, 2-3 s) is most of what such a test costs. An exception that escapes ``main``
+    is written to the captured stderr as a traceback, as the console script would, and exits 1."""
+    import traceback
+
+    from click.testing import CliRunner
+
+    from core.cli import main
+
+    # the allocator's switch is process-wide: left as it is here (tests/test_memory.py checks it)
+    with CliRunner().isolation(env={"STEREO_INSPECT_KEEP_MEMORY": "0"}) as (out, err, _):
+        try:
+            main(list(args))
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        except Exception:
+            traceback.print_exc()
+            code = 1
+        stdout, stderr = out.getvalue().decode(), err.getvalue().decode()
+    return subprocess.CompletedProcess(["inspect", *args], code, stdout, stderr)
+
+
 @pytest.fixture(scope="session")
 def external_plugin_site(tmp_path_factory) -> Path:
     """The example third-party plugin package, installed by pip into a folder of its own."""

@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import json
 
-from conftest import ROOT, cli
+from conftest import ROOT, cli, cli_here
 
 
 def test_bench_times_every_stage_and_saves_tables(tmp_path):
@@ -26,9 +26,9 @@ def test_bench_times_every_stage_and_saves_tables(tmp_path):
 
 
 def test_bench_hd720_and_unknown_backend(tmp_path):
-    out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "nope", "--out", str(tmp_path))
+    out = cli_here("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "nope", "--out", str(tmp_path))
     assert out.returncode == 2 and "unknown stereo backend nope" in out.stderr
-    out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", " ,", "--out", str(tmp_path))
+    out = cli_here("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", " ,", "--out", str(tmp_path))
     assert out.returncode == 2 and "--backends: give at least one of" in out.stderr
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "opencv_sgbm",
               "--resolution", "hd720", "--frames", "1", "--repeats", "1", "--out", str(tmp_path))
@@ -66,12 +66,12 @@ def test_bench_versus_compares_depth_with_other_settings_of_the_backend(tmp_path
     assert versus["defects"] >= 2 and versus["availability_differs"] == 0
     assert versus["distance_mm"] < 0.05 and versus["deviation_mm"] < 0.05
     assert "depth vs full frame with search=full" in (tmp_path / "bench-wvga-cpu.md").read_text()
-    bad = cli("bench", "--recipe", recipe, "--backends", "opencv_sgbm", "--set", "stereo.backend=opencv_sgbm",
+    bad = cli_here("bench", "--recipe", recipe, "--backends", "opencv_sgbm", "--set", "stereo.backend=opencv_sgbm",
               "--versus", "search=full", "--out", str(tmp_path))
     assert bad.returncode == 2 and "--versus: search: Extra inputs are not permitted" in bad.stderr
-    bad = cli("bench", "--recipe", recipe, "--backends", "none", "--versus", "search=full", "--out", str(tmp_path))
+    bad = cli_here("bench", "--recipe", recipe, "--backends", "none", "--versus", "search=full", "--out", str(tmp_path))
     assert bad.returncode == 2 and "which --backends leaves out" in bad.stderr
-    bad = cli("bench", "--recipe", recipe, "--backends", "torch_sgm", "--set", "stereo.backend=torch_sgm",
+    bad = cli_here("bench", "--recipe", recipe, "--backends", "torch_sgm", "--set", "stereo.backend=torch_sgm",
               "--versus", "search=sideways", "--out", str(tmp_path))
     assert bad.returncode == 2 and "--versus: search:" in bad.stderr
 

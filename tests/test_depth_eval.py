@@ -8,7 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import ROOT, cli
+from conftest import ROOT, cli, cli_here
 
 from core import depth_eval as ev
 
@@ -149,7 +149,7 @@ def test_a_detector_that_finds_nothing_leaves_every_defect_missed(tmp_path):
 
 
 def test_box_changes_and_the_detectors_boxes_do_not_mix(tmp_path):
-    result = cli("eval", "depth", str(DEMO), "--boxes", "detector", "--box-shift", "0.1", "--out", str(tmp_path))
+    result = cli_here("eval", "depth", str(DEMO), "--boxes", "detector", "--box-shift", "0.1", "--out", str(tmp_path))
     assert result.returncode == 2 and "--boxes detector" in result.stderr
 
 

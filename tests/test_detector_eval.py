@@ -5,7 +5,7 @@ import json
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, cli, neu_fixture_dataset
+from conftest import ROOT, cli, cli_here, neu_fixture_dataset
 
 WEIGHTS = ROOT / "models" / "yolov8n-neu-det.pt"
 
@@ -36,18 +36,18 @@ def test_scores_the_committed_model_at_the_detectors_own_nms_iou(dataset, tmp_pa
 
 
 def test_bad_input_is_one_line_naming_it(dataset, tmp_path):
-    missing = cli("eval", "detector", "--data", str(dataset), "--weights", str(tmp_path / "none.pt"))
+    missing = cli_here("eval", "detector", "--data", str(dataset), "--weights", str(tmp_path / "none.pt"))
     assert missing.returncode == 2 and "none.pt: weights file not found" in missing.stderr
     broken = tmp_path / "broken.pt"
     broken.write_bytes(b"not a checkpoint")
-    bad = cli("eval", "detector", "--data", str(dataset), "--weights", str(broken), "--out", str(tmp_path / "ev"))
+    bad = cli_here("eval", "detector", "--data", str(dataset), "--weights", str(broken), "--out", str(tmp_path / "ev"))
     assert bad.returncode == 2 and "broken.pt" in bad.stderr and "Traceback" not in bad.stderr
-    nodata = cli("eval", "detector", "--data", str(tmp_path / "nodata"), "--weights", str(WEIGHTS))
+    nodata = cli_here("eval", "detector", "--data", str(tmp_path / "nodata"), "--weights", str(WEIGHTS))
     assert nodata.returncode == 2 and "nodata: dataset file not found" in nodata.stderr
     recipe = tmp_path / "recipe.yaml"  # a YAML file that is not a dataset: ultralytics raised with a traceback
     recipe.write_text("name: plate\ncamera: {plugin: replay}\n")
-    wrong = cli("eval", "detector", "--data", str(recipe), "--weights", str(WEIGHTS))
+    wrong = cli_here("eval", "detector", "--data", str(recipe), "--weights", str(WEIGHTS))
     assert wrong.returncode == 2 and "Traceback" not in wrong.stderr
     assert f"{recipe}: not a YOLO dataset description: no val, names" in wrong.stderr
-    iou = cli("eval", "detector", "--data", str(dataset), "--weights", str(WEIGHTS), "--iou", "0")
+    iou = cli_here("eval", "detector", "--data", str(dataset), "--weights", str(WEIGHTS), "--iou", "0")
     assert iou.returncode == 2 and "--iou" in iou.stderr

@@ -15,7 +15,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, cli
+from conftest import ROOT, cli, cli_here
 
 from core.contracts import PluginSpec
 from core.engine import frame_age_limit_s, inspect_frame
@@ -74,19 +74,19 @@ def test_weights_that_are_no_torch_file_are_said_to_be_so(tmp_path, content, say
     # a download that saved an error page, a file cut to nothing: the loader's own words were "KeyError: 60"
     weights = tmp_path / "model.pt"
     weights.write_bytes(content)
-    _one_line_error(cli("validate", str(DEMO), "--set", f"detector.weights={weights}"), "detector.weights",
+    _one_line_error(cli_here("validate", str(DEMO), "--set", f"detector.weights={weights}"), "detector.weights",
                     f"{weights}: not a YOLO checkpoint: a torch file is a zip archive or a pickle, and {says}")
-    _one_line_error(cli("eval", "detector-frames", str(ROOT / "sim_fixtures" / "steel_plate"), "--weights",
+    _one_line_error(cli_here("eval", "detector-frames", str(ROOT / "sim_fixtures" / "steel_plate"), "--weights",
                         str(weights)), f"{weights}: not a YOLO checkpoint")
 
 
 def test_the_weights_can_be_pinned_and_every_run_records_what_it_ran(tmp_path):
-    bad = cli("validate", str(DEMO), "--set", "detector.sha256=" + "ab" * 32)
+    bad = cli_here("validate", str(DEMO), "--set", "detector.sha256=" + "ab" * 32)
     _one_line_error(bad, "detector.sha256", "yolov8n-neu-det.pt has SHA-256", "not the pinned")
     from core.recipe.loader import file_sha256
 
     digest = file_sha256(WEIGHTS)
-    assert cli("validate", str(DEMO), "--set", f"detector.sha256={digest}").returncode == 0
+    assert cli_here("validate", str(DEMO), "--set", f"detector.sha256={digest}").returncode == 0
     results = tmp_path / "results"
     out = cli("run", str(DEMO), "--quiet", "--max-frames", "2", "--set", f"detector.sha256={digest}",
               "--set", f"results.path={results}", "--set", f"outputs=[{{plugin: log, settings: {{file: {tmp_path}/log}}}}]")
@@ -100,11 +100,11 @@ def test_the_weights_can_be_pinned_and_every_run_records_what_it_ran(tmp_path):
 # -- 2. a rule naming a class the detector does not know -----------------------------------------------
 
 def test_a_misspelled_class_in_a_rule_is_an_error_with_the_known_classes():
-    result = cli("validate", str(DEMO), "--set", "decision.rules.0.class=scrach")
+    result = cli_here("validate", str(DEMO), "--set", "decision.rules.0.class=scrach")
     _one_line_error(result, "steel_plate.yaml", "decision.rules.0.class", "unknown class 'scrach'",
                     "did you mean 'scratches'?", "crazing, inclusion, patches, pitted_surface, rolled-in_scale, scratches")
-    assert cli("run", str(DEMO), "--set", "decision.rules.0.class=scrach").returncode == 2
-    digits = cli("validate", str(DEMO), "--set", "detector.sha256=" + "1" * 64)
+    assert cli_here("run", str(DEMO), "--set", "decision.rules.0.class=scrach").returncode == 2
+    digits = cli_here("validate", str(DEMO), "--set", "detector.sha256=" + "1" * 64)
     _one_line_error(digits, "detector.sha256", "in quotes")
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import re
 
 import pytest
-from conftest import ROOT, cli, write_recipe
+from conftest import ROOT, cli, cli_here, write_recipe
 
 from core.commands.inspection import recipe_warnings
 from core.recipe import RecipeError, load_recipe
@@ -216,7 +216,7 @@ def test_another_plugin_by_set_starts_from_its_own_settings():
 def test_cli_validate_exit_2_one_line(recipe_dir, change):
     path = write_recipe(recipe_dir / "r.yaml", GOOD.replace(*change))
     for command in ("validate", "run"):
-        result = cli(command, str(path))
+        result = cli_here(command, str(path))
         assert result.returncode == 2, result.stderr
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
@@ -242,7 +242,7 @@ def test_missing_calibration_is_one_line_exit_2(recipe_dir, command):
 def test_a_calibration_no_camera_has_fails_validation(recipe_dir):
     calib = recipe_dir / "seq" / "calib.yaml"
     calib.write_text(calib.read_text().replace("baseline_mm:", "baseline_mm: -1 #"))
-    result = cli("validate", str(write_recipe(recipe_dir / "r.yaml", GOOD)))
+    result = cli_here("validate", str(write_recipe(recipe_dir / "r.yaml", GOOD)))
     assert result.returncode == 2 and result.stderr.count("\n") == 1
     assert "calib.yaml: baseline_mm must be positive (got -1)" in result.stderr
 
@@ -375,7 +375,7 @@ def test_validate_warns_where_plates_come_closer_than_a_reject_pulse_allows():
 def test_a_path_the_file_system_refuses_is_a_recipe_error_naming_its_key(recipe_dir, key, says):
     """A name longer than the file system takes raised OSError from the first look at it: a traceback."""
     path = write_recipe(recipe_dir / "r.yaml", GOOD)
-    result = cli("validate", str(path), "--set", f"{key}={'x' * 300}")
+    result = cli_here("validate", str(path), "--set", f"{key}={'x' * 300}")
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert re.fullmatch(rf"error: .*r\.yaml \(--set {re.escape(key)}\): {says}.*\n", result.stderr), result.stderr
 

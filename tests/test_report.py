@@ -4,7 +4,7 @@ import csv
 
 import pytest
 import stereo_inspect_fixed_roi
-from conftest import cli, write_recipe
+from conftest import cli, cli_here, write_recipe
 from test_engine import RECIPE
 
 from core import engine
@@ -40,13 +40,13 @@ def test_report_csv_export(results, tmp_path):
 
 
 def test_report_on_missing_store(tmp_path):
-    out = cli("report", str(tmp_path / "nothing"))
+    out = cli_here("report", str(tmp_path / "nothing"))
     assert out.returncode == 2 and out.stderr.startswith("error: ") and "no results store" in out.stderr
 
 
 @pytest.mark.parametrize("run", ["2", "0", "-1"])
 def test_a_run_the_store_does_not_hold_is_an_error_not_a_run_without_parts(results, run):
-    out = cli("report", str(results), "--run", run)
+    out = cli_here("report", str(results), "--run", run)
     assert out.returncode == 2 and out.stdout == ""
     assert out.stderr == f"error: {results / 'results.db'}: no run {run} (runs 1-1)\n"
 
@@ -113,7 +113,7 @@ class TestAFileThatIsNotAStore:
 
     @pytest.mark.parametrize("command", ["report", "view"])
     def test_report_and_view_name_it(self, not_a_store, command):
-        out = cli(command, str(not_a_store.parent))
+        out = cli_here(command, str(not_a_store.parent))
         assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
         assert out.stderr.startswith(f"error: {not_a_store}: not a results store that can be used (")
 

@@ -3,14 +3,14 @@ from __future__ import annotations
 
 import socket
 
-from conftest import cli, write_recipe
+from conftest import cli, cli_here, write_recipe
 from test_external_plugin import RECIPE
 
 from drivers.plc_sim import free_port
 
 
 def test_view_without_a_store(tmp_path):
-    result = cli("view", str(tmp_path / "nothing"))
+    result = cli_here("view", str(tmp_path / "nothing"))
     assert result.returncode == 2
     assert result.stderr.strip() == f"error: {tmp_path / 'nothing' / 'results.db'}: no results store here (give the recipe's results.path)"
 

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 import stereo_inspect_fixed_roi
-from conftest import ROOT, cli, write_recipe
+from conftest import ROOT, cli_here, write_recipe
 from test_engine import RECIPE
 
 from core import engine, stereo_memory
@@ -149,14 +149,14 @@ def _big_sequence(tmp_path):
 def test_validate_refuses_whole_frames_that_cannot_fit_and_warns_for_crops(tmp_path):
     seq = _big_sequence(tmp_path)
     demo = str(ROOT / "recipes" / "steel_plate.yaml")
-    full = cli("validate", demo, "--set", f"camera.settings.path={seq}", "--set", "stereo.region=full",
+    full = cli_here("validate", demo, "--set", f"camera.settings.path={seq}", "--set", "stereo.region=full",
                "--set", "stereo.schedule=every_frame")
     lines = [line for line in full.stderr.splitlines() if line.strip()]
     assert full.returncode == 2 and len(lines) == 1 and "stereo: torch_sgm would need" in lines[0], full.stderr
     assert "GiB of memory is available" in lines[0] and "stereo.scale" in lines[0]
-    crops = cli("validate", demo, "--set", f"camera.settings.path={seq}")
+    crops = cli_here("validate", demo, "--set", f"camera.settings.path={seq}")
     assert crops.returncode == 0 and "a box covering most of the frame would be its part's ERROR" in crops.stderr
-    run = cli("run", demo, "--set", f"camera.settings.path={seq}", "--set", "stereo.region=full",
+    run = cli_here("run", demo, "--set", f"camera.settings.path={seq}", "--set", "stereo.region=full",
               "--set", "stereo.schedule=every_frame", "--set", f"results.path={tmp_path / 'results'}",
               "--set", "outputs=[{plugin: log}]")
     assert run.returncode == 2 and "torch_sgm would need" in run.stderr

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import os
 import signal
 import sys
 from pathlib import Path
@@ -303,7 +304,18 @@ def recipe_warnings(loaded) -> list[str]:
     that reach no actuator or come faster than it can be pulsed."""
     return (_depth_warnings(loaded) + _detector_warnings(loaded) + _coverage_warnings(loaded)
             + _guard_band_warnings(loaded) + _image_check_warnings(loaded) + _output_warnings(loaded)
-            + _pulse_warnings(loaded))
+            + _pulse_warnings(loaded) + _thread_warnings(loaded))
+
+
+def _thread_warnings(loaded) -> list[str]:
+    """A line where ``threads`` asks each stage for more threads than this machine has cores: they spin against
+    each other and against the stage running beside them (docs/recipe-reference.md)."""
+    threads, cores = loaded.recipe.threads, os.cpu_count()
+    if threads == "auto" or not cores or int(threads) <= cores:
+        return []
+    return [loaded.describe(("threads",), f"warning: {threads} threads per stage on this machine's {cores} cores: "
+                                          f"the threads beyond the cores spin against each other and slow the "
+                                          f"line (auto: half the cores)")]
 
 
 def _detector_warnings(loaded) -> list[str]:

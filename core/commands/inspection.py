@@ -301,7 +301,7 @@ def _stereo_memory_problem(loaded) -> str | None:
 def recipe_warnings(loaded) -> list[str]:
     """What the recipe lets through without an error: limits the camera cannot resolve at the working
     distance, classes no rule covers, decisions that pass unproven parts, image checks turned off, rejects
-    that reach no actuator or come faster than it can be pulsed."""
+    that reach no actuator or come faster than it can be pulsed, more threads than the machine has cores."""
     return (_depth_warnings(loaded) + _detector_warnings(loaded) + _coverage_warnings(loaded)
             + _guard_band_warnings(loaded) + _image_check_warnings(loaded) + _output_warnings(loaded)
             + _pulse_warnings(loaded) + _thread_warnings(loaded))

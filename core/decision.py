@@ -38,6 +38,13 @@ def unruled_classes(decision: DecisionSection, classes: list[str]) -> list[str]:
     return [c for c in classes if not any(rule_applies(r, c) for r in decision.rules)]
 
 
+def holds_at_the_surface(rule: Rule) -> bool:
+    """A ``deviation_mm`` rule that holds for a deviation of 0: it rejects a defect level with the surface and
+    passes every defect beyond its threshold the other way (``deviation_mm < 1`` passes all deeper than 1 mm),
+    which is an operator written the wrong way round."""
+    return rule.quantity == "deviation_mm" and _OPS[rule.op](0.0, rule.threshold)
+
+
 def conformance(value: float, band: float, op: str, threshold: float) -> str:
     """``beyond`` (the rule's condition holds even at the far end of the band), ``inside`` (it fails
     even at the near end) or ``undecided``."""

@@ -4,8 +4,8 @@ from dataclasses import replace
 
 import pytest
 
-from core.decision import decide, judge_defect, unruled_classes
-from core.recipe.schema import DecisionSection
+from core.decision import decide, holds_at_the_surface, judge_defect, unruled_classes
+from core.recipe.schema import DecisionSection, Rule
 from core.types import DefectMeasurement, Detection, Status
 
 
@@ -155,3 +155,15 @@ def test_area_and_confidence_uncertainty():
     assert m.uncertainty("confidence") == 0.0
     m.distance_sigma_mm = None
     assert m.uncertainty("area_mm2") is None
+
+
+@pytest.mark.parametrize("quantity, op, threshold, wrong_way_round", [
+    ("deviation_mm", ">", 1.0, False), ("deviation_mm", "<", -1.0, False),
+    ("deviation_mm", "<", 1.0, True), ("deviation_mm", "<=", 0.5, True), ("deviation_mm", ">", -1.0, True),
+    ("deviation_mm", ">=", 0.0, True), ("deviation_mm", ">", 0.0, False), ("deviation_mm", "<", 0.0, False),
+    ("distance_mm", "<", 300.0, False), ("confidence", "<", 0.5, False),
+])
+def test_a_deviation_rule_that_holds_at_the_surface_is_told(quantity, op, threshold, wrong_way_round):
+    rule = Rule(**{"class": "any", "quantity": quantity, "op": op, "threshold": threshold})
+    assert holds_at_the_surface(rule) is wrong_way_round
+

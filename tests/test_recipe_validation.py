@@ -364,6 +364,15 @@ def test_more_threads_per_stage_than_the_machine_has_cores_are_warned_of(recipe_
         assert not [w for w in recipe_warnings(load_recipe(path, [fine])) if "threads" in w], fine
 
 
+def test_a_deviation_rule_written_the_wrong_way_round_is_warned_of():
+    demo = ROOT / "recipes" / "steel_plate.yaml"
+    warned = [w for w in recipe_warnings(load_recipe(demo, ["decision.rules.0.op='<'"])) if "decision.rules" in w]
+    assert len(warned) == 1 and re.fullmatch(
+        r".*steel_plate\.yaml:\d+: decision\.rules\.0: warning: deviation_mm < 1 holds for a defect level with the "
+        r"surface: it rejects those and passes every defect deeper than 1 mm \(did you mean > 1\?\)", warned[0])
+    assert not [w for w in recipe_warnings(load_recipe(demo)) if "decision.rules" in w]
+
+
 def test_validate_warns_where_plates_come_closer_than_a_reject_pulse_allows():
     # the demo's 100 ms pulse and the 20 ms low after it need 120 ms: at 12 plates a second (83 ms) a run
     # of rejects falls 37 ms further behind with each one; at 8 (125 ms) it does not

@@ -301,10 +301,28 @@ def _stereo_memory_problem(loaded) -> str | None:
 def recipe_warnings(loaded) -> list[str]:
     """What the recipe lets through without an error: limits the camera cannot resolve at the working
     distance, classes no rule covers, decisions that pass unproven parts, image checks turned off, rejects
-    that reach no actuator or come faster than it can be pulsed, more threads than the machine has cores."""
+    that reach no actuator or come faster than it can be pulsed, more threads than the machine has cores,
+    deviation rules written the wrong way round."""
     return (_depth_warnings(loaded) + _detector_warnings(loaded) + _coverage_warnings(loaded)
             + _guard_band_warnings(loaded) + _image_check_warnings(loaded) + _output_warnings(loaded)
-            + _pulse_warnings(loaded) + _thread_warnings(loaded))
+            + _pulse_warnings(loaded) + _thread_warnings(loaded) + _rule_warnings(loaded))
+
+
+def _rule_warnings(loaded) -> list[str]:
+    """A line for each deviation rule written the wrong way round (``core.decision.holds_at_the_surface``)."""
+    from core.decision import holds_at_the_surface
+
+    flipped = {">": "<", ">=": "<=", "<": ">", "<=": ">="}
+    lines = []
+    for index, rule in enumerate(loaded.recipe.decision.rules):
+        if holds_at_the_surface(rule):
+            beyond = "deeper" if rule.op in ("<", "<=") else "higher"
+            lines.append(loaded.describe(
+                ("decision", "rules", index),
+                f"warning: deviation_mm {rule.op} {rule.threshold:g} holds for a defect level with the surface: it "
+                f"rejects those and passes every defect {beyond} than {abs(rule.threshold):g} mm (did you mean "
+                f"{flipped[rule.op]} {rule.threshold:g}?)"))
+    return lines
 
 
 def _thread_warnings(loaded) -> list[str]:

@@ -57,9 +57,9 @@ class Pipeline:
     outputs: list[tuple[str, Any]]
 
     def warm_up(self) -> None:
-        """Run the detector once, the stereo backend's optional ``warm_up`` and the surface fit, before the
-        first part: their first calls build the model and compile kernels (13 s for torch_sgm's and 2-3 s
-        for the surface fit's with numba's cache empty), which would make the first part late for the
+        """Run the detector once, the stereo backend's optional ``warm_up`` and a depth measurement, before
+        the first part: their first calls build the model and compile kernels (13 s for torch_sgm's and 2-3 s
+        for the depth measurement's with numba's cache empty), which would make the first part late for the
         actuator and trip the watchdog. A stage that fails here fails on the parts too, where the failure
         is reported per part."""
         try:

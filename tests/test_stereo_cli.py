@@ -225,6 +225,19 @@ def test_a_scene_without_an_occlusion_mask_is_scored_over_every_pixel_and_says_s
     assert rows["Unmasked"]["dense"]["bad1.0"] > rows["Masked"]["dense"]["bad1.0"]
 
 
+def test_scenes_without_ground_truth_are_named_before_any_is_matched(tmp_path):
+    for name in ("SceneA", "SceneB", "SceneC"):
+        write_scene(tmp_path / "mb" / name, seed=0)
+    for name in ("SceneB", "SceneC"):  # as a benchmark's test scenes come
+        (tmp_path / "mb" / name / "disp0GT.pfm").unlink()
+    result = invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--backend", "opencv_sgbm")
+    _assert_error(result, "SceneB/disp0GT.pfm: file missing (and in 1 more scenes): a scene without ground truth")
+    assert "dense bad1.0" not in result.output
+    result = invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--backend", "opencv_sgbm", "--scenes", "SceneA",
+                    "--out", tmp_path / "out", "--no-figure")
+    assert result.exit_code == 0, result.output
+
+
 def _rescale_pfm(path, scale: bytes):
     magic, size, _, pixels = path.read_bytes().split(b"\n", 3)
     path.write_bytes(b"\n".join([magic, size, scale, pixels]))

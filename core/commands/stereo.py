@@ -237,6 +237,12 @@ def eval_stereo_command(folder, backends, scenes, out, settings, figure, device,
         _fail(f"--scenes: {exc}")
     if not scene_dirs:
         _fail(f"--middlebury {folder}: no scene folders (im0.png + calib.txt) inside")
+    # before any scene is matched: a test scene without ground truth would otherwise end the run halfway
+    unscored = [d for d in scene_dirs if not (d / "disp0GT.pfm").is_file()]
+    if unscored:
+        more = f" (and in {len(unscored) - 1} more scenes)" if len(unscored) > 1 else ""
+        _fail(f"{unscored[0] / 'disp0GT.pfm'}: file missing{more}: a scene without ground truth cannot be scored "
+              f"(--scenes picks the others)")
     from core.stereo_memory import memory_problem
 
     _threads(threads)

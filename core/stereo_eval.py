@@ -88,10 +88,19 @@ class SceneData:
     note: str = ""  # what the score of this scene counts differently, said beside it
 
 
+GROUND_TRUTH = ("disp0GT.pfm", "disp0.pfm")  # MiddEval3's name (ETH3D's too), the Middlebury 2014 datasets'
+
+
+def ground_truth_path(folder: Path) -> Path | None:
+    """The scene's left disparity ground truth under either name, or None."""
+    return next((folder / name for name in GROUND_TRUTH if (folder / name).is_file()), None)
+
+
 def load_scene(folder: Path) -> SceneData:
     folder = Path(folder)
     calib = read_middlebury_calib(folder / "calib.txt")
-    gt = read_pfm(folder / "disp0GT.pfm")
+    gt_path = ground_truth_path(folder) or folder / GROUND_TRUTH[0]
+    gt = read_pfm(gt_path)
     mask_path = folder / "mask0nocc.png"
     note = ""
     if mask_path.exists():
@@ -99,13 +108,13 @@ def load_scene(folder: Path) -> SceneData:
     else:  # a scene published without one: every pixel with ground truth is scored, and the line says so
         nonocc, note = np.ones(gt.shape, bool), "no mask0nocc.png: occluded pixels scored too"
     left, right = read_image(folder / "im0.png", "left image"), read_image(folder / "im1.png", "right image")
-    for name, shape in (("im1.png", right.shape[:2]), ("disp0GT.pfm", gt.shape), ("mask0nocc.png", nonocc.shape)):
+    for name, shape in (("im1.png", right.shape[:2]), (gt_path.name, gt.shape), ("mask0nocc.png", nonocc.shape)):
         if shape != left.shape[:2]:
             raise SequenceError(f"{folder / name}: {shape[1]}x{shape[0]}, but im0.png is {left.shape[1]}x{left.shape[0]}")
     known = gt[np.isfinite(gt)]
     if known.size and (known.min() < 0 or not 0.5 <= known.max() < gt.shape[1]):
         # what a PFM read in the wrong byte order, or another scene's, gives: every score would be nonsense
-        raise SequenceError(f"{folder / 'disp0GT.pfm'}: disparities from {known.min():.4g} to {known.max():.4g} px, not "
+        raise SequenceError(f"{gt_path}: disparities from {known.min():.4g} to {known.max():.4g} px, not "
                             f"within the image's 0-{gt.shape[1]} or all under half a pixel: not this scene's disparity "
                             f"map (or its scale's sign gives the wrong byte order)")
     return SceneData(folder.name, left, right, gt, nonocc, calib["ndisp"], note)

@@ -231,11 +231,26 @@ def test_scenes_without_ground_truth_are_named_before_any_is_matched(tmp_path):
     for name in ("SceneB", "SceneC"):  # as a benchmark's test scenes come
         (tmp_path / "mb" / name / "disp0GT.pfm").unlink()
     result = invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--backend", "opencv_sgbm")
-    _assert_error(result, "SceneB/disp0GT.pfm: file missing (and in 1 more scenes): a scene without ground truth")
+    _assert_error(result, "SceneB/disp0GT.pfm: file missing, nor disp0.pfm (and in 1 more scenes): a scene without "
+                          "ground truth")
     assert "dense bad1.0" not in result.output
     result = invoke("eval", "stereo", "--middlebury", tmp_path / "mb", "--backend", "opencv_sgbm", "--scenes", "SceneA",
                     "--out", tmp_path / "out", "--no-figure")
     assert result.exit_code == 0, result.output
+
+
+def test_the_middlebury_2014_datasets_name_for_the_ground_truth_is_read_too(tmp_path):
+    write_scene(tmp_path / "mb" / "SceneA", seed=0)
+    write_scene(tmp_path / "mb14" / "SceneA", seed=0)
+    (tmp_path / "mb14" / "SceneA" / "disp0GT.pfm").rename(tmp_path / "mb14" / "SceneA" / "disp0.pfm")
+    scores = []
+    for folder in ("mb", "mb14"):
+        result = invoke("eval", "stereo", "--middlebury", tmp_path / folder, "--backend", "opencv_sgbm",
+                        "--out", tmp_path / f"out_{folder}", "--no-figure")
+        assert result.exit_code == 0, result.output
+        row = json.loads((tmp_path / f"out_{folder}" / "stereo_eval.json").read_text())["backends"]["opencv_sgbm"]
+        scores.append((row["scenes"][0]["dense"], row["scenes"][0]["sparse"]))
+    assert scores[0] == scores[1]
 
 
 def _rescale_pfm(path, scale: bytes):

@@ -206,7 +206,8 @@ def _split(values: tuple[str, ...]) -> list[str]:
 
 @click.command("stereo")
 @click.option("--middlebury", "folder", type=click.Path(path_type=Path), required=True,
-              help="folder of Middlebury scene folders (im0.png, im1.png, disp0GT.pfm, mask0nocc.png, calib.txt)")
+              help="folder of Middlebury scene folders (im0.png, im1.png, calib.txt, disp0GT.pfm or the 2014 "
+                   "datasets' disp0.pfm, and mask0nocc.png where there is one)")
 @click.option("--backend", "backends", multiple=True, help="repeatable or comma-separated; default torch_sgm")
 @click.option("--scenes", multiple=True, help="scene names, repeatable or comma-separated; default all")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("runs/stereo_eval"), show_default=True,
@@ -238,11 +239,11 @@ def eval_stereo_command(folder, backends, scenes, out, settings, figure, device,
     if not scene_dirs:
         _fail(f"--middlebury {folder}: no scene folders (im0.png + calib.txt) inside")
     # before any scene is matched: a test scene without ground truth would otherwise end the run halfway
-    unscored = [d for d in scene_dirs if not (d / "disp0GT.pfm").is_file()]
+    unscored = [d for d in scene_dirs if ev.ground_truth_path(d) is None]
     if unscored:
         more = f" (and in {len(unscored) - 1} more scenes)" if len(unscored) > 1 else ""
-        _fail(f"{unscored[0] / 'disp0GT.pfm'}: file missing{more}: a scene without ground truth cannot be scored "
-              f"(--scenes picks the others)")
+        _fail(f"{unscored[0] / ev.GROUND_TRUTH[0]}: file missing, nor {ev.GROUND_TRUTH[1]}{more}: a scene without "
+              f"ground truth cannot be scored (--scenes picks the others)")
     from core.stereo_memory import memory_problem
 
     _threads(threads)

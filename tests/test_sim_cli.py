@@ -104,6 +104,21 @@ def test_a_defect_larger_than_the_frame_holds_is_a_one_line_error(tmp_path):
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("args, says", [
+    # each ran out of memory (a traceback) or rendered for minutes into tens of GB
+    (["--distance-mm", "1e9"], "'--distance-mm': 1000000000.0 is not in the range 100.0<=x<=20000.0"),
+    (["--distance-range-mm", "300", "1e6", "--depth-range-mm", "0.3", "2"],
+     "--distance-range-mm: 1e+06 is beyond the largest allowed, 20000"),
+    (["--width", "4096"], "'--width': 4096 is not in the range 32<=x<=2208"),
+    (["--width", "2208", "--height", "1242", "--supersample", "3"],
+     "--supersample 3 at 2208x1242 casts 25 M rays per eye, more than the 16 M"),
+])
+def test_a_scene_no_memory_holds_is_refused_before_rendering(tmp_path, args, says):
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects", *args])
+    assert result.exit_code == 2 and says in result.output, result.output
+    assert not (tmp_path / "x").exists()
+
+
 def test_a_frame_that_cannot_be_written_is_a_one_line_error(tmp_path):
     out = tmp_path / "x"
     out.mkdir()

@@ -10,6 +10,11 @@ import click
 from core.commands.params import FINITE, Finite, make_folder
 
 FRAME_FILE = re.compile(r"^\d{6}\.(png|jpg|jpeg|json)$")
+# The ZED's largest mode (2K) and the end of its depth range: a frame of 4096x4096 took 20 GB and three
+# minutes to render, a plate a kilometre away a texture larger than any memory.
+MAX_WIDTH, MAX_HEIGHT = 2208, 1242
+MAX_DISTANCE_MM = 20_000.0
+MAX_RAYS = 16_000_000  # per eye: 2K at the default supersampling (11 M) took 3.3 GB
 
 
 def existing_frame_files(out: Path) -> list[Path]:
@@ -31,7 +36,7 @@ def register(cli: click.Group) -> None:
     @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
     @click.option("--frames", default=10, show_default=True, type=click.IntRange(min=1), help="Number of frames.")
     @click.option("--seed", default=0, show_default=True, type=click.IntRange(0), help="Random seed (the output is a function of it).")
-    @click.option("--distance-mm", default=400.0, show_default=True, type=Finite(min=100.0),
+    @click.option("--distance-mm", default=400.0, show_default=True, type=Finite(min=100.0, max=MAX_DISTANCE_MM),
                   help="Plate distance at the image centre (jittered by -20..+50 mm per frame unless --no-jitter).")
     @click.option("--tilt-deg", default=5.0, show_default=True, type=Finite(-30.0, 30.0),
                   help="Plate tilt about the image x axis (jittered by -5..+3 deg, floored at 0, unless --no-jitter).")
@@ -41,8 +46,10 @@ def register(cli: click.Group) -> None:
                   type=click.Path(path_type=Path), help="NEU-DET folder (val crops give the defects' appearance).")
     @click.option("--synthetic-defects", is_flag=True,
                   help="Do not use NEU-DET: draw stand-in defect appearances instead.")
-    @click.option("--width", default=672, show_default=True, type=click.IntRange(min=32))
-    @click.option("--height", default=376, show_default=True, type=click.IntRange(min=32))
+    @click.option("--width", default=672, show_default=True, type=click.IntRange(32, MAX_WIDTH),
+                  help="Frame width in pixels, up to the ZED's largest mode (2K).")
+    @click.option("--height", default=376, show_default=True, type=click.IntRange(32, MAX_HEIGHT),
+                  help="Frame height in pixels, likewise.")
     @click.option("--image-format", type=click.Choice(["png", "jpg"]), default="png", show_default=True,
                   help="left/right images as lossless PNG or JPEG quality 95 (GT disparity is always 16-bit PNG).")
     @click.option("--overwrite", is_flag=True,
@@ -99,6 +106,15 @@ def register(cli: click.Group) -> None:
             if low is not None and pair[0] < low:
                 click.echo(f"error: {name}: {pair[0]:g} is below the smallest allowed, {low:g}", err=True)
                 raise SystemExit(2)
+            if name == "--distance-range-mm" and pair[1] > MAX_DISTANCE_MM:
+                click.echo(f"error: {name}: {pair[1]:g} is beyond the largest allowed, {MAX_DISTANCE_MM:g}", err=True)
+                raise SystemExit(2)
+        rays = width * height * supersample**2
+        if rays > MAX_RAYS:
+            click.echo(f"error: --supersample {supersample} at {width}x{height} casts {rays / 1e6:.0f} M rays per eye, "
+                       f"more than the {MAX_RAYS / 1e6:.0f} M that fit about 5 GB of memory: a lower --supersample or a "
+                       f"smaller frame", err=True)
+            raise SystemExit(2)
         largest = largest_defect_px(width, height)
         if defect_size_px is not None and defect_size_px[1] >= largest:
             click.echo(f"error: --defect-size-px: a side of {defect_size_px[1]:g} px does not fit a {width}x{height} "

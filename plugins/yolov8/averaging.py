@@ -6,6 +6,7 @@ inference cost. Which weights to average is chosen on the validation split, like
 """
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import torch
@@ -68,5 +69,13 @@ def average_checkpoints(paths: list[Path], out: Path, weights: list[float] | Non
               "train_args": {**(first.get("train_args") or {}), "averaged_from": [str(p) for p in paths]}}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(result, str(out))
+    # serialised in memory first: torch's zip writer reports a full disk as "enforce fail at inline_container"
+    buffer = io.BytesIO()
+    torch.save(result, buffer)
+    try:
+        out.write_bytes(buffer.getvalue())
+    except OSError as exc:
+        if out.is_file():
+            out.unlink()  # a checkpoint cut short must not be taken for weights later
+        raise AveragingError(f"{out}: cannot write the checkpoint: {exc.strerror or exc}") from None
     return out

@@ -32,6 +32,7 @@ from core.engine import StageFailed, disparity_range, frame_disparity, kept_dete
 from core.recipe import LoadedRecipe
 from core.surface_fit import gradient_x, to_grey
 from core.types import Detection, DefectMeasurement, Status, StereoFrame
+from drivers.file_writes import write_text
 
 CLEAR_CUT_MM = 0.3  # a defect whose true value is at least this far from every limit is clear-cut
 NARROW_PX = 30.0  # boxes narrower than this count as narrow defects
@@ -412,8 +413,8 @@ def figure(rows: list[DefectRow], path: Path) -> None:
 def save(body: dict[str, Any], rows: list[DefectRow], out: Path, with_figure: bool = True) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     written = [out / "depth_eval.json", out / "depth_eval.md"]
-    written[0].write_text(json.dumps(body, indent=1, default=float))
-    written[1].write_text(markdown(body))
+    write_text(written[0], json.dumps(body, indent=1, default=float))
+    write_text(written[1], markdown(body))
     # a set in which nothing was measured (every defect missed or unavailable) has nothing to plot
     if with_figure and any(r.deviation_mm is not None or r.reference_deviation_mm is not None for r in rows):
         figure(rows, out / "depth_eval.png")

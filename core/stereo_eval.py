@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from drivers.file_writes import write_text
 from drivers.sequence_folder import SequenceError, read_image, read_middlebury_calib, read_pfm
 
 THRESHOLDS = (0.5, 1.0, 2.0, 4.0)
@@ -179,8 +180,8 @@ def save_results(out: Path, results: dict[str, list[SceneScore]], meta: dict) ->
                "backends": {n: {"scenes": [asdict(s) for s in r], "average": asdict(average(r))}
                             for n, r in results.items()}}
     json_path, md_path = out / "stereo_eval.json", out / "stereo_eval.md"
-    json_path.write_text(json.dumps(payload, indent=2))
-    md_path.write_text("d- = dense (missing = bad), s- = sparse (claimed pixels only, cov% of them); "
+    write_text(json_path, json.dumps(payload, indent=2))
+    write_text(md_path, "d- = dense (missing = bad), s- = sparse (claimed pixels only, cov% of them); "
                        "Bad-x in %, quarter-resolution pixels, non-occluded mask.\n\n" + markdown_table(results))
     return json_path, md_path
 

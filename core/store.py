@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import io
 import json
 import os
 import socket
@@ -18,6 +19,7 @@ from pathlib import Path
 
 from core.file_checks import unwritable
 from core.types import Alarm, OutputEvent, PartResult, Status
+from drivers.file_writes import write_text
 
 DB_NAME = "results.db"
 
@@ -459,6 +461,7 @@ def write_csv(rows: list[tuple], out) -> None:
 def export_csv(db: sqlite3.Connection, out: Path, run_id: int | None = None) -> int:
     """Every part (of one run, or of all), one row per defect."""
     rows = csv_rows(db, run_id)
-    with open(out, "w", newline="") as f:
-        write_csv(rows, f)
+    text = io.StringIO(newline="")
+    write_csv(rows, text)
+    write_text(out, text.getvalue())
     return len(rows)

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import yaml
 
+from drivers.file_writes import write_bytes, write_text
 from drivers.stereo_geometry import calibration_problem
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -125,7 +126,7 @@ def write_calibration(folder: Path, calib: dict) -> None:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     clean = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in calib.items()}
-    (folder / "calib.yaml").write_text(yaml.safe_dump(clean, sort_keys=False))
+    write_text(folder / "calib.yaml", yaml.safe_dump(clean, sort_keys=False))
 
 
 def _by_stem(folder: Path) -> dict[str, Path]:
@@ -244,7 +245,7 @@ def write_frame(
         write_disparity_png(folder / "gt" / f"{frame_id}.png", gt_disparity)
     if labels is not None:
         (folder / "labels").mkdir(exist_ok=True)
-        (folder / "labels" / f"{frame_id}.json").write_text(json.dumps(labels, indent=2))
+        write_text(folder / "labels" / f"{frame_id}.json", json.dumps(labels, indent=2))
 
 
 def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
@@ -347,8 +348,4 @@ def write_pfm(path: Path, image: np.ndarray) -> None:
     if image.ndim != 2:
         raise ValueError("write_pfm expects an HxW array")
     out = np.where(np.isfinite(image), image, np.float32(np.inf)).astype("<f4")
-    with open(path, "wb") as f:
-        f.write(b"Pf\n")
-        f.write(f"{image.shape[1]} {image.shape[0]}\n".encode())
-        f.write(b"-1\n")
-        f.write(np.flipud(out).tobytes())
+    write_bytes(path, b"Pf\n" + f"{image.shape[1]} {image.shape[0]}\n".encode() + b"-1\n" + np.flipud(out).tobytes())

@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from drivers import plc_sim
+from drivers.file_writes import write_text
 from sim.tcp_proxy import TcpProxy
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -169,7 +170,7 @@ def run_faults(out: Path, parts: int = 200, kills: int = 2, seed: int = 0, damag
         edges = [w.timestamp for i, w in enumerate(sim.writes) if w.table == "coil" and w.address == 0 and w.value == 1
                  and _was_low(sim.writes, i)]
     account(results, report, edges)
-    (out / "faults.json").write_text(json.dumps({**asdict(report), "ok": report.ok}, indent=1))
+    write_text(out / "faults.json", json.dumps({**asdict(report), "ok": report.ok}, indent=1))
     return report
 
 

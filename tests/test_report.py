@@ -55,7 +55,8 @@ def test_a_run_the_store_does_not_hold_is_an_error_not_a_run_without_parts(resul
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full (a device that is always full) here")
 def test_a_csv_the_disk_cannot_hold_is_named(results):
     out = cli_here("report", str(results), "--csv", "/dev/full")
-    assert out.returncode == 2 and out.stderr == "error: /dev/full: No space left on device\n", out.stderr
+    assert out.returncode == 2, out.stderr
+    assert out.stderr == "error: /dev/full: could not be written (No space left on device)\n", out.stderr
 
 
 def test_report_csv_of_one_run(results, tmp_path):

@@ -10,6 +10,7 @@ from pydantic import ValidationError
 
 from core.commands.inspection import _load, fail
 from core.commands.params import FINITE, cuda_if_present, demo_recipe, out_folder
+from drivers.file_writes import write_text
 
 
 @click.command("bench")
@@ -67,7 +68,7 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         report = run_soak(loaded, registry, soak, device, soak_every,
                           None if quiet else lambda n, mb: click.echo(f"frame {n}: RSS {mb:.0f} MB"))
         out.mkdir(parents=True, exist_ok=True)
-        (out / "soak.json").write_text(json.dumps(report, indent=2))
+        write_text(out / "soak.json", json.dumps(report, indent=2))
         click.echo(f"soak: {report['frames']} frames in {report['seconds']:.0f} s ({report['fps']:.2f} fps); RSS "
                    f"{report['rss_start_mb']:.0f} MB after the first frame, {report['rss_end_mb']:.0f} MB at the end, "
                    f"peak {report['peak_rss_mb']:.0f} MB; saved: {out / 'soak.json'}")
@@ -107,8 +108,8 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         table += "\n" + live_markdown(report["live"])
     out.mkdir(parents=True, exist_ok=True)
     stem = f"bench-{resolution}-{report['device']}"
-    (out / f"{stem}.json").write_text(json.dumps(report, indent=2))
-    (out / f"{stem}.md").write_text(table)
+    write_text(out / f"{stem}.json", json.dumps(report, indent=2))
+    write_text(out / f"{stem}.md", table)
     click.echo(table)
     click.echo(f"saved: {out / (stem + '.json')}, {out / (stem + '.md')}")
 

@@ -180,8 +180,8 @@ def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings,
     if out:
         try:
             write_pfm(out, disp)
-        except OSError as exc:
-            _fail(f"{out}: cannot write PFM ({exc.strerror})")
+        except OSError as exc:  # it names the file
+            _fail(str(exc))
         click.echo(f"wrote {out}")
     if png:
         write_png(png, disp, min_disp, max_disp)

@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from drivers.file_writes import write_text
 from plugins.yolov8.frame_eval import read_frame_labels, read_left
 from plugins.yolov8.tiling import tile_origins
 
@@ -92,7 +93,7 @@ def add_backgrounds(sequence: Path, dataset: Path, split: str = "train", tile: i
             # the sequence folder's name keeps tiles of different renders apart
             stem = f"bg_{sequence.name}_{frame_id}_{x0}_{y0}"
             cv2.imwrite(str(images_dir / f"{stem}.jpg"), image[y0:y0 + tile, x0:x0 + tile], [cv2.IMWRITE_JPEG_QUALITY, 95])
-            (labels_dir / f"{stem}.txt").write_text("")
+            write_text(labels_dir / f"{stem}.txt", "")
             report.tiles += 1
     # ultralytics caches the label scan per split; a stale cache would hide the new images
     (dataset / "labels" / f"{split}.cache").unlink(missing_ok=True)

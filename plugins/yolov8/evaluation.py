@@ -5,6 +5,8 @@ import json
 import shutil
 from pathlib import Path
 
+from drivers.file_writes import write_text
+
 # The seed paper's YOLOv8n figures on NEU-DET (percent), shown beside ours.
 SEED_METRICS = {
     "mAP50": 70.0,
@@ -48,8 +50,8 @@ def evaluate_detector(data_yaml: Path, weights: Path, split: str, out_dir: Path,
         "AP50": per_class,
     }
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "detector_metrics.json").write_text(json.dumps(result, indent=2))
-    (out_dir / "detector_metrics.md").write_text(metrics_markdown(result))
+    write_text(out_dir / "detector_metrics.json", json.dumps(result, indent=2))
+    write_text(out_dir / "detector_metrics.md", metrics_markdown(result))
     pr = Path(metrics.save_dir) / "BoxPR_curve.png"
     if pr.exists():
         shutil.copy(pr, out_dir / "pr_curve.png")

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import yaml
 
+from drivers.file_writes import write_text
+
 NEU_DET_CLASSES = (
     "crazing",
     "inclusion",
@@ -162,7 +164,7 @@ def convert_voc(
             if lines is None:
                 continue
             shutil.copy2(image, dst / "images" / split / image.name)
-            (dst / "labels" / split / f"{stem}.txt").write_text("".join(f"{line}\n" for line in lines))
+            write_text(dst / "labels" / split / f"{stem}.txt", "".join(f"{line}\n" for line in lines))
             report.images += 1
             report.boxes += len(lines)
 
@@ -172,5 +174,5 @@ def convert_voc(
         **({} if "val" in splits else {"val": "images/train"}),
         "names": dict(enumerate(classes)),
     }
-    (dst / "data.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    write_text(dst / "data.yaml", yaml.safe_dump(data, sort_keys=False))
     return report

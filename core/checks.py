@@ -100,8 +100,8 @@ def detections_problem(detections: Any, classes: Collection[str] | None = None,
 
 # A backend's disparities may overshoot the range it searched by a sub-pixel refinement's reach; both built-in
 # backends stay inside it on every evaluation set. Beyond this share outside, the map is not in the pair's
-# pixels of disparity at all (a fixed-point map, a map scaled for another resolution, another sign): its
-# distances are wrong, and its deviations only as wrong as its scale.
+# pixels of disparity at all (a fixed-point map, a map scaled for another resolution): its distances are
+# wrong, and its deviations only as wrong as its scale. Zero and below mean "no match" (``depth.valid_mask``).
 SEARCH_OVERSHOOT_PX = 1.0
 MAX_OUTSIDE_SEARCH = 0.01
 
@@ -109,7 +109,7 @@ MAX_OUTSIDE_SEARCH = 0.01
 def disparity_problem(disparity: Any, shape: tuple[int, int], searched: tuple[float, float] | None = None
                       ) -> str | None:
     """An HxW map of real numbers for the HxW image it was computed from, and, where ``searched`` (lo, hi)
-    is given, with its matches (finite, non-zero values) inside the range the backend was asked to search."""
+    is given, with its matches (finite values above zero) inside the range the backend was asked to search."""
     if not isinstance(disparity, np.ndarray):
         return f"the stereo backend returned a {type(disparity).__name__}, not an array"
     if disparity.shape != tuple(shape):
@@ -119,11 +119,11 @@ def disparity_problem(disparity: Any, shape: tuple[int, int], searched: tuple[fl
         return f"the stereo backend returned a map of {disparity.dtype}, not numbers"
     if searched is not None:
         lo, hi = searched
-        values = disparity[np.isfinite(disparity) & (disparity != 0)]
+        values = disparity[np.isfinite(disparity) & (disparity > 0)]
         outside = float(np.mean((values < lo - SEARCH_OVERSHOOT_PX) | (values > hi + SEARCH_OVERSHOOT_PX))) \
             if values.size else 0.0
         if outside > MAX_OUTSIDE_SEARCH:
             return (f"the stereo backend returned disparities of {float(values.min()):.4g} to {float(values.max()):.4g} "
                     f"px, {outside:.0%} of them outside the {lo:.4g} to {hi:.4g} px it was asked to search: not this "
-                    f"pair's disparities in pixels (a fixed-point, scaled or sign-flipped map?)")
+                    f"pair's disparities in pixels (a fixed-point map, or one scaled for another resolution?)")
     return None

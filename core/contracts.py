@@ -43,8 +43,9 @@ class StereoBackend(Protocol):
         """Disparity of the left image.
 
         left, right: HxWx3 uint8 BGR, rectified. Returns HxW float32 disparity in pixels,
-        NaN where invalid. Searches ``min_disp <= d < max_disp``: a map whose matches lie mostly outside
-        that range (``core.checks.disparity_problem``) costs the part an ERROR.
+        NaN where invalid (zero and below are taken as invalid too). Searches ``min_disp <= d < max_disp``:
+        a map whose matches lie mostly outside that range (``core.checks.disparity_problem``) costs the part
+        an ERROR.
         """
 
     # Optional: ``warm_up()``, called once before the first part, where the first call is slow (kernels

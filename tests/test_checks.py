@@ -151,12 +151,18 @@ class TestDisparityProblem:
 
     @pytest.mark.parametrize("scale, says", [
         (16.0, "disparities of 320 to 320 px, 100% of them outside the 10 to 40 px it was asked to search"),
-        (-1.0, "disparities of -20 to -20 px"),
+        (0.25, "disparities of 5 to 5 px"),  # a map of a quarter-size pair not scaled back
     ])
-    def test_a_map_in_other_units_or_sign_is_named(self, scale, says):
+    def test_a_map_in_other_units_is_named(self, scale, says):
         disparity = np.full((120, 160), 20.0 * scale, np.float32)
         assert says in disparity_problem(disparity, (120, 160), (10.0, 40.0))
         assert disparity_problem(disparity, (120, 160)) is None  # no range given: none checked
+
+    def test_zero_and_below_are_no_match_not_a_value_outside(self):
+        disparity = np.full((120, 160), 20.0, np.float32)
+        disparity[:60] = -1.0  # a matcher's "no match", as OpenCV's min_disp - 1
+        disparity[60:80] = 0.0
+        assert disparity_problem(disparity, (120, 160), (10.0, 40.0)) is None
 
 
 # -- the part a breach costs: an ERROR naming it, the run going on ------------------------------------------

@@ -36,6 +36,17 @@ class TestMatchPair:
         assert np.isnan(out[:, :30]).all()
         np.testing.assert_allclose(out[:, 30:], 30.85)
 
+    def test_no_match_markers_stay_no_match_after_the_shift(self):
+        class Markers:
+            def compute(self, left, right, min_disp, max_disp):
+                out = np.full(left.shape[:2], 5.5, np.float32)
+                out[0], out[1], out[2] = -1.0, 0.0, np.nan  # three ways of saying "no match"
+                return out
+
+        left = right = np.zeros((4, 100, 3), np.uint8)
+        out = match_pair(Markers(), left, right, 30.0, 50.0)
+        assert np.isnan(out[:3]).all() and np.all(out[3, 30:] == 35.5)
+
     def test_a_range_from_zero_or_below_is_passed_as_it_is(self):
         left = right = np.zeros((8, 40, 3), np.uint8)
         backend = Recording()

@@ -60,6 +60,11 @@ def test_too_few_valid_pixels_means_unavailable():
     assert "depth unavailable" in m.note and m.valid_fraction < 0.1
 
 
+def test_a_region_without_one_valid_pixel_is_unavailable_whatever_share_the_recipe_allows():
+    m = _measure(np.full((192, 320), np.nan, np.float32), min_valid_fraction=0.0)
+    assert m.distance_mm is None and m.deviation_mm is None and "0% of the region valid" in m.note
+
+
 def test_zero_and_inf_count_as_invalid():
     _, _, disparity = render(CALIB, 400.0)
     disparity[71:121, 135:160] = 0.0

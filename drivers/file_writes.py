@@ -13,7 +13,7 @@ def write_bytes(path: Path, data: bytes) -> None:
     try:
         path.write_bytes(data)
     except OSError as exc:
-        if path.is_file():
+        if path.is_symlink() or path.is_file():  # never a device itself, such as /dev/full
             with contextlib.suppress(OSError):
                 path.unlink()
         raise OSError(f"{path}: could not be written ({exc.strerror or exc})") from None

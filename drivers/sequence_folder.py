@@ -13,7 +13,6 @@ This module imports nothing from the rest of stereo-inspect, so it can be tried 
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import re
 from dataclasses import dataclass
@@ -210,12 +209,7 @@ def write_image(path: Path, image: np.ndarray, params: tuple[int, ...] = ()) -> 
                       f".tif)") from None
     if not ok:
         raise OSError(f"{path}: could not be encoded as {path.suffix}")
-    try:
-        path.write_bytes(encoded.tobytes())
-    except OSError as exc:
-        with contextlib.suppress(OSError):
-            path.unlink(missing_ok=True)  # what a full disk left of it
-        raise OSError(f"{path}: could not be written ({exc.strerror or exc})") from None
+    write_bytes(path, encoded.tobytes())
 
 
 def write_disparity_png(path: Path, disparity: np.ndarray) -> None:

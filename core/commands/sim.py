@@ -95,9 +95,11 @@ def register(cli: click.Group) -> None:
         from sim.generate import CameraModel, EvalRanges, generate_sequence, largest_defect_px
         from sim.neu_crops import NeuDetError
 
-        for name, pair, low in (("--distance-range-mm", distance_range_mm, 100.0), ("--defect-size-px", defect_size_px, 4.0),
-                                ("--depth-range-mm", depth_range_mm, None), ("--defects-per-frame", defects_per_frame, 1),
-                                ("--flat-floor", flat_floor, 0.0)):
+        for name, pair, low, high in (("--distance-range-mm", distance_range_mm, 100.0, MAX_DISTANCE_MM),
+                                      ("--defect-size-px", defect_size_px, 4.0, None),
+                                      ("--depth-range-mm", depth_range_mm, None, None),
+                                      ("--defects-per-frame", defects_per_frame, 1, None),
+                                      ("--flat-floor", flat_floor, 0.0, None)):
             if pair is None:
                 continue
             if pair[0] > pair[1]:
@@ -106,8 +108,8 @@ def register(cli: click.Group) -> None:
             if low is not None and pair[0] < low:
                 click.echo(f"error: {name}: {pair[0]:g} is below the smallest allowed, {low:g}", err=True)
                 raise SystemExit(2)
-            if name == "--distance-range-mm" and pair[1] > MAX_DISTANCE_MM:
-                click.echo(f"error: {name}: {pair[1]:g} is beyond the largest allowed, {MAX_DISTANCE_MM:g}", err=True)
+            if high is not None and pair[1] > high:
+                click.echo(f"error: {name}: {pair[1]:g} is beyond the largest allowed, {high:g}", err=True)
                 raise SystemExit(2)
         rays = width * height * supersample**2
         if rays > MAX_RAYS:

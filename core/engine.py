@@ -218,8 +218,7 @@ def match_pair(backend: Any, left: np.ndarray, right: np.ndarray, lo: float, hi:
     matched = _checked(backend.compute(*pair, lo - shift, hi - shift), pair[0].shape[:2], (lo - shift, hi - shift))
     out = np.full(left.shape[:2], np.nan, dtype=np.float32)
     # zero and below are "no match" (``depth.valid_mask``): shifted, they would read as the range's far end
-    with np.errstate(invalid="ignore"):
-        out[:, shift:] = np.where(matched > 0, matched + shift, np.nan)
+    out[:, shift:] = np.where(matched > 0, matched + shift, np.nan)
     return out
 
 

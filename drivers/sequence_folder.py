@@ -279,6 +279,50 @@ def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
     return labels
 
 
+def _file_problem(path: Path | None, what: str) -> str | None:
+    if path is None:
+        return f"{what} missing"
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        return f"{path}: {what} cannot be read ({exc.strerror})"
+    why = incomplete(data, path.suffix)
+    return None if why is None else f"{path}: {what} is not whole: {why}"
+
+
+def labelled_sequence_problem(folder: Path) -> str | None:
+    """The first reason a labelled sequence cannot be evaluated to its end, in words, or None: its
+    calibration, each frame's two images present and whole, and its labels present and valid for the
+    calibration's image size. Checked from the files alone (nothing decoded), so that an evaluation stops
+    before its first frame is matched rather than after the frames ahead of the broken one."""
+    folder = Path(folder)
+    try:
+        calib = read_calibration(folder)
+        frames = list_frames(folder)
+    except SequenceError as exc:
+        return str(exc)
+    if not frames:
+        return f"{folder}: no frames in left/"
+    problems = []
+    for f in frames:
+        problem = (_file_problem(f.left, f"left image of frame {f.frame_id}")
+                   or _file_problem(f.right, f"right image of frame {f.frame_id}"))
+        if problem is None and f.labels is None:
+            problem = f"frame {f.frame_id} has no labels/{f.frame_id}.json (the truth to compare with)"
+        if problem is None:
+            try:
+                read_labels(f.labels, (int(calib["height"]), int(calib["width"])))
+            except SequenceError as exc:
+                problem = str(exc)
+        if problem is not None:
+            problems.append(problem)
+    if not problems:
+        return None
+    more = len(problems) - 1
+    more = f" (and {more} more frame{'s' if more > 1 else ''})" if more else ""
+    return problems[0] + more
+
+
 def check_label_boxes(labels: dict, shape: tuple[int, int], path: Path) -> None:
     """``SequenceError`` naming the file ``path`` and the entry where a box of ``labels`` (as ``read_labels``
     gives them) misses the HxW image of ``shape``: a defect there could only count as one not found."""

@@ -66,6 +66,21 @@ def test_a_sequence_without_labels_is_a_one_line_error(tmp_path):
     assert cli("eval", "depth", str(tmp_path / "nowhere")).returncode == 2
 
 
+def test_a_broken_frame_anywhere_is_named_before_any_frame_is_matched(tmp_path):
+    # the last frame's labels and the middle frame's right image broken: both found from the files, and the
+    # first named with a count of the rest, before a frame is matched (no line per defect, nothing written)
+    copy = tmp_path / "seq"
+    shutil.copytree(TEXTURED, copy)
+    (copy / "labels" / "000002.json").write_text('{"defects": [{"class": "crazing", "box": [1, 2, 3]}]}')
+    right = copy / "right" / "000001.jpg"
+    right.write_bytes(right.read_bytes()[:2000])
+    result = cli_here("eval", "depth", str(copy), "--out", str(tmp_path / "out"))
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.strip() == (f"error: {right}: right image of frame 000001 is not whole: truncated JPEG "
+                                     f"(no end-of-image marker) (and 1 more frame)")
+    assert not any((tmp_path / "out").iterdir())
+
+
 @pytest.mark.parametrize("calibration", [None, "fx: [\n"], ids=["missing", "not YAML"])
 def test_a_sequence_with_a_bad_calibration_is_a_one_line_error_naming_the_file(tmp_path, calibration):
     copy = tmp_path / "seq"

@@ -44,7 +44,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     from core.contracts import PluginContext
     from core.engine import StageFailed, command_threads, resolve_device
     from core.registry import default_registry
-    from drivers.sequence_folder import SequenceError, read_labels
+    from drivers.sequence_folder import SequenceError, labelled_sequence_problem, read_labels
     from pydantic import ValidationError
 
     from core.recipe.loader import first_problem
@@ -57,6 +57,9 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     for folder in sequences:
         if not folder.is_dir():
             fail(f"{folder}: not a sequence folder")
+        problem = labelled_sequence_problem(folder)
+        if problem is not None:
+            fail(problem if str(folder) in problem else f"{folder}: {problem}")
     loaded = _load(recipe, tuple(overrides))
     command_threads(threads)
     registry = default_registry()

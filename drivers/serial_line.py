@@ -21,6 +21,16 @@ class LineCommand:
     ack: str | None = None  # expected reply line, None: do not wait
 
 
+def _why(exc: Exception) -> str:
+    """The operating system's reason under a pyserial error, which otherwise names the port twice more."""
+    import serial
+
+    inner = exc.__context__ if isinstance(exc, serial.SerialException) else exc
+    if isinstance(inner, OSError) and not isinstance(inner, serial.SerialException) and inner.strerror:
+        return inner.strerror
+    return str(exc)
+
+
 class SerialLine:
     def __init__(self, port: str, baudrate: int = 9600, parity: str = "N", stopbits: float = 1, bytesize: int = 8,
                  line_ending: str = "\n", ack_timeout_s: float = 0.5, encoding: str = "ascii"):
@@ -38,7 +48,7 @@ class SerialLine:
                 timeout=0.05, write_timeout=1.0,
             )
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise LinkError(f"cannot open serial port {self.port}: {exc}") from None
+            raise LinkError(f"cannot open serial port {self.port}: {_why(exc)}") from None
         self.serial.reset_input_buffer()
 
     def close(self) -> None:

@@ -127,6 +127,9 @@ def test_port_missing_at_start_then_present(tmp_path):
     assert abs(peer.lines[0][0] - (p.timestamp + 0.5)) < TOL_S
     outcomes = [(e.command, e.outcome) for e in events if isinstance(e, OutputEvent)]
     assert ("connect", "alarm") in outcomes and outcomes[-1] == ("serial 'REJECT P0000'", "delivered")
+    # the operating system's reason, the port named once (pyserial's own message names it three times)
+    assert {e.detail for e in events if isinstance(e, OutputEvent) and e.outcome == "alarm"} == {
+        f"cannot open serial port {tmp_path / 'ttyB'}: No such file or directory"}
     alarms = [e for e in events if isinstance(e, Alarm)]
     assert [(a.part_id, a.cause) for a in alarms] == [(None, "link")] and "ttyB" in alarms[0].message
 

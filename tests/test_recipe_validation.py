@@ -188,6 +188,21 @@ def test_set_override_applies_and_is_located(recipe_dir):
     assert "(--set stereo.max_disparity): stereo.max_disparity:" in message
 
 
+def test_a_key_given_by_an_option_of_its_own_is_located_at_that_option(recipe_dir, monkeypatch):
+    path = write_recipe(recipe_dir / "r.yaml", GOOD)
+    with pytest.raises(RecipeError) as raised:
+        load_recipe(path, ["stereo.backend=torch_sgn"], options={"stereo.backend": "--backend"})
+    assert str(raised.value).startswith(f"{path.resolve()} (--backend): stereo.backend: unknown stereo plugin")
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    warned = [w for w in recipe_warnings(load_recipe(path, ["threads=5"], options={"threads": "--threads"}))
+              if "threads" in w]
+    assert len(warned) == 1 and warned[0].startswith(f"{path.resolve()} (--threads): threads: warning: 5 threads")
+    # the console script's own option, not a --set the user never typed
+    result = cli_here("eval", "depth", str(ROOT / "sim_fixtures" / "steel_plate"), "--recipe", str(path),
+                      "--backend", "torch_sgn")
+    assert result.returncode == 2 and "(--backend): stereo.backend: unknown stereo plugin 'torch_sgn'" in result.stderr
+
+
 def test_another_plugin_by_set_starts_from_its_own_settings():
     """The demo recipe's stereo settings are torch_sgm's: switching the backend leaves them behind, unless
     the command line gives the new one settings of its own."""

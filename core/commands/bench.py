@@ -59,7 +59,9 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         overrides += ["stereo.working_distance_mm=null", f"stereo.min_disparity={min_disp}", f"stereo.max_disparity={max_disp}"]
     if threads:
         overrides.append(f"threads={threads}")  # so that the soak's real loop keeps them too
-    loaded = _load(recipe, tuple(overrides))
+    loaded = _load(recipe, tuple(overrides), {"camera.settings.path": "--sequence",
+                                              "stereo.min_disparity": "--min-disp", "stereo.max_disparity": "--max-disp",
+                                              "threads": "--threads"})
     registry = default_registry()
     from core.engine import command_threads
 

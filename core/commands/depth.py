@@ -60,7 +60,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
         problem = labelled_sequence_problem(folder)
         if problem is not None:
             fail(problem if str(folder) in problem else f"{folder}: {problem}")
-    loaded = _load(recipe, tuple(overrides))
+    loaded = _load(recipe, tuple(overrides), {"stereo.backend": "--backend", "stereo.settings": "--backend"})
     command_threads(threads)
     registry = default_registry()
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, device=resolve_device(device))

@@ -20,11 +20,11 @@ def fail(message: str, code: int = 2) -> None:
     sys.exit(code)
 
 
-def _load(recipe: Path, overrides: tuple[str, ...]):
+def _load(recipe: Path, overrides: tuple[str, ...], options: dict[str, str] | None = None):
     from core.recipe import RecipeError, load_recipe
 
     try:
-        return load_recipe(recipe, overrides)
+        return load_recipe(recipe, overrides, options=options)
     except RecipeError as exc:
         fail(str(exc))
 
@@ -81,7 +81,7 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
 
     from core import engine
 
-    loaded = _load(recipe, overrides + ((f"threads={threads}",) if threads else ()))
+    loaded = _load(recipe, overrides + ((f"threads={threads}",) if threads else ()), {"threads": "--threads"})
     console = Console(highlight=False, soft_wrap=True)
     for line in recipe_warnings(loaded):  # what inspect validate would say: the line runs as the recipe says
         click.echo(line, err=True)

@@ -73,7 +73,7 @@ class LoadedRecipe:
     text_hash: str
     plugin_settings: dict[str, Any] = field(default_factory=dict)  # "camera", "stereo", "detector", "outputs.N"
     lines: dict[KeyPath, int] = field(default_factory=dict)  # 1-based line of every key of the file
-    overridden: set[KeyPath] = field(default_factory=set)  # keys given with --set
+    overridden: dict[KeyPath, str] = field(default_factory=dict)  # keys given on the command line, and how
     # the classes the detector states from its settings, None where it states them only once built
     detector_classes: list[str] | None = None
 
@@ -95,14 +95,14 @@ class LoadedRecipe:
 
 
 class _Locator:
-    def __init__(self, path: Path, lines: dict[KeyPath, int], overridden: set[KeyPath]):
+    def __init__(self, path: Path, lines: dict[KeyPath, int], overridden: dict[KeyPath, str]):
         self.path, self.lines, self.overridden = path, lines, overridden
 
     def where(self, key: KeyPath) -> str:
         for n in range(len(key), 0, -1):
             prefix = tuple(key[:n])
             if prefix in self.overridden:
-                return f"{self.path} (--set {_dotted(prefix)})"
+                return f"{self.path} ({self.overridden[prefix]})"
             if prefix in self.lines:
                 return f"{self.path}:{self.lines[prefix]}"
         return str(self.path)
@@ -244,7 +244,11 @@ def _validate_plugin(
         raise locator.error(key + ("settings",) + tuple(named[:1]), f"{exc.filename or ''}: {exc.strerror or exc}") from None
 
 
-def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None) -> LoadedRecipe:
+def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None,
+                options: dict[str, str] | None = None) -> LoadedRecipe:
+    """The recipe at ``path`` with ``overrides`` (``key.path=value``, as ``--set`` gives them) applied, checked
+    against the schema and its plugins' settings. ``options`` names the command-line option that gave an
+    override's key (``{"threads": "--threads"}``), for errors and warnings to point at; ``--set`` otherwise."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
@@ -271,7 +275,10 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
         raise RecipeError(f"{path}: a recipe must be a mapping of sections (camera, stereo, ...)")
 
     data = _without_settings_of_replaced_plugins(data, overrides)
-    overridden = {apply_override(data, assignment) for assignment in overrides}
+    overridden = {}
+    for assignment in overrides:
+        key = apply_override(data, assignment)
+        overridden[key] = (options or {}).get(_dotted(key), f"--set {_dotted(key)}")
     locator = _Locator(path, lines, overridden)
     _check_finite(data, (), locator)
     try:

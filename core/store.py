@@ -365,7 +365,8 @@ def open_readonly(location: Path) -> sqlite3.Connection:
     path = db_path(location)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no results store here")
-    problem = store_problem(path, tables=("runs", "parts"))
+    # every table the first release made: report and view read them all
+    problem = store_problem(path, tables=tuple(REQUIRED_COLUMNS))
     if problem is not None:
         raise StoreError(problem)
     db = sqlite3.connect(path.resolve().as_uri() + "?mode=ro", uri=True)

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import csv
+import shutil
 from pathlib import Path
 
 import pytest
@@ -124,6 +125,22 @@ class TestAFileThatIsNotAStore:
         out = cli_here(command, str(not_a_store.parent))
         assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
         assert out.stderr.startswith(f"error: {not_a_store}: not a results store that can be used (")
+
+    @pytest.mark.parametrize("command", ["report", "view"])
+    @pytest.mark.parametrize("table", ["defects", "alarms"])
+    def test_a_store_without_a_table_they_read_is_named_by_report_and_view(self, results, tmp_path, command, table):
+        # a run opening it for writing makes the table again; reading, it would end in a traceback
+        import sqlite3
+
+        path = tmp_path / "results.db"
+        shutil.copy(results / "results.db", path)
+        db = sqlite3.connect(path)
+        db.execute(f"DROP TABLE {table}")
+        db.commit()
+        db.close()
+        out = cli_here(command, str(path))
+        assert out.returncode == 2 and out.stderr == (f"error: {path}: not a results store that can be used (no table "
+                                                      f"{table}): move it aside or give another results.path\n")
 
     def test_validate_names_it_and_leaves_it_as_it_was(self, not_a_store, tmp_path, plane_sequence):
         from core.store import store_problem

@@ -40,6 +40,10 @@ def _dataset(root: Path) -> Path:
     (src / "annotations" / "malformed_8.xml").write_text("<annotation><object><name>patches</name>")
     # 'nan' reads as a float: its label line was "2 nan 0.35 nan 0.5"
     add("nan_9", [("patches", ("nan", 20, 110, 120)), ("patches", (10, 20, 110, 120))])
+    # cut short: it decoded as the picture padded with grey, and went into the training set
+    add("truncated_10", [("patches", (10, 20, 110, 120))])
+    cut = src / "images" / "truncated_10.jpg"
+    cut.write_bytes(cut.read_bytes()[:300])
     return src
 
 
@@ -53,12 +57,14 @@ def test_faults_reported_none_fatal(tmp_path):
     report = convert_voc(src, dst)
     assert report.faults == {
         "box_clamped": 1, "empty_box": 1, "unknown_class": 1, "image_without_xml": 1,
-        "xml_without_image": 1, "malformed_xml": 2,
+        "xml_without_image": 1, "malformed_xml": 2, "truncated_image": 1,
     }
     messages = "\n".join(report.messages)
     for name in ("outside_3.xml", "empty_4.xml", "unknown_5.xml", "noxml_6", "noimage_7.xml", "malformed_8.xml"):
         assert name in messages
     assert "nan_9.xml object 0: bndbox [nan, 20.0, 110.0, 120.0] is not finite" in messages
+    assert "truncated_image: truncated_10.jpg: truncated JPEG (no end-of-image marker)" in messages
+    assert not (dst / "images" / "train" / "truncated_10.jpg").exists()
     assert _labels(dst, "nan_9") == [[2, 0.3, 0.35, 0.5, 0.5]]
     assert _labels(dst, "crazing_1") == [[2, 0.3, 0.35, 0.5, 0.5]]
     assert _labels(dst, "outside_3") == [[5, 0.5, 0.2, 1.0, 0.2]]

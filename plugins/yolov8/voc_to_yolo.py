@@ -17,6 +17,7 @@ from pathlib import Path
 import yaml
 
 from drivers.file_writes import write_text
+from drivers.sequence_folder import incomplete
 
 NEU_DET_CLASSES = (
     "crazing",
@@ -54,11 +55,24 @@ def _find_image(images_dir: Path, stem: str) -> Path | None:
     return None
 
 
-def _image_size(path: Path) -> tuple[int, int] | None:
+def _image_size(path: Path, report: ConversionReport) -> tuple[int, int] | None:
+    """The image's (width, height), or None with the fault reported: a file cut short decodes as a picture
+    padded with grey, which a detector would learn as steel."""
     import cv2
+    import numpy as np
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        report.fault("unreadable_image", f"{path.name}: cannot be read ({exc.strerror})")
+        return None
+    why = incomplete(data, path.suffix)
+    if why is not None:
+        report.fault("truncated_image", f"{path.name}: {why}")
+        return None
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
+        report.fault("unreadable_image", f"{path.name}: cannot be decoded")
         return None
     return img.shape[1], img.shape[0]
 
@@ -156,9 +170,8 @@ def convert_voc(
                     continue  # already reported above
                 report.fault("missing_in_split", f"{stem}: listed in {split} but neither image nor xml exists")
                 continue
-            size = _image_size(image)
+            size = _image_size(image, report)
             if size is None:
-                report.fault("unreadable_image", f"{image.name}: cannot be decoded")
                 continue
             lines = parse_voc(xml, classes, report, size)
             if lines is None:

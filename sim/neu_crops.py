@@ -14,6 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from drivers.sequence_folder import incomplete
+
 NEU_CLASSES = ("crazing", "inclusion", "patches", "pitted_surface", "rolled-in_scale", "scratches")
 
 
@@ -88,9 +90,16 @@ class NeuCrops:
         """The NEU image as float32 grey."""
         if stem not in self._cache:
             path = self.root / "images" / f"{stem}.jpg"
-            img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            try:
+                data = path.read_bytes()
+            except OSError as exc:
+                raise NeuDetError(f"{path}: cannot be read ({exc.strerror})") from None
+            why = incomplete(data, path.suffix)  # it would decode padded with grey, a defect half flat
+            if why is not None:
+                raise NeuDetError(f"{path}: not whole: {why}")
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
             if img is None:
-                raise NeuDetError(f"{path}: missing or not an image")
+                raise NeuDetError(f"{path}: not an image")
             self._cache[stem] = img.astype(np.float32)
         return self._cache[stem]
 

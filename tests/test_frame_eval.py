@@ -66,6 +66,13 @@ def test_cli_on_a_rendered_sequence(tmp_path, monkeypatch):
     broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
     assert broken.exit_code == 2 and "000001.json: defects[0].box: [460.0, 2.0, 480.0, 30.0] lies outside the " \
                                      "448x300 image" in broken.output, broken.output
+    # a left image cut short decoded as the frame padded with grey: its defects there counted as missed
+    (seq / "labels" / "000001.json").write_text(json.dumps({"frame_id": "000001", "defects": []}))
+    left = sorted((seq / "left").glob("000001.*"))[0]
+    left.write_bytes(left.read_bytes()[:5000])
+    broken = runner.invoke(_build(), ["eval", "detector-frames", str(seq)])
+    assert broken.exit_code == 2 and f"{left}: left image of frame 000001 is not whole: truncated" in broken.output, \
+        broken.output
 
 
 @pytest.mark.parametrize("args, message", [

@@ -66,3 +66,24 @@ def test_generate_with_neu_crops(tmp_path):
     sources = [d["source"] for lab in labels for d in lab["defects"]]
     stems = set((NEU_DET / "val.txt").read_text().split())
     assert sources and all(s in stems for s in sources)
+
+
+def test_a_neu_image_cut_short_is_named_not_rendered_half_grey(tmp_path):
+    import cv2
+
+    from sim.neu_crops import NeuDetError
+
+    (tmp_path / "images").mkdir()
+    (tmp_path / "annotations").mkdir()
+    (tmp_path / "val.txt").write_text("crazing_1\n")
+    (tmp_path / "annotations" / "crazing_1.xml").write_text(
+        "<annotation><object><name>crazing</name><bndbox><xmin>10</xmin><ymin>10</ymin><xmax>90</xmax>"
+        "<ymax>90</ymax></bndbox></object></annotation>")
+    image = np.random.default_rng(0).integers(0, 255, (200, 200), np.uint8)
+    data = cv2.imencode(".jpg", image)[1].tobytes()
+    path = tmp_path / "images" / "crazing_1.jpg"
+    path.write_bytes(data)
+    assert NeuCrops(tmp_path).image("crazing_1").shape == (200, 200)
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(NeuDetError, match=r"crazing_1\.jpg: not whole: truncated JPEG"):
+        NeuCrops(tmp_path).image("crazing_1")

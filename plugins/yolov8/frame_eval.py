@@ -10,10 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from drivers.sequence_folder import SequenceError, check_label_boxes, read_labels
+from drivers.sequence_folder import SequenceError, check_label_boxes, read_image, read_labels
 from core.boxes import box_iou
 
 
@@ -53,11 +52,14 @@ def read_frame_labels(sequence: Path) -> list[tuple[str, list[dict]]]:
 
 
 def read_left(sequence: Path, frame_id: str) -> np.ndarray:
+    """The frame's left image; ``ValueError`` naming the file where it is missing, cut short or corrupt."""
     found = sorted((sequence / "left").glob(f"{frame_id}.*"))
-    image = cv2.imread(str(found[0]), cv2.IMREAD_COLOR) if found else None
-    if image is None:
-        raise ValueError(f"{sequence / 'left' / frame_id}.*: left image missing or unreadable")
-    return image
+    if not found:
+        raise ValueError(f"{sequence / 'left' / frame_id}.*: left image missing")
+    try:
+        return read_image(found[0], f"left image of frame {frame_id}")
+    except SequenceError as exc:
+        raise ValueError(str(exc)) from None
 
 
 def load_labelled_frames(sequence: Path) -> list[tuple[str, np.ndarray, list[dict]]]:

@@ -25,3 +25,28 @@ def test_fine_tune_schedule_reaches_ultralytics_and_keeps_every_epoch(tmp_path):
     assert args["model"] == str(init)
     weights = {p.name for p in (run / "weights").glob("*.pt")}
     assert {"epoch1.pt", "best.pt", "last.pt"} <= weights
+    # what a run writes passes the reading that refuses code: resuming, averaging epochs, --init from it
+    from plugins.yolov8.detector import read_checkpoint
+
+    for kept in ("epoch1.pt", "last.pt"):
+        assert read_checkpoint(run / "weights" / kept, hint=None)
+
+
+def test_weights_that_would_run_code_are_refused_before_training(tmp_path):
+    # ultralytics' own loader reads the whole pickle: --init from a file from elsewhere ran what it called,
+    # and so did a planted last.pt when the run resumed
+    from test_fail_safe import _booby_trapped_weights
+
+    data = neu_fixture_dataset(tmp_path)
+    marker = tmp_path / "pwned"
+    evil = _booby_trapped_weights(tmp_path / "evil.pt", marker)
+    base = ["train", "detector", "--data", str(data), "--epochs", "1", "--device", "cpu", "--workers", "0",
+            "--out", str(tmp_path / "runs"), "--name", "ft"]
+    result = CliRunner().invoke(_build(), [*base, "--init", str(evil)])
+    assert result.exit_code == 2 and f"--init {evil}: refused: reading it would call posix.system" in result.output
+    last = tmp_path / "runs" / "ft" / "weights" / "last.pt"
+    last.parent.mkdir(parents=True)
+    _booby_trapped_weights(last, marker)
+    result = CliRunner().invoke(_build(), base)
+    assert result.exit_code == 2 and f"resuming from {last}: refused" in result.output, result.output
+    assert not marker.exists(), "the checkpoint's pickle ran"

@@ -86,7 +86,7 @@ def test_cli_averages_and_names_a_bad_file(two_checkpoints, tmp_path):
     broken.write_bytes(b"not a checkpoint")
     result = runner.invoke(_build(), ["train", "average", str(two_checkpoints[0]), str(broken), "--out", str(tmp_path / "n.pt")])
     assert result.exit_code == 2
-    assert "broken.pt: not a readable checkpoint" in result.output
+    assert "broken.pt: not a YOLO checkpoint" in result.output
     assert not (tmp_path / "n.pt").exists()
 
     result = runner.invoke(_build(), ["train", "average", str(two_checkpoints[0]), "--out", str(tmp_path / "n.pt")])
@@ -98,3 +98,17 @@ def test_a_checkpoint_the_disk_cannot_hold_is_named(two_checkpoints):
     # torch's own writer said "enforce fail at inline_container.cc" in a traceback
     with pytest.raises(AveragingError, match="^/dev/full: cannot write the checkpoint: No space left on device$"):
         average_checkpoints(list(two_checkpoints), Path("/dev/full"))
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_and_never_run(two_checkpoints, tmp_path):
+    # it was read with the whole pickle: averaging a file from elsewhere ran what it called
+    from test_fail_safe import _booby_trapped_weights
+
+    marker = tmp_path / "pwned"
+    evil = _booby_trapped_weights(tmp_path / "evil.pt", marker)
+    result = CliRunner().invoke(_build(), ["train", "average", str(two_checkpoints[0]), str(evil),
+                                           "--out", str(tmp_path / "m.pt")])
+    assert result.exit_code == 2 and "evil.pt: refused: reading it would call posix.system" in result.output
+    assert "trust_pickle" not in result.output  # the detector's setting, which this command does not read
+    assert not marker.exists(), "the checkpoint's pickle ran"
+    assert not (tmp_path / "m.pt").exists()

@@ -17,14 +17,15 @@ class AveragingError(ValueError):
 
 
 def _load(path: Path) -> dict:
+    """The checkpoint, read as the detector reads its weights: a pickle that would call anything but torch's,
+    ultralytics' and NumPy's own classes is refused, never run. A run's epoch checkpoints (save_period) carry
+    only the EMA weights, with model = None."""
+    from plugins.yolov8.detector import read_checkpoint
+
     try:
-        checkpoint = torch.load(str(path), map_location="cpu", weights_only=False)
-    except Exception as exc:  # torch raises several unrelated types for a bad file
-        raise AveragingError(f"{path}: not a readable checkpoint ({exc.__class__.__name__})") from exc
-    # a run's epoch checkpoints (save_period) carry only the EMA weights, with model = None
-    if not isinstance(checkpoint, dict) or (checkpoint.get("model") is None and checkpoint.get("ema") is None):
-        raise AveragingError(f"{path}: not an ultralytics checkpoint (no 'model' or 'ema' entry)")
-    return checkpoint
+        return read_checkpoint(path, hint=None)
+    except (OSError, ValueError) as exc:
+        raise AveragingError(str(exc)) from None
 
 
 def _weights_module(checkpoint: dict) -> torch.nn.Module:

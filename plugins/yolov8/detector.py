@@ -61,9 +61,13 @@ def import_yolo():
 SAFE_MODULES = ("torch.", "ultralytics.", "numpy.", "collections.", "pathlib.", "builtins.getattr")
 
 
-def read_checkpoint(weights: Path, trust_pickle: bool = False) -> dict:
+TRUST_HINT = "set detector.settings.trust_pickle: true only for a file you made yourself"
+
+
+def read_checkpoint(weights: Path, trust_pickle: bool = False, hint: str | None = TRUST_HINT) -> dict:
     """The checkpoint's contents, read without running code unless ``trust_pickle`` (module docstring of
-    the settings). A missing, unreadable or refused file is a one-line error naming it."""
+    the settings). A missing, unreadable or refused file is a one-line error naming it; a refusal ends with
+    ``hint``, the way to read it anyway where the caller has one."""
     import torch
 
     weights = Path(weights)
@@ -88,8 +92,7 @@ def read_checkpoint(weights: Path, trust_pickle: bool = False) -> dict:
         foreign = [g for g in needed if not g.startswith(SAFE_MODULES)]
         if foreign and not trust_pickle:
             raise ValueError(f"{weights}: refused: reading it would call {', '.join(foreign)}, which a YOLO checkpoint "
-                             "never needs (a pickle can run code); set detector.settings.trust_pickle: true only for a "
-                             "file you made yourself") from None
+                             "never needs (a pickle can run code)" + (f"; {hint}" if hint else "")) from None
         raise ValueError(f"{weights}: not a loadable YOLO checkpoint: {_first_line(exc)}") from None
     except Exception as exc:
         raise ValueError(f"{weights}: not a loadable YOLO checkpoint: {_first_line(exc)}") from None

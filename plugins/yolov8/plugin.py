@@ -138,8 +138,15 @@ def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int
     from plugins.yolov8.training import TrainSettings, train_detector
 
     data_yaml = _dataset_yaml(data, ("train", "val"), " (run `inspect data convert-voc` first)")
-    if init is not None and not init.is_file():
-        _fail(f"{init}: weights file not found")
+    from plugins.yolov8.detector import read_checkpoint
+
+    last = out / name / "weights" / "last.pt"  # what a run resumes from
+    for option, weights in (("--init", init), ("resuming from", last if last.exists() else None)):
+        if weights is not None:
+            try:
+                read_checkpoint(weights, hint=None)  # ultralytics' own loader would run whatever the pickle calls
+            except (OSError, ValueError) as exc:
+                _fail(f"{option} {exc}")
     settings = TrainSettings(epochs=epochs, patience=patience, imgsz=imgsz, batch=batch, device=device, workers=workers,
                              optimizer=optimizer, lr0=lr0, lrf=lrf, warmup_epochs=warmup_epochs,
                              save_period=save_period)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -81,3 +82,43 @@ def test_recorded_sound_parts_give_every_tile(rendered, tmp_path):
     assert result.exit_code == 0, result.output
     per_frame = len(tile_origins(300, 224, 0.25)) * len(tile_origins(448, 224, 0.25))
     assert len(list((dataset / "images" / "train").glob("bg_recorded_*.jpg"))) == 3 * per_frame
+
+
+def _recorded(rendered, folder):
+    (folder / "left").mkdir(parents=True)
+    for image in (rendered / "left").glob("*"):
+        (folder / "left" / image.name).write_bytes(image.read_bytes())
+    return folder
+
+
+def _dataset(folder):
+    (folder / "images" / "train").mkdir(parents=True)
+    return folder
+
+
+def test_a_frame_that_cannot_be_read_adds_nothing(rendered, tmp_path):
+    # its tiles came after the frames before it had been added: half a sequence's backgrounds
+    recorded = _recorded(rendered, tmp_path / "recorded")
+    last = sorted((recorded / "left").glob("*"))[-1]
+    last.write_bytes(last.read_bytes()[:3000])
+    dataset = _dataset(tmp_path / "data")
+    result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(recorded), str(dataset), "--all-clear"])
+    assert result.exit_code == 2 and f"{last}: left image of frame {last.stem} is not whole" in result.output
+    assert list((dataset / "images" / "train").iterdir()) == []
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full (a device that is always full) here")
+def test_a_tile_the_disk_refuses_removes_the_tiles_added_before_it(rendered, tmp_path):
+    recorded = _recorded(rendered, tmp_path / "recorded")
+    dataset = _dataset(tmp_path / "data")
+    # the last tile of the last frame lands on a full disk
+    x0, y0 = tile_origins(448, 224, 0.25)[-1], tile_origins(300, 224, 0.25)[-1]
+    refused = dataset / "images" / "train" / f"bg_recorded_{sorted((recorded / 'left').glob('*'))[-1].stem}_{x0}_{y0}.jpg"
+    refused.symlink_to("/dev/full")
+    result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(recorded), str(dataset), "--all-clear"])
+    per_frame = len(tile_origins(300, 224, 0.25)) * len(tile_origins(448, 224, 0.25))
+    assert result.exit_code == 2 and result.output == (
+        f"error: {refused}: could not be written (No space left on device); the {3 * per_frame - 1} tiles added "
+        f"before it were removed again\n"), result.output
+    assert list((dataset / "images" / "train").iterdir()) == [] and list((dataset / "labels" / "train").iterdir()) == []
+    assert Path("/dev/full").exists()

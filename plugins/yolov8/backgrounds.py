@@ -16,12 +16,20 @@ import cv2
 import numpy as np
 
 from drivers.file_writes import write_text
+from drivers.sequence_folder import write_image
 from plugins.yolov8.frame_eval import read_frame_labels, read_left
 from plugins.yolov8.tiling import tile_origins
 
 
 class BackgroundError(Exception):
     """The sequence or the dataset folder cannot be used; the message names the file."""
+
+
+def _left(sequence: Path, frame_id: str) -> np.ndarray:
+    try:
+        return read_left(sequence, frame_id)
+    except ValueError as exc:
+        raise BackgroundError(str(exc)) from None
 
 
 def clear_tiles(
@@ -78,23 +86,33 @@ def add_backgrounds(sequence: Path, dataset: Path, split: str = "train", tile: i
     if not images_dir.is_dir():
         raise BackgroundError(f"{images_dir}: not a YOLO dataset split (run `inspect data convert-voc` first)")
     frames = _frames(sequence, all_clear)
+    for frame_id, _ in frames:  # every image read once before any is added: a broken one adds nothing
+        _left(sequence, frame_id)
     labels_dir.mkdir(parents=True, exist_ok=True)
     report = BackgroundReport()
-    for frame_id, boxes in frames:
-        try:
-            image = read_left(sequence, frame_id)
-        except ValueError as exc:
-            raise BackgroundError(str(exc)) from exc
-        h, w = image.shape[:2]
-        origins = clear_tiles(h, w, boxes, tile, overlap, margin)
-        report.frames += 1
-        report.skipped_tiles += len(tile_origins(h, tile, overlap)) * len(tile_origins(w, tile, overlap)) - len(origins)
-        for x0, y0 in origins:
-            # the sequence folder's name keeps tiles of different renders apart
-            stem = f"bg_{sequence.name}_{frame_id}_{x0}_{y0}"
-            cv2.imwrite(str(images_dir / f"{stem}.jpg"), image[y0:y0 + tile, x0:x0 + tile], [cv2.IMWRITE_JPEG_QUALITY, 95])
-            write_text(labels_dir / f"{stem}.txt", "")
-            report.tiles += 1
+    written: list[Path] = []
+    try:
+        for frame_id, boxes in frames:
+            image = _left(sequence, frame_id)
+            h, w = image.shape[:2]
+            origins = clear_tiles(h, w, boxes, tile, overlap, margin)
+            report.frames += 1
+            report.skipped_tiles += len(tile_origins(h, tile, overlap)) * len(tile_origins(w, tile, overlap)) - len(origins)
+            for x0, y0 in origins:
+                # the sequence folder's name keeps tiles of different renders apart
+                stem = f"bg_{sequence.name}_{frame_id}_{x0}_{y0}"
+                for path in (images_dir / f"{stem}.jpg", labels_dir / f"{stem}.txt"):
+                    written.append(path)
+                    if path.suffix == ".jpg":
+                        write_image(path, image[y0:y0 + tile, x0:x0 + tile], (cv2.IMWRITE_JPEG_QUALITY, 95))
+                    else:
+                        write_text(path, "")
+                report.tiles += 1
+    except OSError as exc:
+        # half a sequence's tiles would train the detector on whichever frames came first
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise BackgroundError(f"{exc}; the {report.tiles} tiles added before it were removed again") from None
     # ultralytics caches the label scan per split; a stale cache would hide the new images
     (dataset / "labels" / f"{split}.cache").unlink(missing_ok=True)
     return report

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import torch
 
+from drivers.file_writes import write_bytes
+
 
 class AveragingError(ValueError):
     """The checkpoints cannot be averaged (unreadable file, other architecture)."""
@@ -74,9 +76,7 @@ def average_checkpoints(paths: list[Path], out: Path, weights: list[float] | Non
     buffer = io.BytesIO()
     torch.save(result, buffer)
     try:
-        out.write_bytes(buffer.getvalue())
+        write_bytes(out, buffer.getvalue())  # a checkpoint cut short is removed: it must not be taken for weights
     except OSError as exc:
-        if out.is_file():
-            out.unlink()  # a checkpoint cut short must not be taken for weights later
-        raise AveragingError(f"{out}: cannot write the checkpoint: {exc.strerror or exc}") from None
+        raise AveragingError(str(exc)) from None
     return out

@@ -373,8 +373,8 @@ class SurfaceElsewhere:
         self.stereo = stereo
         self.runs = {"range": 0, "swapped": 0}
 
-    def alarm(self, part: PartResult) -> Alarm | None:
-        """The alarm for a run's CAMERA_LOST_AFTER-th part, once per run; None otherwise."""
+    def alarms(self, part: PartResult) -> list[Alarm]:
+        """The alarm of each cause whose run reaches CAMERA_LOST_AFTER parts with this one (once per run)."""
         found = [m.surface_elsewhere_mm for m in part.measurements if m.surface_elsewhere_mm is not None]
         seen = {"range": bool(found), "swapped": any(m.eyes_swapped for m in part.measurements)}
         measured = any(m.deviation_mm is not None for m in part.measurements)
@@ -388,19 +388,17 @@ class SurfaceElsewhere:
             searched = f"stereo.working_distance_mm ({near:g}-{far:g} mm)"
         else:
             searched = "the disparities stereo.min_disparity and max_disparity search"
-        if seen["range"] and self.runs["range"] == CAMERA_LOST_AFTER:
-            return Alarm("depth", f"plates outside the working distance: {CAMERA_LOST_AFTER} parts in a row whose "
-                                  f"defects' surroundings the images show at about {float(np.median(found)):.0f} mm "
-                                  f"(last: frame {part.frame_id}), outside {searched}; their defects cannot be "
-                                  f"measured and the parts are rejected as ERROR until the plates or the recipe are "
-                                  f"set right", time.time(), part.part_id, "range")
-        if seen["swapped"] and self.runs["swapped"] == CAMERA_LOST_AFTER:
-            return Alarm("depth", f"left and right images swapped: {CAMERA_LOST_AFTER} parts in a row whose defects' "
-                                  f"surroundings the images show within {searched} only with the camera's left and "
-                                  f"right images exchanged (last: frame {part.frame_id}); their defects cannot be "
-                                  f"measured and the parts are rejected as ERROR until the camera delivers its left "
-                                  f"eye's image as the left", time.time(), part.part_id, "swapped")
-        return None
+        what = {
+            "range": (f"plates outside the working distance: {CAMERA_LOST_AFTER} parts in a row whose defects' "
+                      f"surroundings the images show at about {float(np.median(found or [np.nan])):.0f} mm (last: frame "
+                      f"{part.frame_id}), outside {searched}", "the plates or the recipe are set right"),
+            "swapped": (f"left and right images swapped: {CAMERA_LOST_AFTER} parts in a row whose defects' surroundings "
+                        f"the images show within {searched} only with the camera's left and right images exchanged "
+                        f"(last: frame {part.frame_id})", "the camera delivers its left eye's image as the left"),
+        }
+        return [Alarm("depth", f"{said}; their defects cannot be measured and the parts are rejected as ERROR until "
+                               f"{until}", time.time(), part.part_id, cause)
+                for cause, (said, until) in what.items() if seen[cause] and self.runs[cause] == CAMERA_LOST_AFTER]
 
 
 def frame_refusal(item: StereoFrame | FrameError, repeats: RepeatedImages, check) -> tuple[str | None, str | None]:
@@ -643,8 +641,7 @@ def run(
                 record([Alarm("camera", f"images unusable: {CAMERA_LOST_AFTER} frames in a row (last: frame "
                                         f"{item.frame_id}: {unusable}); parts are rejected as ERROR until they "
                                         f"show the plate", time.time(), part.part_id, "image")])
-            if (alarm := elsewhere.alarm(part)) is not None:
-                record([alarm])
+            record(elsewhere.alarms(part))
             finish(outcome)
             stage_seconds.update(outcome.timings)
             frames += 1

@@ -441,7 +441,7 @@ def test_plates_out_of_range_alarm_once_per_run_of_them_and_a_measured_plate_end
     from core.recipe.schema import StereoSection
 
     watch = engine.SurfaceElsewhere(StereoSection(working_distance_mm=(350.0, 500.0)))
-    alarms = [watch.alarm(_part(i, *m)) for i, m in enumerate([
+    alarms = [next(iter(watch.alarms(_part(i, *m))), None) for i, m in enumerate([
         ("far",), (), ("far", "none"), ("far",),  # a part without defects neither counts nor ends the run: 3rd far
         ("far",), ("ok",), ("far",), ("far",), ("none",), ("far",)])]  # the 4th stays quiet; "ok" ends the run,
     # a defect that could not be measured for another reason does not
@@ -454,10 +454,20 @@ def test_eyes_swapped_alarm_once_per_run_of_them_apart_from_the_range_s():
     from core.recipe.schema import StereoSection
 
     watch = engine.SurfaceElsewhere(StereoSection(working_distance_mm=(350.0, 500.0)))
-    alarms = [watch.alarm(_part(i, *m)) for i, m in enumerate([
+    alarms = [watch.alarms(_part(i, *m)) for i, m in enumerate([
         ("swapped",), ("none",), ("swapped", "far"), ("swapped",), ("far",), ("far",),  # two runs side by side
         ("ok",), ("swapped",), ("swapped",)])]  # a measured plate ends both
-    assert [(i, a.cause) for i, a in enumerate(alarms) if a is not None] == [(3, "swapped"), (5, "range")]
+    assert [(i, [a.cause for a in said]) for i, said in enumerate(alarms) if said] == [(3, ["swapped"]), (5, ["range"])]
+    alarms = [a[0] if a else None for a in alarms]
     assert alarms[3].message.startswith("left and right images swapped: 3 parts in a row whose defects' surroundings "
                                         "the images show within stereo.working_distance_mm (350-500 mm) only with "
                                         "the camera's left and right images exchanged (last: frame 000003)")
+
+
+def test_both_runs_reaching_their_alarm_on_one_part_raise_both():
+    # one alarm per part was returned: the swapped eyes went unsaid while the range's run was told
+    from core.recipe.schema import StereoSection
+
+    watch = engine.SurfaceElsewhere(StereoSection(working_distance_mm=(350.0, 500.0)))
+    said = [[a.cause for a in watch.alarms(_part(i, "far", "swapped"))] for i in range(4)]
+    assert said == [[], [], ["range", "swapped"], []]

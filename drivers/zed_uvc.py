@@ -74,6 +74,29 @@ def is_recording(device: int | str, backend: str = "uvc") -> bool:
     return is_file_source(device)
 
 
+def recording_problem(path: str | Path, resolution: str) -> str | None:
+    """Why the side-by-side video at ``path`` cannot be played as a ZED at ``resolution``, in words naming it, or
+    None: not a video OpenCV can read, or frames of another size. Both are for good, unlike a camera that is
+    away for a while, so they are said before a run rather than as one missed frame after another."""
+    capture = cv2.VideoCapture(str(path))
+    try:
+        if not capture.isOpened():
+            return f"{path}: not a video OpenCV can read"
+        ok, frame = capture.read()
+        if not ok or frame is None:
+            return f"{path}: holds no frame"
+    finally:
+        capture.release()
+    size = (frame.shape[1], frame.shape[0])
+    width, height = RESOLUTIONS[resolution]
+    if size == (2 * width, height):
+        return None
+    other = [name for name, (w, h) in RESOLUTIONS.items() if (2 * w, h) == size]
+    hint = f" (did you mean resolution: {other[0]}?)" if other else ""
+    return (f"{path}: recorded at {size[0]}x{size[1]}, but a ZED at {resolution} gives {2 * width}x{height} (two "
+            f"eyes side by side){hint}")
+
+
 def split_side_by_side(frame: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     if frame.ndim == 2:
         frame = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)

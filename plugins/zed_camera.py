@@ -30,7 +30,7 @@ from core.hookspecs import hookimpl
 from core.types import Calibration, FrameError, StereoFrame
 from drivers.zed_calibration import CalibrationError, StereoRectifier, read_conf, serial_number
 from drivers.zed_uvc import (FPS_BY_RESOLUTION, Grab, ZedError, ZedSdk, ZedUvc, is_file_source, is_recording,
-                             parse_device)
+                             parse_device, recording_problem)
 
 
 class ZedSettings(BaseModel):
@@ -78,6 +78,10 @@ class ZedSettings(BaseModel):
                              "(download from https://calib.stereolabs.com/?SN=<serial>)")
         if self.reconnect_max_ms < self.reconnect_min_ms:
             raise ValueError("reconnect_max_ms must be at least reconnect_min_ms")
+        if self.backend == "uvc" and is_recording(self.device) and Path(self.device).is_file():
+            problem = recording_problem(self.device, self.resolution)
+            if problem is not None:
+                raise ValueError(problem)
         rates = FPS_BY_RESOLUTION[self.resolution]
         if self.fps not in rates and not is_recording(self.device, self.backend):
             # the camera would run at a rate of its own, and the frame periods counted from fps would not be its

@@ -453,3 +453,32 @@ def test_camera_record_refuses_a_folder_it_cannot_create_before_opening_the_came
     result = CliRunner().invoke(_build(), ["camera", "record", str(recipe), "--frames", "1", str(blocker / "out")])
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert f"error: {blocker / 'out'}: cannot create the folder" in result.output
+
+
+@pytest.mark.parametrize("content, says", [
+    ("hd720", r"recorded at 2560x720, but a ZED at WVGA gives 1344x376 \(two eyes side by side\) \(did you mean "
+              r"resolution: HD720\?\)"),
+    ("small", r"recorded at 640x240, but a ZED at WVGA gives 1344x376 \(two eyes side by side\) \["),
+    ("text", "not a video OpenCV can read"),
+])
+def test_a_recording_that_cannot_be_played_at_the_resolution_is_refused_before_the_run(tmp_path, content, says):
+    # it was one missed frame after another, each an ERROR part, as if a camera had gone away for a while
+    from pydantic import ValidationError
+
+    from core.contracts import PluginContext
+    from core.registry import default_registry
+
+    path = tmp_path / "line.avi"
+    if content == "text":
+        path.write_text("not a video")
+    else:
+        size = (2560, 720) if content == "hd720" else (640, 240)
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 15.0, size)
+        writer.write(np.zeros((size[1], size[0], 3), np.uint8))
+        writer.release()
+    spec = default_registry().get("camera", "zed").spec
+    with pytest.raises(ValidationError, match=f"{path}: {says}"):
+        spec.factory({"device": str(path), "calibration": str(CONF)}, PluginContext(recipe_dir=tmp_path))
+    if content == "hd720":
+        assert spec.factory({"device": str(path), "calibration": str(CONF), "resolution": "HD720"},
+                            PluginContext(recipe_dir=tmp_path))

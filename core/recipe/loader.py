@@ -99,12 +99,13 @@ class _Locator:
         self.path, self.lines, self.overridden = path, lines, overridden
 
     def where(self, key: KeyPath) -> str:
+        # a key under one given on the command line has the command line's value, whatever line the file had
         for n in range(len(key), 0, -1):
-            prefix = tuple(key[:n])
-            if prefix in self.overridden:
-                return f"{self.path} ({self.overridden[prefix]})"
-            if prefix in self.lines:
-                return f"{self.path}:{self.lines[prefix]}"
+            if tuple(key[:n]) in self.overridden:
+                return f"{self.path} ({self.overridden[tuple(key[:n])]})"
+        for n in range(len(key), 0, -1):
+            if tuple(key[:n]) in self.lines:
+                return f"{self.path}:{self.lines[tuple(key[:n])]}"
         return str(self.path)
 
     def describe(self, key: KeyPath, message: str) -> str:

@@ -36,6 +36,10 @@ SEQUENCE = ROOT / "sim_fixtures" / "steel_plate"
 EDGE_MATCH_S = 1.0  # a delivered reject and its rising edge at the PLC, at most this far apart
 
 
+class FaultsError(Exception):
+    """The line could not be run under faults at all (``inspect run`` stopped by itself); the message says why."""
+
+
 @dataclass
 class FaultReport:
     parts: int = 0
@@ -152,7 +156,9 @@ def run_faults(out: Path, parts: int = 200, kills: int = 2, seed: int = 0, damag
                 while _parts(results) < target and proc.poll() is None:
                     time.sleep(0.2)
                 if proc.poll() is not None:
-                    raise RuntimeError(f"inspect run ended by itself (exit {proc.returncode}): {proc.stderr.read()[-500:]}")
+                    said = [line for line in proc.stderr.read().splitlines() if line.strip()]
+                    raise FaultsError(f"inspect run ended by itself (exit {proc.returncode})"
+                                      + (f": {said[-1]}" if said else ""))
                 if target < parts:
                     proc.kill()
                     proc.wait(30)

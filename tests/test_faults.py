@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import random
 
-from conftest import cli
+from conftest import cli, cli_here
 
 from sim.faults import damaged_copy
 
@@ -30,3 +30,13 @@ def test_the_damaged_copy_cuts_the_frames_it_names(tmp_path):
     for frame_id in damaged:
         sizes = [(tmp_path / "seq" / eye / f"{frame_id}.jpg").read_bytes() for eye in ("left", "right")]
         assert any(not data.endswith(b"\xff\xd9") for data in sizes)
+
+
+def test_a_line_that_cannot_run_is_one_line_naming_why(tmp_path):
+    # a bad --set, and a run that ends by itself, ended in a RuntimeError's traceback
+    result = cli_here("sim", "faults", str(tmp_path / "bad"), "--parts", "10", "--set", "nope=1")
+    assert result.returncode == 2 and result.stderr.endswith("(--set nope): nope: unknown key\n"), result.stderr
+    assert not (tmp_path / "bad").exists()  # said before anything was rendered or started
+    result = cli("sim", "faults", str(tmp_path / "ends"), "--parts", "10", "--kills", "0", "--set",
+                 "camera.settings.max_frames=1")
+    assert result.returncode == 2 and result.stderr == "error: inspect run ended by itself (exit 0)\n", result.stderr

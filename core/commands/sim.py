@@ -172,9 +172,14 @@ def register(cli: click.Group) -> None:
         """The demo line under faults (damaged frames, a PLC link cut at random, the process killed and
         restarted), then an account of every part: exit 0 when each reject was delivered or alarmed, no
         damaged frame passed and the store is intact; the account is saved as OUT/faults.json."""
-        from sim.faults import run_faults
+        from core.commands.inspection import _load, fail
+        from sim.faults import RECIPE, FaultsError, run_faults
 
-        report = run_faults(out, parts, kills, seed, damage, tuple(overrides), rate_fps, log=click.echo)
+        _load(RECIPE, tuple(overrides))  # a bad --set is said here, before anything is rendered or started
+        try:
+            report = run_faults(out, parts, kills, seed, damage, tuple(overrides), rate_fps, log=click.echo)
+        except FaultsError as exc:
+            fail(str(exc))
         for line in report.lines():
             click.echo(line)
         click.echo(f"{'every part accounted for' if report.ok else 'NOT every part accounted for'}; "

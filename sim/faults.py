@@ -133,6 +133,7 @@ def run_faults(out: Path, parts: int = 200, kills: int = 2, seed: int = 0, damag
     results = out / "results"
     if results.exists():
         shutil.rmtree(results)
+    (out / "inspect_run.log").unlink(missing_ok=True)  # each run's alarms as it printed them
     report = FaultReport(damaged_frames=damaged_copy(out / "seq", 4, damage, rng))
     port = plc_sim.free_port()
     exe = Path(sys.executable).parent / "inspect"
@@ -150,13 +151,18 @@ def run_faults(out: Path, parts: int = 200, kills: int = 2, seed: int = 0, damag
         cutter.start()
         try:
             while True:
-                proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                # its alarms to a file: a pipe nobody reads while the run goes on fills, and then blocks the run
+                with open(out / "inspect_run.log", "ab") as said_to:
+                    start = said_to.tell()
+                    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=said_to)
                 report.runs += 1
                 target = kill_at.pop(0) if kill_at else parts
                 while _parts(results) < target and proc.poll() is None:
                     time.sleep(0.2)
                 if proc.poll() is not None:
-                    said = [line for line in proc.stderr.read().splitlines() if line.strip()]
+                    with open(out / "inspect_run.log", "rb") as said_to:
+                        said_to.seek(start)
+                        said = [line for line in said_to.read().decode(errors="replace").splitlines() if line.strip()]
                     raise FaultsError(f"inspect run ended by itself (exit {proc.returncode})"
                                       + (f": {said[-1]}" if said else ""))
                 if target < parts:

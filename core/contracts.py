@@ -62,7 +62,8 @@ class Detector(Protocol):
     class_names: list[str]
 
     def detect(self, image: np.ndarray) -> list[Detection]:
-        """Defects in an HxWx3 uint8 BGR image, boxes in its pixel coordinates."""
+        """Defects in an HxWx3 uint8 BGR image, boxes in its pixel coordinates. The image is read-only: stereo
+        and depth measure the same pixels afterwards (draw on a copy)."""
 
 
 @runtime_checkable

@@ -261,13 +261,23 @@ class Detected:
     error: str | None = None
 
 
+def _read_only(image: Any) -> Any:
+    """A view of ``image`` that cannot be written: stereo and depth read the same pixels after the detector, so
+    a detector that drew on its input would have them measure its drawing."""
+    if not isinstance(image, np.ndarray):
+        return image
+    view = image.view()
+    view.flags.writeable = False
+    return view
+
+
 def detect_frame(item: StereoFrame | FrameError, pipeline: Pipeline, recipe) -> Detected | None:
     """Stage 1 of a frame (None for a FrameError, which has nothing to detect on)."""
     if isinstance(item, FrameError):
         return None
     t0 = time.perf_counter()
     try:
-        found = pipeline.detector.detect(item.left)
+        found = pipeline.detector.detect(_read_only(item.left))
     except Exception as exc:  # reported on the part by inspect_frame
         return Detected(None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}")
     kept, problem = kept_detections(found, pipeline.detector, recipe, item.left.shape[:2])

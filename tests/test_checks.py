@@ -193,6 +193,16 @@ class NanBoxes:
         return [Detection("pit", 0.9, (10.0, 10.0, math.nan, 40.0))]
 
 
+class DrawsOnInput:
+    """A detector that marks what it found on the image it was given, which stereo and depth then measure."""
+
+    class_names = ["pit"]
+
+    def detect(self, image):
+        image[10:40, 10:40] = 255
+        return [Detection("pit", 0.9, (10.0, 10.0, 40.0, 40.0))]
+
+
 class NarrowRight:
     """A camera whose right image comes cropped: the replay's frames with 10 columns cut off."""
 
@@ -237,13 +247,16 @@ class Plugins:
 
     @hookimpl
     def stereo_inspect_detectors(self):
-        return [PluginSpec("nan_boxes", "detector", lambda s, ctx: NanBoxes(), class_names=lambda s, ctx: ["pit"])]
+        return [PluginSpec("nan_boxes", "detector", lambda s, ctx: NanBoxes(), class_names=lambda s, ctx: ["pit"]),
+                PluginSpec("draws_on_input", "detector", lambda s, ctx: DrawsOnInput(),
+                           class_names=lambda s, ctx: ["pit"])]
 
 
 @pytest.mark.parametrize("old, new, says", [
     ("backend: opencv_sgbm", "backend: half_map", "stereo failed: the stereo backend returned a map of shape"),
     ("backend: opencv_sgbm", "backend: fixed_point", "stereo failed: the stereo backend returned disparities of"),
     ("plugin: fixed_roi", "plugin: nan_boxes", "detection failed: the detector returned a pit box (10.0, 10.0, nan, 40.0)"),
+    ("plugin: fixed_roi", "plugin: draws_on_input", "detection failed: ValueError: assignment destination is read-only"),
     ("plugin: replay\n  settings: {path: seq}", "plugin: narrow_right",
      "the camera's left and right images differ in size (320x192, 310x192)"),
     ("plugin: replay\n  settings: {path: seq}", "plugin: far_centre",
@@ -253,7 +266,7 @@ def test_a_plugin_that_breaks_its_contract_costs_its_part_an_error(tmp_path, pla
     info = plane_sequence([0.0, 0.0])
     registry = Registry(make_manager((stereo_inspect_fixed_roi, Plugins())))
     text = RECIPE.format(box=info["box"], output="log").replace(old, new)
-    if new == "plugin: nan_boxes":
+    if new in ("plugin: nan_boxes", "plugin: draws_on_input"):
         text = text.replace("  settings:\n    regions:\n      - {name: pit, box: " + str(info["box"]) + "}\n", "")
     loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
     seen = []

@@ -42,8 +42,9 @@ class StereoBackend(Protocol):
     def compute(self, left: np.ndarray, right: np.ndarray, min_disp: float, max_disp: float) -> np.ndarray:
         """Disparity of the left image.
 
-        left, right: HxWx3 uint8 BGR, rectified. Returns HxW float32 disparity in pixels,
-        NaN where invalid (zero and below are taken as invalid too). Searches ``min_disp <= d < max_disp``:
+        left, right: HxWx3 uint8 BGR, rectified; the engine's copies, which the backend may change in place.
+        Returns HxW float32 disparity in pixels, NaN where invalid (zero and below are taken as invalid too).
+        Searches ``min_disp <= d < max_disp``:
         a map whose matches lie mostly outside that range (``core.checks.disparity_problem``) costs the part
         an ERROR.
         """

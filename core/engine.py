@@ -213,7 +213,8 @@ def match_pair(backend: Any, left: np.ndarray, right: np.ndarray, lo: float, hi:
     if problem is not None:
         raise StageFailed(problem)
     if shift == 0:
-        return _checked(backend.compute(left, right, lo, hi), left.shape[:2], (lo, hi))
+        # copies, as the shifted pair below is: the surface fit reads these pixels after the backend
+        return _checked(backend.compute(left.copy(), right.copy(), lo, hi), left.shape[:2], (lo, hi))
     pair = np.ascontiguousarray(left[:, shift:]), np.ascontiguousarray(right[:, :width])
     matched = _checked(backend.compute(*pair, lo - shift, hi - shift), pair[0].shape[:2], (lo - shift, hi - shift))
     out = np.full(left.shape[:2], np.nan, dtype=np.float32)

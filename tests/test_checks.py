@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -186,6 +187,16 @@ class FixedPoint:
         return self.sgbm.compute(left, right, min_disp, max_disp) * 16.0
 
 
+class Scribbler(FixedPoint):
+    """A backend that works on the images it is given in place (an exposure correction, say)."""
+
+    def compute(self, left, right, min_disp, max_disp):
+        disparity = self.sgbm.compute(left, right, min_disp, max_disp)
+        left[:] = 0
+        right[:] = 0
+        return disparity
+
+
 class NanBoxes:
     class_names = ["pit"]
 
@@ -243,7 +254,8 @@ class Plugins:
     @hookimpl
     def stereo_inspect_stereo_backends(self):
         return [PluginSpec("half_map", "stereo", lambda s, ctx: HalfMap()),
-                PluginSpec("fixed_point", "stereo", lambda s, ctx: FixedPoint(ctx))]
+                PluginSpec("fixed_point", "stereo", lambda s, ctx: FixedPoint(ctx)),
+                PluginSpec("scribbler", "stereo", lambda s, ctx: Scribbler(ctx))]
 
     @hookimpl
     def stereo_inspect_detectors(self):
@@ -283,3 +295,24 @@ def test_a_camera_stating_a_geometry_no_camera_has_is_refused_before_the_run(tmp
                                                                 "plugin: far_centre_stated")
     with pytest.raises(RecipeError, match=r"camera: the camera's calibration is no camera's: cx 1e\+30 lies far outside"):
         load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
+
+
+def test_a_backend_that_works_on_its_images_in_place_leaves_the_frame_the_surface_fit_reads(tmp_path, plane_sequence):
+    # from column 0 (min_disparity 0, full scale) the backend was handed the frame's own images, and the
+    # surface fit then measured what the backend had left of them
+    info = plane_sequence([0.0, 2.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, Plugins())))
+    measured = {}
+    for backend in ("opencv_sgbm", "scribbler"):
+        text = RECIPE.format(box=info["box"], output="log").replace(
+            "backend: opencv_sgbm", f"backend: {backend}").replace(
+            "working_distance_mm: [300, 600]", "min_disparity: 0\n  max_disparity: 160")
+        folder = tmp_path / backend
+        folder.mkdir()
+        shutil.copytree(info["folder"], folder / "seq")
+        loaded = load_recipe(write_recipe(folder / "r.yaml", text), registry=registry)
+        seen = []
+        engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+        measured[backend] = [(o.part.verdict.status, [m.deviation_mm for m in o.part.measurements]) for o in seen]
+    assert measured["scribbler"] == measured["opencv_sgbm"]
+    assert [status for status, _ in measured["opencv_sgbm"]] == [Status.PASS, Status.REJECT]

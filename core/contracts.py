@@ -70,7 +70,7 @@ class Detector(Protocol):
 @runtime_checkable
 class RejectOutput(Protocol):
     def submit(self, part: PartResult) -> None:
-        """Hand over a decided part. Must not block the inspection loop for long."""
+        """Hand over a decided part (the output's own copy). Must not block the inspection loop for long."""
 
     def poll(self) -> list[OutputEvent | Alarm]:
         """Events and alarms produced since the last call (the engine records them)."""

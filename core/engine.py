@@ -6,6 +6,7 @@ becomes an ERROR verdict, which the outputs reject like any other reject.
 """
 from __future__ import annotations
 
+import copy
 import math
 import os
 import time
@@ -615,7 +616,9 @@ def run(
             name, output = waiting.pop(0)
             handing[2] = name
             try:
-                output.submit(part)
+                # its own copy: an output that changed the part (its verdict, say) would change it for the
+                # outputs after it and for the operator page
+                output.submit(copy.deepcopy(part))
             except Exception as exc:
                 record([Alarm(name, f"reject output failed for {part.part_id}: {exc}", time.time(), part.part_id)])
             handing[2] = None

@@ -316,3 +316,44 @@ def test_a_backend_that_works_on_its_images_in_place_leaves_the_frame_the_surfac
         measured[backend] = [(o.part.verdict.status, [m.deviation_mm for m in o.part.measurements]) for o in seen]
     assert measured["scribbler"] == measured["opencv_sgbm"]
     assert [status for status, _ in measured["opencv_sgbm"]] == [Status.PASS, Status.REJECT]
+
+
+class Pardoner:
+    """An output that marks every part it is handed as passed (a reject counter resetting the part, say)."""
+
+    def submit(self, part):
+        part.verdict.status = Status.PASS
+
+    def poll(self):
+        return []
+
+    def close(self, timeout_s=10.0):
+        return []
+
+
+class Witness(Pardoner):
+    seen: list = []
+
+    def submit(self, part):
+        Witness.seen.append((part.part_id, part.verdict.status))
+
+
+class Outputs:
+    @hookimpl
+    def stereo_inspect_outputs(self):
+        delay = {"actuator_delay": lambda s, ctx: 2.0}
+        return [PluginSpec("pardoner", "output", lambda s, ctx: Pardoner(), **delay),
+                PluginSpec("witness", "output", lambda s, ctx: Witness(), **delay)]
+
+
+def test_an_output_that_changes_the_part_changes_it_for_itself_alone(tmp_path, plane_sequence):
+    # the outputs shared the decided part: a verdict one of them changed reached the outputs after it
+    info = plane_sequence([0.0, 2.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, Outputs())))
+    text = RECIPE.format(box=info["box"], output="pardoner\n  - plugin: witness")
+    Witness.seen = []
+    seen = []
+    engine.run(load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry), registry=registry,
+               on_part=seen.append, device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.PASS, Status.REJECT]
+    assert [status for _, status in Witness.seen] == [Status.PASS, Status.REJECT]

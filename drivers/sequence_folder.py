@@ -167,11 +167,8 @@ def incomplete(data: bytes, suffix: str) -> str | None:
     return None
 
 
-def read_image(path: Path | None, what: str = "image") -> np.ndarray:
-    """HxWx3 uint8 BGR; raises ``SequenceError`` naming the file when it is missing, truncated or corrupt."""
-    if path is None:
-        raise SequenceError(f"{what} missing")
-    path = Path(path)
+def _whole_bytes(path: Path, what: str) -> bytes:
+    """The encoded image's bytes; ``SequenceError`` naming the file when it is missing, unreadable or cut short."""
     try:
         data = path.read_bytes()
     except FileNotFoundError:
@@ -181,6 +178,15 @@ def read_image(path: Path | None, what: str = "image") -> np.ndarray:
     why = incomplete(data, path.suffix)
     if why is not None:
         raise SequenceError(f"{path}: {what} is not whole: {why}")
+    return data
+
+
+def read_image(path: Path | None, what: str = "image") -> np.ndarray:
+    """HxWx3 uint8 BGR; raises ``SequenceError`` naming the file when it is missing, truncated or corrupt."""
+    if path is None:
+        raise SequenceError(f"{what} missing")
+    path = Path(path)
+    data = _whole_bytes(path, what)
     image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if image is None:
         raise SequenceError(f"{path}: {what} cannot be decoded (corrupt or not an image)")
@@ -279,20 +285,9 @@ def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
     return labels
 
 
-def _file_problem(path: Path | None, what: str) -> str | None:
-    if path is None:
-        return f"{what} missing"
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        return f"{path}: {what} cannot be read ({exc.strerror})"
-    why = incomplete(data, path.suffix)
-    return None if why is None else f"{path}: {what} is not whole: {why}"
-
-
 def labelled_sequence_problem(folder: Path) -> str | None:
-    """The first reason a labelled sequence cannot be evaluated to its end, in words, or None: its
-    calibration, each frame's two images present and whole, and its labels present and valid for the
+    """The first reason a labelled sequence cannot be evaluated to its end, in words naming the file, or None:
+    its calibration, each frame's two images present and whole, and its labels present and valid for the
     calibration's image size. Checked from the files alone (nothing decoded), so that an evaluation stops
     before its first frame is matched rather than after the frames ahead of the broken one."""
     folder = Path(folder)
@@ -303,17 +298,24 @@ def labelled_sequence_problem(folder: Path) -> str | None:
         return str(exc)
     if not frames:
         return f"{folder}: no frames in left/"
+    shape = (int(calib["height"]), int(calib["width"]))
+
+    def frame_problem(f: FrameFiles) -> str | None:
+        for path, eye in ((f.left, "left"), (f.right, "right")):
+            if path is None:
+                return f"{folder}: {eye} image of frame {f.frame_id} missing"
+            _whole_bytes(path, f"{eye} image of frame {f.frame_id}")
+        if f.labels is None:
+            return f"{folder}: frame {f.frame_id} has no labels/{f.frame_id}.json (the truth to compare with)"
+        read_labels(f.labels, shape)
+        return None
+
     problems = []
     for f in frames:
-        problem = (_file_problem(f.left, f"left image of frame {f.frame_id}")
-                   or _file_problem(f.right, f"right image of frame {f.frame_id}"))
-        if problem is None and f.labels is None:
-            problem = f"frame {f.frame_id} has no labels/{f.frame_id}.json (the truth to compare with)"
-        if problem is None:
-            try:
-                read_labels(f.labels, (int(calib["height"]), int(calib["width"])))
-            except SequenceError as exc:
-                problem = str(exc)
+        try:
+            problem = frame_problem(f)
+        except SequenceError as exc:
+            problem = str(exc)
         if problem is not None:
             problems.append(problem)
     if not problems:

@@ -57,9 +57,9 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     for folder in sequences:
         if not folder.is_dir():
             fail(f"{folder}: not a sequence folder")
-        problem = labelled_sequence_problem(folder)
+        problem = labelled_sequence_problem(folder)  # it names the file
         if problem is not None:
-            fail(problem if str(folder) in problem else f"{folder}: {problem}")
+            fail(problem)
     loaded = _load(recipe, tuple(overrides), {"stereo.backend": "--backend", "stereo.settings": "--backend"})
     command_threads(threads)
     registry = default_registry()

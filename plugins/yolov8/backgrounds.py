@@ -101,12 +101,10 @@ def add_backgrounds(sequence: Path, dataset: Path, split: str = "train", tile: i
             for x0, y0 in origins:
                 # the sequence folder's name keeps tiles of different renders apart
                 stem = f"bg_{sequence.name}_{frame_id}_{x0}_{y0}"
-                for path in (images_dir / f"{stem}.jpg", labels_dir / f"{stem}.txt"):
-                    written.append(path)
-                    if path.suffix == ".jpg":
-                        write_image(path, image[y0:y0 + tile, x0:x0 + tile], (cv2.IMWRITE_JPEG_QUALITY, 95))
-                    else:
-                        write_text(path, "")
+                tile_path, label_path = images_dir / f"{stem}.jpg", labels_dir / f"{stem}.txt"
+                written += [tile_path, label_path]
+                write_image(tile_path, image[y0:y0 + tile, x0:x0 + tile], (cv2.IMWRITE_JPEG_QUALITY, 95))
+                write_text(label_path, "")
                 report.tiles += 1
     except OSError as exc:
         # half a sequence's tiles would train the detector on whichever frames came first

@@ -135,12 +135,12 @@ def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int
                   workers: int, name: str, init: Path | None, optimizer: str, lr0: float, lrf: float,
                   warmup_epochs: float, save_period: int) -> None:
     """Train YOLOv8n from scratch (resumes when OUT/NAME/weights/last.pt exists)."""
-    from plugins.yolov8.training import TrainSettings, train_detector
+    from plugins.yolov8.training import TrainSettings, last_checkpoint, train_detector
 
     data_yaml = _dataset_yaml(data, ("train", "val"), " (run `inspect data convert-voc` first)")
     from plugins.yolov8.detector import read_checkpoint
 
-    last = out / name / "weights" / "last.pt"  # what a run resumes from
+    last = last_checkpoint(out, name)
     for option, weights in (("--init", init), ("resuming from", last if last.exists() else None)):
         if weights is not None:
             try:

@@ -48,6 +48,11 @@ def resolve_device(device: str) -> str:
     return "0" if torch.cuda.is_available() else "cpu"
 
 
+def last_checkpoint(out_dir: Path, name: str) -> Path:
+    """Where the run ``name`` under ``out_dir`` keeps its latest weights, from which a training resumes."""
+    return Path(out_dir) / name / "weights" / "last.pt"
+
+
 def train_detector(data_yaml: Path, out_dir: Path, settings: TrainSettings, name: str = "yolov8n-neu",
                    init: Path | None = None) -> Path:
     """Train (or resume, when ``out_dir/name/weights/last.pt`` exists) and return the best weights' path.
@@ -58,8 +63,7 @@ def train_detector(data_yaml: Path, out_dir: Path, settings: TrainSettings, name
     os.environ.setdefault("YOLO_OFFLINE", "1")
     from ultralytics import YOLO
 
-    run_dir = Path(out_dir) / name
-    last = run_dir / "weights" / "last.pt"
+    last = last_checkpoint(out_dir, name)
     if last.exists():
         model = YOLO(str(last))
         model.train(resume=True)
@@ -78,4 +82,4 @@ def train_detector(data_yaml: Path, out_dir: Path, settings: TrainSettings, name
             plots=True,
             **params,
         )
-    return run_dir / "weights" / "best.pt"
+    return last.with_name("best.pt")

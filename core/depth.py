@@ -268,7 +268,7 @@ def measure_defect(
     valid = valid_mask(region, calib.doffs)
     valid_fraction = float(valid.sum() / total) if total else 0.0
     surface = rule.method == "surface" and pair is not None
-    if total == 0 or valid_fraction < rule.min_valid_fraction or not valid.any():  # none at all, whatever allowed
+    if valid_fraction < rule.min_valid_fraction or not valid.any():  # none at all (or no region), whatever allowed
         m = DefectMeasurement(
             detection, None, None, valid_fraction, None, None,
             note=f"depth unavailable: {valid_fraction:.0%} of the region valid, {rule.min_valid_fraction:.0%} needed",

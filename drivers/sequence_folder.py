@@ -218,10 +218,18 @@ def write_image(path: Path, image: np.ndarray, params: tuple[int, ...] = ()) -> 
     write_bytes(path, encoded.tobytes())
 
 
+KITTI_MAX_DISPARITY = 65535 / 256.0  # px: the largest value a KITTI 16-bit disparity PNG holds
+
+
 def write_disparity_png(path: Path, disparity: np.ndarray) -> None:
+    """HxW disparity (px, NaN or inf: unknown) as a KITTI 16-bit PNG; ValueError naming the file where a value
+    is beyond ``KITTI_MAX_DISPARITY``: clipped, it would read as a farther surface than the one there."""
     values = np.nan_to_num(np.asarray(disparity, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    raw = np.clip(np.round(values * 256.0), 0, 65535).astype(np.uint16)
-    write_image(path, raw)
+    raw = np.round(values * 256.0)
+    if raw.max(initial=0.0) > 65535:
+        raise ValueError(f"{path}: a disparity of {values.max():.2f} px does not fit a 16-bit PNG (at most "
+                         f"{KITTI_MAX_DISPARITY:.3f} px)")
+    write_image(path, np.clip(raw, 0, 65535).astype(np.uint16))
 
 
 def write_frame(

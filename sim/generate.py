@@ -20,7 +20,7 @@ import numpy as np
 
 from core.depth import DepthRule, measure_defect
 from core.types import Calibration, Detection
-from drivers.sequence_folder import write_calibration, write_frame
+from drivers.sequence_folder import KITTI_MAX_DISPARITY, write_calibration, write_frame
 from sim.neu_crops import NEU_CLASSES, NeuCrops
 from sim.render import render_pair
 from sim.scene import CLASS_SHAPES, PLATEAU_R0, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, plate_axes
@@ -37,6 +37,7 @@ DEFECT_SCALE = (0.6, 1.2)  # NEU px -> WVGA frame px
 MAX_SIDE_PX, MIN_SIDE_PX = 150.0, 18.0  # at WVGA
 EDGE_MARGIN_PX = 24.0  # box to image border: room for the ring the deviation is fitted on
 GAP_PX = 24.0  # between defects
+DISTANCE_JITTER_MM = (-20.0, 50.0)  # added to --distance-mm per frame
 RAISED_CLASSES = tuple(c for c in NEU_CLASSES if CLASS_SHAPES[c][2])
 
 
@@ -107,7 +108,7 @@ def plan_frame(rng, index: int, distance_mm: float, tilt_deg: float, jitter: boo
     if ranges.distance_mm is not None:
         distance = rng.uniform(*ranges.distance_mm)
     elif jitter:
-        distance = distance_mm + rng.uniform(-20.0, 50.0)
+        distance = distance_mm + rng.uniform(*DISTANCE_JITTER_MM)
     else:
         distance = distance_mm
     tilt, yaw = _jittered_pose(rng, tilt_deg) if jitter else (tilt_deg, 0.0)
@@ -340,6 +341,15 @@ def defect_box(scene: Scene, d: Defect, centre_hits) -> tuple[float, float, floa
     return (float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1))
 
 
+class GenerateError(Exception):
+    """A frame whose truth the sequence folder cannot hold."""
+
+
+def nearest_plate_mm(calib: Calibration) -> float:
+    """The nearest surface whose disparity the ground truth's KITTI PNG holds, for ``calib``'s eyes."""
+    return calib.focal_px * calib.baseline_mm / KITTI_MAX_DISPARITY
+
+
 def quantise_disparity(disparity: np.ndarray) -> np.ndarray:
     """The disparity exactly as the KITTI uint16 PNG stores it."""
     return (np.clip(np.round(disparity.astype(np.float64) * 256.0), 0, 65535) / 256.0).astype(np.float32)
@@ -351,6 +361,13 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
     """(left, right, gt disparity (quantised), labels dict, scene)."""
     scene = build_scene(rng, calib, spec, crops, texture_contrast, flat_floor, camera)
     left, right, disparity, hits = render_pair(scene, rng, ss=ss, rectification_error_px=camera.rectification_error_px)
+    largest = float(np.nanmax(disparity, initial=0.0))
+    if largest > KITTI_MAX_DISPARITY:  # clipped, every label near it would read the plate as farther and flat
+        raise GenerateError(
+            f"frame {frame_id}: the plate comes to {calib.focal_px * calib.baseline_mm / largest:.0f} mm, "
+            f"{largest:.1f} px of disparity at {calib.width}x{calib.height}, beyond the {KITTI_MAX_DISPARITY:.3f} px "
+            f"its ground truth's 16-bit PNG holds: plates from {nearest_plate_mm(calib):.0f} mm on, less tilt, or a "
+            f"narrower frame")
     gt = quantise_disparity(disparity)
     defects = []
     for d in scene.defects:

@@ -300,3 +300,51 @@ def test_the_camera_model_changes_only_what_it_names(tmp_path):
     for a, b in zip(matte, blurred):  # the optics take contrast, not light
         assert np.mean(np.diff(b, axis=1) ** 2) < 0.7 * np.mean(np.diff(a, axis=1) ** 2)
         assert abs(np.mean(a) - np.mean(b)) < 1.0
+
+
+class TestDisparityTheTruthCanHold:
+    """A KITTI PNG holds disparities up to 255.996 px; a nearer plate's truth clipped there read as a farther,
+    flat one (a 2K frame at 490 mm: every label 539 mm away and 0 mm deep)."""
+
+    def _generate(self, tmp_path, *options):
+        from click.testing import CliRunner
+
+        from core.cli import _build
+
+        return CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "s"), "--synthetic-defects", *options])
+
+    def test_the_png_writer_refuses_what_it_would_clip(self, tmp_path):
+        from drivers.sequence_folder import KITTI_MAX_DISPARITY, write_disparity_png
+
+        write_disparity_png(tmp_path / "ok.png", np.full((4, 4), KITTI_MAX_DISPARITY, np.float32))
+        assert read_disparity_png(tmp_path / "ok.png").max() == pytest.approx(KITTI_MAX_DISPARITY)
+        with pytest.raises(ValueError, match=r"far\.png: a disparity of 281\.70 px does not fit"):
+            write_disparity_png(tmp_path / "far.png", np.full((4, 4), 281.7, np.float32))
+        assert not (tmp_path / "far.png").exists()
+
+    @pytest.mark.parametrize("options, said", [
+        (["--distance-range-mm", "400", "700", "--width", "2208", "--height", "1242"],
+         "--distance-range-mm 400: a plate at 400 mm is nearer than the 539 mm"),
+        (["--distance-mm", "170"], "--distance-mm 170: jittered by -20 mm, a plate at 150 mm is nearer than the 164 mm"),
+        (["--distance-mm", "150", "--no-jitter"], "--distance-mm 150: a plate at 150 mm is nearer"),
+    ])
+    def test_a_range_too_near_is_refused_before_rendering(self, tmp_path, options, said):
+        result = self._generate(tmp_path, "--frames", "1", *options)
+        assert result.exit_code == 2 and said in result.output, result.output
+        assert not (tmp_path / "s" / "calib.yaml").exists()
+
+    def test_a_frame_tilted_too_near_stops_the_set_and_takes_its_frames_back(self, tmp_path):
+        # seed 6: frames 0-2 lie beyond 164 mm, frame 3's tilted plate comes to 157 mm
+        result = self._generate(tmp_path, "--frames", "4", "--seed", "6", "--distance-mm", "185", "--tilt-deg", "25",
+                                "--height", "96", "--supersample", "1")
+        assert result.exit_code == 2
+        assert "frame 000003: the plate comes to 157 mm, 268.1 px of disparity" in result.output
+        assert "the 3 frames written before it were removed again" in result.output
+        assert not [p for p in (tmp_path / "s").rglob("*") if p.is_file()]
+
+    def test_the_nearest_plate_that_fits_is_generated_whole(self, tmp_path):
+        result = self._generate(tmp_path, "--frames", "1", "--distance-mm", "170", "--no-jitter", "--tilt-deg", "0",
+                                "--height", "96", "--supersample", "1")
+        assert result.exit_code == 0, result.output
+        gt = read_disparity_png(tmp_path / "s" / "gt" / "000000.png")
+        assert 240 < np.nanmax(gt) < 256

@@ -47,7 +47,9 @@ def register(cli: click.Group) -> None:
     @click.option("--synthetic-defects", is_flag=True,
                   help="Do not use NEU-DET: draw stand-in defect appearances instead.")
     @click.option("--width", default=672, show_default=True, type=click.IntRange(32, MAX_WIDTH),
-                  help="Frame width in pixels, up to the ZED's largest mode (2K).")
+                  help="Frame width in pixels, up to the ZED's largest mode (2K). The focal length scales with it, "
+                       "and with it the nearest plate whose disparity the 16-bit ground truth holds (164 mm at WVGA, "
+                       "539 mm at 2K).")
     @click.option("--height", default=376, show_default=True, type=click.IntRange(32, MAX_HEIGHT),
                   help="Frame height in pixels, likewise.")
     @click.option("--image-format", type=click.Choice(["png", "jpg"]), default="png", show_default=True,
@@ -92,7 +94,8 @@ def register(cli: click.Group) -> None:
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
         options make an evaluation set for ``inspect eval depth``."""
-        from sim.generate import CameraModel, EvalRanges, generate_sequence, largest_defect_px
+        from sim.generate import (DISTANCE_JITTER_MM, CameraModel, EvalRanges, GenerateError, generate_sequence,
+                                  largest_defect_px, nearest_plate_mm, zed_calibration)
         from sim.neu_crops import NeuDetError
 
         for name, pair, low, high in (("--distance-range-mm", distance_range_mm, 100.0, MAX_DISTANCE_MM),
@@ -121,6 +124,17 @@ def register(cli: click.Group) -> None:
         if defect_size_px is not None and defect_size_px[1] >= largest:
             click.echo(f"error: --defect-size-px: a side of {defect_size_px[1]:g} px does not fit a {width}x{height} "
                        f"frame with room for the ring around it (below {largest:.0f} px)", err=True)
+            raise SystemExit(2)
+        nearest = nearest_plate_mm(zed_calibration(width, height))
+        if distance_range_mm is not None:
+            option, plate = f"--distance-range-mm {distance_range_mm[0]:g}", distance_range_mm[0]
+        else:
+            option, plate = f"--distance-mm {distance_mm:g}", distance_mm + (DISTANCE_JITTER_MM[0] if jitter else 0.0)
+        if plate < nearest:
+            jittered = f" jittered by {DISTANCE_JITTER_MM[0]:g} mm," if plate != distance_mm and distance_range_mm is None else ""
+            click.echo(f"error: {option}:{jittered} a plate at {plate:g} mm is nearer than the {nearest:.0f} mm whose "
+                       f"disparity the ground truth's 16-bit PNG holds at {width}x{height}: plates from {nearest:.0f} "
+                       f"mm on, or a narrower frame", err=True)
             raise SystemExit(2)
         if flat_floor is not None and flat_floor[1] >= 1.0:
             click.echo(f"error: --flat-floor: {flat_floor[1]:g} leaves no wall (give a share below 1)", err=True)
@@ -151,11 +165,15 @@ def register(cli: click.Group) -> None:
                 texture_contrast=texture_contrast,
                 camera=CameraModel(noise_sigma, specular, lens_blur_px, rectification_error_px),
             )
-        except NeuDetError as exc:
-            click.echo(f"error: {exc}", err=True)
-            raise SystemExit(2) from None
-        except OSError as exc:  # a full disk, the folder removed under it
-            click.echo(f"error: {exc}", err=True)
+        except (NeuDetError, GenerateError, OSError) as exc:  # OSError: a full disk, the folder removed under it
+            # half a sequence would evaluate as a whole one: what this call wrote goes again
+            written = existing_frame_files(out)
+            for path in written:
+                path.unlink(missing_ok=True)
+            frames_written = sum(p.parent.name == "left" for p in written)
+            gone = {0: "", 1: "; the frame written before it was removed again"}.get(
+                frames_written, f"; the {frames_written} frames written before it were removed again")
+            click.echo(f"error: {exc}{gone}", err=True)
             raise SystemExit(2) from None
         click.echo(f"wrote {frames} frames to {out} in {time.perf_counter() - start:.1f} s")
 

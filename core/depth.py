@@ -341,9 +341,11 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     shift = (plane.a, plane.b, plane.c - calib.doffs)  # the plane of disparities without doffs
     seen = uu - (shift[0] * uu + shift[1] * vv + shift[2]) >= 2  # the right image holds the point
     if np.sum(weights * seen) < 0.5 * np.sum(weights):
-        # the backend's disparities there are its hole filling: no measurement of either kind
-        return _unavailable(reference, f"the right camera does not see the region "
-                            f"({np.sum(weights * seen) / np.sum(weights):.0%} of it in its view)")
+        # the backend's disparities there are its hole filling: no measurement of either kind; or its map
+        # is wrong there, as for a plate beyond the searched range, which the images then tell
+        unseen = _unavailable(reference, f"the right camera does not see the region "
+                              f"({np.sum(weights * seen) / np.sum(weights):.0%} of it in its view)")
+        return _outside_search(unseen, pair, ring_all, calib, searched)
     start = -float(np.median(offsets))
     left, right = pair
     fit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)

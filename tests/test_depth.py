@@ -256,6 +256,19 @@ def test_a_plate_beyond_the_searched_range_is_named_where_it_lies(backend_says):
     assert "matches the images at" not in held.note and held.surface_elsewhere_mm is None
 
 
+def test_a_plate_beyond_the_search_near_the_left_edge_is_named_too():
+    """Near the left edge the backend's wrong 500 mm puts the region out of the right camera's view (at 84 px
+    of disparity; the plate's 60 px would show it): that is said, and so is where the images put the plate,
+    and the map's distance goes with it."""
+    left, right, _ = render(CALIB, 700.0, 3.0, [Pit(80, 90, 10.0, 2.0)])
+    backend = np.full((CALIB.height, CALIB.width), CALIB.focal_px * CALIB.baseline_mm / 500.0, np.float32)
+    m = measure_defect(backend, Detection("pit", 0.9, (60.0, 70.0, 100.0, 110.0)), CALIB, DepthRule(),
+                       (_grey(left), _grey(right)), searched=(78.0, 126.0))
+    assert m.note.startswith("deviation unavailable: the right camera does not see the region (21% of it in its "
+                             "view); the surface around the box matches the images at 60 px of disparity (700 mm)"), m.note
+    assert m.distance_mm is None and m.surface_elsewhere_mm == pytest.approx(700.0, abs=12)
+
+
 def test_a_camera_delivering_its_eyes_swapped_is_named():
     """The left image is the right eye's (a camera wired or configured the other way round): nothing matches
     at a positive disparity, and the note says the images match with the eyes exchanged."""

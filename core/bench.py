@@ -37,7 +37,7 @@ from core.registry import Registry
 from core.types import FrameError, PartResult, StereoFrame
 
 STAGES = ("capture", "detection", "stereo", "depth", "decision", "outputs", "loop")
-RESOLUTIONS = {"wvga": (672, 376), "hd720": (1280, 720)}
+RESOLUTIONS = {"wvga": (672, 376), "hd720": (1280, 720), "hd1080": (1920, 1080), "2k": (2208, 1242)}  # the ZED's modes
 
 
 class BenchInputError(Exception):

@@ -25,15 +25,15 @@ def test_bench_times_every_stage_and_saves_tables(tmp_path):
     assert "| opencv_sgbm |" in (tmp_path / "bench-wvga-cpu.md").read_text()
 
 
-def test_bench_hd720_and_unknown_backend(tmp_path):
+def test_bench_at_another_zed_mode_and_unknown_backend(tmp_path):
     out = cli_here("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "nope", "--out", str(tmp_path))
     assert out.returncode == 2 and "unknown stereo backend nope" in out.stderr
     out = cli_here("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", " ,", "--out", str(tmp_path))
     assert out.returncode == 2 and "--backends: give at least one of" in out.stderr
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "opencv_sgbm",
-              "--resolution", "hd720", "--frames", "1", "--repeats", "1", "--out", str(tmp_path))
+              "--resolution", "2k", "--frames", "1", "--repeats", "1", "--out", str(tmp_path))
     assert out.returncode == 0, out.stderr
-    assert json.loads((tmp_path / "bench-hd720-cpu.json").read_text())["resolution"] == "1280x720"
+    assert json.loads((tmp_path / "bench-2k-cpu.json").read_text())["resolution"] == "2208x1242"
 
 
 def test_bench_defect_region_is_compared_with_full_frame_and_detection_alone(tmp_path):
@@ -114,3 +114,34 @@ def test_a_frame_that_cannot_be_read_is_one_line_naming_it(tmp_path):
     assert out.stderr == f"error: {sequence}: {cut}: left image of frame 000001 is not whole: truncated JPEG (no " \
                          "end-of-image marker)\n"
     assert list((tmp_path / "o").iterdir()) == []  # no table of other frames
+
+
+class TestResizeFrame:
+    """The bench times the ZED's modes: the demo's WVGA frames scaled to one, or a recording at it as it is."""
+
+    def _frame(self, width, height):
+        import numpy as np
+
+        from core.types import Calibration, StereoFrame
+
+        image = np.zeros((height, width, 3), np.uint8)
+        calib = Calibration(350.06 * width / 672, 120.0, (width - 1) / 2, (height - 1) / 2, width, height, 0.0)
+        return StereoFrame("000000", 0, image, image.copy(), calib, 0.0, "test")
+
+    def test_every_zed_mode_is_offered(self):
+        from core.bench import RESOLUTIONS
+
+        assert RESOLUTIONS["hd1080"] == (1920, 1080) and RESOLUTIONS["2k"] == (2208, 1242)
+
+    def test_a_recording_at_the_mode_is_timed_as_it_is(self):
+        from core.bench import RESOLUTIONS, resize_frame
+
+        frame = self._frame(2208, 1242)
+        assert resize_frame(frame, RESOLUTIONS["2k"]) is frame
+
+    def test_wvga_scaled_to_2k_keeps_its_geometry(self):
+        from core.bench import RESOLUTIONS, resize_frame
+
+        scaled = resize_frame(self._frame(672, 376), RESOLUTIONS["2k"])
+        assert scaled.left.shape == (1242, 2208, 3) and scaled.right.shape == (1242, 2208, 3)
+        assert scaled.calib.width == 2208 and abs(scaled.calib.focal_px - 350.06 * 2208 / 672) < 1e-9

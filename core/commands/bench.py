@@ -16,9 +16,11 @@ from drivers.file_writes import write_text
 @click.command("bench")
 @click.option("--recipe", "recipe", default=demo_recipe(), type=click.Path(path_type=Path),
               show_default=True, help="camera (the frames), detector, depth and decision come from here")
-@click.option("--sequence", type=click.Path(path_type=Path), default=None, help="another recorded sequence folder")
+@click.option("--sequence", type=click.Path(path_type=Path), default=None,
+              help="another recorded sequence folder (scaled to --resolution unless it is that size)")
 @click.option("--backends", default="opencv_sgbm,torch_sgm", show_default=True, help="comma-separated stereo backends")
-@click.option("--resolution", type=click.Choice(["wvga", "hd720"]), default="wvga", show_default=True)
+@click.option("--resolution", type=click.Choice(["wvga", "hd720", "hd1080", "2k"]), default="wvga", show_default=True,
+              help="the frames scaled to this ZED mode, their calibration with them")
 @click.option("--min-disp", type=FINITE, default=None)
 @click.option("--max-disp", type=FINITE, default=None)
 @click.option("--device", default="cpu", show_default=True, callback=cuda_if_present, help="cpu, cuda or auto")

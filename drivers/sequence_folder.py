@@ -279,9 +279,11 @@ def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
                 and box[0] < box[2] and box[1] < box[3]):
             raise SequenceError(f"{where}.box: expected [x0, y0, x1, y1] with x0 < x1 and y0 < y1, got {box!r}")
         defect["box"] = [float(v) for v in box]
-        for key in ("distance_mm", "deviation_mm"):
-            if defect.get(key) is not None and not _number(defect[key]):
-                raise SequenceError(f"{where}.{key}: expected a number or null, got {defect[key]!r}")
+        if defect.get("deviation_mm") is not None and not _number(defect["deviation_mm"]):
+            raise SequenceError(f"{where}.deviation_mm: expected a number or null, got {defect['deviation_mm']!r}")
+        distance = defect.get("distance_mm")
+        if distance is not None and not (_number(distance) and distance > 0):  # in front of the camera
+            raise SequenceError(f"{where}.distance_mm: expected a number > 0 or null, got {distance!r}")
     sensor = labels.get("sensor")
     if sensor is not None and not isinstance(sensor, dict):
         raise SequenceError(f"{path}: sensor: expected a mapping, got {sensor!r}")

@@ -126,6 +126,11 @@ class TestReadLabels:
         ({"defects": [{"class": "pit", "box": [1, 2, "a", 4]}]}, "defects[0].box"),
         ({"defects": [{"class": "pit", "box": [1, 2, 3, 4], "deviation_mm": "deep"}]},
          "defects[0].deviation_mm: expected a number or null, got 'deep'"),
+        # a true distance of 0 divided the evaluation's floor by zero; a negative one was scored as a surface
+        ({"defects": [{"class": "pit", "box": [1, 2, 3, 4], "distance_mm": 0}]},
+         "defects[0].distance_mm: expected a number > 0 or null, got 0"),
+        ({"defects": [{"class": "pit", "box": [1, 2, 3, 4], "distance_mm": -5}]},
+         "defects[0].distance_mm: expected a number > 0 or null, got -5"),
         ({"defects": [], "sensor": "x"}, "000001.json: sensor: expected a mapping, got 'x'"),
         ({"defects": [], "sensor": {"noise_sigma": "a"}}, "sensor.noise_sigma: expected a number >= 0 or null"),
         ({"defects": [], "sensor": {"noise_sigma": -1}}, "sensor.noise_sigma: expected a number >= 0 or null"),

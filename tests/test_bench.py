@@ -31,7 +31,7 @@ def test_bench_at_another_zed_mode_and_unknown_backend(tmp_path):
     out = cli_here("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", " ,", "--out", str(tmp_path))
     assert out.returncode == 2 and "--backends: give at least one of" in out.stderr
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "opencv_sgbm",
-              "--resolution", "2k", "--frames", "1", "--repeats", "1", "--out", str(tmp_path))
+              "--resolution", "2k", "--regions", "full", "--frames", "1", "--repeats", "1", "--out", str(tmp_path))
     assert out.returncode == 0, out.stderr
     assert json.loads((tmp_path / "bench-2k-cpu.json").read_text())["resolution"] == "2208x1242"
 

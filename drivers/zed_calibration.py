@@ -41,6 +41,11 @@ RESOLUTIONS: dict[str, tuple[int, int]] = {
 # resolution name -> suffix used in the .conf file
 CONF_SUFFIX = {"WVGA": "VGA", "HD720": "HD", "HD1080": "FHD", "2K": "2K"}
 INTRINSIC_KEYS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+# A side-by-side pair: the right eye lies along the left one's x axis and looks the same way, within a
+# fraction of a degree on a ZED. Beyond these a file is corrupt or another camera's, and rectifying by it
+# would turn the pair into a vertical or crossed one whose baseline comes out 0 or negative.
+MAX_OFF_AXIS = 0.1  # the right eye's offset off that axis (TY, TZ), as a share of the baseline
+MAX_ROTATION_DEG = 10.0  # the rotation between the eyes (RX, CV, RZ)
 
 
 class CalibrationError(Exception):
@@ -167,6 +172,16 @@ def read_conf(path: str | Path, resolution: str = "WVGA") -> ZedCalibration:
         problem = calibration_problem(eye_.fx, calib.baseline_mm, eye_.cx, eye_.cy, width, height)
         if problem is not None:
             raise CalibrationError(f"{path}: {problem} (from [{name}] fx, cx, cy and [STEREO] Baseline)")
+    off_axis = float(np.hypot(calib.ty_mm, calib.tz_mm))
+    if off_axis > MAX_OFF_AXIS * calib.baseline_mm:
+        raise CalibrationError(f"{path}: [STEREO] TY_{suffix}, TZ_{suffix} put the right eye {off_axis:.4g} mm off the "
+                               f"line through the eyes, {off_axis / calib.baseline_mm:.0%} of the {calib.baseline_mm:g} mm "
+                               f"baseline: no side-by-side camera's (at most {MAX_OFF_AXIS:.0%})")
+    turned = float(np.degrees(np.linalg.norm([calib.rx, calib.cv, calib.rz])))
+    if turned > MAX_ROTATION_DEG:
+        raise CalibrationError(f"{path}: [STEREO] RX_{suffix}, CV_{suffix}, RZ_{suffix} turn the right eye by "
+                               f"{turned:.3g} degrees against the left: no side-by-side camera's (at most "
+                               f"{MAX_ROTATION_DEG:g}; the angles are radians)")
     return calib
 
 

@@ -78,6 +78,11 @@ class ZedSettings(BaseModel):
                              "(download from https://calib.stereolabs.com/?SN=<serial>)")
         if self.reconnect_max_ms < self.reconnect_min_ms:
             raise ValueError("reconnect_max_ms must be at least reconnect_min_ms")
+        if self.calibration is not None:  # a broken file is the recipe's error, for validate as for run
+            try:
+                read_conf(self.calibration, self.resolution)
+            except CalibrationError as exc:
+                raise ValueError(str(exc)) from None
         if self.backend == "uvc" and is_recording(self.device) and Path(self.device).is_file():
             problem = recording_problem(self.device, self.resolution)
             if problem is not None:

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import ROOT
+from conftest import ROOT, cli_here
 
 from drivers.zed_calibration import CalibrationError, RESOLUTIONS, StereoRectifier, read_conf
 from drivers.zed_uvc import Grab, ZedUvc
@@ -118,6 +118,10 @@ def test_bad_conf_names_file_and_key(tmp_path):
     ("Baseline=120.0", "Baseline=-120.0", r"\[STEREO\] Baseline must be positive"),
     ("Baseline=120.0", "Baseline=0.12", r"baseline_mm 0.12 lies outside 1-10000 mm \(metres written for millimetres\?\) "
                                         r"\(from \[LEFT_CAM_VGA\] fx, cx, cy and \[STEREO\] Baseline\)"),
+    # a pose no side-by-side pair has: rectified by it, the pair turned vertical (baseline 0) or crossed (-120 mm)
+    ("TY_VGA=0.0891", "TY_VGA=500", r"\[STEREO\] TY_VGA, TZ_VGA put the right eye 500 mm off the line through the "
+                                    r"eyes, 417% of the 120 mm baseline: no side-by-side camera's \(at most 10%\)"),
+    ("CV_VGA=0.00482", "CV_VGA=3.14", r"\[STEREO\] RX_VGA, CV_VGA, RZ_VGA turn the right eye by 180 degrees"),
 ])
 def test_a_value_no_camera_has_is_refused_on_reading(tmp_path, old, new, says):
     # NaN passes every "must be positive" comparison: it would reach the frames as a nonsense geometry
@@ -482,3 +486,18 @@ def test_a_recording_that_cannot_be_played_at_the_resolution_is_refused_before_t
     if content == "hd720":
         assert spec.factory({"device": str(path), "calibration": str(CONF), "resolution": "HD720"},
                             PluginContext(recipe_dir=tmp_path))
+
+
+def test_a_broken_calibration_file_fails_validate_as_it_fails_run(tmp_path):
+    # validate took it for a camera whose geometry is known only once opened: a note, exit 0; run refused it
+    broken = tmp_path / "SN5.conf"
+    broken.write_text(CONF.read_text().replace("TY_VGA=0.0891", "TY_VGA=500"))
+    recipe = (ROOT / "recipes" / "steel_plate.yaml").read_text()
+    recipe = recipe.replace("plugin: replay", "plugin: zed", 1).replace(
+        "    path: ../sim_fixtures/steel_plate\n    rate_fps: 4", f"    calibration: {broken}\n    device: 0", 1)
+    recipe = recipe.replace("    loop: false\n", "", 1).replace("../models/", f"{ROOT / 'models'}/")
+    path = tmp_path / "zed.yaml"
+    path.write_text(recipe)
+    result = cli_here("validate", str(path))
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "camera.settings: " in result.stderr and "SN5.conf: [STEREO] TY_VGA, TZ_VGA put the right eye 500 mm" in result.stderr

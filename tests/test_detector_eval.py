@@ -51,3 +51,24 @@ def test_bad_input_is_one_line_naming_it(dataset, tmp_path):
     assert f"{recipe}: not a YOLO dataset description: no val, names" in wrong.stderr
     iou = cli_here("eval", "detector", "--data", str(dataset), "--weights", str(WEIGHTS), "--iou", "0")
     assert iou.returncode == 2 and "--iou" in iou.stderr
+
+
+def test_a_dataset_the_scores_would_misread_is_refused(dataset, tmp_path):
+    """Scored anyway, another class list gave each AP the model's name for another class, and a label line
+    ultralytics drops took its image out of the scores, said only in ultralytics' own log."""
+    import shutil
+
+    copy = tmp_path / "neu"
+    shutil.copytree(dataset, copy)
+    spec = (copy / "data.yaml").read_text().replace(f"path: {dataset}", f"path: {copy}")
+    (copy / "data.yaml").write_text(spec.replace("names:", "names: [a, b]\nold_names:", 1))
+    other = cli_here("eval", "detector", "--data", str(copy), "--weights", str(WEIGHTS), "--out", str(tmp_path / "ev"))
+    assert other.returncode == 2, other.stdout
+    assert "data.yaml: names ['a', 'b'] are not the model's classes ['crazing', 'inclusion'," in other.stderr
+    (copy / "data.yaml").write_text(spec)
+    label = sorted((copy / "labels" / "val").glob("*.txt"))[0]
+    label.write_text("7 0.5 0.5 0.2 0.2\n" + label.read_text())
+    bad = cli_here("eval", "detector", "--data", str(copy), "--weights", str(WEIGHTS), "--out", str(tmp_path / "ev"))
+    assert bad.returncode == 2, bad.stdout
+    assert f"{label}: line 1: class 7, but the dataset has classes 0-5; ultralytics would leave" in bad.stderr
+    assert not (tmp_path / "ev" / "detector_metrics.json").exists()

@@ -24,6 +24,66 @@ SEED_METRICS = {
 }
 
 
+def _split_images(source) -> list[Path]:
+    """The image files of a split as data.yaml gives it (resolved by ultralytics): folders, list files, or a
+    list of either."""
+    from ultralytics.data.utils import IMG_FORMATS
+
+    images: list[Path] = []
+    for entry in source if isinstance(source, (list, tuple)) else [source]:
+        path = Path(entry)
+        if path.is_dir():
+            images += sorted(p for p in path.rglob("*") if p.suffix.lower().lstrip(".") in IMG_FORMATS)
+        elif path.is_file() and path.suffix == ".txt":
+            lines = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+            images += [(path.parent / line).resolve() if not Path(line).is_absolute() else Path(line) for line in lines]
+    return images
+
+
+def _label_line_problem(values: list[str], classes: int) -> str | None:
+    try:
+        numbers = [float(v) for v in values]
+    except ValueError:
+        return f"{' '.join(values)!r} is not numbers"
+    if len(numbers) != 5 and not (len(numbers) >= 7 and len(numbers) % 2 == 1):
+        return f"{len(numbers)} numbers, expected 'class x y w h' (or a class and polygon points)"
+    cls = numbers[0]
+    if not (cls.is_integer() and 0 <= cls < classes):
+        return f"class {values[0]}, but the dataset has classes 0-{classes - 1}"
+    if not all(0.0 <= v <= 1.0 for v in numbers[1:]):
+        return f"coordinates {' '.join(values[1:])}: each is a share of the image, 0 to 1"
+    return None
+
+
+def dataset_problem(data_yaml: Path, split: str, model_names: list[str]) -> str | None:
+    """Why scoring a model of ``model_names`` on the dataset's ``split`` would say nothing of it, naming the file,
+    or None: the dataset's classes are not the model's in its order (each score would be another class's), or
+    a label line ultralytics drops with its image (the image left out of the scores, said only in its log)."""
+    from ultralytics.data.utils import check_det_dataset, img2label_paths
+
+    info = check_det_dataset(str(data_yaml), autodownload=False)
+    names = info["names"]
+    names = [names[i] for i in sorted(names)] if isinstance(names, dict) else list(names)
+    if names != list(model_names):
+        return (f"{data_yaml}: names {names} are not the model's classes {list(model_names)}: each score would be "
+                f"another class's (label the dataset with the model's classes, in its order)")
+    problems = []
+    for label in img2label_paths([str(p) for p in _split_images(info[split])]):
+        path = Path(label)
+        if not path.is_file():
+            continue  # an image without labels is a background image
+        for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            if line.strip():
+                why = _label_line_problem(line.split(), len(names))
+                if why is not None:
+                    problems.append(f"{path}: line {number}: {why}")
+                    break
+    if not problems:
+        return None
+    more = f" (and {len(problems) - 1} more label files)" if len(problems) > 1 else ""
+    return problems[0] + more + "; ultralytics would leave such images out of the scores"
+
+
 def evaluate_detector(data_yaml: Path, weights: Path, split: str, out_dir: Path, imgsz: int = 224, device: str = "cpu",
                       iou: float = 0.5) -> dict:
     """``iou`` is the IoU above which non-maximum suppression merges two boxes of a class; it changes

@@ -50,3 +50,16 @@ def test_weights_that_would_run_code_are_refused_before_training(tmp_path):
     result = CliRunner().invoke(_build(), base)
     assert result.exit_code == 2 and f"resuming from {last}: refused" in result.output, result.output
     assert not marker.exists(), "the checkpoint's pickle ran"
+
+
+def test_a_label_line_ultralytics_would_drop_is_refused_before_training(tmp_path):
+    # ultralytics drops such an image from training and says so only in its scan log
+    data = neu_fixture_dataset(tmp_path)
+    label = sorted((data / "labels" / "train").glob("*.txt"))[0]
+    label.write_text(label.read_text() + "0 0.5 0.5 0.2\n")
+    result = CliRunner().invoke(_build(), ["train", "detector", "--data", str(data), "--epochs", "1", "--device", "cpu",
+                                           "--workers", "0", "--out", str(tmp_path / "runs")])
+    assert result.exit_code == 2, result.output
+    lines = len(label.read_text().splitlines())
+    assert f"{label}: line {lines}: 4 numbers, expected 'class x y w h'" in result.output
+    assert not (tmp_path / "runs").exists()

@@ -55,33 +55,41 @@ def _label_line_problem(values: list[str], classes: int) -> str | None:
     return None
 
 
-def dataset_problem(data_yaml: Path, split: str, model_names: list[str]) -> str | None:
-    """Why scoring a model of ``model_names`` on the dataset's ``split`` would say nothing of it, naming the file,
-    or None: the dataset's classes are not the model's in its order (each score would be another class's), or
-    a label line ultralytics drops with its image (the image left out of the scores, said only in its log)."""
+def label_problem(data_yaml: Path, splits: tuple[str, ...]) -> str | None:
+    """The first label line of the dataset's ``splits`` that ultralytics drops with its image (left out of
+    training or of the scores, said only in its scan log), naming the file and line, or None."""
     from ultralytics.data.utils import check_det_dataset, img2label_paths
 
     info = check_det_dataset(str(data_yaml), autodownload=False)
-    names = info["names"]
-    names = [names[i] for i in sorted(names)] if isinstance(names, dict) else list(names)
-    if names != list(model_names):
-        return (f"{data_yaml}: names {names} are not the model's classes {list(model_names)}: each score would be "
-                f"another class's (label the dataset with the model's classes, in its order)")
     problems = []
-    for label in img2label_paths([str(p) for p in _split_images(info[split])]):
-        path = Path(label)
-        if not path.is_file():
-            continue  # an image without labels is a background image
-        for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
-            if line.strip():
-                why = _label_line_problem(line.split(), len(names))
+    for split in splits:
+        for label in img2label_paths([str(p) for p in _split_images(info[split])]):
+            path = Path(label)
+            if not path.is_file():
+                continue  # an image without labels is a background image
+            for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+                why = _label_line_problem(line.split(), int(info["nc"])) if line.strip() else None
                 if why is not None:
                     problems.append(f"{path}: line {number}: {why}")
                     break
     if not problems:
         return None
     more = f" (and {len(problems) - 1} more label files)" if len(problems) > 1 else ""
-    return problems[0] + more + "; ultralytics would leave such images out of the scores"
+    return problems[0] + more + "; ultralytics would leave such images out"
+
+
+def dataset_problem(data_yaml: Path, split: str, model_names: list[str]) -> str | None:
+    """Why scoring a model of ``model_names`` on the dataset's ``split`` would say nothing of it, naming the file,
+    or None: the dataset's classes are not the model's in its order (each score would be another class's), or
+    a label line ultralytics drops (``label_problem``)."""
+    from ultralytics.data.utils import check_det_dataset
+
+    names = check_det_dataset(str(data_yaml), autodownload=False)["names"]
+    names = [names[i] for i in sorted(names)] if isinstance(names, dict) else list(names)
+    if names != list(model_names):
+        return (f"{data_yaml}: names {names} are not the model's classes {list(model_names)}: each score would be "
+                f"another class's (label the dataset with the model's classes, in its order)")
+    return label_problem(data_yaml, (split,))
 
 
 def evaluate_detector(data_yaml: Path, weights: Path, split: str, out_dir: Path, imgsz: int = 224, device: str = "cpu",

@@ -139,6 +139,11 @@ def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int
 
     data_yaml = _dataset_yaml(data, ("train", "val"), " (run `inspect data convert-voc` first)")
     from plugins.yolov8.detector import read_checkpoint
+    from plugins.yolov8.evaluation import label_problem
+
+    problem = label_problem(data_yaml, ("train", "val"))
+    if problem is not None:
+        _fail(problem)
 
     last = last_checkpoint(out, name)
     for option, weights in (("--init", init), ("resuming from", last if last.exists() else None)):

@@ -35,9 +35,10 @@ from core.engine import compute_disparity, disparity_range, frame_disparity, res
 from core.recipe import LoadedRecipe
 from core.registry import Registry
 from core.types import FrameError, PartResult, StereoFrame
+from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
 
 STAGES = ("capture", "detection", "stereo", "depth", "decision", "outputs", "loop")
-RESOLUTIONS = {"wvga": (672, 376), "hd720": (1280, 720), "hd1080": (1920, 1080), "2k": (2208, 1242)}  # the ZED's modes
+RESOLUTIONS = {name.lower(): size for name, size in ZED_MODES.items()}  # wvga, hd720, hd1080, 2k
 
 
 class BenchInputError(Exception):

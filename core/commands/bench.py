@@ -11,6 +11,7 @@ from pydantic import ValidationError
 from core.commands.inspection import _load, fail
 from core.commands.params import FINITE, cuda_if_present, demo_recipe, out_folder
 from drivers.file_writes import write_text
+from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
 
 
 @click.command("bench")
@@ -19,7 +20,7 @@ from drivers.file_writes import write_text
 @click.option("--sequence", type=click.Path(path_type=Path), default=None,
               help="another recorded sequence folder (scaled to --resolution unless it is that size)")
 @click.option("--backends", default="opencv_sgbm,torch_sgm", show_default=True, help="comma-separated stereo backends")
-@click.option("--resolution", type=click.Choice(["wvga", "hd720", "hd1080", "2k"]), default="wvga", show_default=True,
+@click.option("--resolution", type=click.Choice([name.lower() for name in ZED_MODES]), default="wvga", show_default=True,
               help="the frames scaled to this ZED mode, their calibration with them")
 @click.option("--min-disp", type=FINITE, default=None)
 @click.option("--max-disp", type=FINITE, default=None)

@@ -58,9 +58,15 @@ def _label_line_problem(values: list[str], classes: int) -> str | None:
 def label_problem(data_yaml: Path, splits: tuple[str, ...]) -> str | None:
     """The first label line of the dataset's ``splits`` that ultralytics drops with its image (left out of
     training or of the scores, said only in its scan log), naming the file and line, or None."""
-    from ultralytics.data.utils import check_det_dataset, img2label_paths
+    from ultralytics.data.utils import check_det_dataset
 
-    info = check_det_dataset(str(data_yaml), autodownload=False)
+    return _label_problem(check_det_dataset(str(data_yaml), autodownload=False), splits)
+
+
+def _label_problem(info: dict, splits: tuple[str, ...]) -> str | None:
+    """``label_problem`` of a dataset as ultralytics' ``check_det_dataset`` resolved it."""
+    from ultralytics.data.utils import img2label_paths
+
     problems = []
     for split in splits:
         for label in img2label_paths([str(p) for p in _split_images(info[split])]):
@@ -84,12 +90,13 @@ def dataset_problem(data_yaml: Path, split: str, model_names: list[str]) -> str 
     a label line ultralytics drops (``label_problem``)."""
     from ultralytics.data.utils import check_det_dataset
 
-    names = check_det_dataset(str(data_yaml), autodownload=False)["names"]
+    info = check_det_dataset(str(data_yaml), autodownload=False)
+    names = info["names"]
     names = [names[i] for i in sorted(names)] if isinstance(names, dict) else list(names)
     if names != list(model_names):
         return (f"{data_yaml}: names {names} are not the model's classes {list(model_names)}: each score would be "
                 f"another class's (label the dataset with the model's classes, in its order)")
-    return label_problem(data_yaml, (split,))
+    return _label_problem(info, (split,))
 
 
 def evaluate_detector(data_yaml: Path, weights: Path, split: str, out_dir: Path, imgsz: int = 224, device: str = "cpu",

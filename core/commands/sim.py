@@ -127,11 +127,13 @@ def register(cli: click.Group) -> None:
             raise SystemExit(2)
         nearest = nearest_plate_mm(zed_calibration(width, height))
         if distance_range_mm is not None:
-            option, plate = f"--distance-range-mm {distance_range_mm[0]:g}", distance_range_mm[0]
+            option, plate, jittered = f"--distance-range-mm {distance_range_mm[0]:g}", distance_range_mm[0], ""
+        elif jitter:
+            option, plate = f"--distance-mm {distance_mm:g}", distance_mm + DISTANCE_JITTER_MM[0]
+            jittered = f" jittered by {DISTANCE_JITTER_MM[0]:g} mm,"
         else:
-            option, plate = f"--distance-mm {distance_mm:g}", distance_mm + (DISTANCE_JITTER_MM[0] if jitter else 0.0)
+            option, plate, jittered = f"--distance-mm {distance_mm:g}", distance_mm, ""
         if plate < nearest:
-            jittered = f" jittered by {DISTANCE_JITTER_MM[0]:g} mm," if plate != distance_mm and distance_range_mm is None else ""
             click.echo(f"error: {option}:{jittered} a plate at {plate:g} mm is nearer than the {nearest:.0f} mm whose "
                        f"disparity the ground truth's 16-bit PNG holds at {width}x{height}: plates from {nearest:.0f} "
                        f"mm on, or a narrower frame", err=True)

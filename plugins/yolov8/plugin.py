@@ -139,9 +139,9 @@ def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int
 
     data_yaml = _dataset_yaml(data, ("train", "val"), " (run `inspect data convert-voc` first)")
     from plugins.yolov8.detector import read_checkpoint
-    from plugins.yolov8.evaluation import label_problem
+    from plugins.yolov8.dataset_check import dataset_problem
 
-    problem = label_problem(data_yaml, ("train", "val"))
+    problem = dataset_problem(data_yaml, ("train", "val"))
     if problem is not None:
         _fail(problem)
 
@@ -191,16 +191,17 @@ def average_command(weights: tuple[Path, ...], out: Path) -> None:
 def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, out: Path) -> None:
     """mAP@0.50, mAP@0.50:0.95, precision, recall and per-class AP, beside the seed's figures.
 
-    A dataset whose classes are not the model's (in its order), or with a label line ultralytics would drop
-    with its image, is refused naming the file."""
+    A dataset whose classes are not the model's (in its order), or with an image or label line ultralytics
+    would drop, is refused naming the file."""
+    from plugins.yolov8.dataset_check import dataset_problem
     from plugins.yolov8.detector import checkpoint_class_names
-    from plugins.yolov8.evaluation import dataset_problem, evaluate_detector, metrics_markdown
+    from plugins.yolov8.evaluation import evaluate_detector, metrics_markdown
 
     data_yaml = _dataset_yaml(data, (split,))
     if not weights.is_file():
         _fail(f"{weights}: weights file not found")
     try:
-        problem = dataset_problem(data_yaml, split, checkpoint_class_names(weights))
+        problem = dataset_problem(data_yaml, (split,), checkpoint_class_names(weights))
         if problem is not None:
             _fail(problem)
         result = evaluate_detector(data_yaml, weights, split, out, imgsz=imgsz, iou=iou)

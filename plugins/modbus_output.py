@@ -43,7 +43,8 @@ class WriteAction(BaseModel):
     write: Literal["coil", "register", "counter"] = "coil"
     address: int = Field(0, ge=0, le=65535)
     value: int = Field(1, ge=0, le=65535)
-    pulse_ms: float | None = Field(None, gt=0, description="coil only: reset the coil after this long")
+    pulse_ms: float | None = Field(None, gt=0, description="coil only: reset the coil after this long (at least "
+                                   f"{MIN_PULSE_GAP_S * 1000:g} ms, a PLC scan)")
 
     @model_validator(mode="after")
     def _check(self):
@@ -51,6 +52,10 @@ class WriteAction(BaseModel):
             raise ValueError("a coil value is 0 or 1")
         if self.write != "coil" and self.pulse_ms is not None:
             raise ValueError("pulse_ms applies to a coil")
+        if self.pulse_ms is not None and self.pulse_ms < MIN_PULSE_GAP_S * 1000:
+            # a PLC reads its coils once a scan: a shorter high can fall between two reads, and the reject is lost
+            raise ValueError(f"pulse_ms {self.pulse_ms:g}: shorter than the {MIN_PULSE_GAP_S * 1000:g} ms a PLC needs "
+                             f"to see the coil high (one scan); give at least that, or write a counter")
         return self
 
 

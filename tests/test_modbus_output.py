@@ -310,6 +310,10 @@ def test_settings_are_checked():
         ModbusSettings.model_validate({"hots": "plc", "delay_ms": 500})
     with pytest.raises(ValidationError, match="pulse_ms applies to a coil"):
         ModbusSettings.model_validate({"on_reject": {"write": "register", "address": 1, "pulse_ms": 10}, "delay_ms": 500})
+    # a PLC reads its coils once a scan: a high shorter than one could fall between two reads
+    with pytest.raises(ValidationError, match="pulse_ms 0.5: shorter than the 20 ms a PLC needs to see the coil high"):
+        ModbusSettings.model_validate({"on_reject": {"write": "coil", "pulse_ms": 0.5}, "delay_ms": 500})
+    assert ModbusSettings.model_validate({"on_reject": {"write": "coil", "pulse_ms": 20}, "delay_ms": 500})
     # without a delay every command would be due at its part's capture, before the part is decided
     with pytest.raises(ValidationError, match="give the time from the camera to the actuator"):
         ModbusSettings.model_validate({})

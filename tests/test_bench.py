@@ -74,6 +74,11 @@ def test_bench_versus_compares_depth_with_other_settings_of_the_backend(tmp_path
     bad = cli_here("bench", "--recipe", recipe, "--backends", "torch_sgm", "--set", "stereo.backend=torch_sgm",
               "--versus", "search=sideways", "--out", str(tmp_path))
     assert bad.returncode == 2 and "--versus: search:" in bad.stderr
+    for value, says in (("[", "--versus: fit_radius: Input should be a valid integer"),  # was a YAML traceback
+                        ("010", "--versus fit_radius=010: 010: YAML reads a leading zero as octal, 8")):
+        bad = cli_here("bench", "--recipe", recipe, "--backends", "torch_sgm", "--set", "stereo.backend=torch_sgm",
+                       "--versus", f"fit_radius={value}", "--out", str(tmp_path))
+        assert bad.returncode == 2 and says in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
 
 
 def test_soak_reports_rss_at_start_and_end(tmp_path):

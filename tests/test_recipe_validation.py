@@ -130,6 +130,19 @@ def test_a_threshold_that_is_not_a_finite_number_is_an_error(recipe_dir, value):
     assert ":13: decision.rules.0.threshold: must be a finite number" in message, message
 
 
+def test_a_number_yaml_would_read_as_octal_or_base_60_is_an_error_naming_its_key(recipe_dir):
+    # YAML 1.1 reads 010 as 8: an address written with a leading zero would pulse another coil
+    text = GOOD.replace("  - plugin: log", "  - plugin: log\n    settings: {file: r.log, delay_ms: 010}")
+    message = _error(recipe_dir, text)
+    assert ":16: outputs.0.settings.delay_ms: 010: YAML reads a leading zero as octal, 8; write 10" in message, message
+    message = _error(recipe_dir, GOOD.replace("    path: seq", "    path: seq\n    rate_fps: 1:30"))
+    assert ":6: camera.settings.rate_fps: 1:30: YAML reads this as the base-60 number 90" in message, message
+    with pytest.raises(RecipeError, match="--set stereo.max_disparity=064: 064: YAML reads a leading zero as octal, 52"):
+        load_recipe(write_recipe(recipe_dir / "r.yaml", GOOD), ["stereo.max_disparity=064"])
+    quoted = load_recipe(write_recipe(recipe_dir / "r.yaml", GOOD), ["stereo.max_disparity='064'"])
+    assert quoted.recipe.stereo.max_disparity == 64
+
+
 def test_an_empty_class_list_is_an_error_not_a_line_that_passes_everything(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("plugin: yolov8", "plugin: yolov8\n  classes: []"))
     assert ":11: detector.classes: an empty list keeps no class" in message, message

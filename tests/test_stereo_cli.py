@@ -140,6 +140,8 @@ def test_a_pair_too_large_for_the_memory_is_refused_before_matching(tmp_path):
     (["--max-disp", 16, "--set", "wmf_radiu=3"], "did you mean 'wmf_radius'?"),
     (["--max-disp", 16, "--set", "p1=-1"], "--set p1: Input should be greater than or equal to 0 (got -1)"),
     (["--max-disp", 16, "--backend", "nope"], "nope"),
+    (["--max-disp", 16, "--set", "fit_radius=["], "--set fit_radius: Input should be a valid integer"),  # not YAML
+    (["--max-disp", 16, "--set", "fit_radius=010"], "010: YAML reads a leading zero as octal, 8; write 10"),
 ])
 def test_bad_options_are_refused(pair, args, word):
     left, right, _ = pair

@@ -5,11 +5,11 @@ import json
 from pathlib import Path
 
 import click
-import yaml
 from pydantic import ValidationError
 
 from core.commands.inspection import _load, fail
 from core.commands.params import FINITE, cuda_if_present, demo_recipe, out_folder
+from core.recipe.yaml_reader import MisreadNumber, option_value
 from drivers.file_writes import write_text
 from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
 
@@ -93,7 +93,10 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             fail(f"--versus: expected KEY=VALUE, got {item!r}")
-        reference[key.strip()] = yaml.safe_load(value)
+        try:
+            reference[key.strip()] = option_value(value)
+        except MisreadNumber as exc:
+            fail(f"--versus {item}: {exc.problem}")
     if reference and loaded.recipe.stereo.backend not in names:
         fail(f"--versus changes the recipe's stereo backend {loaded.recipe.stereo.backend}, which --backends leaves out")
     if reference:

@@ -147,8 +147,10 @@ def _camera_section(recipe: Path, overrides: tuple[str, ...]) -> tuple[str, dict
 def _camera_section_yaml(recipe: Path) -> tuple[str, dict, Path]:
     import yaml
 
+    from core.recipe.yaml_reader import safe_load
+
     try:
-        data = yaml.safe_load(recipe.read_text())
+        data = safe_load(recipe.read_text())
     except OSError as exc:
         _fail(f"{recipe}: cannot read recipe ({exc.strerror})")
     except yaml.YAMLError as exc:

@@ -17,14 +17,17 @@ def _fail(message: str) -> None:
 
 
 def _parse_settings(pairs: tuple[str, ...], option: str = "--set") -> dict:
-    import yaml
+    from core.recipe.yaml_reader import MisreadNumber, option_value
 
     settings = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
         if not sep or not key.strip():
             _fail(f"{option} {pair!r}: expected KEY=VALUE")
-        settings[key.strip()] = yaml.safe_load(value) if value.strip() else ""
+        try:
+            settings[key.strip()] = option_value(value) if value.strip() else ""
+        except MisreadNumber as exc:
+            _fail(f"{option} {pair}: {exc.problem}")
     return settings
 
 

@@ -17,6 +17,7 @@ from typing import Any, Union, get_args, get_origin
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from core.recipe import yaml_reader
 from core.recipe.schema import Recipe
 from core.registry import Registry, UnknownPlugin, default_registry
 from drivers.stereo_geometry import calibration_problem
@@ -201,9 +202,9 @@ def apply_override(data: dict, assignment: str) -> KeyPath:
     if not all(str(p) for p in parts):
         raise RecipeError(f"--set {assignment}: empty key in {dotted!r}")
     try:
-        value = yaml.safe_load(raw)
-    except yaml.YAMLError:
-        value = raw
+        value = yaml_reader.option_value(raw)
+    except yaml_reader.MisreadNumber as exc:
+        raise RecipeError(f"--set {assignment}: {exc.problem}") from None
     node: Any = data
     for i, part in enumerate(parts[:-1]):
         if isinstance(node, list):
@@ -262,10 +263,12 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     except OSError as exc:
         raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from None
     try:
-        data = yaml.safe_load(text)
         lines = _line_map(text)
+        data = yaml_reader.safe_load(text)
     except DuplicateKey as exc:
         raise RecipeError(f"{path}:{exc}") from None
+    except yaml_reader.MisreadNumber as exc:
+        raise RecipeError(f"{path}:{exc.line}: {_dotted(exc.key)}: {exc.problem}") from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark
         where = f"{path}:{mark.line + 1}" if mark else str(path)

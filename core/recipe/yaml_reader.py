@@ -1,0 +1,83 @@
+"""Safe YAML that refuses the YAML 1.1 numbers which do not mean what they look like.
+
+PyYAML reads YAML 1.1, where ``010`` is octal (8) and ``1:30`` is base 60 (90). In a recipe those are a
+Modbus address or a time an integrator wrote in decimal: coil 8 pulsed instead of coil 10, and the reject
+lost at the wrong gate. Such a scalar is an error naming its line; quoted, or written without the leading
+zero, it is whatever the key expects.
+"""
+from __future__ import annotations
+
+import re
+
+import yaml
+
+_OCTAL = re.compile(r"[-+]?0[0-7_]+")
+_BASE_60 = re.compile(r"[-+]?[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?")
+
+
+class MisreadNumber(yaml.MarkedYAMLError):
+    """A scalar YAML 1.1 reads as another number than its digits say; ``line`` is 1-based, ``key`` the path
+    of the mapping keys and list indexes to it."""
+
+    def __init__(self, mark: yaml.Mark, text: str, why: str):
+        super().__init__(problem=f"{text}: {why}", problem_mark=mark)
+        self.line = mark.line + 1
+        self.key: tuple[str | int, ...] = ()
+
+
+class _Loader(yaml.SafeLoader):
+    def construct_yaml_int(self, node):
+        text = self.construct_scalar(node)
+        value = super().construct_yaml_int(node)
+        if _OCTAL.fullmatch(text) and int(text.replace("_", ""), 10) != value:
+            raise MisreadNumber(node.start_mark, text, f"YAML reads a leading zero as octal, {value}; write "
+                                f"{int(text.replace('_', ''), 10)} without the zero (or {value} if octal was meant)")
+        if _BASE_60.fullmatch(text):
+            raise MisreadNumber(node.start_mark, text, f"YAML reads this as the base-60 number {value}; write the "
+                                f"number, or quote it if it is text")
+        return value
+
+    def construct_yaml_float(self, node):
+        text = self.construct_scalar(node)
+        value = super().construct_yaml_float(node)
+        if _BASE_60.fullmatch(text):
+            raise MisreadNumber(node.start_mark, text, f"YAML reads this as the base-60 number {value:g}; write the "
+                                f"number, or quote it if it is text")
+        return value
+
+
+_Loader.add_constructor("tag:yaml.org,2002:int", _Loader.construct_yaml_int)
+_Loader.add_constructor("tag:yaml.org,2002:float", _Loader.construct_yaml_float)
+
+
+def _path_to(node: yaml.Node, index: int, path: tuple = ()) -> tuple | None:
+    """The keys and list indexes from ``node`` to the scalar that starts at character ``index``."""
+    if isinstance(node, yaml.ScalarNode):
+        return path if node.start_mark.index == index else None
+    children = (node.value if isinstance(node, yaml.MappingNode) else
+                [(None, item) for item in node.value] if isinstance(node, yaml.SequenceNode) else [])
+    for position, (key, value) in enumerate(children):
+        found = _path_to(value, index, path + (key.value if key is not None else position,))
+        if found is not None:
+            return found
+    return None
+
+
+def safe_load(text: str):
+    """``yaml.safe_load`` that raises ``MisreadNumber`` where YAML 1.1 would misread a number."""
+    try:
+        return yaml.load(text, Loader=_Loader)
+    except MisreadNumber as exc:
+        exc.key = _path_to(yaml.compose(text, Loader=yaml.SafeLoader), exc.problem_mark.index) or ()
+        raise
+
+
+def option_value(raw: str):
+    """The VALUE of a command line's ``KEY=VALUE``: YAML, so that ``3``, ``true`` and ``[1, 2]`` are what they
+    look like, or the text itself where it is not YAML; ``MisreadNumber`` where YAML would misread a number."""
+    try:
+        return safe_load(raw)
+    except MisreadNumber:
+        raise
+    except yaml.YAMLError:
+        return raw

@@ -1,7 +1,7 @@
 """A line-protocol link over pyserial for ``reject_scheduler``: ``REJECT P000012\\n`` style.
 
-``send(line)`` writes the line and, when an acknowledgement is expected, reads lines until one
-matches it (``ack`` is compared after stripping; ``{part_id}`` etc. are already filled in by the
+``send(line)`` writes the line and, when an acknowledgement is expected, reads the lines that arrive
+after it until one matches it (``ack`` is compared after stripping; ``{part_id}`` etc. are already filled in by the
 caller) or ``ack_timeout_s`` passes. Any pyserial URL works as the port: ``/dev/ttyUSB0``,
 ``/dev/pts/7`` (a socat pair), ``loop://`` (tests), ``socket://host:port``.
 
@@ -65,6 +65,10 @@ class SerialLine:
         if self.serial is None:
             raise LinkError(f"serial port {self.port} not open")
         try:
+            if command.ack is not None:
+                # whatever waits unread answers an earlier line: taken for this one's acknowledgement, a line
+                # the device never confirmed would count as delivered
+                self.serial.reset_input_buffer()
             self.serial.write((command.text + self.line_ending).encode(self.encoding))
             self.serial.flush()
             if command.ack is None:

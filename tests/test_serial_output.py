@@ -152,3 +152,42 @@ def test_settings_are_checked():
         SerialSettings.model_validate({})
     with pytest.raises(ValidationError, match="Extra inputs"):
         SerialSettings.model_validate({"port": "loop://", "baud": 9600})
+
+
+class LatePeer(Peer):
+    """A device whose acknowledgement is the same line for every part ("OK"): it answers P0000 twice, the
+    second time after the output stopped waiting, and never answers P0001."""
+
+    def run(self) -> None:
+        buffer = b""
+        while self.running:
+            buffer += self.port.read(self.port.in_waiting or 1)
+            while b"\n" in buffer:
+                raw, buffer = buffer.split(b"\n", 1)
+                line = raw.decode().strip()
+                self.lines.append((time.time(), line))
+                if line.endswith("P0000"):
+                    self.port.write(b"OK\n")
+                    time.sleep(0.15)
+                    self.port.write(b"OK\n")
+
+
+def test_an_answer_to_an_earlier_line_does_not_acknowledge_the_next(pty_pair):
+    """Replies waiting before a line is written answer an earlier one: taken for the next line's
+    acknowledgement, a reject the device never confirmed was recorded as delivered."""
+    plc_end, our_end = pty_pair
+    peer = LatePeer(plc_end)
+    try:
+        out = make(our_end, ack_format="OK", ack_timeout_ms=60, max_late_ms=150)
+        first = part(0)
+        out.submit(first)
+        second = PartResult("P0001", "000001", 1, first.timestamp + 0.3, Verdict(Status.REJECT))
+        out.submit(second)
+        events = out.close(timeout_s=3)
+        time.sleep(0.1)  # for the peer to read the last line
+    finally:
+        peer.stop()
+    assert {line for _, line in peer.lines} == {"REJECT P0000", "REJECT P0001"}, events  # P0001 retried
+    outcomes = {(e.part_id, e.outcome) for e in events if isinstance(e, OutputEvent) and e.part_id}
+    assert ("P0000", "delivered") in outcomes and ("P0001", "delivered") not in outcomes, events
+    assert [a.part_id for a in events if isinstance(a, Alarm)] == ["P0001"]

@@ -5,7 +5,9 @@ reaches it. ``RejectScheduler`` keeps a queue ordered by due time and one worker
 
 * waits (no busy loop) until the earliest command is due and sends it over the ``Link``;
 * reconnects with exponential back-off while the link is down, also between commands, so the
-  link is up again before the next one is due;
+  link is up again before the next one is due; a connection that drops after a command went through is
+  reopened at once, one that opens but takes no command (a peer refusing it) only after the back-off,
+  so that a refused command is not retried thousands of times a second against the PLC;
 * gives each command until ``due + max_late_s`` (its deadline); a command that cannot be sent
   by then is reported with outcome ``alarm`` and never silently dropped;
 * runs follow-up commands (a coil pulse's release) and an optional periodic heartbeat;
@@ -133,6 +135,7 @@ class RejectScheduler:
         self._records: list[Record] = []
         self._seq = itertools.count()
         self._connected = False
+        self._answered = False  # a command went through on this connection
         self._backoff = reconnect_min_s
         self._next_connect = 0.0
         self._last_connect_error = ""
@@ -300,6 +303,7 @@ class RejectScheduler:
                     except Exception:
                         pass
                     raise
+                self._went_through()
                 with self._cond:
                     self._records.append(Record(None, command.text, "delivered", time.time(), detail or ""))
         except Exception as exc:  # LinkError, OSError, or anything a library raises: keep the worker alive
@@ -320,7 +324,6 @@ class RejectScheduler:
                                                 cause=cause, alarm=alarm))
             return
         self._connected = True
-        self._backoff = self.reconnect_min_s
         if self._down_reported:
             with self._cond:
                 self._records.append(Record(None, "connect", "delivered", time.time(), "link up again"))
@@ -331,10 +334,15 @@ class RejectScheduler:
         if state is not None:
             try:
                 detail = self.link.send(state.payload)
+                self._went_through()
                 with self._cond:
                     self._records.append(Record(None, state.text, "delivered", time.time(), detail or ""))
             except Exception as exc:
                 self._lost(exc)
+
+    def _went_through(self) -> None:
+        self._answered = True
+        self._backoff = self.reconnect_min_s
 
     def _lost(self, exc: Exception) -> None:
         self._connected = False
@@ -344,7 +352,12 @@ class RejectScheduler:
             self.link.close()
         except Exception:
             pass
-        self._next_connect = time.monotonic()  # first reconnect attempt right away
+        if self._answered:  # it worked until now: a dropped connection is worth reopening at once
+            self._next_connect = time.monotonic()
+        else:  # it opens but takes nothing: reopening at once would retry the command in a tight loop
+            self._next_connect = time.monotonic() + self._backoff
+            self._backoff = min(self.reconnect_max_s, self._backoff * 2)
+        self._answered = False
 
     def _attempt(self, job: _Job) -> None:
         if job.kind == "heartbeat":
@@ -394,6 +407,7 @@ class RejectScheduler:
                                                     f"attempt {job.attempts}: {exc}"))
                 self._lost(exc)
                 continue
+            self._went_through()
             done = time.monotonic()
             late = started - job.due  # when the command went out; the answer may take a little longer
             with self._cond:
@@ -442,6 +456,7 @@ class RejectScheduler:
                 self._records.append(Record(None, job.command.text, "failed", time.time(), str(exc)))
             self._lost(exc)
             return
+        self._went_through()
         with self._cond:
             self._records.append(Record(None, job.command.text, "delivered", time.time(), detail or ""))
 
@@ -449,6 +464,7 @@ class RejectScheduler:
         if self._connected and not self._closing and not self._held:
             try:
                 self.link.send(job.command.payload)
+                self._went_through()
             except Exception as exc:
                 self._lost(exc)
         with self._cond:

@@ -46,6 +46,20 @@ class SerialSettings(TimingSettings):
 
     _formats = field_validator("reject_format", "pass_format", "ack_format")(checked_format)
 
+    @field_validator("reject_format", "pass_format", "ack_format")
+    @classmethod
+    def _one_ascii_line(cls, value: str | None) -> str | None:
+        """The line goes out as ASCII: a format it cannot encode failed at every reject, and a line break in
+        it would make two lines of one command."""
+        if value is None:
+            return None
+        odd = [c for c in value if not c.isascii()]
+        if odd:
+            raise ValueError(f"bad format {value!r}: {odd[0]!r} is not ASCII, which the serial line sends")
+        if "\n" in value or "\r" in value:
+            raise ValueError(f"bad format {value!r}: a line break would send two lines for one part")
+        return value
+
 
 class SerialOutput(ScheduledOutput):
     name = "serial"

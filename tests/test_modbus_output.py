@@ -207,6 +207,19 @@ def test_an_address_the_plc_does_not_have_is_a_refusal_that_says_so_not_an_unrea
     assert not any("did not answer" in h for h in hints)
 
 
+def test_a_refused_command_is_retried_with_back_off_not_in_a_tight_loop(sim, port):
+    """A register the PLC does not have: the connection opens, the write is refused. Reopened at once after
+    each refusal, it was written about 2,000 times in its second of retries, a connection each."""
+    out = output(port, delay_ms=100, max_late_ms=1000, reconnect_min_ms=50, reconnect_max_ms=400,
+                 on_reject={"write": "register", "address": plc_sim.SIZE, "value": 1})
+    out.submit(part(0))
+    time.sleep(1.3)
+    events = out.poll() + out.close(timeout_s=2)
+    failed = [e for e in events_of(events) if e.outcome == "failed"]
+    assert 3 <= len(failed) <= 10, len(failed)  # after 0, 50, 100, 200 and 400 ms of back-off, then every 400
+    assert [(a.part_id, a.cause) for a in events_of(events, Alarm)] == [("P0000", "refused")]
+
+
 def test_plc_killed_mid_run_and_restarted(port):
     """Parts every 80 ms for 1.6 s; the PLC is stopped after 0.5 s and back at 0.9 s. Every reject
     is delivered (on time) or alarmed, in order, and the output reconnects by itself."""

@@ -152,6 +152,11 @@ def test_settings_are_checked():
         SerialSettings.model_validate({})
     with pytest.raises(ValidationError, match="Extra inputs"):
         SerialSettings.model_validate({"port": "loop://", "baud": 9600})
+    # accepted, such a format failed to encode at every reject, each one retried until its deadline
+    with pytest.raises(ValidationError, match="bad format 'REJET pièce {part_id}': 'è' is not ASCII"):
+        SerialSettings.model_validate({"port": "loop://", "reject_format": "REJET pièce {part_id}"})
+    with pytest.raises(ValidationError, match="a line break would send two lines for one part"):
+        SerialSettings.model_validate({"port": "loop://", "ack_format": "ACK\r\n{part_id}"})
 
 
 class LatePeer(Peer):

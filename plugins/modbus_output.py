@@ -85,6 +85,9 @@ class ModbusSettings(TimingSettings):
     def _transport(self):
         if self.transport == "rtu" and not self.serial_port:
             raise ValueError("transport rtu needs serial_port")
+        if self.transport == "rtu" and self.unit == 0:
+            raise ValueError("unit 0 is the RTU broadcast address: every device on the bus takes the write and none "
+                             "answers, so no reject could be confirmed; give the PLC's own unit id (1-247)")
         return self
 
     @model_validator(mode="after")

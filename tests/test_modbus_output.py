@@ -319,6 +319,10 @@ def test_settings_are_checked():
         ModbusSettings.model_validate({"actuator_distance_mm": 100})
     with pytest.raises(ValidationError, match="rtu needs serial_port"):
         ModbusSettings.model_validate({"transport": "rtu", "delay_ms": 500})
+    # no device answers a broadcast: each reject would wait for an answer that never comes
+    with pytest.raises(ValidationError, match="unit 0 is the RTU broadcast address"):
+        ModbusSettings.model_validate({"transport": "rtu", "serial_port": "/dev/ttyUSB0", "unit": 0, "delay_ms": 500})
+    assert ModbusSettings.model_validate({"transport": "tcp", "unit": 0, "delay_ms": 500}).unit == 0
     with pytest.raises(ValidationError, match="Extra inputs"):
         ModbusSettings.model_validate({"hots": "plc", "delay_ms": 500})
     with pytest.raises(ValidationError, match="pulse_ms applies to a coil"):

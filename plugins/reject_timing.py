@@ -41,6 +41,13 @@ class TimingSettings(BaseModel):
                              "with conveyor_speed_mm_s")
         if self.reconnect_max_ms < self.reconnect_min_ms:
             raise ValueError("reconnect_max_ms must be at least reconnect_min_ms")
+        if self.delay_s > MAX_CLOSE_WAIT_S:
+            # a speed in m/s where mm/s is meant gives such a delay: each reject would fire at another plate
+            given = (f"{self.actuator_distance_mm:g} mm at {self.conveyor_speed_mm_s:g} mm/s" if self.delay_ms is None
+                     else f"delay_ms {self.delay_ms:g}")
+            raise ValueError(f"the actuator would be {self.delay_s:.0f} s after the camera ({given}): longer than the "
+                             f"{MAX_CLOSE_WAIT_S:.0f} s a run's end waits for the plates on their way; check the "
+                             f"units (mm, mm/s, ms)")
         return self
 
     @property

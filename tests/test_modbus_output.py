@@ -317,6 +317,12 @@ def test_settings_are_checked():
         ModbusSettings.model_validate({"delay_ms": 10, "actuator_distance_mm": 100, "conveyor_speed_mm_s": 10})
     with pytest.raises(ValidationError, match="go together"):
         ModbusSettings.model_validate({"actuator_distance_mm": 100})
+    # the belt's speed in m/s: each reject would have fired 25 minutes later, at another plate
+    with pytest.raises(ValidationError, match=r"the actuator would be 1500 s after the camera \(600 mm at 0.4 mm/s\): "
+                                              "longer than the 120 s a run's end waits"):
+        ModbusSettings.model_validate({"actuator_distance_mm": 600, "conveyor_speed_mm_s": 0.4})
+    with pytest.raises(ValidationError, match=r"200 s after the camera \(delay_ms 200000\)"):
+        ModbusSettings.model_validate({"delay_ms": 200000})
     with pytest.raises(ValidationError, match="rtu needs serial_port"):
         ModbusSettings.model_validate({"transport": "rtu", "delay_ms": 500})
     # no device answers a broadcast: each reject would wait for an answer that never comes

@@ -76,6 +76,18 @@ def test_other_architecture_is_refused(two_checkpoints, tmp_path):
     assert not (tmp_path / "mean.pt").exists()
 
 
+def test_checkpoints_of_another_class_list_are_refused(two_checkpoints, tmp_path):
+    """The same shapes, the classes in another order: each output channel means another class in each."""
+    from ultralytics import YOLO
+
+    swapped = YOLO(str(two_checkpoints[1]))
+    swapped.model.names = dict(enumerate([NAMES[1], NAMES[0], *NAMES[2:]]))
+    swapped.save(str(tmp_path / "swapped.pt"))
+    with pytest.raises(AveragingError, match=r"checkpoint 2 \(.*swapped.pt\) has classes \['inclusion', 'crazing',"):
+        average_checkpoints([two_checkpoints[0], tmp_path / "swapped.pt"], tmp_path / "mean.pt")
+    assert not (tmp_path / "mean.pt").exists()
+
+
 def test_cli_averages_and_names_a_bad_file(two_checkpoints, tmp_path):
     runner = CliRunner()
     result = runner.invoke(_build(), ["train", "average", *map(str, two_checkpoints), "--out", str(tmp_path / "m.pt")])

@@ -36,6 +36,11 @@ def _weights_module(checkpoint: dict) -> torch.nn.Module:
     return (module if module is not None else checkpoint["model"]).float()
 
 
+def _class_names(module: torch.nn.Module) -> list[str]:
+    names = getattr(module, "names", None) or {}
+    return [names[i] for i in sorted(names)] if isinstance(names, dict) else list(names)
+
+
 def average_state_dicts(state_dicts: list[dict[str, torch.Tensor]], weights: list[float] | None = None,
                         ) -> dict[str, torch.Tensor]:
     """Weighted mean of floating-point entries; integer entries (counters) come from the first.
@@ -63,6 +68,12 @@ def average_checkpoints(paths: list[Path], out: Path, weights: list[float] | Non
     checkpoints = [_load(Path(p)) for p in paths]
     modules = [_weights_module(c) for c in checkpoints]
     averaged = average_state_dicts([m.state_dict() for m in modules], weights)
+    names = [_class_names(m) for m in modules]
+    for index, other in enumerate(names[1:], start=1):
+        if other != names[0]:
+            # the same shapes, but each output channel means another class: their mean detects nothing
+            raise AveragingError(f"checkpoint {index + 1} ({paths[index]}) has classes {other}, the first "
+                                 f"{names[0]}: average checkpoints of one class list only")
     # the loaded checkpoints are ours alone: the first one's module takes the mean in place
     model = modules[0]
     model.load_state_dict(averaged)

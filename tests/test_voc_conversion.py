@@ -83,3 +83,19 @@ def test_split_files_and_cli(tmp_path):
     assert "converted 3 images" in out.stdout and "box_clamped" in out.stdout
     assert "warning: box_clamped: outside_3.xml" in out.stderr
     assert sorted(p.name for p in (tmp_path / "y" / "labels" / "val").iterdir()) == ["outside_3.txt"]
+
+
+def test_the_sources_own_split_files_are_used_and_their_absence_said(tmp_path):
+    """NEU-DET ships train.txt and val.txt beside its folders: without them val was the training images,
+    and a detector's score on it a score on what it had learnt."""
+    src = _dataset(tmp_path)
+    (src / "train.txt").write_text("crazing_1\ngood_2\n")
+    (src / "val.txt").write_text("outside_3\n")
+    out = cli("data", "convert-voc", str(src), str(tmp_path / "y"))
+    assert out.returncode == 0, out.stderr
+    assert f"splits: {src / 'train.txt'}, {src / 'val.txt'}" in out.stdout
+    assert sorted(p.name for p in (tmp_path / "y" / "labels" / "val").iterdir()) == ["outside_3.txt"]
+    (src / "val.txt").unlink()
+    out = cli("data", "convert-voc", str(src), str(tmp_path / "z"))
+    assert out.returncode == 0, out.stderr
+    assert "no --split-files were given: every image is in train, and val is the same images" in out.stderr

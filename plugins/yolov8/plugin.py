@@ -62,13 +62,24 @@ def _dataset_yaml(data: Path, splits: tuple[str, ...], hint: str = "") -> Path:
 @click.argument("src", type=click.Path(path_type=Path))
 @click.argument("dst", type=click.Path(path_type=Path))
 @click.option("--split-files", nargs=2, type=click.Path(path_type=Path), default=None,
-              help="train and val stem lists (e.g. train.txt val.txt); relative to SRC when not found as given")
+              help="train and val stem lists (e.g. train.txt val.txt); relative to SRC when not found as given; "
+                   "default: SRC's train.txt and val.txt where it has both")
 def convert_voc_command(src: Path, dst: Path, split_files: tuple[Path, Path] | None) -> None:
-    """Convert a Pascal VOC folder (images/, annotations/) into the YOLO layout with data.yaml."""
+    """Convert a Pascal VOC folder (images/, annotations/) into the YOLO layout with data.yaml.
+
+    Without split files (given, or SRC's train.txt and val.txt) every image is in train and val is the same
+    images, which is said: scores on it are scores on the training images."""
     from plugins.yolov8.voc_to_yolo import convert_voc
 
     if not (src / "images").is_dir() or not (src / "annotations").is_dir():
         _fail(f"{src}: expected images/ and annotations/ folders")
+    if split_files is None and (src / "train.txt").is_file() and (src / "val.txt").is_file():
+        split_files = (src / "train.txt", src / "val.txt")
+        click.echo(f"splits: {split_files[0]}, {split_files[1]}")
+    elif split_files is None:
+        click.echo(f"warning: {src} has no train.txt and val.txt and no --split-files were given: every image is in "
+                   f"train, and val is the same images, so a score on val says nothing of images the model has not "
+                   f"seen", err=True)
     splits = None
     if split_files:
         splits = {}

@@ -20,6 +20,7 @@ def test_scores_the_committed_model_at_the_detectors_own_nms_iou(dataset, tmp_pa
     assert out.returncode == 0, out.stderr
     result = json.loads((tmp_path / "ev" / "detector_metrics.json").read_text())
     assert result["nms_iou"] == 0.5 and result["split"] == "val"  # 0.5 = YoloSettings.iou, what `inspect run` uses
+    assert "also train images" not in out.stderr
     # The fixtures were chosen as images where the model finds the class: it must still do so.
     assert set(result["AP50"]) == {"inclusion", "patches", "pitted_surface", "rolled-in_scale", "scratches"}
     assert result["mAP50"] > 50.0
@@ -33,6 +34,16 @@ def test_scores_the_committed_model_at_the_detectors_own_nms_iou(dataset, tmp_pa
                 "--out", str(tmp_path / "ev7"))
     assert other.returncode == 0, other.stderr
     assert json.loads((tmp_path / "ev7" / "detector_metrics.json").read_text())["nms_iou"] == 0.7
+
+
+def test_scoring_on_training_images_is_said(dataset, tmp_path):
+    spec = (dataset / "data.yaml").read_text().replace("val: images/val", "val: images/train")
+    (tmp_path / "data.yaml").write_text(spec)
+    out = cli("eval", "detector", "--data", str(tmp_path / "data.yaml"), "--weights", str(WEIGHTS),
+              "--out", str(tmp_path / "ev"))
+    assert out.returncode == 0, out.stderr
+    trained = len(list((dataset / "images" / "train").iterdir()))
+    assert f"{trained} of the val images are also train images: a score on them says how well the model" in out.stderr
 
 
 def test_bad_input_is_one_line_naming_it(dataset, tmp_path):

@@ -138,3 +138,15 @@ def dataset_problem(data_yaml: Path, splits: tuple[str, ...], model_names: list[
             return (f"{data_yaml}: names {names} are not the model's classes {list(model_names)}: each score would "
                     f"be another class's (label the dataset with the model's classes, in its order)")
     return label_problem(info, splits)
+
+
+def shared_with_train(data_yaml: Path, split: str) -> int:
+    """How many of the dataset's ``split`` images are also in its train split (0 for train itself): a score on
+    them is a score on what the model may have learnt."""
+    from ultralytics.data.utils import check_det_dataset
+
+    info = check_det_dataset(str(data_yaml), autodownload=False)
+    if split == "train" or not info.get("train"):
+        return 0
+    train = {p.resolve() for p in split_images(info["train"])}
+    return sum(p.resolve() in train for p in split_images(info[split]))

@@ -22,6 +22,7 @@ from core.types import Alarm, OutputEvent, PartResult, Status
 from drivers.file_writes import write_text
 
 DB_NAME = "results.db"
+ROW_ID_MAX = 2**63 - 1  # SQLite's largest integer: a larger id overflows in the query, not "no such row"
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (

@@ -46,7 +46,7 @@ def test_report_on_missing_store(tmp_path):
     assert out.returncode == 2 and out.stderr.startswith("error: ") and "no results store" in out.stderr
 
 
-@pytest.mark.parametrize("run", ["2", "0", "-1"])
+@pytest.mark.parametrize("run", ["2", "0", "-1", "99999999999999999999"])  # the last overflowed SQLite's integer
 def test_a_run_the_store_does_not_hold_is_an_error_not_a_run_without_parts(results, run):
     out = cli_here("report", str(results), "--run", run)
     assert out.returncode == 2 and out.stdout == ""

@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 
 from core.commands.params import cuda_if_present, out_file
+from core.store import ROW_ID_MAX
 from core.types import Alarm, OutputEvent, Status
 
 _STYLE = {Status.PASS: "green", Status.REJECT: "bold red", Status.ERROR: "bold yellow", Status.FLAG: "bold magenta"}
@@ -486,7 +487,8 @@ def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> 
     except (FileNotFoundError, store.StoreError) as exc:
         fail(str(exc))
     runs = db.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
-    if run_id is not None and db.execute("SELECT 1 FROM runs WHERE id = ?", (run_id,)).fetchone() is None:
+    if run_id is not None and (abs(run_id) > ROW_ID_MAX  # beyond SQLite's integers: no run, and no query to ask
+                               or db.execute("SELECT 1 FROM runs WHERE id = ?", (run_id,)).fetchone() is None):
         # a mistyped run would otherwise read as a run without parts
         first, last = db.execute("SELECT MIN(id), MAX(id) FROM runs").fetchone()
         fail(f"{store.db_path(results)}: no run {run_id} (" + (f"runs {first}-{last})" if runs else "no runs yet)"))

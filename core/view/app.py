@@ -25,12 +25,11 @@ from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
-from core.store import write_csv
+from core.store import ROW_ID_MAX, write_csv
 from core.view.feed import LiveFeed, encode_jpeg
 from core.view.queries import StoreReader, counters
 
 STATIC = Path(__file__).parent / "static"
-ROW_ID_MAX = 2**63 - 1  # SQLite's largest integer: a larger id in a URL overflowed into a 500
 VerdictName = Literal["PASS", "REJECT", "ERROR", "FLAG"]
 
 

@@ -448,3 +448,15 @@ def test_a_log_file_that_cannot_be_written_is_said_with_the_recipe_not_at_the_fi
         load_recipe(path, [f"outputs.0.settings.file={file.format(dir=recipe_dir)}"])
     load_recipe(path, ["outputs.0.settings.file=logs/new/rejects.log"])  # a folder still to be made is fine
     assert not (recipe_dir / "logs").exists()  # and checking made nothing
+
+
+def test_a_thread_count_beyond_any_cpu_is_an_error_not_an_overflow(recipe_dir):
+    # torch's thread count is a C int: 10^20 ended `inspect stereo` and `eval depth` in a traceback
+    path = write_recipe(recipe_dir / "r.yaml", GOOD)
+    with pytest.raises(RecipeError, match=r"threads: give auto or a number of threads, 1 to 256 \(got 100000000000"):
+        load_recipe(path, ["threads=100000000000000000000"])
+    out = cli_here("stereo", str(ROOT / "sim_fixtures/steel_plate/left/000000.jpg"),
+                   str(ROOT / "sim_fixtures/steel_plate/right/000000.jpg"), "--max-disp", "64",
+                   "--threads", "100000000000000000000")
+    assert out.returncode == 2 and "'--threads': 100000000000000000000 is not in the range 1<=x<=256" in out.stderr
+    assert "Traceback" not in out.stderr

@@ -9,6 +9,7 @@ from pydantic import ValidationError
 
 from core.commands.inspection import _load, fail
 from core.commands.params import FINITE, cuda_if_present, demo_recipe, out_folder
+from core.recipe.schema import MAX_THREADS
 from core.recipe.yaml_reader import MisreadNumber, option_value
 from drivers.file_writes import write_text
 from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
@@ -40,7 +41,7 @@ from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
 @click.option("--live", default=None, type=click.IntRange(1), metavar="FRAMES",
               help="after the table: the real loop as the recipe runs it (detection a frame ahead where "
                    "stereo.concurrent) for FRAMES frames, with detection alone and with depth, and their ratio")
-@click.option("--threads", type=click.IntRange(1), default=None,
+@click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=None,
               help="torch and OpenCV CPU threads (1 is fastest when another job keeps a core busy)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE")
 @click.option("--versus", "versus", multiple=True, metavar="KEY=VALUE",

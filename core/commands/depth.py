@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from core.commands.params import Finite, cuda_if_present, demo_recipe, out_folder
+from core.recipe.schema import MAX_THREADS
 
 
 @click.command("depth")
@@ -21,7 +22,7 @@ from core.commands.params import Finite, cuda_if_present, demo_recipe, out_folde
 @click.option("--figure/--no-figure", default=True, show_default=True, help="save error against distance and width")
 @click.option("--device", default="cpu", show_default=True, callback=cuda_if_present,
               help="cpu, cuda or auto (torch_sgm)")
-@click.option("--threads", type=click.IntRange(1), default=None, help="torch and OpenCV CPU threads")
+@click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=None, help="torch and OpenCV CPU threads")
 @click.option("--boxes", type=click.Choice(["true", "detector"]), default="true", show_default=True,
               help="measure in the labels' true boxes, or in the recipe's detector's boxes that match them")
 @click.option("--box-scale", type=Finite(min=0.1, max=10.0), default=1.0, show_default=True,

@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 
 from core.commands.params import cuda_if_present, out_file
+from core.recipe.schema import MAX_THREADS
 from core.store import ROW_ID_MAX
 from core.types import Alarm, OutputEvent, Status
 
@@ -71,7 +72,7 @@ def part_line(outcome) -> str:
 @click.option("--port", default=None, type=click.IntRange(1, 65535), help="view: port (default: the recipe's view.port, 8080)")
 @click.option("--token", default=None, help="view: require this token from every browser (the recipe's view.token)")
 @click.option("--keep-serving", is_flag=True, help="view: keep the page up after the run ends, until Ctrl-C")
-@click.option("--threads", type=click.IntRange(1), default=None,
+@click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=None,
               help="CPU threads for torch and OpenCV (the recipe's threads; default auto: half the cores)")
 def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frames: int | None, plc_sim: bool, quiet: bool,
                 view: bool, host: str | None, port: int | None, token: str | None, keep_serving: bool,

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from core.commands.params import FINITE, cuda_if_present, out_file, out_folder
+from core.recipe.schema import MAX_THREADS
 
 
 def _fail(message: str) -> None:
@@ -100,7 +101,7 @@ def write_png(path: Path, disparity, vmin: float, vmax: float) -> None:
         _fail(str(exc))
 
 
-threads_option = click.option("--threads", type=click.IntRange(min=1), default=None,
+threads_option = click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=None,
                               help="torch CPU threads (1 is fastest when the cores are shared)")
 device_option = click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
                              callback=cuda_if_present,

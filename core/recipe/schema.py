@@ -197,6 +197,10 @@ class ViewSection(Section):
     max_fps: float = Field(10.0, gt=0.0, le=60.0)  # the page asks for at most this many live frames per second
 
 
+# Threads per stage: more than any CPU this runs on has cores (torch's own bound is a C int)
+MAX_THREADS = 256
+
+
 class Recipe(Section):
     name: str = Field(min_length=1)
     description: str = ""
@@ -218,6 +222,6 @@ class Recipe(Section):
     @field_validator("threads", mode="before")
     @classmethod
     def _threads(cls, value):
-        if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+        if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= MAX_THREADS):
             return value
-        raise ValueError("give auto or a number of threads, at least 1")
+        raise ValueError(f"give auto or a number of threads, 1 to {MAX_THREADS}")

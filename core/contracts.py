@@ -122,6 +122,9 @@ class PluginSpec:
     # apart (a reject pulse and the low after it), from the settings alone, so that a camera delivering
     # parts faster than that is warned of; None where any rate will do (a counter, a level).
     part_interval: Callable[[dict[str, Any], PluginContext], float | None] | None = None
+    # Optional, outputs: how long after its due time a command is still sent and counted delivered, from the
+    # settings alone, so that a limit reaching the plate after a part's own is warned of.
+    late_limit: Callable[[dict[str, Any], PluginContext], float | None] | None = None
 
     def answer(self, question: str, settings: dict[str, Any], recipe_dir: Path) -> Any:
         """The answer to one of the optional questions above (``calibration``, ``frame_rate``, ...) from the

@@ -29,7 +29,7 @@ from core.hookspecs import hookimpl
 from core.types import PartResult
 from drivers.modbus_link import ModbusLink, ModbusWrite
 from drivers.reject_scheduler import MIN_PULSE_GAP_S, Command, RejectScheduler
-from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay
+from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay, late_limit
 
 
 class WriteAction(BaseModel):
@@ -199,6 +199,7 @@ def stereo_inspect_outputs() -> list[PluginSpec]:
             factory=_factory,
             settings_model=ModbusSettings,
             actuator_delay=actuator_delay(ModbusSettings),
+            late_limit=late_limit(ModbusSettings),
             part_interval=part_interval,
             description="reject via Modbus TCP/RTU: coil pulse or register write at the actuator's due time",
         )

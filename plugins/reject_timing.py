@@ -62,6 +62,11 @@ def actuator_delay(model: type[TimingSettings]) -> Callable[[dict, PluginContext
     return lambda settings, ctx: model.model_validate(settings).delay_s
 
 
+def late_limit(model: type[TimingSettings]) -> Callable[[dict, PluginContext], float]:
+    """``PluginSpec.late_limit`` of an output whose settings are ``model``: its ``max_late_ms``."""
+    return lambda settings, ctx: model.model_validate(settings).max_late_ms / 1000.0
+
+
 class ScheduledOutput:
     """A ``RejectOutput`` over a ``RejectScheduler``; subclasses say what to send for a part."""
 

@@ -29,7 +29,7 @@ from core.types import PartResult
 from drivers.reject_scheduler import Command, RejectScheduler
 from drivers.serial_line import LineCommand, SerialLine
 from plugins.command_format import checked_format, command_text
-from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay
+from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay, late_limit
 
 
 class SerialSettings(TimingSettings):
@@ -97,6 +97,7 @@ def stereo_inspect_outputs() -> list[PluginSpec]:
             factory=_factory,
             settings_model=SerialSettings,
             actuator_delay=actuator_delay(SerialSettings),
+            late_limit=late_limit(SerialSettings),
             description="reject via a text line on a serial port (e.g. 'REJECT <part_id>'), optional acknowledgement",
         )
     ]

@@ -415,13 +415,27 @@ def test_validate_warns_where_plates_come_closer_than_a_reject_pulse_allows():
     demo = str(ROOT / "recipes" / "steel_plate.yaml")
     fast = cli("validate", demo, "--set", "camera.settings.rate_fps=12")
     assert fast.returncode == 0
-    assert re.fullmatch(r".*steel_plate\.yaml:\d+: outputs\.0\.settings: warning: a part's pulse and the low after it "
-                        r"take 120 ms, longer than the 83 ms between two plates at 12 per second: each reject right "
-                        r"after another is 37 ms later than the one before, until beyond max_late_ms it is alarmed "
-                        r"instead of sent.*\n", fast.stderr), fast.stderr
+    assert re.search(r".*steel_plate\.yaml:\d+: outputs\.0\.settings: warning: a part's pulse and the low after it "
+                     r"take 120 ms, longer than the 83 ms between two plates at 12 per second: each reject right "
+                     r"after another is 37 ms later than the one before, until beyond max_late_ms it is alarmed "
+                     r"instead of sent.*\n", fast.stderr), fast.stderr
     for quiet in (["camera.settings.rate_fps=8"],
-                  ["camera.settings.rate_fps=12", "outputs.0.settings.on_reject={write: counter, address: 3}"]):
+                  ["camera.settings.rate_fps=12", "outputs.0.settings.on_reject={write: counter, address: 3}",
+                   "outputs.0.settings.max_late_ms=50"]):
         assert recipe_warnings(load_recipe(demo, quiet)) == [], quiet
+
+
+def test_validate_warns_where_a_late_reject_can_reach_the_next_plate():
+    # the demo's 100 ms of lateness against plates 83 ms apart: a reject sent 90 ms late is "delivered" to the
+    # plate after its own
+    demo = str(ROOT / "recipes" / "steel_plate.yaml")
+    warned = [w for w in recipe_warnings(load_recipe(demo, ["camera.settings.rate_fps=12"]))
+              if "max_late_ms: warning" in w]
+    assert len(warned) == 1 and re.fullmatch(
+        r".*steel_plate\.yaml:\d+: outputs\.0\.settings\.max_late_ms: warning: a command up to 100 ms late is still "
+        r"sent, but plates come 83 ms apart at 12 per second: a reject that late can reach the next plate instead of "
+        r"its own, counted delivered \(give max_late_ms less than 83\)", warned[0]), warned
+    assert not [w for w in recipe_warnings(load_recipe(demo)) if "max_late_ms: warning" in w]  # 4 a second: 250 ms
 
 
 @pytest.mark.parametrize("key, says", [

@@ -1,8 +1,8 @@
 """A line-protocol link over pyserial for ``reject_scheduler``: ``REJECT P000012\\n`` style.
 
 ``send(line)`` writes the line and, when an acknowledgement is expected, reads the lines that arrive
-after it until one matches it (``ack`` is compared after stripping; ``{part_id}`` etc. are already filled in by the
-caller) or ``ack_timeout_s`` passes. Any pyserial URL works as the port: ``/dev/ttyUSB0``,
+after it until one matches it (``ack`` is compared after stripping; ``{part_id}`` etc. are already
+filled in by the caller) or ``ack_timeout_s`` passes. Any pyserial URL works as the port: ``/dev/ttyUSB0``,
 ``/dev/pts/7`` (a socat pair), ``loop://`` (tests), ``socket://host:port``.
 
 This module imports nothing from the rest of stereo-inspect.

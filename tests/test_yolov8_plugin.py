@@ -33,7 +33,7 @@ def test_boxes_are_in_frame_coordinates(untrained_weights, tile_size):
     rng = np.random.default_rng(0)
     image = rng.integers(0, 255, (200, 336, 3), dtype=np.uint8)
     # An untrained head scores everything low; a tiny threshold still makes it return boxes.
-    detector = _detector(untrained_weights, tile_size=tile_size, imgsz=128, confidence=0.0001, max_det=20)
+    detector = _detector(untrained_weights, tile_size=tile_size, imgsz=128, confidence=0.0001, max_det=300)
     detections = detector.detect(image)
     assert detections and all(isinstance(d, Detection) for d in detections)
     assert all(d.class_name in NAMES for d in detections)
@@ -41,6 +41,17 @@ def test_boxes_are_in_frame_coordinates(untrained_weights, tile_size):
     assert [d.confidence for d in detections] == sorted((d.confidence for d in detections), reverse=True)
     if tile_size:
         assert max(d.box[2] for d in detections) > 128  # boxes from tiles beyond the first were shifted
+
+
+@pytest.mark.parametrize("tile_size", [None, 128])
+def test_an_image_with_as_many_boxes_as_max_det_is_an_error_not_a_cut_list(untrained_weights, tile_size):
+    """The network stops at max_det boxes, the most confident first: a defect beyond them was never reported,
+    and its part passed on the ones that were."""
+    image = np.random.default_rng(0).integers(0, 255, (200, 336, 3), dtype=np.uint8)
+    detector = _detector(untrained_weights, tile_size=tile_size, imgsz=128, confidence=0.0001, max_det=3)
+    with pytest.raises(RuntimeError, match=r"the detector reached its max_det of 3 boxes in one image: more may have "
+                                           r"been left out \(raise detector.settings.max_det\)"):
+        detector.detect(image)
 
 
 def test_missing_weights_file_is_a_clear_error(tmp_path):

@@ -160,6 +160,11 @@ class YoloDetector:
         out = []
         for r in results:
             b = r.boxes
+            if len(b) >= s.max_det:
+                # the network stops at max_det boxes, the most confident first: a defect beyond them is not
+                # reported, and a part whose inspection is not whole must not pass
+                raise RuntimeError(f"the detector reached its max_det of {s.max_det} boxes in one image: more may have "
+                                   f"been left out (raise detector.settings.max_det)")
             out.append((b.xyxy.cpu().numpy(), b.conf.cpu().numpy(), b.cls.cpu().numpy().astype(int)))
         return out
 

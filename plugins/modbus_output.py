@@ -75,7 +75,8 @@ class ModbusSettings(TimingSettings):
     parity: Literal["N", "E", "O"] = "N"
     stopbits: Literal[1, 2] = 1
     unit: int = Field(1, ge=0, le=247, description="Modbus unit/device id")
-    timeout_ms: float = Field(300.0, gt=0, description="wait this long for the PLC to answer one request")
+    # at most 10 s: while a request waits, every later command waits behind it, unalarmed
+    timeout_ms: float = Field(300.0, gt=0, le=10000, description="wait this long for the PLC to answer one request")
     on_reject: WriteAction = Field(default_factory=lambda: WriteAction(write="coil", address=0, value=1, pulse_ms=200))
     on_pass: WriteAction | None = None
     ready_coil: int | None = Field(None, ge=0, le=65535, description="coil set to 1 while connected, 0 on close")

@@ -42,7 +42,8 @@ class SerialSettings(TimingSettings):
     reject_format: str = "REJECT {part_id}"
     pass_format: str | None = None
     ack_format: str | None = None
-    ack_timeout_ms: float = Field(300.0, gt=0)
+    # at most 10 s: while a line waits for its answer, every later command waits behind it, unalarmed
+    ack_timeout_ms: float = Field(300.0, gt=0, le=10000)
 
     _formats = field_validator("reject_format", "pass_format", "ack_format")(checked_format)
 

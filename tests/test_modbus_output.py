@@ -342,6 +342,9 @@ def test_settings_are_checked():
         ModbusSettings.model_validate({})
     with pytest.raises(ValidationError, match="greater than 0"):
         ModbusSettings.model_validate({"delay_ms": 0})
+    # 1e300 ms reached the socket as a time out of range, reported as a PLC that cannot be reached
+    with pytest.raises(ValidationError, match="timeout_ms\n.*less than or equal to 10000"):
+        ModbusSettings.model_validate({"delay_ms": 500, "timeout_ms": 1e300})
 
 
 GATE = {"write": "coil", "address": 0, "pulse_ms": 100}

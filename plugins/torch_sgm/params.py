@@ -88,7 +88,7 @@ class TorchSGMParams(BaseModel):
                                "0 = start from plain least squares")
     plane_seed: int = Field(0, ge=0, description="seed of the RANSAC triples: a frame always gets the same triples, "
                             "on any device; another seed draws others (docs/benchmarks.md gives the spread)")
-    plane_sigma: float = Field(1.0, ge=0, description="Gaussian blur before the edges are found, in pixels")
+    plane_sigma: float = Field(1.0, ge=0, le=50, description="Gaussian blur before the edges are found, in pixels")
     plane_min_pixels: int = Field(100, ge=3, description="matched pixels a region needs for a plane")
     plane_inliers: float = Field(0.6, ge=0, le=1, description="share of a region's matched pixels that must lie "
                                  "within 1 px of its plane")

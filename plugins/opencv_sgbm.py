@@ -15,12 +15,13 @@ class SGBMSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     block_size: int = Field(5, ge=1, le=21)
-    p1_per_channel: int = Field(8, ge=0, description="P1 = p1_per_channel * 3 * block_size^2")
-    p2_per_channel: int = Field(32, ge=0, description="P2 = p2_per_channel * 3 * block_size^2")
-    disp12_max_diff: int = 1
+    # the bounds keep OpenCV's C ints: beyond them every frame's stereo failed at run time, not in validate
+    p1_per_channel: int = Field(8, ge=0, le=100_000, description="P1 = p1_per_channel * 3 * block_size^2")
+    p2_per_channel: int = Field(32, ge=0, le=100_000, description="P2 = p2_per_channel * 3 * block_size^2")
+    disp12_max_diff: int = Field(1, ge=-1, le=100_000, description="-1: no left-right check")
     uniqueness_ratio: int = Field(10, ge=0, le=100)
-    speckle_window_size: int = Field(100, ge=0)
-    speckle_range: int = Field(2, ge=0)
+    speckle_window_size: int = Field(100, ge=0, le=1_000_000)
+    speckle_range: int = Field(2, ge=0, le=100_000)
     mode: str = Field("sgbm", pattern="^(sgbm|hh|sgbm_3way|hh4)$")
 
 

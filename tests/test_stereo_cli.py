@@ -143,6 +143,8 @@ def test_a_pair_too_large_for_the_memory_is_refused_before_matching(tmp_path):
     (["--max-disp", 16, "--set", "fit_radius=["], "--set fit_radius: Input should be a valid integer"),  # not YAML
     (["--max-disp", 16, "--set", "fit_radius=010"], "010: YAML reads a leading zero as octal, 8; write 10"),
     (["--max-disp", 16, "--set", "plane_sigma=1e30"], "--set plane_sigma: Input should be less than or equal to 50"),
+    (["--max-disp", 16, "--backend", "opencv_sgbm", "--set", "p1_per_channel=99999999999"],
+     "--set p1_per_channel: Input should be less than or equal to 100000"),  # was OpenCV's C int, at run time
 ])
 def test_bad_options_are_refused(pair, args, word):
     left, right, _ = pair

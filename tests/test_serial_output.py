@@ -45,11 +45,14 @@ class Peer(threading.Thread):
                 raw, buffer = buffer.split(b"\n", 1)
                 line = raw.decode().strip()
                 self.lines.append((time.time(), line))
-                part_id = line.split()[-1]
-                if part_id in self.refuse:
-                    self.port.write(f"ERR {part_id}\n".encode())
-                elif self.ack and part_id not in self.ignore:
-                    self.port.write((self.ack.format(id=part_id) + "\n").encode())
+                self.answer(line)
+
+    def answer(self, line: str) -> None:
+        part_id = line.split()[-1]
+        if part_id in self.refuse:
+            self.port.write(f"ERR {part_id}\n".encode())
+        elif self.ack and part_id not in self.ignore:
+            self.port.write((self.ack.format(id=part_id) + "\n").encode())
 
     def stop(self) -> None:
         self.running = False
@@ -163,18 +166,11 @@ class LatePeer(Peer):
     """A device whose acknowledgement is the same line for every part ("OK"): it answers P0000 twice, the
     second time after the output stopped waiting, and never answers P0001."""
 
-    def run(self) -> None:
-        buffer = b""
-        while self.running:
-            buffer += self.port.read(self.port.in_waiting or 1)
-            while b"\n" in buffer:
-                raw, buffer = buffer.split(b"\n", 1)
-                line = raw.decode().strip()
-                self.lines.append((time.time(), line))
-                if line.endswith("P0000"):
-                    self.port.write(b"OK\n")
-                    time.sleep(0.15)
-                    self.port.write(b"OK\n")
+    def answer(self, line: str) -> None:
+        if line.endswith("P0000"):
+            self.port.write(b"OK\n")
+            time.sleep(0.15)
+            self.port.write(b"OK\n")
 
 
 def test_an_answer_to_an_earlier_line_does_not_acknowledge_the_next(pty_pair):

@@ -698,6 +698,10 @@ def run(
         for name, output in pipeline.outputs:
             try:
                 record(output.close())
+            except KeyboardInterrupt:  # the next outputs and the store must still be closed
+                interrupted = True
+                record([Alarm(name, "closing was interrupted (Ctrl-C): commands it still held may not have been "
+                              "sent", time.time())])
             except Exception as exc:
                 record([Alarm(name, f"closing output failed: {exc}", time.time())])
         pipeline.close()

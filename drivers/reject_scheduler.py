@@ -205,9 +205,10 @@ class RejectScheduler:
             dues = [j.due for j in self._queue if j.kind not in SERVICE]
         return max(0.0, max(dues) - time.monotonic()) if dues else 0.0
 
-    def close(self, timeout_s: float = 10.0) -> list[Record]:
+    def close(self, timeout_s: float = 10.0, why: str | None = None) -> list[Record]:
         """Send everything queued (waiting for commands not yet due, up to ``timeout_s``), alarm
-        what cannot be sent, release the link, and return the remaining records."""
+        what cannot be sent (saying ``why`` where given), release the link, and return the remaining records.
+        May be called again after a close that was interrupted."""
         end = time.monotonic() + timeout_s
         with self._cond:
             self._closing = True
@@ -222,8 +223,8 @@ class RejectScheduler:
             self._cond.notify_all()
             now = time.time()
             for job in sorted(leftover):
-                self._alarm_locked(job, now, f"not sent: output closed after {timeout_s:g} s with it still queued",
-                                   "closed")
+                self._alarm_locked(job, now, why or f"not sent: output closed after {timeout_s:g} s with it still "
+                                   f"queued", "closed")
         self._thread.join(max(1.0, end - time.monotonic() + 1.0))
         if self._connected and self.on_close is not None:
             try:

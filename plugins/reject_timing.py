@@ -99,7 +99,13 @@ class ScheduledOutput:
         """Plates still on their way to the actuator get their command: wait at least until the last
         one is due (plus ``max_late_ms`` and a margin), at most ``MAX_CLOSE_WAIT_S``."""
         wait = self.scheduler.last_due_in() + self.timing.max_late_ms / 1000.0 + 0.5
-        return self._convert(self.scheduler.close(max(timeout_s, min(wait, MAX_CLOSE_WAIT_S))))
+        try:
+            records = self.scheduler.close(max(timeout_s, min(wait, MAX_CLOSE_WAIT_S)))
+        except KeyboardInterrupt:
+            # Ctrl-C again while plates are on their way: what is still queued is alarmed now, not dropped
+            records = self.scheduler.close(0.0, "not sent: the run was stopped again (Ctrl-C) while its plate was "
+                                                "on its way to the actuator")
+        return self._convert(records)
 
     def _convert(self, records: list[Record]) -> list[OutputEvent | Alarm]:
         events: list[OutputEvent | Alarm] = []

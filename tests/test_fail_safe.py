@@ -203,6 +203,35 @@ def test_sigterm_and_sighup_stop_the_run_as_ctrl_c_does(tmp_path, signum):
     assert rising == delivered
 
 
+def test_ctrl_c_again_while_rejects_are_on_their_way_alarms_them_and_finishes_the_run(tmp_path):
+    """A second Ctrl-C during the wait for the plates still on their way ended the process ("Aborted!") with
+    those rejects unsent, no alarm, and the run left open."""
+    port = plc_sim.free_port()
+    results = tmp_path / "results"
+    exe = Path(sys.executable).parent / "inspect"
+    with plc_sim.serve_in_thread("127.0.0.1", port, on_change=None):
+        # a terminal's Ctrl-C: SIGINT with Python's own handler (a background child would inherit it ignored)
+        proc = subprocess.Popen([str(exe), "run", *_run_args(results, port)], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        _wait_for_parts(results, 6)
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.5)  # the run is now waiting for the rejects due up to 2 s after their capture
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "Aborted" not in out + err, out + err
+    db = sqlite3.connect(results / "results.db")
+    assert db.execute("SELECT status FROM runs").fetchone()[0] == "finished"
+    abandoned = db.execute("SELECT COUNT(*) FROM alarms WHERE message LIKE '%stopped again (Ctrl-C) while its plate "
+                           "was on its way%'").fetchone()[0]
+    assert abandoned >= 1, out
+    for (part_id,) in db.execute("SELECT part_id FROM parts WHERE verdict != 'PASS'"):
+        outcomes = {r[0] for r in db.execute(
+            "SELECT outcome FROM output_events WHERE part_id = ? AND output = 'modbus' AND command LIKE '%(pulse%'",
+            (part_id,))}
+        assert outcomes & {"delivered", "alarm"}, part_id
+
+
 def test_a_plc_unreachable_all_run_is_an_alarm_even_without_rejects(tmp_path):
     port = plc_sim.free_port()  # nothing listens there
     results = tmp_path / "results"

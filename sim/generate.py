@@ -445,7 +445,9 @@ def generate_sequence(
         write_frame(out, frame_id, left, right, gt, labels, image_format)
         all_labels.append(labels)
         if log is not None:
-            summary = ", ".join(f"{d['class']} {d['deviation_mm']:+.2f} mm" for d in labels["defects"]) or "no defect"
+            summary = ", ".join(
+                f"{d['class']} " + ("n/a" if d["deviation_mm"] is None else f"{d['deviation_mm']:+.2f} mm")
+                for d in labels["defects"]) or "no defect"
             log(f"{frame_id}: Z={labels['distance_mm']:.0f} mm tilt={labels['tilt_deg']:.1f} deg: {summary}"
                 f" ({time.perf_counter() - t_start:.1f} s)")
     return all_labels

@@ -119,6 +119,15 @@ def test_a_scene_no_memory_holds_is_refused_before_rendering(tmp_path, args, say
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("depths, says", [(("1e300", "1e301"), "1e+301 is beyond the largest allowed, 50"),
+                                           (("-60", "1"), "-60 is below the smallest allowed, -50")])
+def test_a_defect_deeper_than_a_plate_is_refused(tmp_path, depths, says):
+    # 1e300 mm rendered a pit whose truth could not be measured, and the progress line ended in a TypeError
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects",
+                                           "--depth-range-mm", *depths])
+    assert result.exit_code == 2 and result.output.startswith(f"error: --depth-range-mm: {says}"), result.output
+
+
 def test_a_frame_that_cannot_be_written_is_a_one_line_error(tmp_path):
     out = tmp_path / "x"
     out.mkdir()

@@ -15,6 +15,7 @@ FRAME_FILE = re.compile(r"^\d{6}\.(png|jpg|jpeg|json)$")
 MAX_WIDTH, MAX_HEIGHT = 2208, 1242
 MAX_DISTANCE_MM = 20_000.0
 MAX_RAYS = 16_000_000  # per eye: 2K at the default supersampling (11 M) took 3.3 GB
+MAX_DEPTH_MM = 50.0  # a pit or bump deeper than a thick plate; 1e300 left the truth unmeasurable
 
 
 def existing_frame_files(out: Path) -> list[Path]:
@@ -100,7 +101,7 @@ def register(cli: click.Group) -> None:
 
         for name, pair, low, high in (("--distance-range-mm", distance_range_mm, 100.0, MAX_DISTANCE_MM),
                                       ("--defect-size-px", defect_size_px, 4.0, None),
-                                      ("--depth-range-mm", depth_range_mm, None, None),
+                                      ("--depth-range-mm", depth_range_mm, -MAX_DEPTH_MM, MAX_DEPTH_MM),
                                       ("--defects-per-frame", defects_per_frame, 1, None),
                                       ("--flat-floor", flat_floor, 0.0, None)):
             if pair is None:

@@ -15,7 +15,8 @@ class TestSafeLoad:
         assert safe_load(f"a: {text}") == {"a": value}
 
     @pytest.mark.parametrize("text, says", [
-        ("010", "010: YAML reads a leading zero as octal, 8; write 10 without the zero (or 8 if octal was meant)"),
+        ("010", "010: YAML reads a leading zero as octal, 8; write 10 without the zero (8 if octal was meant), or quote "
+                "it if it is text"),
         ("-010", "-010: YAML reads a leading zero as octal, -8; write -10"),
         ("0_10", "0_10: YAML reads a leading zero as octal, 8; write 10"),
         ("1:30", "1:30: YAML reads this as the base-60 number 90; write the number, or quote it if it is text"),

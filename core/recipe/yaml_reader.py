@@ -29,9 +29,10 @@ class _Loader(yaml.SafeLoader):
     def construct_yaml_int(self, node):
         text = self.construct_scalar(node)
         value = super().construct_yaml_int(node)
-        if _OCTAL.fullmatch(text) and int(text.replace("_", ""), 10) != value:
-            raise MisreadNumber(node.start_mark, text, f"YAML reads a leading zero as octal, {value}; write "
-                                f"{int(text.replace('_', ''), 10)} without the zero (or {value} if octal was meant)")
+        decimal = int(text.replace("_", ""), 10) if _OCTAL.fullmatch(text) else value
+        if decimal != value:
+            raise MisreadNumber(node.start_mark, text, f"YAML reads a leading zero as octal, {value}; write {decimal} "
+                                f"without the zero ({value} if octal was meant), or quote it if it is text")
         if _BASE_60.fullmatch(text):
             raise MisreadNumber(node.start_mark, text, f"YAML reads this as the base-60 number {value}; write the "
                                 f"number, or quote it if it is text")

@@ -114,7 +114,11 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
                     raise BenchInputError(item.message)
                 frame = resize_frame(item, size)
                 t = {"capture": time.perf_counter()}
-                detections = detector.detect(frame.left)
+                try:
+                    detections = detector.detect(frame.left)
+                except Exception as exc:  # timings of a loop that skipped it would be of other frames
+                    raise BenchInputError(f"frame {item.frame_id}: the detector failed: {type(exc).__name__}: "
+                                          f"{exc}") from None
                 t["detection"] = time.perf_counter()
                 measurements = []
                 if stereo is not None and (region == "full" or detections):

@@ -210,7 +210,11 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
 def detected(detector, frame: StereoFrame, recipe) -> list[Detection]:
     """The detector's boxes on the frame's left image as the line keeps them (``engine.kept_detections``);
     a detector that breaks its contract is an error, not an empty frame."""
-    kept, problem = kept_detections(detector.detect(frame.left), detector, recipe, frame.left.shape[:2])
+    try:
+        found = detector.detect(frame.left)
+    except Exception as exc:  # as on the line, where such a frame is an ERROR part: here it ends the evaluation
+        raise StageFailed(f"frame {frame.frame_id}: the detector failed: {type(exc).__name__}: {exc}") from None
+    kept, problem = kept_detections(found, detector, recipe, frame.left.shape[:2])
     if problem is not None:
         raise StageFailed(f"frame {frame.frame_id}: {problem}")
     return kept

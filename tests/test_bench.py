@@ -150,3 +150,11 @@ class TestResizeFrame:
         scaled = resize_frame(self._frame(672, 376), RESOLUTIONS["2k"])
         assert scaled.left.shape == (1242, 2208, 3) and scaled.right.shape == (1242, 2208, 3)
         assert scaled.calib.width == 2208 and abs(scaled.calib.focal_px - 350.06 * 2208 / 672) < 1e-9
+
+
+def test_a_detector_that_fails_on_a_frame_is_a_one_line_error_naming_it(tmp_path):
+    # timings of a loop that skipped the frame would be of other frames; it ended the bench in a traceback
+    out = cli_here("bench", "--backends", "none", "--repeats", "1", "--frames", "3",
+                   "--set", "detector.settings.max_det=1", "--out", str(tmp_path))
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert "frame 000001: the detector failed: DetectionLimit: the detector reached its max_det of 1" in out.stderr

@@ -163,6 +163,15 @@ def test_a_detector_that_finds_nothing_leaves_every_defect_missed(tmp_path):
     assert not (tmp_path / "depth_eval.png").exists()  # nothing to plot
 
 
+def test_a_detector_that_fails_on_a_frame_is_a_one_line_error_naming_it(tmp_path):
+    # on the line such a frame is an ERROR part; here it ended the evaluation in a traceback
+    result = cli_here("eval", "depth", str(DEMO), "--boxes", "detector", "--set", "detector.settings.max_det=1",
+                      "--out", str(tmp_path), "--threads", "1", "--quiet")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert re.search(r"frame \d{6}: the detector failed: DetectionLimit: the detector reached its max_det of 1 boxes",
+                     result.stderr), result.stderr
+
+
 def test_box_changes_and_the_detectors_boxes_do_not_mix(tmp_path):
     result = cli_here("eval", "depth", str(DEMO), "--boxes", "detector", "--box-shift", "0.1", "--out", str(tmp_path))
     assert result.returncode == 2 and "--boxes detector" in result.stderr

@@ -86,3 +86,11 @@ def test_cli_options_out_of_range_are_one_line_errors(args, message):
     result = CliRunner().invoke(_build(), ["eval", "detector-frames", "sim_fixtures/steel_plate", *args])
     assert result.exit_code == 2 and message in result.output, result.output
     assert result.exception is None or isinstance(result.exception, SystemExit), result.exception
+
+
+def test_a_threshold_so_low_that_boxes_would_go_uncounted_is_refused():
+    # the network stops at max_det boxes: more boxes on sound surface than that would not be counted
+    result = CliRunner().invoke(_build(), ["eval", "detector-frames", "sim_fixtures/steel_plate", "--confidence", "0",
+                                           "--tile-size", "0"])
+    assert result.exit_code == 2, result.output
+    assert "at --confidence 0 the detector finds 300 boxes or more in one image, more than it reports" in result.output

@@ -10,6 +10,7 @@ import pytest
 from core.contracts import PluginContext
 from core.registry import default_registry
 from core.types import Detection
+from plugins.yolov8.detector import DetectionLimit
 from untrained_yolo import NEU_NAMES as NAMES
 from untrained_yolo import untrained_checkpoint
 
@@ -49,7 +50,7 @@ def test_an_image_with_as_many_boxes_as_max_det_is_an_error_not_a_cut_list(untra
     and its part passed on the ones that were."""
     image = np.random.default_rng(0).integers(0, 255, (200, 336, 3), dtype=np.uint8)
     detector = _detector(untrained_weights, tile_size=tile_size, imgsz=128, confidence=0.0001, max_det=3)
-    with pytest.raises(RuntimeError, match=r"the detector reached its max_det of 3 boxes in one image: more may have "
+    with pytest.raises(DetectionLimit, match=r"the detector reached its max_det of 3 boxes in one image: more may have "
                                            r"been left out \(raise detector.settings.max_det\)"):
         detector.detect(image)
 

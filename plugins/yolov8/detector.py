@@ -36,6 +36,10 @@ class YoloSettings(BaseModel):
     trust_pickle: bool = False
 
 
+class DetectionLimit(RuntimeError):
+    """An image gave as many boxes as ``max_det``, where the network stops: the list may be cut short."""
+
+
 def _without_full_tile(part: tuple[np.ndarray, np.ndarray, np.ndarray], limit: float):
     boxes, scores, classes = part
     keep = ~(((boxes[:, 2] - boxes[:, 0]) >= limit) & ((boxes[:, 3] - boxes[:, 1]) >= limit))
@@ -163,8 +167,8 @@ class YoloDetector:
             if len(b) >= s.max_det:
                 # the network stops at max_det boxes, the most confident first: a defect beyond them is not
                 # reported, and a part whose inspection is not whole must not pass
-                raise RuntimeError(f"the detector reached its max_det of {s.max_det} boxes in one image: more may have "
-                                   f"been left out (raise detector.settings.max_det)")
+                raise DetectionLimit(f"the detector reached its max_det of {s.max_det} boxes in one image: more may "
+                                     f"have been left out (raise detector.settings.max_det)")
             out.append((b.xyxy.cpu().numpy(), b.conf.cpu().numpy(), b.cls.cpu().numpy().astype(int)))
         return out
 

@@ -9,7 +9,8 @@ import click
 from core.commands.params import Finite, out_file, out_folder
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
-from plugins.yolov8.detector import DEFAULT_WEIGHTS, YoloDetector, YoloSettings, checkpoint_class_names
+from plugins.yolov8.detector import (DEFAULT_WEIGHTS, DetectionLimit, YoloDetector, YoloSettings,
+                                     checkpoint_class_names)
 
 
 def _factory(settings: dict, ctx: PluginContext) -> YoloDetector:
@@ -258,12 +259,19 @@ def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, 
     except ValueError as exc:
         _fail(str(exc))
     try:
+        # ultralytics' own max_det: low thresholds find more boxes than the line's 100
         detector = YoloDetector(YoloSettings(weights=str(weights) if weights else None, confidence=min(thresholds),
-                                             tile_size=tile_size or None, tile_overlap=tile_overlap, imgsz=imgsz),
-                                device="cpu")
+                                             tile_size=tile_size or None, tile_overlap=tile_overlap, imgsz=imgsz,
+                                             max_det=300), device="cpu")
     except ValueError as exc:  # not a checkpoint, or one that would run code (its message names the file)
         _fail(" ".join(str(exc).split()))
-    detections = [[(d.class_name, d.confidence, d.box) for d in detector.detect(image)] for _, image, _ in frames]
+    detections = []
+    for frame_id, image, _ in frames:
+        try:
+            detections.append([(d.class_name, d.confidence, d.box) for d in detector.detect(image)])
+        except DetectionLimit:  # boxes beyond max_det would go uncounted as boxes on sound surface
+            _fail(f"{sequence}: frame {frame_id}: at --confidence {min(thresholds):g} the detector finds 300 boxes or "
+                  f"more in one image, more than it reports: score higher thresholds")
     click.echo(f"{sequence}: {len(frames)} frames, weights {weights or 'the committed model'}")
     click.echo(markdown(score_frames(detections, [t for _, _, t in frames], thresholds, iou)))
 

@@ -23,6 +23,7 @@ import numpy as np
 import yaml
 
 from drivers.file_writes import write_bytes, write_text
+from drivers import yaml_reader
 from drivers.stereo_geometry import calibration_problem
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -109,7 +110,9 @@ def read_calibration(folder: Path) -> dict:
     if not path.exists():
         raise SequenceError(f"{path}: calibration file missing")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml_reader.safe_load(path.read_text())
+    except yaml_reader.MisreadNumber as exc:
+        raise SequenceError(f"{path}:{exc.line}: {'.'.join(map(str, exc.key))}: {exc.problem}") from None
     except yaml.YAMLError as exc:
         raise SequenceError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict):

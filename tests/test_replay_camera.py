@@ -102,6 +102,16 @@ class TestReadCalibration:
         calib = read_calibration(info["folder"])
         assert calib["width"] == 320 and isinstance(calib["width"], int) and calib["doffs"] == 10.0
 
+    def test_a_number_yaml_reads_as_octal_is_named(self, plane_sequence):
+        # YAML 1.1 reads 0320 as 208: a width with a leading zero was another camera's
+        info = plane_sequence([0.0])
+        path = info["folder"] / "calib.yaml"
+        path.write_text(path.read_text().replace("width: 320", "width: 0320"))
+        line = next(n for n, text in enumerate(path.read_text().splitlines(), 1) if text.startswith("width:"))
+        with pytest.raises(SequenceError, match=re.escape(f"calib.yaml:{line}: width: 0320: YAML reads a leading zero "
+                                                          f"as octal, 208; write 320 without the zero")):
+            read_calibration(info["folder"])
+
 
 class TestReadLabels:
     """``sequence_folder.read_labels``: the truth an evaluation compares with is checked, each problem one

@@ -1,9 +1,9 @@
-"""core/recipe/yaml_reader.py: YAML 1.1's numbers that do not mean what their digits say are refused."""
+"""drivers/yaml_reader.py: YAML 1.1's numbers that do not mean what their digits say are refused."""
 from __future__ import annotations
 
 import pytest
 
-from core.recipe.yaml_reader import MisreadNumber, safe_load
+from drivers.yaml_reader import MisreadNumber, safe_load
 
 
 class TestSafeLoad:

@@ -10,7 +10,7 @@ from pydantic import ValidationError
 from core.commands.inspection import _load, fail
 from core.commands.params import FINITE, cuda_if_present, demo_recipe, out_folder
 from core.recipe.schema import MAX_THREADS
-from core.recipe.yaml_reader import MisreadNumber, option_value
+from drivers.yaml_reader import MisreadNumber, option_value
 from drivers.file_writes import write_text
 from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
 

@@ -147,7 +147,7 @@ def _camera_section(recipe: Path, overrides: tuple[str, ...]) -> tuple[str, dict
 def _camera_section_yaml(recipe: Path) -> tuple[str, dict, Path]:
     import yaml
 
-    from core.recipe.yaml_reader import safe_load
+    from drivers.yaml_reader import safe_load
 
     try:
         data = safe_load(recipe.read_text())

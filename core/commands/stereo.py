@@ -18,7 +18,7 @@ def _fail(message: str) -> None:
 
 
 def _parse_settings(pairs: tuple[str, ...], option: str = "--set") -> dict:
-    from core.recipe.yaml_reader import MisreadNumber, option_value
+    from drivers.yaml_reader import MisreadNumber, option_value
 
     settings = {}
     for pair in pairs:

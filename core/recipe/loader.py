@@ -17,7 +17,7 @@ from typing import Any, Union, get_args, get_origin
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from core.recipe import yaml_reader
+from drivers import yaml_reader
 from core.recipe.schema import Recipe
 from core.registry import Registry, UnknownPlugin, default_registry
 from drivers.stereo_geometry import calibration_problem

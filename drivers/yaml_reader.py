@@ -2,8 +2,10 @@
 
 PyYAML reads YAML 1.1, where ``010`` is octal (8) and ``1:30`` is base 60 (90). In a recipe those are a
 Modbus address or a time an integrator wrote in decimal: coil 8 pulsed instead of coil 10, and the reject
-lost at the wrong gate. Such a scalar is an error naming its line; quoted, or written without the leading
-zero, it is whatever the key expects.
+lost at the wrong gate; in a calibration file a baseline of ``0120`` mm read as 80. Such a scalar is an
+error naming its line; quoted, or written without the leading zero, it is whatever the key expects.
+
+This module imports nothing from the rest of stereo-inspect.
 """
 from __future__ import annotations
 

@@ -145,6 +145,8 @@ class TestLabelProblem:
         images = tmp_path / "images"
         images.mkdir()
         _image(images / "a.png")
+        (tmp_path / "labels").mkdir()
+        (tmp_path / "labels" / "a.txt").write_text("0 0.5 0.5 0.2 0.2\n")
         listing = tmp_path / "val.txt"
         listing.write_text("images/a.png\nimages/gone.png\n")
         why = label_problem({"val": str(listing), "nc": CLASSES}, ("val",))
@@ -160,3 +162,16 @@ class TestSharedWithTrain:
         (tmp_path / "data.yaml").write_text(spec)
         assert "images/train" in spec and shared_with_train(tmp_path / "data.yaml", "val") == len(
             list((dataset / "images" / "train").iterdir()))
+
+
+class TestUnlabelledSplit:
+    def test_a_split_without_any_label_file_is_refused(self, tmp_path):
+        """Labels in a folder of another name than labels/: ultralytics finds none, and scores every box as a
+        false positive on a defect-free image."""
+        (tmp_path / "images").mkdir()
+        (tmp_path / "annotations").mkdir()
+        for name in ("a", "b"):
+            _image(tmp_path / "images" / f"{name}.png")
+            (tmp_path / "annotations" / f"{name}.txt").write_text("0 0.5 0.5 0.2 0.2\n")
+        why = label_problem({"val": str(tmp_path / "images"), "nc": CLASSES}, ("val",))
+        assert why is not None and why.startswith("val: none of its 2 images has a label file where ultralytics looks")

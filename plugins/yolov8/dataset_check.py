@@ -110,7 +110,12 @@ def label_problem(info: dict, splits: tuple[str, ...]) -> str | None:
     problems = []
     for split in splits:
         images = split_images(info[split])
-        for image, label in zip(images, img2label_paths([str(p) for p in images])):
+        labels = img2label_paths([str(p) for p in images])
+        if images and not any(Path(label).is_file() for label in labels):
+            # each image would count as defect-free: a layout ultralytics does not read, not a set of sound parts
+            return (f"{split}: none of its {len(images)} images has a label file where ultralytics looks for it (e.g. "
+                    f"{labels[0]}): each would count as an image without defects")
+        for image, label in zip(images, labels):
             why = image_problem(image)
             if why is not None:
                 problems.append(f"{image}: {why}")

@@ -11,7 +11,7 @@ from conftest import neu_fixture_dataset
 from PIL import Image
 
 from plugins.yolov8.dataset_check import (dataset_problem, image_problem, label_file_problem, label_problem,
-                                          shared_with_train)
+                                          resolved, shared_with_train)
 
 CLASSES = 6
 
@@ -155,12 +155,12 @@ class TestLabelProblem:
 
 class TestSharedWithTrain:
     def test_separate_splits(self, dataset):
-        assert shared_with_train(dataset / "data.yaml", "val") == 0
+        assert shared_with_train(resolved(dataset / "data.yaml"), "val") == 0
 
     def test_val_read_from_the_train_folder(self, dataset, tmp_path):
         spec = (dataset / "data.yaml").read_text().replace("val: images/val", "val: images/train")
         (tmp_path / "data.yaml").write_text(spec)
-        assert "images/train" in spec and shared_with_train(tmp_path / "data.yaml", "val") == len(
+        assert "images/train" in spec and shared_with_train(resolved(tmp_path / "data.yaml"), "val") == len(
             list((dataset / "images" / "train").iterdir()))
 
 

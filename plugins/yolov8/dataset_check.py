@@ -129,13 +129,20 @@ def label_problem(info: dict, splits: tuple[str, ...]) -> str | None:
     return problems[0] + more + "; ultralytics would leave such images out"
 
 
-def dataset_problem(data_yaml: Path, splits: tuple[str, ...], model_names: list[str] | None = None) -> str | None:
-    """Why training on, or scoring a model of ``model_names`` on, the dataset's ``splits`` would not use what
-    it holds, naming the file, or None: the dataset's classes are not the model's in its order (each score would
-    be another class's), or an image ultralytics drops (``label_problem``)."""
+def resolved(data_yaml: Path) -> dict:
+    """The dataset as ultralytics' ``check_det_dataset`` resolves ``data_yaml`` (its splits' paths, ``nc``, ``names``)."""
     from ultralytics.data.utils import check_det_dataset
 
-    info = check_det_dataset(str(data_yaml), autodownload=False)
+    return check_det_dataset(str(data_yaml), autodownload=False)
+
+
+def dataset_problem(data_yaml: Path, splits: tuple[str, ...], model_names: list[str] | None = None,
+                    info: dict | None = None) -> str | None:
+    """Why training on, or scoring a model of ``model_names`` on, the dataset's ``splits`` would not use what
+    it holds, naming the file, or None: the dataset's classes are not the model's in its order (each score would
+    be another class's), or an image ultralytics drops (``label_problem``). ``info``: ``resolved(data_yaml)``
+    where already at hand."""
+    info = info or resolved(data_yaml)
     if model_names is not None:
         names = info["names"]
         names = [names[i] for i in sorted(names)] if isinstance(names, dict) else list(names)
@@ -145,12 +152,9 @@ def dataset_problem(data_yaml: Path, splits: tuple[str, ...], model_names: list[
     return label_problem(info, splits)
 
 
-def shared_with_train(data_yaml: Path, split: str) -> int:
-    """How many of the dataset's ``split`` images are also in its train split (0 for train itself): a score on
-    them is a score on what the model may have learnt."""
-    from ultralytics.data.utils import check_det_dataset
-
-    info = check_det_dataset(str(data_yaml), autodownload=False)
+def shared_with_train(info: dict, split: str) -> int:
+    """How many of the ``split`` images of the dataset ``info`` (``resolved``) are also in its train split (0 for
+    train itself): a score on them is a score on what the model may have learnt."""
     if split == "train" or not info.get("train"):
         return 0
     train = {p.resolve() for p in split_images(info["train"])}

@@ -205,7 +205,7 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
 
     A dataset whose classes are not the model's (in its order), or with an image or label line ultralytics
     would drop, is refused naming the file."""
-    from plugins.yolov8.dataset_check import dataset_problem, shared_with_train
+    from plugins.yolov8.dataset_check import dataset_problem, resolved, shared_with_train
     from plugins.yolov8.detector import checkpoint_class_names
     from plugins.yolov8.evaluation import evaluate_detector, metrics_markdown
 
@@ -213,10 +213,11 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
     if not weights.is_file():
         _fail(f"{weights}: weights file not found")
     try:
-        problem = dataset_problem(data_yaml, (split,), checkpoint_class_names(weights))
+        info = resolved(data_yaml)
+        problem = dataset_problem(data_yaml, (split,), checkpoint_class_names(weights), info)
         if problem is not None:
             _fail(problem)
-        shared = shared_with_train(data_yaml, split)
+        shared = shared_with_train(info, split)
         if shared:
             click.echo(f"warning: {data_yaml}: {shared} of the {split} images are also train images: a score on them "
                        f"says how well the model learnt them, not how it finds defects it has not seen", err=True)

@@ -130,7 +130,8 @@ def label_problem(info: dict, splits: tuple[str, ...]) -> str | None:
 
 
 def resolved(data_yaml: Path) -> dict:
-    """The dataset as ultralytics' ``check_det_dataset`` resolves ``data_yaml`` (its splits' paths, ``nc``, ``names``)."""
+    """The dataset as ultralytics' ``check_det_dataset`` resolves ``data_yaml``: its splits' paths, ``nc``,
+    ``names``."""
     from ultralytics.data.utils import check_det_dataset
 
     return check_det_dataset(str(data_yaml), autodownload=False)

@@ -373,9 +373,10 @@ def read_pfm(path: Path) -> np.ndarray:
         if header not in ("Pf", "PF"):
             raise SequenceError(f"{path}: not a PFM file")
         try:
-            dims = f.readline().decode("latin-1").split()
-            while not dims:
-                dims = f.readline().decode("latin-1").split()
+            line = f.readline()
+            while line and not line.split():  # blank lines before the size; at the end of the file, none
+                line = f.readline()
+            dims = line.decode("latin-1").split()
             width, height = int(dims[0]), int(dims[1])
             scale = float(f.readline().decode("latin-1").strip())
         except (ValueError, IndexError):

@@ -276,6 +276,8 @@ def test_eval_errors(tmp_path):
      "disp0GT.pfm: PFM is not whole (288 bytes of pixels, 10240 for 64x40)"),
     (lambda scene: (scene / "disp0GT.pfm").write_bytes(b"Pf\nsixty-four 40\n-1\n"),
      "disp0GT.pfm: PFM header is not 'width height' and a scale"),
+    (lambda scene: (scene / "disp0GT.pfm").write_bytes(b"Pf\n"),  # cut after its first line: read forever
+     "disp0GT.pfm: PFM header is not 'width height' and a scale"),
     (lambda scene: cv2.imwrite(str(scene / "mask0nocc.png"), np.full((20, 30), 255, np.uint8)),
      "mask0nocc.png: 30x20, but im0.png is 64x40"),
     (lambda scene: (scene / "mask0nocc.png").write_bytes(b"not a PNG"), "mask0nocc.png: occlusion mask is not whole"),

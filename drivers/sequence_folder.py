@@ -22,11 +22,14 @@ import cv2
 import numpy as np
 import yaml
 
-from drivers.file_writes import write_bytes, write_text
 from drivers import yaml_reader
+from drivers.file_writes import write_bytes, write_text
 from drivers.stereo_geometry import calibration_problem
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+# Ten times the largest frame a stereo camera or Middlebury's full size gives (6 MP): a 600 KB PNG declaring
+# 30000x20000 pixels decoded into 3.5 GB before its size could be checked against the calibration's.
+MAX_IMAGE_PIXELS = 64_000_000
 CALIB_KEYS = ("focal_px", "baseline_mm", "cx", "cy", "width", "height")
 
 
@@ -184,12 +187,34 @@ def _whole_bytes(path: Path, what: str) -> bytes:
     return data
 
 
+def declared_pixels(data: bytes) -> float:
+    """The pixels an encoded image's header states, read without decoding them (infinity where Pillow refuses
+    the size as a decompression bomb); 0 where the header cannot be read, for the decoder to say why."""
+    import io
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data)) as image:
+                return float(image.size[0] * image.size[1])
+    except Image.DecompressionBombError:
+        return float("inf")
+    except Exception:  # Pillow raises many kinds for a header it cannot read
+        return 0.0
+
+
 def read_image(path: Path | None, what: str = "image") -> np.ndarray:
     """HxWx3 uint8 BGR; raises ``SequenceError`` naming the file when it is missing, truncated or corrupt."""
     if path is None:
         raise SequenceError(f"{what} missing")
     path = Path(path)
     data = _whole_bytes(path, what)
+    if declared_pixels(data) > MAX_IMAGE_PIXELS:
+        raise SequenceError(f"{path}: {what} declares more than {MAX_IMAGE_PIXELS / 1e6:.0f} MP, more than any "
+                            f"camera's frame")
     image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if image is None:
         raise SequenceError(f"{path}: {what} cannot be decoded (corrupt or not an image)")

@@ -150,3 +150,18 @@ def pty_pair(tmp_path):
     yield str(a), str(b)
     proc.terminate()
     proc.wait(5)
+
+
+def png_declaring(width: int, height: int) -> bytes:
+    """A whole, valid grey PNG of ``width`` x ``height`` black pixels: a few hundred KB that decode to that size."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+    packer = zlib.compressobj(9)
+    row = b"\x00" * (width + 1)
+    pixels = b"".join(packer.compress(row) for _ in range(height)) + packer.flush()
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", pixels) + chunk(b"IEND", b""))

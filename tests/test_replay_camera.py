@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import png_declaring
 
 from core.contracts import PluginContext
 from core.registry import default_registry
@@ -54,25 +55,10 @@ def test_corrupt_and_missing_frames_are_errors_not_skips(plane_sequence):
     assert "left image of frame 000002 missing" in frames[2].message
 
 
-def _png_declaring(width: int, height: int) -> bytes:
-    """A whole, valid grey PNG of ``width`` x ``height`` black pixels: a few hundred KB that decode to that size."""
-    import struct
-    import zlib
-
-    def chunk(kind: bytes, body: bytes) -> bytes:
-        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
-
-    packer = zlib.compressobj(9)
-    row = b"\x00" * (width + 1)
-    pixels = b"".join(packer.compress(row) for _ in range(height)) + packer.flush()
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
-            + chunk(b"IDAT", pixels) + chunk(b"IEND", b""))
-
-
 def test_an_image_declaring_more_pixels_than_any_camera_is_refused_before_decoding(plane_sequence):
     # 10000 x 7000 in 70 KB: decoded, 210 MB before its size could be held against the calibration's
     info = plane_sequence([0.0])
-    (info["folder"] / "left" / "000000.png").write_bytes(_png_declaring(10_000, 7_000))
+    (info["folder"] / "left" / "000000.png").write_bytes(png_declaring(10_000, 7_000))
     (frame,) = list(_camera(info["folder"]).frames())
     assert isinstance(frame, FrameError)
     assert "left image of frame 000000 declares more than 64 MP, more than any camera's frame" in frame.message

@@ -6,7 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
-from conftest import cli
+from conftest import cli, png_declaring
 
 from plugins.yolov8.voc_to_yolo import convert_voc
 
@@ -99,3 +99,11 @@ def test_the_sources_own_split_files_are_used_and_their_absence_said(tmp_path):
     out = cli("data", "convert-voc", str(src), str(tmp_path / "z"))
     assert out.returncode == 0, out.stderr
     assert "no --split-files were given: every image is in train, and val is the same images" in out.stderr
+
+
+def test_an_image_declaring_more_pixels_than_any_camera_is_a_fault_not_decoded(tmp_path):
+    src = _dataset(tmp_path)
+    (src / "images" / "good_2.jpg").unlink()
+    (src / "images" / "good_2.png").write_bytes(png_declaring(10_000, 7_000))  # 70 KB, 210 MB decoded
+    report = convert_voc(src, tmp_path / "yolo")
+    assert "unreadable_image: good_2.png: declares more than 64 MP" in report.messages

@@ -17,7 +17,7 @@ from pathlib import Path
 import yaml
 
 from drivers.file_writes import write_text
-from drivers.sequence_folder import incomplete
+from drivers.sequence_folder import MAX_IMAGE_PIXELS, declared_pixels, incomplete
 
 NEU_DET_CLASSES = (
     "crazing",
@@ -69,6 +69,9 @@ def _image_size(path: Path, report: ConversionReport) -> tuple[int, int] | None:
     why = incomplete(data, path.suffix)
     if why is not None:
         report.fault("truncated_image", f"{path.name}: {why}")
+        return None
+    if declared_pixels(data) > MAX_IMAGE_PIXELS:  # decoded, a few hundred KB could fill the memory
+        report.fault("unreadable_image", f"{path.name}: declares more than {MAX_IMAGE_PIXELS / 1e6:.0f} MP")
         return None
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:

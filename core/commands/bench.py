@@ -10,8 +10,8 @@ from pydantic import ValidationError
 from core.commands.inspection import _load, fail
 from core.commands.params import FINITE, cuda_if_present, demo_recipe, out_folder
 from core.recipe.schema import MAX_THREADS
-from drivers.yaml_reader import MisreadNumber, option_value
 from drivers.file_writes import write_text
+from drivers.yaml_reader import MisreadNumber, option_value
 from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
 
 

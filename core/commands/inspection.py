@@ -307,7 +307,7 @@ def recipe_warnings(loaded) -> list[str]:
     deviation rules written the wrong way round."""
     return (_depth_warnings(loaded) + _detector_warnings(loaded) + _coverage_warnings(loaded)
             + _guard_band_warnings(loaded) + _image_check_warnings(loaded) + _output_warnings(loaded)
-            + _pulse_warnings(loaded) + _late_warnings(loaded) + _thread_warnings(loaded) + _rule_warnings(loaded))
+            + _output_timing_warnings(loaded) + _thread_warnings(loaded) + _rule_warnings(loaded))
 
 
 def _rule_warnings(loaded) -> list[str]:
@@ -357,10 +357,12 @@ def _detector_warnings(loaded) -> list[str]:
     return lines
 
 
-def _pulse_warnings(loaded) -> list[str]:
-    """A line for each output whose actuator cannot be given two parts as close together as the camera
-    delivers them (``PluginSpec.part_interval``): a run of rejects falls behind, one pulse after another,
-    until the output alarms them instead of sending them."""
+def _output_timing_warnings(loaded) -> list[str]:
+    """Lines for outputs whose timing the camera's frame rate defeats: an actuator that cannot be given two parts
+    as close together as the camera delivers them (``PluginSpec.part_interval``), where a run of rejects falls
+    behind, one pulse after another, until the output alarms them instead of sending them; and one that still
+    sends a command, counted delivered, as late as the camera's next plate (``PluginSpec.late_limit``), where
+    such a reject can reach the next plate instead of its own and the defective one passes."""
     from core.recipe.loader import camera_answer, output_answers
     from core.registry import default_registry
 
@@ -369,36 +371,20 @@ def _pulse_warnings(loaded) -> list[str]:
     if not fps:
         return []
     period = 1.0 / fps
-    lines = []
-    for index, interval in output_answers(loaded, registry, "part_interval"):
-        if interval > period:
-            lines.append(loaded.describe(
-                ("outputs", index, "settings"),
-                f"warning: a part's pulse and the low after it take {1000 * interval:.0f} ms, longer than the "
-                f"{1000 * period:.0f} ms between two plates at {fps:g} per second: each reject right after another "
-                f"is {1000 * (interval - period):.0f} ms later than the one before, until beyond max_late_ms it is "
-                f"alarmed instead of sent (a shorter pulse_ms, or write: counter)"))
-    return lines
-
-
-def _late_warnings(loaded) -> list[str]:
-    """A line for each output that still sends a command, and counts it delivered, as late as the camera's next
-    plate (``PluginSpec.late_limit`` against the frame period): such a reject can reach the next plate instead
-    of its own, and the defective one passes."""
-    from core.recipe.loader import camera_answer, output_answers
-    from core.registry import default_registry
-
-    registry = default_registry()
-    fps = camera_answer(loaded, registry, "frame_rate")
-    if not fps:
-        return []
-    period = 1.0 / fps
-    return [loaded.describe(("outputs", index, "settings", "max_late_ms"),
-                            f"warning: a command up to {1000 * limit:.0f} ms late is still sent, but plates come "
-                            f"{1000 * period:.0f} ms apart at {fps:g} per second: a reject that late can reach the next "
-                            f"plate instead of its own, counted delivered (give max_late_ms less than "
-                            f"{1000 * period:.0f})")
-            for index, limit in output_answers(loaded, registry, "late_limit") if limit >= period]
+    pulses = [loaded.describe(
+        ("outputs", index, "settings"),
+        f"warning: a part's pulse and the low after it take {1000 * interval:.0f} ms, longer than the "
+        f"{1000 * period:.0f} ms between two plates at {fps:g} per second: each reject right after another "
+        f"is {1000 * (interval - period):.0f} ms later than the one before, until beyond max_late_ms it is "
+        f"alarmed instead of sent (a shorter pulse_ms, or write: counter)")
+        for index, interval in output_answers(loaded, registry, "part_interval") if interval > period]
+    late = [loaded.describe(
+        ("outputs", index, "settings", "max_late_ms"),
+        f"warning: a command up to {1000 * limit:.0f} ms late is still sent, but plates come "
+        f"{1000 * period:.0f} ms apart at {fps:g} per second: a reject that late can reach the next "
+        f"plate instead of its own, counted delivered (give max_late_ms less than {1000 * period:.0f})")
+        for index, limit in output_answers(loaded, registry, "late_limit") if limit >= period]
+    return pulses + late
 
 
 def _image_check_warnings(loaded) -> list[str]:

@@ -150,8 +150,8 @@ def train_command(data: Path, epochs: int, patience: int, imgsz: int, batch: int
     from plugins.yolov8.training import TrainSettings, last_checkpoint, train_detector
 
     data_yaml = _dataset_yaml(data, ("train", "val"), " (run `inspect data convert-voc` first)")
-    from plugins.yolov8.detector import read_checkpoint
     from plugins.yolov8.dataset_check import dataset_problem
+    from plugins.yolov8.detector import read_checkpoint
 
     problem = dataset_problem(data_yaml, ("train", "val"))
     if problem is not None:
@@ -271,8 +271,9 @@ def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, 
         try:
             detections.append([(d.class_name, d.confidence, d.box) for d in detector.detect(image)])
         except DetectionLimit:  # boxes beyond max_det would go uncounted as boxes on sound surface
-            _fail(f"{sequence}: frame {frame_id}: at --confidence {min(thresholds):g} the detector finds 300 boxes or "
-                  f"more in one image, more than it reports: score higher thresholds")
+            _fail(f"{sequence}: frame {frame_id}: at --confidence {min(thresholds):g} the detector finds "
+                  f"{detector.settings.max_det} boxes or more in one image, more than it reports: score higher "
+                  f"thresholds")
     click.echo(f"{sequence}: {len(frames)} frames, weights {weights or 'the committed model'}")
     click.echo(markdown(score_frames(detections, [t for _, _, t in frames], thresholds, iou)))
 

@@ -86,7 +86,8 @@ class StoreReader:
                 "SELECT p.id, p.part_id, p.frame_id, p.time, p.verdict, p.reasons,"
                 " (SELECT GROUP_CONCAT(DISTINCT d.class) FROM defects d WHERE d.part_row = p.id) AS classes"
                 f" FROM parts p {where} ORDER BY p.id DESC LIMIT ? OFFSET ?",
-                (*args, per_page, (page - 1) * per_page),
+                # a page beyond every row SQLite can hold is as empty as the next one, not an overflow
+                (*args, per_page, min((page - 1) * per_page, store.ROW_ID_MAX)),
             ).fetchall()
         return {"total": total, "page": page, "per_page": per_page, "parts": [_part_summary(r) for r in rows]}
 

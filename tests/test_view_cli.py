@@ -82,3 +82,5 @@ def test_bench_view_measures_the_loop_with_and_without_browsers(tmp_path, plane_
     assert bad.returncode == 2 and "--browsers" in bad.stderr
     bad = cli("bench-view", str(path), "--browsers", "0,-1", env_extra={"PYTHONPATH": str(external_plugin_site)})
     assert bad.returncode == 2 and "a number of browsers is 0 or more" in bad.stderr
+    bad = cli("bench-view", str(path), "--browsers", "0,100000000000", env_extra={"PYTHONPATH": str(external_plugin_site)})
+    assert bad.returncode == 2 and "at most 64 browsers" in bad.stderr

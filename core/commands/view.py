@@ -9,6 +9,8 @@ import click
 from core.commands.inspection import fail
 from core.commands.params import demo_recipe
 
+MAX_BENCH_BROWSERS = 64  # each is a thread pulling frames
+
 
 def start_view(results: Path, feed, host: str, port: int, token: str | None, jpeg_quality: int, max_fps: float,
                echo=click.echo):
@@ -85,6 +87,9 @@ def bench_view_command(recipe: Path, frames: int, browsers: str, port: int | Non
         fail(f"--browsers: {browsers!r} is not a comma-separated list of numbers")
     if any(n < 0 for n in counts):
         fail(f"--browsers: {browsers!r}: a number of browsers is 0 or more")
+    if max(counts) > MAX_BENCH_BROWSERS:  # a billion threads would fill the memory before the first row
+        fail(f"--browsers: {browsers!r}: at most {MAX_BENCH_BROWSERS} browsers at once (the page's viewers on one line, "
+             f"not a load test)")
 
     def label(n: int) -> str:
         return f"{n} browser{'' if n == 1 else 's'}"

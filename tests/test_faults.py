@@ -40,3 +40,7 @@ def test_a_line_that_cannot_run_is_one_line_naming_why(tmp_path):
     result = cli("sim", "faults", str(tmp_path / "ends"), "--parts", "10", "--kills", "0", "--set",
                  "camera.settings.max_frames=1")
     assert result.returncode == 2 and result.stderr == "error: inspect run ended by itself (exit 0)\n", result.stderr
+    # 10^20 kills were drawn one by one before anything ran
+    result = cli_here("sim", "faults", str(tmp_path / "kills"), "--parts", "10", "--kills", str(10**20))
+    assert result.returncode == 2 and "--kills: at most one per part" in result.stderr, result.stderr
+    assert not (tmp_path / "kills").exists()

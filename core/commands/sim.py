@@ -196,6 +196,8 @@ def register(cli: click.Group) -> None:
         from core.commands.inspection import _load, fail
         from sim.faults import RECIPE, FaultsError, run_faults
 
+        if kills > parts:  # each kill lands between two parts: more would only restart a process that did nothing
+            fail(f"--kills: at most one per part ({kills} kills for --parts {parts})")
         _load(RECIPE, tuple(overrides))  # a bad --set is said here, before anything is rendered or started
         try:
             report = run_faults(out, parts, kills, seed, damage, tuple(overrides), rate_fps, log=click.echo)

@@ -1,5 +1,5 @@
 """What the engine checks of what plugins hand it: a camera's frame (and that it is a new one), a
-detector's boxes, a backend's map.
+detector's boxes, a backend's map, an output's reports.
 
 A third-party plugin that breaks its contract (``core.contracts``) must cost the part it was working on,
 as an ERROR saying what was wrong, and never a measurement read from the wrong pixels. Each function
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from core.types import Detection, StereoFrame
+from core.types import Alarm, Detection, OutputEvent, StereoFrame
 from drivers.stereo_geometry import calibration_problem
 
 
@@ -126,4 +126,29 @@ def disparity_problem(disparity: Any, shape: tuple[int, int], searched: tuple[fl
             return (f"the stereo backend returned disparities of {float(values.min()):.4g} to {float(values.max()):.4g} "
                     f"px, {outside:.0%} of them outside the {lo:.4g} to {hi:.4g} px it was asked to search: not this "
                     f"pair's disparities in pixels (a fixed-point map, or one scaled for another resolution?)")
+    return None
+
+
+def _text(value: Any, optional: bool = False) -> bool:
+    return isinstance(value, str) or (optional and value is None)
+
+
+def event_problem(event: Any) -> str | None:
+    """An ``OutputEvent`` or ``Alarm`` (an output's ``poll`` or ``close`` hands back a list of them) whose
+    fields the results store can hold: text where text is meant, a finite time. One it cannot would fail the
+    store's write, and the engine would take the store for broken and stop the line."""
+    if isinstance(event, Alarm):
+        fields = {"source": _text(event.source), "message": _text(event.message),
+                  "part_id": _text(event.part_id, True), "cause": _text(event.cause, True)}
+    elif isinstance(event, OutputEvent):
+        fields = {"output": _text(event.output), "part_id": _text(event.part_id, True),
+                  "command": _text(event.command), "outcome": _text(event.outcome), "detail": _text(event.detail)}
+    else:
+        return f"a {type(event).__name__} ({event!r:.60}), not an OutputEvent or an Alarm"
+    stamp = event.timestamp
+    fields["timestamp"] = isinstance(stamp, (int, float)) and not isinstance(stamp, bool) and math.isfinite(stamp)
+    wrong = [name for name, ok in fields.items() if not ok]
+    if wrong:
+        return (f"a {type(event).__name__} whose {', '.join(wrong)} the store cannot hold (text, and a finite time "
+                f"in seconds): {event!r:.120}")
     return None

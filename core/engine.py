@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from core import depth, stereo_memory
-from core.checks import RepeatedImages, detections_problem, disparity_problem, frame_problem
+from core.checks import RepeatedImages, detections_problem, disparity_problem, event_problem, frame_problem
 from core.contracts import PluginContext, missing_members
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
@@ -622,7 +622,13 @@ def run(
             except Exception as exc:
                 record([Alarm(name, f"reject output failed for {part.part_id}: {exc}", time.time(), part.part_id)])
             handing[2] = None
-            record(output.poll())
+            try:
+                reports = output.poll()
+            except Exception as exc:  # one output's glitch must not stop the line, nor keep the part from the rest
+                reports = [Alarm(name, f"asking the output what it sent failed after {part.part_id}: "
+                                       f"{type(exc).__name__}: {exc}; what it had to report is lost", time.time(),
+                                 part.part_id)]
+            record(output_reports(name, reports, part.part_id))
         handing.clear()
 
     try:
@@ -697,7 +703,7 @@ def run(
         elapsed = time.perf_counter() - started
         for name, output in pipeline.outputs:
             try:
-                record(output.close())
+                record(output_reports(name, output.close(), None))
             except KeyboardInterrupt:  # the next outputs and the store must still be closed
                 interrupted = True
                 record([Alarm(name, "closing was interrupted (Ctrl-C): commands it still held may not have been "
@@ -716,6 +722,23 @@ def run(
     except Exception:
         pass  # a store that failed has said so
     return summary
+
+
+def output_reports(name: str, reports: Any, part_id: str | None) -> list[OutputEvent | Alarm]:
+    """What output ``name``'s ``poll`` or ``close`` returned (after the part ``part_id``, where one), less what
+    breaks the contract (``core.checks.event_problem``), for which an alarm naming the output stands instead:
+    the store, failing to write it, would take itself for broken and stop the line."""
+    if not isinstance(reports, list):
+        return [Alarm(name, f"the output reported a {type(reports).__name__}, not a list of events and alarms: what it "
+                            f"had to report is lost", time.time(), part_id)]
+    problems = [event_problem(e) for e in reports]
+    kept = [e for e, problem in zip(reports, problems) if problem is None]
+    wrong = [problem for problem in problems if problem is not None]
+    if wrong:
+        more = f" (and {len(wrong) - 1} more)" if len(wrong) > 1 else ""
+        kept.append(Alarm(name, f"the output reported {wrong[0]}{more}: left out, what it meant is lost", time.time(),
+                          part_id))
+    return kept
 
 
 def _tell_outputs(pipeline: Pipeline, what: str, *args: Any) -> None:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import sqlite3
 
 import numpy as np
 import pytest
@@ -11,12 +12,12 @@ from conftest import write_recipe
 from test_engine import RECIPE
 
 from core import engine
-from core.checks import RepeatedImages, detections_problem, disparity_problem, frame_problem
+from core.checks import RepeatedImages, detections_problem, disparity_problem, event_problem, frame_problem
 from core.contracts import PluginSpec
 from core.hookspecs import hookimpl
 from core.recipe import RecipeError, load_recipe
 from core.registry import Registry, make_manager
-from core.types import Calibration, Detection, Status, StereoFrame
+from core.types import Alarm, Calibration, Detection, OutputEvent, Status, StereoFrame
 
 CALIB = Calibration(focal_px=350.0, baseline_mm=120.0, cx=80.0, cy=60.0, width=160, height=120)
 
@@ -164,6 +165,25 @@ class TestDisparityProblem:
         disparity[:60] = -1.0  # a matcher's "no match", as OpenCV's min_disp - 1
         disparity[60:80] = 0.0
         assert disparity_problem(disparity, (120, 160), (10.0, 40.0)) is None
+
+
+class TestEventProblem:
+    def test_events_and_alarms_the_store_can_hold_pass(self):
+        assert event_problem(OutputEvent("plc", "R1-000001", "coil 0", "delivered", 1e9)) is None
+        assert event_problem(OutputEvent("plc", None, "ready", "failed", 0, "timeout")) is None
+        assert event_problem(Alarm("plc", "PLC unreachable", 1e9, "R1-000001", "link")) is None
+
+    @pytest.mark.parametrize("event, says", [
+        ("delivered", "a str ('delivered'), not an OutputEvent or an Alarm"),
+        (None, "a NoneType (None), not an OutputEvent or an Alarm"),
+        (OutputEvent("plc", "R1", {"coil": 0}, "delivered", 1.0), "whose command the store cannot hold"),
+        (OutputEvent("plc", 7, "coil 0", "delivered", 1.0), "whose part_id the store cannot hold"),
+        (OutputEvent("plc", "R1", "coil 0", "delivered", np.float32(1.0)), "whose timestamp the store cannot hold"),
+        (Alarm("plc", "down", math.nan), "whose timestamp the store cannot hold"),
+        (Alarm("plc", None, True), "whose message, timestamp the store cannot hold"),
+    ])
+    def test_what_the_store_cannot_hold_is_named(self, event, says):
+        assert says in event_problem(event)
 
 
 # -- the part a breach costs: an ERROR naming it, the run going on ------------------------------------------
@@ -357,3 +377,53 @@ def test_an_output_that_changes_the_part_changes_it_for_itself_alone(tmp_path, p
                on_part=seen.append, device="cpu")
     assert [o.part.verdict.status for o in seen] == [Status.PASS, Status.REJECT]
     assert [status for _, status in Witness.seen] == [Status.PASS, Status.REJECT]
+
+
+class Misreporter(Pardoner):
+    """An output that sends its commands but reports them wrongly: its ``poll`` fails once, then says
+    "delivered" as a string; its ``close`` returns nothing."""
+
+    def __init__(self):
+        self.polls = 0
+
+    def submit(self, part):
+        pass
+
+    def poll(self):
+        self.polls += 1
+        if self.polls == 1:
+            raise ConnectionResetError("status register unreadable")
+        return ["delivered"]
+
+    def close(self, timeout_s=10.0):
+        return None
+
+
+class Misreporting:
+    @hookimpl
+    def stereo_inspect_outputs(self):
+        delay = {"actuator_delay": lambda s, ctx: 2.0}
+        return [PluginSpec("misreporter", "output", lambda s, ctx: Misreporter(), **delay),
+                PluginSpec("witness", "output", lambda s, ctx: Witness(), **delay)]
+
+
+def test_an_output_that_misreports_raises_alarms_and_the_line_goes_on(tmp_path, plane_sequence):
+    # a poll that raised stopped the run after its first part, leaving the next outputs without it; a report
+    # the store could not write made the engine take the store for broken and stop the line
+    info = plane_sequence([0.0, 2.0, 0.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, Misreporting())))
+    text = RECIPE.format(box=info["box"], output="misreporter\n  - plugin: witness")
+    Witness.seen = []
+    summary = engine.run(load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry),
+                         registry=registry, device="cpu")
+    assert summary.frames == 3 and summary.counts[Status.REJECT] == 1
+    assert [part_id for part_id, _ in Witness.seen] == ["R1-000000", "R1-000001", "R1-000002"]
+    says = [a.message for a in summary.alarms]
+    assert says[0].startswith("asking the output what it sent failed after R1-000000: ConnectionResetError")
+    assert says[1:3] == ["the output reported a str ('delivered'), not an OutputEvent or an Alarm: left out, what "
+                         "it meant is lost"] * 2
+    assert says[3].startswith("the output reported a NoneType, not a list")
+    assert all(a.source == "misreporter" for a in summary.alarms) and summary.exit_code == engine.EXIT_ALARMS
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    assert db.execute("SELECT COUNT(*) FROM alarms").fetchone()[0] == 4  # the store kept working
+    assert db.execute("SELECT exit_code FROM runs").fetchone()[0] == engine.EXIT_ALARMS

@@ -13,12 +13,26 @@ from typing import Any
 
 import numpy as np
 
-from core.types import Alarm, Detection, OutputEvent, StereoFrame
+from core.types import Alarm, Detection, FrameError, OutputEvent, StereoFrame
 from drivers.stereo_geometry import calibration_problem
 
 
 def _size(image: np.ndarray) -> str:
     return f"{image.shape[1]}x{image.shape[0]}" if image.ndim >= 2 else f"shape {image.shape}"
+
+
+def delivery_problem(item: Any) -> str | None:
+    """What a camera's ``frames()`` yields, as far as its part can be named from it: a ``StereoFrame`` or a
+    ``FrameError`` with a frame id (text) and an index (a whole number, 0 or more)."""
+    if not isinstance(item, (StereoFrame, FrameError)):
+        said = " ".join(repr(item).split())  # an array's repr spans lines; an alarm is one
+        return f"the camera delivered a {type(item).__name__} ({said:.60}), not a StereoFrame or a FrameError"
+    if not isinstance(item.frame_id, str):
+        return f"the camera delivered a frame whose frame_id is {item.frame_id!r}, not text"
+    index = item.index
+    if not (isinstance(index, (int, np.integer)) and not isinstance(index, bool) and index >= 0):
+        return f"the camera delivered frame {item.frame_id} with index {index!r}, not a whole number of 0 or more"
+    return None
 
 
 def frame_problem(frame: StereoFrame) -> str | None:
@@ -144,7 +158,8 @@ def event_problem(event: Any) -> str | None:
         fields = {"output": _text(event.output), "part_id": _text(event.part_id, True),
                   "command": _text(event.command), "outcome": _text(event.outcome), "detail": _text(event.detail)}
     else:
-        return f"a {type(event).__name__} ({event!r:.60}), not an OutputEvent or an Alarm"
+        said = " ".join(repr(event).split())
+        return f"a {type(event).__name__} ({said:.60}), not an OutputEvent or an Alarm"
     stamp = event.timestamp
     fields["timestamp"] = isinstance(stamp, (int, float)) and not isinstance(stamp, bool) and math.isfinite(stamp)
     wrong = [name for name, ok in fields.items() if not ok]

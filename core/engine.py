@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 
 from core import depth, stereo_memory
-from core.checks import RepeatedImages, detections_problem, disparity_problem, event_problem, frame_problem
+from core.checks import (RepeatedImages, delivery_problem, detections_problem, disparity_problem, event_problem,
+                         frame_problem)
 from core.contracts import PluginContext, missing_members
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
@@ -41,6 +42,7 @@ EXIT_OK, EXIT_USAGE, EXIT_PART_ERRORS, EXIT_ALARMS, EXIT_INTERRUPTED = 0, 2, 3, 
 CAMERA_LOST_AFTER = 3  # consecutive frames the camera could not deliver
 CAMERA_WAIT = "camera"  # the watchdog's key for a free-running camera's wait for its next frame
 CAMERA_OPEN_S = 30.0  # the longest a free-running camera's first frame may take (the device opening)
+_END = object()  # the camera's frames ran out (a None it yields is a breach, not the end)
 # how far ahead of this computer's clock a frame's capture time may lie (a clock set back while it was
 # inspected); further, or not a number, and the stamp is not this computer's time at capture
 STAMP_AHEAD_S = 1.0
@@ -433,6 +435,11 @@ class StoreFailed(Exception):
     """The results store could not record a part, which went to the outputs all the same: the run stops."""
 
 
+class CameraFailed(Exception):
+    """The camera delivered something no part can be named from (``core.checks.delivery_problem``): the run
+    stops, as for a camera that raises, rather than take it for the end of its frames."""
+
+
 def _filter(detections: list[Detection], confidence: float, classes: list[str] | None) -> list[Detection]:
     return [d for d in detections if d.confidence >= confidence and (classes is None or d.class_name in classes)]
 
@@ -572,12 +579,14 @@ def run(
                 watch.started(CAMERA_WAIT, f"no frame from the camera (it runs at {rate:g} frames a second)", wait)
             first = False
             try:
-                item = next(frames, None)
+                item = next(frames, _END)
             finally:
                 if rate:
                     watch.finished(CAMERA_WAIT)
-            if item is None:
+            if item is _END:
                 return
+            if (problem := delivery_problem(item)) is not None:  # a None was taken for the end: exit 0, parts unseen
+                raise CameraFailed(problem)
             watch.started(part_id(item), f"frame {item.frame_id} still in inspection")
             yield item
 

@@ -12,12 +12,13 @@ from conftest import write_recipe
 from test_engine import RECIPE
 
 from core import engine
-from core.checks import RepeatedImages, detections_problem, disparity_problem, event_problem, frame_problem
+from core.checks import (RepeatedImages, delivery_problem, detections_problem, disparity_problem, event_problem,
+                         frame_problem)
 from core.contracts import PluginSpec
 from core.hookspecs import hookimpl
 from core.recipe import RecipeError, load_recipe
 from core.registry import Registry, make_manager
-from core.types import Alarm, Calibration, Detection, OutputEvent, Status, StereoFrame
+from core.types import Alarm, Calibration, Detection, FrameError, OutputEvent, Status, StereoFrame
 
 CALIB = Calibration(focal_px=350.0, baseline_mm=120.0, cx=80.0, cy=60.0, width=160, height=120)
 
@@ -167,6 +168,23 @@ class TestDisparityProblem:
         assert disparity_problem(disparity, (120, 160), (10.0, 40.0)) is None
 
 
+class TestDeliveryProblem:
+    def test_frames_and_frame_errors_with_an_id_and_an_index_pass(self):
+        assert delivery_problem(_frame()) is None
+        assert delivery_problem(FrameError("000007", np.int64(7), "USB reset", 1e9)) is None
+
+    @pytest.mark.parametrize("item, says", [
+        (None, "the camera delivered a NoneType (None), not a StereoFrame or a FrameError"),
+        ((np.zeros((2, 2, 3)),), "the camera delivered a tuple ((array([[[0., 0., 0.], [0., 0., 0.]], [[0., 0., 0.], [0"),
+        (FrameError(None, 3, "lost", 1e9), "a frame whose frame_id is None, not text"),
+        (FrameError("000003", "3", "lost", 1e9), "frame 000003 with index '3', not a whole number of 0 or more"),
+        (FrameError("000003", -1, "lost", 1e9), "with index -1, not a whole number"),
+        (FrameError("000003", True, "lost", 1e9), "with index True, not a whole number"),
+    ])
+    def test_what_no_part_can_be_named_from_is_said(self, item, says):
+        assert says in delivery_problem(item)
+
+
 class TestEventProblem:
     def test_events_and_alarms_the_store_can_hold_pass(self):
         assert event_problem(OutputEvent("plc", "R1-000001", "coil 0", "delivered", 1e9)) is None
@@ -251,6 +269,14 @@ class NarrowRight:
         self.replay.close()
 
 
+class YieldsNone(NarrowRight):
+    """A camera whose grab returned nothing for its second frame, and which handed that on."""
+
+    def frames(self):
+        for frame in self.replay.frames():
+            yield None if frame.index == 1 else frame
+
+
 class FarCentre(NarrowRight):
     """A camera whose calibration puts the principal point far outside the image: every deviation would be
     about 0 mm, every plate passed."""
@@ -269,6 +295,7 @@ class Plugins:
     @hookimpl
     def stereo_inspect_cameras(self):
         return [PluginSpec("narrow_right", "camera", NarrowRight), PluginSpec("far_centre", "camera", FarCentre),
+                PluginSpec("yields_none", "camera", YieldsNone),
                 PluginSpec("far_centre_stated", "camera", FarCentre, calibration=_far_centre_calibration)]
 
     @hookimpl
@@ -306,6 +333,22 @@ def test_a_plugin_that_breaks_its_contract_costs_its_part_an_error(tmp_path, pla
     assert [o.part.verdict.status for o in seen] == [Status.ERROR, Status.ERROR]
     assert all(says in o.part.verdict.reasons[0] for o in seen), seen[0].part.verdict.reasons
     assert summary.exit_code == engine.EXIT_PART_ERRORS
+
+
+@pytest.mark.parametrize("concurrent", [False, True])
+def test_a_camera_that_yields_none_stops_the_run_with_an_alarm_not_as_its_end(tmp_path, plane_sequence, concurrent):
+    # the None was taken for the end of the camera's frames: exit 0, and the plates after it never inspected
+    info = plane_sequence([0.0, 0.0, 2.0])
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, Plugins())))
+    text = RECIPE.format(box=info["box"], output="log").replace("plugin: replay\n  settings: {path: seq}",
+                                                                "plugin: yields_none")
+    text = text.replace("schedule: every_frame", f"schedule: every_frame\n  concurrent: {str(concurrent).lower()}")
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
+    summary = engine.run(loaded, registry=registry, device="cpu")
+    (alarm,) = summary.alarms
+    assert alarm.message == ("run stopped after 1 parts: CameraFailed: the camera delivered a NoneType (None), not a "
+                             "StereoFrame or a FrameError")
+    assert summary.exit_code == engine.EXIT_ALARMS
 
 
 def test_a_camera_stating_a_geometry_no_camera_has_is_refused_before_the_run(tmp_path, plane_sequence):

@@ -64,6 +64,21 @@ def test_an_image_declaring_more_pixels_than_any_camera_is_refused_before_decodi
     assert "left image of frame 000000 declares more than 64 MP, more than any camera's frame" in frame.message
 
 
+def test_a_damaged_tiff_is_refused_without_pillows_warnings(plane_sequence, recwarn):
+    # reading its declared size printed Pillow's "Corrupt EXIF data" and "Truncated File Read" warnings on
+    # the line's console, beside the part's own ERROR
+    import cv2
+
+    info = plane_sequence([0.0])
+    image = cv2.imread(str(info["folder"] / "left" / "000000.png"))
+    (info["folder"] / "left" / "000000.png").unlink()
+    ok, data = cv2.imencode(".tif", image)
+    (info["folder"] / "left" / "000000.tif").write_bytes(data.tobytes()[: len(data) // 2])
+    (frame,) = list(_camera(info["folder"]).frames())
+    assert isinstance(frame, FrameError) and "000000.tif: left image of frame 000000 cannot be decoded" in frame.message
+    assert [str(w.message) for w in recwarn] == []
+
+
 def test_missing_calibration(plane_sequence):
     info = plane_sequence([0.0])
     (info["folder"] / "calib.yaml").unlink()

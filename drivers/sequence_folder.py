@@ -50,10 +50,26 @@ def is_middlebury_scene(folder: Path) -> bool:
     return (folder / "im0.png").exists() and (folder / "calib.txt").exists()
 
 
+def read_text(path: Path, what: str) -> str:
+    """A text file's contents (UTF-8, with or without the byte-order mark a Windows editor writes); ``SequenceError``
+    naming the file, and the line of the first byte that is not UTF-8, where it cannot be read."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise SequenceError(f"{path}: {what} cannot be read ({exc.strerror})") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise SequenceError(f"{path}:{line}: {what} is not UTF-8 text (byte 0x{data[exc.start]:02x}): save it as "
+                            f"UTF-8") from None
+
+
 def read_middlebury_calib(path: Path) -> dict:
     """Parse Middlebury's ``calib.txt`` (cam0=[f 0 cx; 0 f cy; 0 0 1], doffs, baseline, ndisp, ...)."""
     values: dict[str, str] = {}
-    for line in Path(path).read_text().splitlines():
+    for line in read_text(path, "calibration").splitlines():
         if "=" in line:
             key, value = line.split("=", 1)
             values[key.strip()] = value.strip()
@@ -113,7 +129,7 @@ def read_calibration(folder: Path) -> dict:
     if not path.exists():
         raise SequenceError(f"{path}: calibration file missing")
     try:
-        data = yaml_reader.safe_load(path.read_text())
+        data = yaml_reader.safe_load(read_text(path, "calibration"))
     except yaml_reader.MisreadNumber as exc:
         raise SequenceError(f"{path}:{exc.line}: {'.'.join(map(str, exc.key))}: {exc.problem}") from None
     except yaml.YAMLError as exc:
@@ -291,9 +307,7 @@ def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
     when it is not one: the truth a result is compared with must be what it says."""
     path = Path(path)
     try:
-        labels = json.loads(path.read_text())
-    except OSError as exc:
-        raise SequenceError(f"{path}: labels cannot be read ({exc.strerror})") from None
+        labels = json.loads(read_text(path, "labels"))
     except ValueError as exc:
         raise SequenceError(f"{path}: labels are not JSON ({exc})") from None
     if not isinstance(labels, dict) or not isinstance(labels.get("defects"), list):

@@ -116,7 +116,7 @@ def read_conf(path: str | Path, resolution: str = "WVGA") -> ZedCalibration:
     parser = configparser.ConfigParser()
     parser.optionxform = str  # keep the keys' case
     try:
-        parser.read_string(path.read_text(errors="replace"))
+        parser.read_string(path.read_text(encoding="utf-8-sig", errors="replace"))  # Notepad writes a BOM
     except configparser.Error as exc:
         raise CalibrationError(f"{path}: not an INI calibration file ({str(exc).splitlines()[0]})") from None
     suffix = CONF_SUFFIX[resolution]

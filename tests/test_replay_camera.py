@@ -138,6 +138,28 @@ class TestReadCalibration:
             read_calibration(info["folder"])
 
 
+    def test_a_byte_order_mark_is_read_past_and_a_byte_not_utf8_is_named(self, plane_sequence):
+        # a calib.yaml with a Latin-1 comment ended in UnicodeDecodeError's traceback
+        info = plane_sequence([0.0])
+        path = info["folder"] / "calib.yaml"
+        text = path.read_text()
+        path.write_bytes(b"\xef\xbb\xbf" + text.encode())
+        assert read_calibration(info["folder"])["width"] == 320
+        path.write_bytes(text.encode() + b"# cam\xe9ra 2\n")
+        line = text.count("\n") + 1
+        with pytest.raises(SequenceError, match=re.escape(f"calib.yaml:{line}: calibration is not UTF-8 text (byte "
+                                                          f"0xe9): save it as UTF-8")):
+            read_calibration(info["folder"])
+
+    def test_a_middlebury_calibration_with_a_byte_order_mark_is_read(self, tmp_path):
+        # "\ufeffcam0" was no key: "not a Middlebury calibration ('cam0')"
+        (tmp_path / "im0.png").write_bytes(b"")
+        (tmp_path / "calib.txt").write_bytes(
+            b"\xef\xbb\xbfcam0=[1000 0 300; 0 1000 200; 0 0 1]\r\ncam1=[1000 0 300; 0 1000 200; 0 0 1]\r\n"
+            b"doffs=0\r\nbaseline=100\r\nwidth=640\r\nheight=400\r\nndisp=64\r\n")
+        assert read_calibration(tmp_path)["focal_px"] == 1000.0
+
+
 class TestReadLabels:
     """``sequence_folder.read_labels``: the truth an evaluation compares with is checked, each problem one
     line naming the file and the entry."""
@@ -146,6 +168,12 @@ class TestReadLabels:
         path = tmp_path / "000001.json"
         path.write_text(labels if isinstance(labels, str) else json.dumps(labels))
         return path
+
+    def test_a_byte_order_mark_is_read_past(self, tmp_path):
+        # json refused it: "Unexpected UTF-8 BOM"
+        path = tmp_path / "000001.json"
+        path.write_bytes(b"\xef\xbb\xbf" + json.dumps({"defects": [{"class": "pit", "box": [1, 2, 3, 4]}]}).encode())
+        assert read_labels(path)["defects"][0]["class"] == "pit"
 
     def test_a_good_label_reads_with_float_boxes(self, tmp_path):
         path = self._write(tmp_path, {"frame_id": "000001", "defects": [

@@ -101,6 +101,21 @@ def test_the_sources_own_split_files_are_used_and_their_absence_said(tmp_path):
     assert "no --split-files were given: every image is in train, and val is the same images" in out.stderr
 
 
+def test_split_files_a_windows_editor_saved_are_read_and_others_refused(tmp_path):
+    # the byte-order mark Notepad writes made the first stem "\ufeffcrazing_1", listed but not found, and
+    # that image was in neither split; a file not in UTF-8 ended in a traceback
+    src = _dataset(tmp_path)
+    (src / "train.txt").write_bytes(b"\xef\xbb\xbfcrazing_1\r\ngood_2\r\n")
+    (src / "val.txt").write_bytes(b"outside_3\n")
+    out = cli("data", "convert-voc", str(src), str(tmp_path / "y"))
+    assert out.returncode == 0, out.stderr
+    assert sorted(p.name for p in (tmp_path / "y" / "labels" / "train").iterdir()) == ["crazing_1.txt", "good_2.txt"]
+    (src / "val.txt").write_bytes(b"outside_3\nr\xe9ject\n")
+    out = cli("data", "convert-voc", str(src), str(tmp_path / "z"))
+    assert out.returncode == 2 and out.stderr == (f"error: {src / 'val.txt'}:2: split file is not UTF-8 text (byte 0xe9): "
+                                                  f"save it as UTF-8\n"), out.stderr
+
+
 def test_an_image_declaring_more_pixels_than_any_camera_is_a_fault_not_decoded(tmp_path):
     src = _dataset(tmp_path)
     (src / "images" / "good_2.jpg").unlink()

@@ -99,6 +99,14 @@ def test_every_resolution_rectifies_points_exactly(resolution):
     np.testing.assert_allclose(rl[:, 0] - rr[:, 0], rect.focal_px * rect.baseline_mm / rectified_z(rect), atol=0.01)
 
 
+def test_a_conf_saved_with_a_byte_order_mark_is_read(tmp_path):
+    # Notepad's BOM before the first section: "not an INI calibration file (File contains no section headers.)"
+    marked = tmp_path / "SN11338.conf"
+    marked.write_bytes(b"\xef\xbb\xbf" + CONF.read_bytes())
+    read, plain = read_conf(marked, "WVGA"), read_conf(CONF, "WVGA")
+    assert (read.left, read.right, read.baseline_mm, read.cv) == (plain.left, plain.right, plain.baseline_mm, plain.cv)
+
+
 def test_bad_conf_names_file_and_key(tmp_path):
     broken = tmp_path / "SN1.conf"
     broken.write_text(CONF.read_text().replace("[RIGHT_CAM_VGA]", "[RIGHT_CAM_XX]"))

@@ -70,6 +70,7 @@ def convert_voc_command(src: Path, dst: Path, split_files: tuple[Path, Path] | N
 
     Without split files (given, or SRC's train.txt and val.txt) every image is in train and val is the same
     images, which is said: scores on it are scores on the training images."""
+    from drivers.sequence_folder import SequenceError
     from plugins.yolov8.voc_to_yolo import convert_voc
 
     if not (src / "images").is_dir() or not (src / "annotations").is_dir():
@@ -89,7 +90,10 @@ def convert_voc_command(src: Path, dst: Path, split_files: tuple[Path, Path] | N
             if not path.exists():
                 _fail(f"{path}: split file not found")
             splits[name] = path
-    report = convert_voc(src, dst, splits)
+    try:
+        report = convert_voc(src, dst, splits)
+    except SequenceError as exc:  # a split file that is not text
+        _fail(str(exc))
     for message in report.messages:
         click.echo(f"warning: {message}", err=True)
     click.echo(report.summary())

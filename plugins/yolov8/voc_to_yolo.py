@@ -17,7 +17,7 @@ from pathlib import Path
 import yaml
 
 from drivers.file_writes import write_text
-from drivers.sequence_folder import MAX_IMAGE_PIXELS, declared_pixels, incomplete
+from drivers.sequence_folder import MAX_IMAGE_PIXELS, declared_pixels, incomplete, read_text
 
 NEU_DET_CLASSES = (
     "crazing",
@@ -156,7 +156,7 @@ def convert_voc(
 
     if split_files:
         splits = {
-            name: [s.strip() for s in Path(path).read_text().splitlines() if s.strip()]
+            name: [s.strip() for s in read_text(Path(path), "split file").splitlines() if s.strip()]
             for name, path in split_files.items()
         }
     else:

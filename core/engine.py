@@ -520,7 +520,10 @@ def run(
             if isinstance(e, Alarm):
                 alarms.append(e)
             if on_event:
-                on_event(e)
+                try:
+                    on_event(e)
+                except Exception:  # the operator's display gone (a closed pipe): the store must still hear of it
+                    pass
         if store_down:
             return
         try:

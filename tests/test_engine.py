@@ -127,6 +127,23 @@ def test_camera_lost_for_several_frames_is_one_alarm(tmp_path, plane_sequence, r
     assert db.execute("SELECT source, part_id FROM alarms").fetchall() == [("camera", seen[3].part.part_id)]
 
 
+def test_a_display_that_fails_does_not_keep_an_alarm_from_the_store(tmp_path, plane_sequence, registry):
+    # the operator's display (on_event) raising, as a console whose pipe closed does, left the alarm unstored
+    info = plane_sequence([0.0] * 5)
+    for i in (1, 2, 3):
+        (info["folder"] / "left" / f"{i:06d}.png").unlink()
+
+    def gone(event):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log"))
+    summary = engine.run(load_recipe(path, registry=registry), registry=registry, on_event=gone, device="cpu")
+    assert summary.frames == 5 and len(summary.alarms) == 1
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    assert db.execute("SELECT message FROM alarms").fetchone()[0].startswith("camera lost")
+    assert db.execute("SELECT status FROM runs").fetchone()[0] == "finished"
+
+
 def test_a_frozen_camera_rejects_every_repeated_frame_with_one_alarm(tmp_path, plane_sequence, registry):
     info = plane_sequence([0.0, 0.0, 0.0, 0.0, 0.0, 6.0])
     for side in ("left", "right"):  # frames 2-4 are frame 1's images again, as a stalled driver hands them over

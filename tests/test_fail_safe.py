@@ -232,6 +232,30 @@ def test_ctrl_c_again_while_rejects_are_on_their_way_alarms_them_and_finishes_th
         assert outcomes & {"delivered", "alarm"}, part_id
 
 
+def test_a_console_whose_reader_went_away_stops_the_run_as_a_closed_terminal_does(tmp_path):
+    """`inspect run | head`: rich raised SystemExit from inside the run loop when the pipe broke, which skipped
+    finalising the run (left "running" in the store, no exit code) and recording what was still to come."""
+    port = plc_sim.free_port()
+    results = tmp_path / "results"
+    exe = Path(sys.executable).parent / "inspect"
+    args = [a for a in _run_args(results, port) if a != "--quiet"]  # a line per part, to the pipe
+    with plc_sim.serve_in_thread("127.0.0.1", port, on_change=None):
+        proc = subprocess.Popen([str(exe), "run", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        lines = [proc.stdout.readline() for _ in range(3)]
+        proc.stdout.close()  # the reader goes away, as `head -3` does
+        err = proc.stderr.read()
+        proc.wait(timeout=60)
+    assert all(line.startswith("R1-") for line in lines), lines
+    assert proc.returncode == 128 + signal.SIGPIPE and "Traceback" not in err, err
+    db = sqlite3.connect(results / "results.db")
+    assert db.execute("SELECT status, exit_code FROM runs").fetchone() == ("finished", 128 + signal.SIGPIPE)
+    for (part_id,) in db.execute("SELECT part_id FROM parts WHERE verdict != 'PASS'"):
+        outcomes = {r[0] for r in db.execute(
+            "SELECT outcome FROM output_events WHERE part_id = ? AND output = 'modbus' AND command LIKE '%(pulse%'",
+            (part_id,))}
+        assert outcomes & {"delivered", "alarm"}, part_id
+
+
 def test_a_plc_unreachable_all_run_is_an_alarm_even_without_rejects(tmp_path):
     port = plc_sim.free_port()  # nothing listens there
     results = tmp_path / "results"

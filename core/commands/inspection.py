@@ -84,7 +84,19 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
     from core import engine
 
     loaded = _load(recipe, overrides + ((f"threads={threads}",) if threads else ()), {"threads": "--threads"})
-    console = Console(highlight=False, soft_wrap=True)
+
+    class LineConsole(Console):
+        """The run's console, whose reader may go away (``inspect run | head``, a terminal's pipe closed). Rich
+        raises SystemExit there, from inside the run loop, which then skipped finalising the run in the store
+        and its alarms; here the output goes to /dev/null, ``gone`` says so, and the run stops as for SIGHUP."""
+
+        gone = False
+
+        def on_broken_pipe(self) -> None:
+            self.quiet = self.gone = True
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+    console = LineConsole(highlight=False, soft_wrap=True)
     for line in recipe_warnings(loaded):  # what inspect validate would say: the line runs as the recipe says
         click.echo(line, err=True)
     if token is not None and len(token) < 8:
@@ -137,7 +149,8 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
         with progress:
             task = progress.add_task(loaded.recipe.name, total=max_frames, fps=0.0)
             summary = engine.run(loaded, on_part=on_part, on_event=on_event, device=device, max_frames=max_frames,
-                                 on_start=on_start, stop_requested=lambda: received[0] if received else None)
+                                 on_start=on_start, stop_requested=lambda: received[0] if received else
+                                 (signal.SIGPIPE if console.gone else None))
     except engine.SetupError as exc:
         if server is not None:
             server.stop()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 
 import numpy as np
 import pytest
@@ -58,6 +59,25 @@ def test_an_image_with_as_many_boxes_as_max_det_is_an_error_not_a_cut_list(untra
 def test_missing_weights_file_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.pt: detector weights not found"):
         _detector(tmp_path / "nope.pt")
+
+
+@pytest.mark.parametrize("architecture, says", [
+    ("yolov8n-cls.yaml", "the checkpoint of a YOLO classify model, not a detector's: it gives one class per image"),
+    ("yolov8n-obb.yaml", "the checkpoint of a YOLO obb model, not a detector's: it gives rotated boxes"),
+])
+def test_a_checkpoint_of_a_model_that_gives_no_boxes_is_refused_at_load(tmp_path, architecture, says):
+    # validated as a detector's, it made every part an ERROR at its first detection
+    os.environ.setdefault("YOLO_OFFLINE", "1")
+    from ultralytics import YOLO
+
+    from plugins.yolov8.detector import checkpoint_class_names
+
+    weights = tmp_path / "other.pt"
+    YOLO(architecture).save(str(weights))
+    with pytest.raises(ValueError, match=re.escape(says)):
+        _detector(weights)
+    with pytest.raises(ValueError, match=re.escape(says)):  # what inspect validate asks
+        checkpoint_class_names(weights)
 
 
 def test_detection_leaves_torch_thread_count_alone(untrained_weights):

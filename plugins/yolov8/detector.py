@@ -66,6 +66,9 @@ SAFE_MODULES = ("torch.", "ultralytics.", "numpy.", "collections.", "pathlib.", 
 
 
 TRUST_HINT = "set detector.settings.trust_pickle: true only for a file you made yourself"
+# YOLO tasks whose predictions hold no axis-aligned boxes (segmentation and pose models give them beside their masks
+# and keypoints, and serve as detectors)
+UNBOXED_TASKS = {"classify": "gives one class per image, no boxes", "obb": "gives rotated boxes, which it does not read"}
 
 
 def read_checkpoint(weights: Path, trust_pickle: bool = False, hint: str | None = TRUST_HINT) -> dict:
@@ -103,6 +106,12 @@ def read_checkpoint(weights: Path, trust_pickle: bool = False, hint: str | None 
     model = (ckpt.get("ema") or ckpt.get("model")) if isinstance(ckpt, dict) else None
     if not isinstance(model, torch.nn.Module):
         raise ValueError(f"{weights}: not a YOLO checkpoint (no model inside)")
+    from ultralytics.nn.tasks import guess_model_task
+
+    task = guess_model_task(model)
+    if task in UNBOXED_TASKS:  # loaded as a detector, every part's detection would fail on it
+        raise ValueError(f"{weights}: the checkpoint of a YOLO {task} model, not a detector's: it {UNBOXED_TASKS[task]} "
+                         f"(train a detector with `inspect train detector`)")
     return ckpt
 
 

@@ -14,6 +14,9 @@ from dataclasses import dataclass
 
 from drivers.reject_scheduler import LinkError, LinkRefused
 
+# the fastest USB serial adapters' rate: beyond it a port fails to open at every command ("invalid baudrate")
+MAX_BAUDRATE = 12_000_000
+
 
 @dataclass(frozen=True)
 class LineCommand:

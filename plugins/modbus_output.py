@@ -29,6 +29,7 @@ from core.hookspecs import hookimpl
 from core.types import PartResult
 from drivers.modbus_link import ModbusLink, ModbusWrite
 from drivers.reject_scheduler import MIN_PULSE_GAP_S, Command, RejectScheduler
+from drivers.serial_line import MAX_BAUDRATE
 from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay, late_limit
 
 
@@ -71,7 +72,7 @@ class ModbusSettings(TimingSettings):
     host: str = "127.0.0.1"
     port: int = Field(502, ge=1, le=65535)
     serial_port: str | None = Field(None, description="rtu: the serial port (/dev/ttyUSB0)")
-    baudrate: int = Field(19200, gt=0)
+    baudrate: int = Field(19200, gt=0, le=MAX_BAUDRATE)
     parity: Literal["N", "E", "O"] = "N"
     stopbits: Literal[1, 2] = 1
     unit: int = Field(1, ge=0, le=247, description="Modbus unit/device id")

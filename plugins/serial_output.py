@@ -27,14 +27,14 @@ from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
 from core.types import PartResult
 from drivers.reject_scheduler import Command, RejectScheduler
-from drivers.serial_line import LineCommand, SerialLine
+from drivers.serial_line import MAX_BAUDRATE, LineCommand, SerialLine
 from plugins.command_format import checked_format, command_text
 from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay, late_limit
 
 
 class SerialSettings(TimingSettings):
     port: str = Field(min_length=1, description="serial port or pyserial URL")
-    baudrate: int = Field(9600, gt=0)
+    baudrate: int = Field(9600, gt=0, le=MAX_BAUDRATE)
     parity: Literal["N", "E", "O"] = "N"
     stopbits: Literal[1, 2] = 1
     bytesize: Literal[7, 8] = 8

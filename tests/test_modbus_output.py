@@ -325,6 +325,10 @@ def test_settings_are_checked():
         ModbusSettings.model_validate({"delay_ms": 200000})
     with pytest.raises(ValidationError, match="rtu needs serial_port"):
         ModbusSettings.model_validate({"transport": "rtu", "delay_ms": 500})
+    # the port failed to open at every reject ("invalid baudrate"), each an alarm
+    with pytest.raises(ValidationError, match="less than or equal to 12000000"):
+        ModbusSettings.model_validate({"transport": "rtu", "serial_port": "/dev/ttyUSB0", "baudrate": 10**20,
+                                       "delay_ms": 500})
     # no device answers a broadcast: each reject would wait for an answer that never comes
     with pytest.raises(ValidationError, match="unit 0 is the RTU broadcast address"):
         ModbusSettings.model_validate({"transport": "rtu", "serial_port": "/dev/ttyUSB0", "unit": 0, "delay_ms": 500})

@@ -155,6 +155,9 @@ def test_settings_are_checked():
         SerialSettings.model_validate({})
     with pytest.raises(ValidationError, match="Extra inputs"):
         SerialSettings.model_validate({"port": "loop://", "baud": 9600})
+    # accepted, the port failed to open at every reject ("invalid baudrate"), each an alarm
+    with pytest.raises(ValidationError, match="baudrate\n  Input should be less than or equal to 12000000"):
+        SerialSettings.model_validate({"port": "loop://", "baudrate": 10**20})
     # accepted, such a format failed to encode at every reject, each one retried until its deadline
     with pytest.raises(ValidationError, match="bad format 'REJET pièce {part_id}': 'è' is not ASCII"):
         SerialSettings.model_validate({"port": "loop://", "reject_format": "REJET pièce {part_id}"})

@@ -102,6 +102,8 @@ def load_scene(folder: Path) -> SceneData:
     calib = read_middlebury_calib(folder / "calib.txt")
     gt_path = ground_truth_path(folder) or folder / GROUND_TRUTH[0]
     gt = read_pfm(gt_path)
+    if gt.ndim != 2:  # its size then read as the image's, but not its shape: "741x497, but im0.png is 741x497"
+        raise SequenceError(f"{gt_path}: a colour PFM (PF, 3 channels): a disparity map is a grey one (Pf)")
     mask_path = folder / "mask0nocc.png"
     note = ""
     if mask_path.exists():

@@ -263,6 +263,12 @@ def _rescale_pfm(path, scale: bytes):
     path.write_bytes(b"\n".join([magic, size, scale, pixels]))
 
 
+def _as_colour_pfm(path):
+    magic, size, scale, pixels = path.read_bytes().split(b"\n", 3)
+    grey = np.frombuffer(pixels, "<f4")
+    path.write_bytes(b"\n".join([b"PF", size, scale, np.repeat(grey, 3).tobytes()]))
+
+
 def test_eval_errors(tmp_path):
     _assert_error(invoke("eval", "stereo", "--middlebury", tmp_path / "nowhere"), "nowhere")
     write_scene(tmp_path / "mb" / "SceneA", seed=0)
@@ -286,6 +292,8 @@ def test_eval_errors(tmp_path):
      "disp0GT.pfm: PFM scale must be a non-zero number, its sign the byte order (got 0.0)"),
     (lambda scene: _rescale_pfm(scene / "disp0GT.pfm", b"1"),  # little-endian pixels said to be big-endian
      "disp0GT.pfm: disparities from"),
+    (lambda scene: _as_colour_pfm(scene / "disp0GT.pfm"),  # "64x40, but im0.png is 64x40"
+     "disp0GT.pfm: a colour PFM (PF, 3 channels): a disparity map is a grey one (Pf)"),
     (lambda scene: (scene / "calib.txt").write_text((scene / "calib.txt").read_text().replace("ndisp=32", "ndisp=-32")),
      "calib.txt: ndisp must be a number of disparities from 1 to the width, 64 (got -32)"),
 ])

@@ -102,6 +102,10 @@ def test_cli_names_the_serial_port_it_cannot_serve_on_not_the_tcp_address(tmp_pa
     assert result.exit_code == 2
     assert result.stderr.startswith(f"error: PLC simulator cannot serve on {missing}: ")
     assert len(result.stderr.strip().splitlines()) == 1
+    # "Python int too large to convert to C long", from the serial layer, once it had started
+    result = CliRunner().invoke(plc_sim_command, ["--port", "0", "--rtu", missing, "--baudrate", str(10**20)])
+    assert result.exit_code == 2 and "'--baudrate': 100000000000000000000 is not in the range 1<=x<=12000000" in \
+        result.stderr
 
 
 def test_cli_serves_modbus_rtu_on_a_serial_port(tmp_path):

@@ -11,6 +11,7 @@ from pathlib import Path
 import click
 
 from core.commands.params import Finite, make_folder
+from drivers.serial_line import MAX_BAUDRATE
 
 
 def _fail(message: str) -> None:
@@ -22,7 +23,7 @@ def _fail(message: str) -> None:
 @click.option("--host", default="127.0.0.1", show_default=True, help="address to listen on (0.0.0.0: every interface)")
 @click.option("--port", type=click.IntRange(0, 65535), default=5020, show_default=True, help="Modbus TCP port; 0: no TCP")
 @click.option("--rtu", "rtu", metavar="PATH", default=None, help="also serve Modbus RTU on this serial port (e.g. /dev/pts/3)")
-@click.option("--baudrate", type=click.IntRange(min=1), default=19200, show_default=True, help="RTU baud rate")
+@click.option("--baudrate", type=click.IntRange(1, MAX_BAUDRATE), default=19200, show_default=True, help="RTU baud rate")
 @click.option("--delay-ms", type=Finite(0), default=0.0, help="answer every request this late (fault testing)")
 @click.option("--duration", type=Finite(0), default=None, help="stop after this many seconds (default: until Ctrl-C)")
 def plc_sim_command(host: str, port: int, rtu: str | None, baudrate: int, delay_ms: float, duration: float | None) -> None:

@@ -21,6 +21,7 @@ import numpy as np
 from core import depth, stereo_memory
 from core.checks import (RepeatedImages, delivery_problem, detections_problem, disparity_problem, event_problem,
                          frame_problem)
+from core.clock_steps import ClockSteps
 from core.contracts import PluginContext, missing_members
 from core.decision import decide, error_verdict
 from core.depth import DepthRule, measure_frame
@@ -570,6 +571,7 @@ def run(
     # a driver that stopped returning; one triggered by the parts may wait as long as the line stands
     rate = camera_answer(loaded, registry, "frame_rate")
     unread = UnreadFrames(rate)
+    steps = ClockSteps()  # the system clock set while a frame is inspected: its reject timed on the new clock
 
     def watched(frames):
         """The camera's frames, each timed from when it is read; a free-running camera's waits too."""
@@ -590,6 +592,7 @@ def run(
                 return
             if (problem := delivery_problem(item)) is not None:  # a None was taken for the end: exit 0, parts unseen
                 raise CameraFailed(problem)
+            steps.arrived(part_id(item))
             watch.started(part_id(item), f"frame {item.frame_id} still in inspection")
             yield item
 
@@ -624,13 +627,16 @@ def run(
 
     def hand_to_outputs() -> None:
         part, waiting, _ = handing
+        step = steps.since(part.part_id)
         while waiting:
             name, output = waiting.pop(0)
             handing[2] = name
             try:
                 # its own copy: an output that changed the part (its verdict, say) would change it for the
-                # outputs after it and for the operator page
-                output.submit(copy.deepcopy(part))
+                # outputs after it and for the operator page; its capture time on the clock as it now stands
+                sent = copy.deepcopy(part)
+                sent.timestamp += step
+                output.submit(sent)
             except Exception as exc:
                 record([Alarm(name, f"reject output failed for {part.part_id}: {exc}", time.time(), part.part_id)])
             handing[2] = None
@@ -642,6 +648,7 @@ def run(
                                  part.part_id)]
             record(output_reports(name, reports, part.part_id))
         handing.clear()
+        steps.forget(part.part_id)
 
     try:
         for item, detected in source:
@@ -654,8 +661,9 @@ def run(
             if (alarm := unread.alarm(part_id(item))) is not None:
                 record([alarm])
             repeated, unusable = frame_refusal(item, repeats, recipe.camera.image_check)
+            # its age on the clock as it stood when the frame arrived (the camera stamped it on that one)
             outcome = inspect_frame(item, part_id(item), pipeline, loaded, rule, detected, age_limit,
-                                    refused=repeated or unusable)
+                                    clock=steps.clock_at_arrival(part_id(item)), refused=repeated or unusable)
             part = outcome.part
             # One bad frame is that part's ERROR; several in a row mean the camera is lost, which
             # the operator must hear about once per outage, not once per frame.

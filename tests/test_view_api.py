@@ -89,6 +89,18 @@ def test_parts_filter_by_verdict_and_class_and_page(results):
     assert far.status_code == 200 and far.json()["parts"] == [] and far.json()["total"] == 5
 
 
+def test_a_store_damaged_while_the_page_is_up_is_named_not_a_bare_500(results):
+    client = TestClient(create_app(results), raise_server_exceptions=False)
+    assert client.get("/api/state").status_code == 200
+    for path in results.glob("results.db*"):
+        path.unlink()
+    (results / "results.db").write_bytes(b"not a database" * 100)
+    for url in ("/api/state", "/api/parts", "/api/meta"):
+        answer = client.get(url)
+        assert answer.status_code == 503 and answer.json()["error"] == (
+            f"{results / 'results.db'}: the results store cannot be read (file is not a database)"), url
+
+
 def test_part_detail_names_the_rule_and_serves_its_image(results):
     client = TestClient(create_app(results))
     part = client.get("/api/parts/R1-000001").json()

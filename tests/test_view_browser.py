@@ -177,6 +177,12 @@ def test_review_page_filters_pages_and_exports(tmp_path, plane_sequence, externa
         page.locator("#parts-table tbody tr").nth(1).click()
         page.wait_for_selector("#detail[open]")
         assert page.inner_text("#detail-title").startswith("R1-")
+        # the store damaged while the page is up: its reason, where it said "no connection to the inspection PC"
+        for path in (tmp_path / "results").glob("results.db*"):
+            path.unlink()
+        (tmp_path / "results" / "results.db").write_bytes(b"not a database" * 100)
+        page.wait_for_function("() => document.getElementById('connection').textContent.includes("
+                               "'the results store cannot be read (file is not a database)')")
         page.close()
     finally:
         _stop(proc)

@@ -10,6 +10,7 @@ import asyncio
 import io
 import re
 import secrets
+import sqlite3
 import time
 from pathlib import Path
 from typing import Literal
@@ -159,6 +160,11 @@ def create_app(results: Path, feed: LiveFeed | None = None, *, token: str | None
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         return JSONResponse({"error": exc.detail}, status_code=exc.status_code)
+
+    # the store replaced or damaged while the page is up: said, not a bare "Internal Server Error"
+    @app.exception_handler(sqlite3.Error)
+    async def store_error(request: Request, exc: sqlite3.Error) -> JSONResponse:
+        return JSONResponse({"error": f"{reader.path}: the results store cannot be read ({exc})"}, status_code=503)
 
     return app
 

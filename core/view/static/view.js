@@ -25,7 +25,14 @@ const clock = (t) => new Date(t * 1000).toLocaleTimeString();
 
 async function getJSON(url) {
   const r = await fetch(url, { cache: "no-store" });
-  if (!r.ok) throw new Error(`${url}: ${r.status}`);
+  if (!r.ok) {
+    // the inspection PC answered with its reason (a results store it cannot read): that, not "no connection"
+    let said = "";
+    try { said = (await r.json()).error || ""; } catch (e) { /* not an answer of ours */ }
+    const error = new Error(said || `${url}: ${r.status}`);
+    error.answered = Boolean(said);
+    throw error;
+  }
   return r.json();
 }
 
@@ -41,7 +48,7 @@ async function pollState() {
     $("connection").className = "tag ok";
     render(s);
   } catch (e) {
-    $("connection").textContent = "no connection to the inspection PC";
+    $("connection").textContent = e.answered ? e.message : "no connection to the inspection PC";
     $("connection").className = "tag bad";
   }
   setTimeout(pollState, 500);

@@ -105,6 +105,14 @@ def test_cuda_asked_for_where_there_is_none_is_refused_not_run_on_the_cpu(comman
     assert result.exit_code == 2 and "no CUDA device" in result.output
 
 
+@pytest.mark.parametrize("command", [["bench"], ["run", "recipe.yaml"], ["eval", "depth", "sequence"], ["bench-view"]])
+@pytest.mark.parametrize("device", ["banana", "cuda:x", "gpu"])
+def test_a_device_no_torch_knows_is_refused(command, device):
+    # it reached the detector, and every part was an ERROR ("Invalid CUDA 'device=banana' requested")
+    result = invoke(*command, "--device", device)
+    assert result.exit_code == 2 and f"'{device}': one of auto, cpu, cuda or cuda:N" in result.output
+
+
 def test_pair_of_different_sizes_is_refused(pair, tmp_path):
     left, _, _ = pair
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((40, 72, 3), np.uint8))

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import click
@@ -28,14 +29,22 @@ FINITE = Finite()
 
 
 def cuda_if_present(ctx, param, value):
-    """``--device``: ``cuda`` only where torch sees a CUDA device. A plugin asked for ``auto`` runs on the
-    CPU without one, so a map or a benchmark said to be a GPU's would silently be the CPU's."""
-    if isinstance(value, str) and value.startswith("cuda"):
-        import torch
+    """``--device``: ``auto``, ``cpu``, or ``cuda`` (``cuda:N``) only where torch sees that CUDA device. A plugin
+    asked for ``auto`` runs on the CPU without one, so a map or a benchmark said to be a GPU's would silently be
+    the CPU's; any other name reached the detector, and every part was an ERROR."""
+    if value is None or value in ("auto", "cpu"):
+        return value
+    match = re.fullmatch(r"cuda(?::(\d+))?", str(value))
+    if match is None:
+        raise click.BadParameter(f"{value!r}: one of auto, cpu, cuda or cuda:N", ctx=ctx, param=param)
+    import torch
 
-        if not torch.cuda.is_available():
-            raise click.BadParameter("torch sees no CUDA device on this machine (cpu, or auto for what there is)",
-                                     ctx=ctx, param=param)
+    if not torch.cuda.is_available():
+        raise click.BadParameter("torch sees no CUDA device on this machine (cpu, or auto for what there is)",
+                                 ctx=ctx, param=param)
+    if match.group(1) is not None and int(match.group(1)) >= torch.cuda.device_count():
+        raise click.BadParameter(f"{value!r}: torch sees {torch.cuda.device_count()} CUDA device(s), cuda:0 on",
+                                 ctx=ctx, param=param)
     return value
 
 

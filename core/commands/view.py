@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from core.commands.inspection import fail
-from core.commands.params import demo_recipe
+from core.commands.params import cuda_if_present, demo_recipe
 
 MAX_BENCH_BROWSERS = 64  # each is a thread pulling frames
 
@@ -68,7 +68,7 @@ def view_command(results: Path, host: str, port: int, token: str | None) -> None
 @click.option("--frames", default=40, show_default=True, type=click.IntRange(1), help="parts per configuration")
 @click.option("--browsers", default="0,1,3", show_default=True, help="comma-separated numbers of page-like clients")
 @click.option("--port", default=None, type=click.IntRange(1, 65535), help="default: a free port")
-@click.option("--device", default="cpu", show_default=True)
+@click.option("--device", default="cpu", show_default=True, callback=cuda_if_present)
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE")
 def bench_view_command(recipe: Path, frames: int, browsers: str, port: int | None, device: str, overrides: tuple[str, ...]) -> None:
     """The loop's frame rate with no browser, with browsers pulling every frame, and with one that stalled.

@@ -80,6 +80,22 @@ def test_a_checkpoint_of_a_model_that_gives_no_boxes_is_refused_at_load(tmp_path
         checkpoint_class_names(weights)
 
 
+def test_a_device_is_one_torch_knows_and_has(untrained_weights):
+    # another name, or cuda on a machine without it, failed every part's detection, each an ERROR
+    from pydantic import ValidationError
+
+    from plugins.yolov8.detector import YoloSettings
+
+    assert YoloSettings.model_validate({"device": 0}).device == "0"  # ultralytics' own form
+    with pytest.raises(ValidationError, match="'banana': one of auto, cpu, cuda, cuda:N"):
+        YoloSettings.model_validate({"device": "banana"})
+    import torch
+
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device 'cuda:0': torch sees no CUDA device on this machine"):
+            _detector(untrained_weights, device="cuda:0")
+
+
 def test_detection_leaves_torch_thread_count_alone(untrained_weights):
     import torch
 

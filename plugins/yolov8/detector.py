@@ -2,10 +2,11 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from core.types import Detection
 from plugins.yolov8 import tiling
@@ -34,6 +35,17 @@ class YoloSettings(BaseModel):
     # classes a YOLO checkpoint is made of, so a file that would run code is refused; true reads any
     # pickle in full, which runs whatever the file holds: only for a file you made yourself.
     trust_pickle: bool = False
+
+
+    @field_validator("device", mode="before")
+    @classmethod
+    def _a_device(cls, value: object) -> object:
+        """Any other name failed every part's detection ("Invalid CUDA 'device=...' requested")."""
+        if isinstance(value, int) and not isinstance(value, bool):  # ultralytics' `device: 0`
+            value = str(value)
+        if not isinstance(value, str) or re.fullmatch(r"auto|cpu|mps|cuda(:\d+)?|\d+(,\d+)*", value) is None:
+            raise ValueError(f"{value!r}: one of auto, cpu, cuda, cuda:N (or ultralytics' N, N,M and mps)")
+        return value
 
 
 class DetectionLimit(RuntimeError):
@@ -155,6 +167,12 @@ class YoloDetector:
         self.class_names = [self.model.names[i] for i in sorted(self.model.names)]
         if settings.device != "auto":
             device = settings.device
+        if device.startswith("cuda") or device[0].isdigit():
+            import torch
+
+            if not torch.cuda.is_available():  # said before the first part, not as every part's ERROR
+                raise ValueError(f"device {device!r}: torch sees no CUDA device on this machine (cpu, or auto for what "
+                                 f"there is)")
         self.device = device
 
     def _predict(self, images: list[np.ndarray], imgsz: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:

@@ -14,7 +14,9 @@ This module imports nothing from the rest of stereo-inspect.
 """
 from __future__ import annotations
 
+import ipaddress
 import logging
+import re
 from dataclasses import dataclass
 
 from drivers.reject_scheduler import LinkError, LinkRefused
@@ -29,6 +31,28 @@ MODBUS_EXCEPTIONS = {1: "it does not take this write (illegal function)",
                      10: "its gateway has no path to that unit (gateway path unavailable)",
                      11: "the unit behind its gateway did not answer (gateway target device failed to respond)"}
 ADDRESS_HINT = "- check the recipe's address against the PLC's (Modbus addresses count from 0)"
+
+
+def host_problem(host: str) -> str | None:
+    """Why ``host`` is no TCP address a PLC can be reached at (an IP address or a host name), or None. The mistakes
+    a recipe makes (a port or a scheme in it, an IPv4 address with a typo) would otherwise be found at the first
+    connection, as a PLC that cannot be reached."""
+    if not host:
+        return "empty: give the PLC's IP address or host name"
+    try:
+        ipaddress.ip_address(host)
+        return None
+    except ValueError:
+        pass
+    if "://" in host or "/" in host:
+        return f"{host!r} is a URL: give the PLC's address alone (its port is `port`)"
+    if ":" in host:
+        return f"{host!r}: give the port as `port`, not in the host (an IPv6 address is written without brackets)"
+    if re.fullmatch(r"[0-9.]+", host):
+        return f"{host!r} is not an IPv4 address (four numbers of 0-255)"
+    if not re.fullmatch(r"[A-Za-z0-9_]([A-Za-z0-9_.-]{0,251}[A-Za-z0-9_])?", host) or ".." in host:
+        return f"{host!r} is not a host name (letters, digits, '-' and '.')"
+    return None
 
 
 @dataclass(frozen=True)

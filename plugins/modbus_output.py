@@ -22,12 +22,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
 from core.types import PartResult
-from drivers.modbus_link import ModbusLink, ModbusWrite
+from drivers.modbus_link import ModbusLink, ModbusWrite, host_problem
 from drivers.reject_scheduler import MIN_PULSE_GAP_S, Command, RejectScheduler
 from drivers.serial_line import MAX_BAUDRATE
 from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay, late_limit
@@ -82,6 +82,14 @@ class ModbusSettings(TimingSettings):
     on_pass: WriteAction | None = None
     ready_coil: int | None = Field(None, ge=0, le=65535, description="coil set to 1 while connected, 0 on close")
     heartbeat: HeartbeatSettings | None = None
+
+    @field_validator("host")
+    @classmethod
+    def _an_address(cls, value: str) -> str:
+        problem = host_problem(value)
+        if problem is not None:
+            raise ValueError(problem)
+        return value
 
     @model_validator(mode="after")
     def _transport(self):

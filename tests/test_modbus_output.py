@@ -5,6 +5,7 @@ timestamp + delay). On this 2-core machine, loaded, the measured lateness is a f
 """
 from __future__ import annotations
 
+import re
 import time
 
 import pytest
@@ -325,6 +326,15 @@ def test_settings_are_checked():
         ModbusSettings.model_validate({"delay_ms": 200000})
     with pytest.raises(ValidationError, match="rtu needs serial_port"):
         ModbusSettings.model_validate({"transport": "rtu", "delay_ms": 500})
+    # each reached the first connection as "the PLC at ... cannot be reached", an alarm per reject
+    for host, says in (("", "empty: give the PLC's IP address or host name"),
+                       ("plc:502", "give the port as `port`, not in the host"),
+                       ("tcp://10.0.0.5", "is a URL"), ("10.0.0.256", "'10.0.0.256' is not an IPv4 address"),
+                       ("plc lan", "'plc lan' is not a host name")):
+        with pytest.raises(ValidationError, match=re.escape(says)):
+            ModbusSettings.model_validate({"host": host, "delay_ms": 500})
+    for host in ("10.0.0.5", "plc-a.factory.lan", "fe80::1"):
+        assert ModbusSettings.model_validate({"host": host, "delay_ms": 500}).host == host
     # the port failed to open at every reject ("invalid baudrate"), each an alarm
     with pytest.raises(ValidationError, match="less than or equal to 12000000"):
         ModbusSettings.model_validate({"transport": "rtu", "serial_port": "/dev/ttyUSB0", "baudrate": 10**20,

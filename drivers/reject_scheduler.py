@@ -58,6 +58,9 @@ class Link(Protocol):
 
 
 MIN_PULSE_GAP_S = 0.02  # a coil low at least this long between two pulses, so that the PLC sees two rising edges
+# the longest the worker sleeps at once: a wait for a time too far off (a heartbeat every 1e300 ms) raised
+# OverflowError in the worker, which died, and every later reject stayed queued, unsent and unalarmed, until close
+MAX_WAIT_S = 1.0
 
 
 @dataclass
@@ -273,7 +276,7 @@ class RejectScheduler:
                 if not self._connected:
                     wake = min(wake, max(self._next_connect, now))
                 if wake > now:
-                    self._cond.wait(wake - now)
+                    self._cond.wait(min(wake - now, MAX_WAIT_S))
                     continue
                 if job is not None and job.due <= now:
                     self._inflight = heapq.heappop(self._queue)

@@ -64,7 +64,7 @@ class HeartbeatSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     address: int = Field(ge=0, le=65535, description="holding register that receives a counter")
-    period_ms: float = Field(1000.0, ge=50)
+    period_ms: float = Field(1000.0, ge=50, le=60000)  # a PLC's watchdog counts beats seconds apart, not hours
 
 
 class ModbusSettings(TimingSettings):

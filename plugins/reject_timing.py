@@ -25,8 +25,9 @@ class TimingSettings(BaseModel):
     actuator_distance_mm: float | None = Field(None, gt=0, description="camera line to actuator, along the belt")
     conveyor_speed_mm_s: float | None = Field(None, gt=0, description="belt speed")
     max_late_ms: float = Field(100.0, gt=0, description="a command not sent by due + this is an alarm")
-    reconnect_min_ms: float = Field(100.0, gt=0, description="first reconnect back-off")
-    reconnect_max_ms: float = Field(2000.0, gt=0, description="longest reconnect back-off")
+    # at most a minute: a PLC back on the line waits no longer than that for the first reject to reach it
+    reconnect_min_ms: float = Field(100.0, gt=0, le=60000, description="first reconnect back-off")
+    reconnect_max_ms: float = Field(2000.0, gt=0, le=60000, description="longest reconnect back-off")
 
     @model_validator(mode="after")
     def _one_delay(self):

@@ -44,8 +44,9 @@ class ZedSettings(BaseModel):
     gain: float | None = Field(None, description="manual gain; null = automatic")
     backend: Literal["uvc", "sdk"] = "uvc"
     rectify_alpha: float = Field(-1.0, ge=-1.0, le=1.0, description="-1 keeps the focal length (as the SDK), 0 crops to valid pixels")
-    reconnect_min_ms: float = Field(500.0, gt=0)
-    reconnect_max_ms: float = Field(5000.0, gt=0)
+    # at most a minute: each reopen waits that long, every plate meanwhile an ERROR part
+    reconnect_min_ms: float = Field(500.0, gt=0, le=60000)
+    reconnect_max_ms: float = Field(5000.0, gt=0, le=60000)
     max_frames: int | None = Field(None, ge=1)
 
     @field_validator("calibration")

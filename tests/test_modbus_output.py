@@ -335,6 +335,12 @@ def test_settings_are_checked():
             ModbusSettings.model_validate({"host": host, "delay_ms": 500})
     for host in ("10.0.0.5", "plc-a.factory.lan", "fe80::1"):
         assert ModbusSettings.model_validate({"host": host, "delay_ms": 500}).host == host
+    # a beat 1e300 ms off was one the worker could not wait for; a back-off as long left a PLC back on the line
+    # unreached
+    with pytest.raises(ValidationError, match="less than or equal to 60000"):
+        ModbusSettings.model_validate({"heartbeat": {"address": 100, "period_ms": 1e300}, "delay_ms": 500})
+    with pytest.raises(ValidationError, match="less than or equal to 60000"):
+        ModbusSettings.model_validate({"reconnect_max_ms": 1e300, "delay_ms": 500})
     # the port failed to open at every reject ("invalid baudrate"), each an alarm
     with pytest.raises(ValidationError, match="less than or equal to 12000000"):
         ModbusSettings.model_validate({"transport": "rtu", "serial_port": "/dev/ttyUSB0", "baudrate": 10**20,

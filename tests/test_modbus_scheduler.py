@@ -60,3 +60,16 @@ def test_heartbeat_never_turns_into_an_alarm_at_close():
     assert time.monotonic() - started < 0.5
     assert not [r for r in records if r.alarm]
     assert len([c for _, c in link.sent if c[0] == "beat"]) >= 3
+
+
+def test_a_heartbeat_too_far_apart_to_wait_for_leaves_the_worker_alive():
+    # waiting for a beat 1e300 s off raised OverflowError in the worker, which died: every reject after it
+    # stayed queued, unsent and unalarmed, until the output was closed
+    link = ListLink()
+    sched = RejectScheduler(link, "t", heartbeat=lambda n: Command(("beat", n), f"beat {n}"), heartbeat_period_s=1e300)
+    time.sleep(0.1)  # the first beat is sent, the next one is due in 1e300 s
+    sched.submit("p", Command("X", "X"), time.time() + 0.05)
+    time.sleep(0.5)
+    assert [c for _, c in link.sent][-1] == "X"  # sent when due, not at close
+    records = sched.close(timeout_s=2)
+    assert [r.outcome for r in records if r.key == "p"] == ["delivered"]

@@ -204,6 +204,8 @@ def test_plugin_settings_are_checked(tmp_path):
         spec.factory({"device": 0, "calibration": str(CONF), "exposur": 3}, ctx)
     with pytest.raises(ValidationError):
         spec.factory({"device": 0, "calibration": str(CONF), "resolution": "VGA"}, ctx)
+    with pytest.raises(ValidationError, match="less than or equal to 60000"):  # a reopen 1e300 ms away
+        spec.factory({"device": 0, "calibration": str(CONF), "reconnect_max_ms": 1e300}, ctx)
 
 
 def test_sdk_backend_is_optional(tmp_path):

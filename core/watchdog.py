@@ -83,5 +83,7 @@ class StallWatch:
             self._thread.join(timeout=5.0)
 
     def _run(self) -> None:
-        while not self._closed.wait(self.limit_s / 4):
+        # at least once a second: a frame may have a shorter limit of its own, and a wait too long to express
+        # (limit_s 1e300) raised OverflowError in this thread, which then watched nothing
+        while not self._closed.wait(min(self.limit_s / 4, 1.0)):
             self.check()

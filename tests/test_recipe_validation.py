@@ -93,6 +93,12 @@ def test_a_depth_setting_that_passed_defective_plates_is_refused(recipe_dir, set
     assert _error(recipe_dir, GOOD, [setting]).endswith(says)
 
 
+def test_a_watchdog_that_would_never_bark_is_refused(recipe_dir):
+    # 1e300 s turned the stall alarm off (and killed the watch's thread with an OverflowError)
+    assert _error(recipe_dir, GOOD, ["watchdog_s=1e300"]).endswith(
+        "watchdog_s: Input should be less than or equal to 600 (got '1e300')")
+
+
 def test_unknown_plugin_lists_known_ones(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("plugin: yolov8", "plugin: yolo9"))
     assert ":10: detector.plugin: unknown detector plugin 'yolo9'; known:" in message

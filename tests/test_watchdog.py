@@ -1,5 +1,7 @@
-"""``core.watchdog.StallWatch`` on an injected clock: ``check()`` called by the test, no thread."""
+"""``core.watchdog.StallWatch`` on an injected clock: ``check()`` called by the test, no thread; and its thread."""
 from __future__ import annotations
+
+import threading
 
 import pytest
 
@@ -98,3 +100,15 @@ class TestStallWatch:
     def test_the_limit_must_be_positive(self):
         with pytest.raises(ValueError, match="limit_s"):
             StallWatch(0.0, lambda *a: None, lambda s: None)
+
+
+def test_the_watch_s_thread_looks_at_least_once_a_second_whatever_its_limit():
+    # limit_s / 4 = 2.5e299 s was no wait the thread could make (OverflowError): it died, and a frame with a
+    # limit of its own was never watched
+    stalled = threading.Event()
+    watch = StallWatch(1e300, lambda key, what, s: stalled.set(), lambda s: None).start()
+    try:
+        watch.started("camera", "no frame from the camera", limit_s=0.05)
+        assert stalled.wait(5.0)
+    finally:
+        watch.close()

@@ -209,7 +209,8 @@ class Recipe(Section):
     threads: int | str = "auto"
     # A part still in inspection after this long means a stage or plugin is not returning: an alarm, and the
     # outputs tell the line the inspection is not ready (ready coil off, heartbeat stopped) until it finishes.
-    watchdog_s: float = Field(5.0, gt=0)
+    # at most 10 minutes: a larger one only turned the watch off (and 1e300 s killed its thread)
+    watchdog_s: float = Field(5.0, gt=0, le=600)
     camera: CameraSection
     stereo: StereoSection
     detector: DetectorSection = Field(default_factory=DetectorSection)

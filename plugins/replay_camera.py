@@ -18,13 +18,26 @@ from core.types import Calibration, FrameError, StereoFrame
 from drivers import sequence_folder as seq
 
 
+MIN_RATE_FPS = 0.01  # a frame every 100 s
+
+
 class ReplaySettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     path: str = Field(description="sequence folder; relative to the recipe file")
-    rate_fps: float = Field(0.0, ge=0.0, description="frames per second; 0 plays as fast as the line consumes")
+    rate_fps: float = Field(0.0, ge=0.0, le=1000.0,
+                            description="frames per second; 0 plays as fast as the line consumes")
     loop: bool = False
     max_frames: int | None = Field(None, ge=1)
+
+    @field_validator("rate_fps")
+    @classmethod
+    def _a_rate(cls, value: float) -> float:
+        # 1e-300 fps: the wait for the second frame overflowed the clock, and the run stopped on it
+        if 0.0 < value < MIN_RATE_FPS:
+            raise ValueError(f"{value:g}: 0 (as fast as the line takes them) or at least {MIN_RATE_FPS:g} frames a "
+                             f"second")
+        return value
 
     @field_validator("path")
     @classmethod

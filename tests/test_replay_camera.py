@@ -44,6 +44,15 @@ def test_rate_is_kept(plane_sequence):
     assert time.monotonic() - start >= 3 / 20 * 0.9
 
 
+@pytest.mark.parametrize("rate, says", [(1e-300, "1e-300: 0 (as fast as the line takes them) or at least 0.01 frames"),
+                                         (5000, "less than or equal to 1000")])
+def test_a_rate_no_replay_can_keep_is_refused(plane_sequence, rate, says):
+    # at 1e-300 fps the wait for the second frame overflowed the clock, and the run stopped on it
+    info = plane_sequence([0.0])
+    with pytest.raises(ValueError, match=re.escape(says)):
+        _camera(info["folder"], rate_fps=rate)
+
+
 def test_corrupt_and_missing_frames_are_errors_not_skips(plane_sequence):
     info = plane_sequence([0.0, 0.0, 0.0])
     folder = info["folder"]

@@ -99,6 +99,11 @@ def test_a_watchdog_that_would_never_bark_is_refused(recipe_dir):
         "watchdog_s: Input should be less than or equal to 600 (got '1e300')")
 
 
+def test_a_page_rate_a_browser_cannot_wait_for_is_refused(recipe_dir):
+    assert _error(recipe_dir, GOOD, ["view.max_fps=1e-300"]).endswith(
+        "view.max_fps: Input should be greater than or equal to 0.1 (got '1e-300')")
+
+
 def test_unknown_plugin_lists_known_ones(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("plugin: yolov8", "plugin: yolo9"))
     assert ":10: detector.plugin: unknown detector plugin 'yolo9'; known:" in message

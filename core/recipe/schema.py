@@ -194,7 +194,9 @@ class ViewSection(Section):
     port: int = Field(8080, ge=1, le=65535)
     token: str | None = Field(None, min_length=8)
     jpeg_quality: int = Field(80, ge=30, le=100)
-    max_fps: float = Field(10.0, gt=0.0, le=60.0)  # the page asks for at most this many live frames per second
+    # the page asks for at most this many live frames per second; below 0.1 the browser's wait between two
+    # overflowed its timer (1e-300: 1e303 ms), and it asked as fast as it could
+    max_fps: float = Field(10.0, ge=0.1, le=60.0)
 
 
 # Threads per stage: more than any CPU this runs on has cores (torch's own bound is a C int)

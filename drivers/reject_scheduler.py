@@ -149,6 +149,7 @@ class RejectScheduler:
         self._inflight: _Job | None = None
         self._beat = 0
         self._held = False
+        self._failed: str | None = None  # the worker stopped on an error of its own: why
         self._thread = threading.Thread(target=self._run, name=f"{name} scheduler", daemon=True)
         if heartbeat is not None:
             self._push(time.monotonic(), None, heartbeat(0), "heartbeat", deadline=float("inf"))
@@ -159,10 +160,10 @@ class RejectScheduler:
         """Queue ``command`` for ``due_wall`` (a ``time.time()`` value). Never blocks for long."""
         due = time.monotonic() + (due_wall - time.time())
         with self._cond:
-            if self._closing:
-                self._records.append(Record(key, command.text, "alarm", time.time(), "output already closed",
-                                            alarm=f"{command.text} for {key} not sent: output already closed",
-                                            cause="closed"))
+            if self._closing or self._failed:
+                why = f"the output's sender stopped ({self._failed})" if self._failed else "output already closed"
+                self._records.append(Record(key, command.text, "alarm", time.time(), why,
+                                            alarm=f"{command.text} for {key} not sent: {why}", cause="closed"))
                 return
             self._push_locked(due, key, command, "part", due + self.max_late_s)
             self._cond.notify_all()
@@ -266,6 +267,29 @@ class RejectScheduler:
         self._records.append(Record(job.key, job.command.text, "alarm", now, why, alarm=message, cause=cause))
 
     def _run(self) -> None:
+        try:
+            self._work()
+        except Exception as exc:  # an error of the worker's own: every reject queued or to come would wait, unsent
+            self._stopped_by(exc)
+
+    def _stopped_by(self, exc: Exception) -> None:
+        """The worker cannot go on: say so once, and alarm every command queued now (and, in ``submit``, every one
+        to come) instead of letting them wait, unsent, for the output's close."""
+        with self._cond:
+            self._failed = f"{type(exc).__name__}: {exc}"
+            now = time.time()
+            self._records.append(Record(None, "worker", "alarm", now, self._failed, cause="closed",
+                                        alarm=f"{self.where}: the output's sender stopped ({self._failed}): rejects "
+                                              f"cannot reach the actuator"))
+            queued = [j for j in self._queue if j.kind not in SERVICE]
+            if self._inflight is not None and self._inflight.kind not in SERVICE:
+                queued.append(self._inflight)
+            self._queue, self._inflight = [], None
+            for job in sorted(queued):
+                self._alarm_locked(job, now, f"not sent: the output's sender stopped ({self._failed})", "closed")
+            self._cond.notify_all()
+
+    def _work(self) -> None:
         while True:
             with self._cond:
                 if self._stop:

@@ -73,3 +73,24 @@ def test_a_heartbeat_too_far_apart_to_wait_for_leaves_the_worker_alive():
     assert [c for _, c in link.sent][-1] == "X"  # sent when due, not at close
     records = sched.close(timeout_s=2)
     assert [r.outcome for r in records if r.key == "p"] == ["delivered"]
+
+
+def test_a_worker_that_stops_on_an_error_of_its_own_alarms_every_reject_at_once():
+    # the worker died (as the overflow of a heartbeat 1e300 ms off made it): every reject after it stayed
+    # queued, unsent and unalarmed, until the output was closed
+    def beat(n):
+        if n == 1:
+            raise ValueError("register address out of range")
+        return Command(("beat", n), f"beat {n}")
+
+    link = ListLink()
+    sched = RejectScheduler(link, "t", heartbeat=beat, heartbeat_period_s=0.01, where="the PLC")
+    time.sleep(0.2)
+    sched.submit("p", Command("X", "X"), time.time() + 0.05)
+    records = sched.drain()
+    said = [r.alarm for r in records if r.alarm]
+    assert said == ["the PLC: the output's sender stopped (ValueError: register address out of range): rejects "
+                    "cannot reach the actuator",
+                    "X for p not sent: the output's sender stopped (ValueError: register address out of range)"]
+    assert [c for _, c in link.sent if c == "X"] == []
+    assert not [r for r in sched.close(timeout_s=1) if r.key == "p"]  # alarmed once, when submitted

@@ -21,12 +21,16 @@ def _size(image: np.ndarray) -> str:
     return f"{image.shape[1]}x{image.shape[0]}" if image.ndim >= 2 else f"shape {image.shape}"
 
 
+def _one_line(value: Any, width: int = 60) -> str:
+    """``repr(value)`` on one line (an array's spans several; a problem is said in one), cut to ``width``."""
+    return f"{' '.join(repr(value).split()):.{width}}"
+
+
 def delivery_problem(item: Any) -> str | None:
     """What a camera's ``frames()`` yields, as far as its part can be named from it: a ``StereoFrame`` or a
     ``FrameError`` with a frame id (text) and an index (a whole number, 0 or more)."""
     if not isinstance(item, (StereoFrame, FrameError)):
-        said = " ".join(repr(item).split())  # an array's repr spans lines; an alarm is one
-        return f"the camera delivered a {type(item).__name__} ({said:.60}), not a StereoFrame or a FrameError"
+        return f"the camera delivered a {type(item).__name__} ({_one_line(item)}), not a StereoFrame or a FrameError"
     if not isinstance(item.frame_id, str):
         return f"the camera delivered a frame whose frame_id is {item.frame_id!r}, not text"
     index = item.index
@@ -158,8 +162,7 @@ def event_problem(event: Any) -> str | None:
         fields = {"output": _text(event.output), "part_id": _text(event.part_id, True),
                   "command": _text(event.command), "outcome": _text(event.outcome), "detail": _text(event.detail)}
     else:
-        said = " ".join(repr(event).split())
-        return f"a {type(event).__name__} ({said:.60}), not an OutputEvent or an Alarm"
+        return f"a {type(event).__name__} ({_one_line(event)}), not an OutputEvent or an Alarm"
     stamp = event.timestamp
     fields["timestamp"] = isinstance(stamp, (int, float)) and not isinstance(stamp, bool) and math.isfinite(stamp)
     wrong = [name for name, ok in fields.items() if not ok]

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 import yaml
 
-from drivers import yaml_reader
+from drivers import text_files, yaml_reader
 from drivers.file_writes import write_bytes, write_text
 from drivers.stereo_geometry import calibration_problem
 
@@ -59,11 +59,9 @@ def read_text(path: Path, what: str) -> str:
     except OSError as exc:
         raise SequenceError(f"{path}: {what} cannot be read ({exc.strerror})") from None
     try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise SequenceError(f"{path}:{line}: {what} is not UTF-8 text (byte 0x{data[exc.start]:02x}): save it as "
-                            f"UTF-8") from None
+        return text_files.decode(data)
+    except text_files.NotUtf8 as exc:
+        raise SequenceError(f"{path}:{exc.line}: {what} is {exc}: save it as UTF-8") from None
 
 
 def read_middlebury_calib(path: Path) -> dict:

@@ -17,9 +17,9 @@ from typing import Any, Union, get_args, get_origin
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from drivers import yaml_reader
 from core.recipe.schema import Recipe
 from core.registry import Registry, UnknownPlugin, default_registry
+from drivers import text_files, yaml_reader
 from drivers.stereo_geometry import calibration_problem
 
 
@@ -253,13 +253,11 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     override's key (``{"threads": "--threads"}``), for errors and warnings to point at; ``--set`` otherwise."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        text = text_files.decode(path.read_bytes())
     except FileNotFoundError:
         raise RecipeError(f"{path}: recipe file not found") from None
-    except UnicodeDecodeError as exc:
-        line = path.read_bytes()[: exc.start].count(b"\n") + 1
-        raise RecipeError(f"{path}:{line}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x}): save the recipe "
-                          f"as UTF-8") from None
+    except text_files.NotUtf8 as exc:
+        raise RecipeError(f"{path}:{exc.line}: {exc}: save the recipe as UTF-8") from None
     except OSError as exc:
         raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from None
     try:

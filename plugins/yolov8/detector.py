@@ -36,7 +36,6 @@ class YoloSettings(BaseModel):
     # pickle in full, which runs whatever the file holds: only for a file you made yourself.
     trust_pickle: bool = False
 
-
     @field_validator("device", mode="before")
     @classmethod
     def _a_device(cls, value: object) -> object:

@@ -158,6 +158,17 @@ def _spawn(args: list[str]) -> subprocess.Popen:
     return subprocess.Popen([str(exe), "run", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def _assert_each_reject_delivered_or_alarmed(db: sqlite3.Connection, part_ids: list[str] | None = None) -> None:
+    """Each of ``part_ids`` (default: every part not passed) reached the PLC, or the operator heard why not."""
+    if part_ids is None:
+        part_ids = [r[0] for r in db.execute("SELECT part_id FROM parts WHERE verdict != 'PASS'")]
+    for part_id in part_ids:
+        outcomes = {r[0] for r in db.execute(
+            "SELECT outcome FROM output_events WHERE part_id = ? AND output = 'modbus' AND command LIKE '%(pulse%'",
+            (part_id,))}
+        assert outcomes & {"delivered", "alarm"}, part_id
+
+
 def _wait_for_parts(results: Path, count: int, timeout: float = 90.0) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -192,11 +203,7 @@ def test_sigterm_and_sighup_stop_the_run_as_ctrl_c_does(tmp_path, signum):
     assert parts == db.execute("SELECT COUNT(*) FROM parts").fetchone()[0]
     rejected = [r[0] for r in db.execute("SELECT part_id FROM parts WHERE verdict != 'PASS'")]
     assert rejected, "the sequence should have had rejects queued"
-    for part_id in rejected:  # each reject reached the PLC, or the operator heard why not
-        outcomes = {r[0] for r in db.execute(
-            "SELECT outcome FROM output_events WHERE part_id = ? AND output = 'modbus' AND command LIKE '%(pulse%'",
-            (part_id,))}
-        assert outcomes & {"delivered", "alarm"}, part_id
+    _assert_each_reject_delivered_or_alarmed(db, rejected)
     rising = len([w for w in sim.writes if w.table == "coil" and w.address == 0 and w.value == 1])
     delivered = db.execute("SELECT COUNT(*) FROM output_events WHERE output = 'modbus' AND command LIKE '%(pulse%' "
                            "AND outcome = 'delivered'").fetchone()[0]
@@ -225,11 +232,7 @@ def test_ctrl_c_again_while_rejects_are_on_their_way_alarms_them_and_finishes_th
     abandoned = db.execute("SELECT COUNT(*) FROM alarms WHERE message LIKE '%stopped again (Ctrl-C) while its plate "
                            "was on its way%'").fetchone()[0]
     assert abandoned >= 1, out
-    for (part_id,) in db.execute("SELECT part_id FROM parts WHERE verdict != 'PASS'"):
-        outcomes = {r[0] for r in db.execute(
-            "SELECT outcome FROM output_events WHERE part_id = ? AND output = 'modbus' AND command LIKE '%(pulse%'",
-            (part_id,))}
-        assert outcomes & {"delivered", "alarm"}, part_id
+    _assert_each_reject_delivered_or_alarmed(db)
 
 
 def test_a_console_whose_reader_went_away_stops_the_run_as_a_closed_terminal_does(tmp_path):
@@ -249,11 +252,7 @@ def test_a_console_whose_reader_went_away_stops_the_run_as_a_closed_terminal_doe
     assert proc.returncode == 128 + signal.SIGPIPE and "Traceback" not in err, err
     db = sqlite3.connect(results / "results.db")
     assert db.execute("SELECT status, exit_code FROM runs").fetchone() == ("finished", 128 + signal.SIGPIPE)
-    for (part_id,) in db.execute("SELECT part_id FROM parts WHERE verdict != 'PASS'"):
-        outcomes = {r[0] for r in db.execute(
-            "SELECT outcome FROM output_events WHERE part_id = ? AND output = 'modbus' AND command LIKE '%(pulse%'",
-            (part_id,))}
-        assert outcomes & {"delivered", "alarm"}, part_id
+    _assert_each_reject_delivered_or_alarmed(db)
 
 
 def test_a_plc_unreachable_all_run_is_an_alarm_even_without_rejects(tmp_path):

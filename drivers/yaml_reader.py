@@ -30,7 +30,11 @@ class MisreadNumber(yaml.MarkedYAMLError):
 class _Loader(yaml.SafeLoader):
     def construct_yaml_int(self, node):
         text = self.construct_scalar(node)
-        value = super().construct_yaml_int(node)
+        try:
+            value = super().construct_yaml_int(node)
+        except ValueError:  # more digits than Python converts (sys.get_int_max_str_digits)
+            raise MisreadNumber(node.start_mark, f"{text[:12]}...", f"an integer of {len(text)} digits, more than "
+                                f"can be read; no setting takes a number that long") from None
         decimal = int(text.replace("_", ""), 10) if _OCTAL.fullmatch(text) else value
         if decimal != value:
             raise MisreadNumber(node.start_mark, text, f"YAML reads a leading zero as octal, {value}; write {decimal} "

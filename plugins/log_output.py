@@ -8,18 +8,17 @@ import logging
 import time
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from core.contracts import PluginContext, PluginSpec
 from core.file_checks import unwritable
 from core.hookspecs import hookimpl
+from core.settings_model import Settings
 from core.types import Alarm, OutputEvent, PartResult
 from plugins.command_format import checked_format, command_text
 
 
-class LogSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class LogSettings(Settings):
     file: str | None = Field(None, description="append commands to this file (relative to the recipe)")
     on_pass: bool = Field(False, description="also log a PASS command for parts that pass")
     reject_format: str = "REJECT {part_id} {status}"

@@ -22,10 +22,11 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
+from core.settings_model import Settings
 from core.types import PartResult
 from drivers.modbus_link import ModbusLink, ModbusWrite, host_problem
 from drivers.reject_scheduler import MIN_PULSE_GAP_S, Command, RejectScheduler
@@ -33,13 +34,11 @@ from drivers.serial_line import MAX_BAUDRATE
 from plugins.reject_timing import ScheduledOutput, TimingSettings, actuator_delay, late_limit
 
 
-class WriteAction(BaseModel):
+class WriteAction(Settings):
     """``coil``: set the coil to ``value`` (1), and back after ``pulse_ms`` when given;
     ``register``: write ``value`` into the holding register;
     ``counter``: write 1, 2, 3, ... (mod 65536) into the holding register, one step per part, so that
     the PLC sees every part even when parts come closer together than a coil pulse."""
-
-    model_config = ConfigDict(extra="forbid")
 
     write: Literal["coil", "register", "counter"] = "coil"
     address: int = Field(0, ge=0, le=65535)
@@ -60,9 +59,7 @@ class WriteAction(BaseModel):
         return self
 
 
-class HeartbeatSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class HeartbeatSettings(Settings):
     address: int = Field(ge=0, le=65535, description="holding register that receives a counter")
     period_ms: float = Field(1000.0, ge=50, le=60000)  # a PLC's watchdog counts beats seconds apart, not hours
 

@@ -5,15 +5,14 @@ import math
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
+from core.settings_model import Settings
 
 
-class SGBMSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class SGBMSettings(Settings):
     block_size: int = Field(5, ge=1, le=21)
     # the bounds keep OpenCV's C ints: beyond them every frame's stereo failed at run time, not in validate
     p1_per_channel: int = Field(8, ge=0, le=100_000, description="P1 = p1_per_channel * 3 * block_size^2")

@@ -9,18 +9,17 @@ from __future__ import annotations
 
 from typing import Callable
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from core.contracts import PluginContext
+from core.settings_model import Settings
 from core.types import Alarm, OutputEvent, PartResult
 from drivers.reject_scheduler import Command, Record, RejectScheduler
 
 MAX_CLOSE_WAIT_S = 120.0
 
 
-class TimingSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class TimingSettings(Settings):
     delay_ms: float | None = Field(None, gt=0, description="fire this long after the part was captured")
     actuator_distance_mm: float | None = Field(None, gt=0, description="camera line to actuator, along the belt")
     conveyor_speed_mm_s: float | None = Field(None, gt=0, description="belt speed")

@@ -10,10 +10,11 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
+from core.settings_model import Settings
 from core.types import Calibration, FrameError, StereoFrame
 from drivers import sequence_folder as seq
 
@@ -21,9 +22,7 @@ from drivers import sequence_folder as seq
 MIN_RATE_FPS = 0.01  # a frame every 100 s
 
 
-class ReplaySettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class ReplaySettings(Settings):
     path: str = Field(description="sequence folder; relative to the recipe file")
     rate_fps: float = Field(0.0, ge=0.0, le=1000.0,
                             description="frames per second; 0 plays as fast as the line consumes")

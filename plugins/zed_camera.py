@@ -23,19 +23,18 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
+from core.settings_model import Settings
 from core.types import Calibration, FrameError, StereoFrame
 from drivers.zed_calibration import CalibrationError, StereoRectifier, read_conf, serial_number
 from drivers.zed_uvc import (FPS_BY_RESOLUTION, Grab, ZedError, ZedSdk, ZedUvc, is_file_source, is_recording,
                              parse_device, recording_problem)
 
 
-class ZedSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class ZedSettings(Settings):
     device: int | str = Field(0, description="camera index, /dev/videoN, or a side-by-side video file")
     resolution: Literal["WVGA", "HD720", "HD1080", "2K"] = "WVGA"
     fps: float = Field(15.0, gt=0, le=100)

@@ -154,6 +154,36 @@ def test_a_number_yaml_would_read_as_octal_or_base_60_is_an_error_naming_its_key
     assert quoted.recipe.stereo.max_disparity == 64
 
 
+@pytest.mark.parametrize("where, text, key", [
+    # pydantic reads true as 1 and false as 0: the broadcast unit, coil 1, a 1 mm limit
+    ("    path: seq", "    path: seq\n    rate_fps: yes", ":6: camera.settings.rate_fps"),
+    ("threshold: 1.0", "threshold: on", ":13: decision.rules.0.threshold"),
+    ("max_disparity: 64", "max_disparity: true", ":8: stereo.max_disparity"),
+    ("max_disparity: 64", "working_distance_mm: [true, 600]", ":8: stereo.working_distance_mm: item 0"),
+])
+def test_a_boolean_where_a_number_belongs_is_an_error_not_one_or_zero(recipe_dir, where, text, key):
+    message = _error(recipe_dir, GOOD.replace(where, text))
+    assert f"{key}: a boolean where a number or text is expected" in message, message
+
+
+def test_a_boolean_setting_still_takes_a_boolean(recipe_dir):
+    text = GOOD.replace("    path: seq", "    path: seq\n    loop: yes").replace("max_disparity: 64",
+                                                                                "max_disparity: 64\n  concurrent: off")
+    loaded = load_recipe(write_recipe(recipe_dir / "r.yaml", text))
+    assert loaded.recipe.stereo.concurrent is False
+
+
+def test_an_integer_too_long_to_read_is_an_error_naming_its_key(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("max_disparity: 64", "max_disparity: 1" + "0" * 5000))
+    assert ":8: stereo.max_disparity: 100000000000...: an integer of 5001 digits, more than can be read" in message
+
+
+def test_a_working_distance_beyond_any_camera_is_an_error(recipe_dir):
+    # 1e300 mm overflowed the depth resolution's square in validate's warnings: a traceback
+    message = _error(recipe_dir, GOOD.replace("max_disparity: 64", "working_distance_mm: [350, 1e300]"))
+    assert ":8: stereo.working_distance_mm: 1e+300 mm is farther than any stereo camera measures" in message, message
+
+
 def test_an_empty_class_list_is_an_error_not_a_line_that_passes_everything(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("plugin: yolov8", "plugin: yolov8\n  classes: []"))
     assert ":11: detector.classes: an empty list keeps no class" in message, message

@@ -358,7 +358,7 @@ def _check_camera_geometry(loaded: LoadedRecipe, registry: Registry, locator: _L
             raise locator.error(("stereo", "working_distance_mm"), (
                 f"the camera cannot see {stereo.working_distance_mm[0]:g} mm with both eyes: at its geometry "
                 f"(f {calib.focal_px:.4g} px, baseline {calib.baseline_mm:.4g} mm) that is "
-                f"{calib.disparity_px(stereo.working_distance_mm[0]):.0f} px of disparity in a {calib.width} px wide "
+                f"{calib.disparity_px(stereo.working_distance_mm[0]):.4g} px of disparity in a {calib.width} px wide "
                 f"image; the nearest it can match is {math.ceil(nearest)} mm")) from None
         raise locator.error(("stereo", "max_disparity"), f"{stereo.max_disparity:g} px of disparity does not fit the "
                             f"camera's {calib.width} px wide image") from None

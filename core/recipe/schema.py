@@ -8,7 +8,9 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
+
+from core.settings_model import Settings
 
 if TYPE_CHECKING:
     from core.types import Calibration
@@ -17,8 +19,8 @@ QUANTITIES = ("deviation_mm", "distance_mm", "confidence", "area_mm2")
 OPERATORS = (">", ">=", "<", "<=")
 
 
-class Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class Section(Settings):
+    """One section of the recipe (or a part of one)."""
 
 
 class PluginRef(Section):
@@ -67,6 +69,14 @@ class StereoSection(Section):
         """``roi_margin_px``, or where the recipe leaves it out, 16 of the matcher's pixels and at least 32."""
         return self.roi_margin_px if self.roi_margin_px is not None else max(32, math.ceil(16 / self.scale))
 
+    @field_validator("working_distance_mm")
+    @classmethod
+    def _within_a_cameras_reach(cls, value):
+        if value is not None and value[1] > cls.MAX_WORKING_DISTANCE_MM:
+            raise ValueError(f"{value[1]:g} mm is farther than any stereo camera measures; at most "
+                             f"{cls.MAX_WORKING_DISTANCE_MM:g} mm")
+        return value
+
     @model_validator(mode="after")
     def _one_range(self) -> StereoSection:
         has_disp = self.min_disparity is not None or self.max_disparity is not None
@@ -83,11 +93,13 @@ class StereoSection(Section):
             near, far = self.working_distance_mm
             if not 0 < near < far:
                 raise ValueError("working_distance_mm must be [near, far] with 0 < near < far")
+
         if self.region == "defects" and self.schedule == "every_frame":
             raise ValueError("region: defects matches only around detections; it needs schedule: on_defect")
         return self
 
     RANGE_MARGIN_PX: ClassVar[int] = 2  # each side of a working distance's disparities
+    MAX_WORKING_DISTANCE_MM: ClassVar[float] = 100_000.0  # five times the ZED's range
 
     def search_range(self, calib: Calibration) -> tuple[float, float]:
         """The disparities searched in full-resolution pixels (lo, hi): the working distance's with

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from core.settings_model import Settings
 
 # Changes to the seed measured on Middlebury trainingQ and on synthetic pairs (docs/research-log.md).
 IMPROVED: dict = {"refine_radius": 0, "agg_radius": 2, "agg_detail_radius": 1, "paths": 8, "p1": 0.08, "p2": 1.3,
@@ -14,13 +16,11 @@ IMPROVED: dict = {"refine_radius": 0, "agg_radius": 2, "agg_detail_radius": 1, "
                   "fill_slope": True, "plane_local": True}
 
 
-class TorchSGMParams(BaseModel):
+class TorchSGMParams(Settings):
     """``preset: improved`` (the default) is the configuration measured best on Middlebury and on the
     plates (docs/benchmarks.md); ``preset: seed`` is the seed paper's parameters (cost weights, guided
     filter r = 3 / eps = 0.001, 4 paths, P1 = 0.04, P2 = 0.65 / (1 + 20 |edge|), 1 px LR check), the
     field defaults below. Settings given explicitly win over either."""
-
-    model_config = ConfigDict(extra="forbid")
 
     preset: Literal["seed", "improved"] = "improved"
 

@@ -6,8 +6,9 @@ import re
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
+from core.settings_model import Settings
 from core.types import Detection
 from plugins.yolov8 import tiling
 
@@ -15,9 +16,7 @@ from plugins.yolov8 import tiling
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[2] / "models" / "yolov8n-neu-det.pt"
 
 
-class YoloSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class YoloSettings(Settings):
     weights: str | None = Field(None, description="set from the recipe's detector.weights")
     confidence: float = Field(0.25, ge=0.0, le=1.0)
     iou: float = Field(0.5, gt=0.0, le=1.0)

@@ -7,23 +7,20 @@ entry-point group, selected in a recipe with ``detector.plugin: fixed_roi``.
 """
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from core.contracts import PluginSpec
 from core.hookspecs import hookimpl
+from core.settings_model import Settings
 from core.types import Detection
 
 
-class Region(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class Region(Settings):
     name: str = Field(min_length=1)
     box: tuple[float, float, float, float]
 
 
-class FixedRoiSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class FixedRoiSettings(Settings):
     regions: list[Region] = Field(default_factory=list)
     # The host passes these to every detector; a fixed region is always "found" with certainty.
     weights: str | None = None

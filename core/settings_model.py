@@ -1,0 +1,53 @@
+"""The base of every settings model, the recipe's sections and the plugins' settings alike.
+
+Two rules for what an integrator types: a key the model does not know is an error (a typo is not a
+silently ignored setting), and so is a YAML boolean where a number is expected. Pydantic takes ``true``
+for 1 and ``false`` for 0, so ``unit: false`` addressed every Modbus device on the line (unit 0 is the
+broadcast), ``address: yes`` pulsed coil 1, and ``threshold: on`` rejected defects deeper than 1 mm.
+"""
+from __future__ import annotations
+
+import types
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
+
+from pydantic import BaseModel, ConfigDict, ValidationInfo, field_validator
+
+
+def takes_bool(annotation: Any) -> bool:
+    """Whether a field of this type may hold ``True`` or ``False`` as a value of its own."""
+    if annotation is bool or annotation is Any:
+        return True
+    origin = get_origin(annotation)
+    if origin is Literal:
+        return any(isinstance(a, bool) for a in get_args(annotation))
+    if origin in (Union, types.UnionType, Annotated):
+        return any(takes_bool(a) for a in get_args(annotation))
+    return False
+
+
+def _items_take_bool(annotation: Any) -> bool:
+    """For a list or tuple field: whether an item may be a boolean."""
+    origin = get_origin(annotation)
+    if origin in (Union, types.UnionType, Annotated):
+        return any(_items_take_bool(a) for a in get_args(annotation) if get_origin(a) in (list, tuple, Union,
+                                                                                        types.UnionType, Annotated))
+    if origin in (list, tuple):
+        return any(takes_bool(a) for a in get_args(annotation) if a is not Ellipsis) or not get_args(annotation)
+    return True
+
+
+class Settings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_boolean_for_a_number(cls, value: Any, info: ValidationInfo) -> Any:
+        annotation = cls.model_fields[info.field_name].annotation
+        if isinstance(value, bool) and not takes_bool(annotation):
+            raise ValueError("a boolean where a number or text is expected (YAML reads true, false, yes, no, on "
+                             "and off unquoted as booleans)")
+        if isinstance(value, (list, tuple)) and not _items_take_bool(annotation):
+            for position, item in enumerate(value):
+                if isinstance(item, bool):
+                    raise ValueError(f"item {position}: a boolean where a number or text is expected")
+        return value

@@ -23,7 +23,7 @@ from core.types import Calibration, Detection
 from drivers.sequence_folder import KITTI_MAX_DISPARITY, write_calibration, write_frame
 from sim.neu_crops import NEU_CLASSES, NeuCrops
 from sim.render import render_pair
-from sim.scene import CLASS_SHAPES, PLATEAU_R0, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, plate_axes
+from sim.scene import CLASS_SHAPES, PLATEAU_R0, ROUND_EXPONENT, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, plate_axes
 from sim.texture import PLATE_MEAN, belt_albedo, steel_albedo, synthetic_defect_patch
 
 ZED_WVGA = dict(width=672, height=376, focal_px=350.06, baseline_mm=120.0)
@@ -55,6 +55,7 @@ class EvalRanges:
     depth_mm: tuple[float, float] | None = None
     defects_per_frame: tuple[int, int] = (1, 3)
     flat_floor: tuple[float, float] | None = None  # each defect's plateau (sim.scene), None: PLATEAU_R0
+    round_defects: bool = False  # every defect an ellipse, its wall as steep all round, not its class's superellipse
 
     @property
     def plans_defects(self) -> bool:
@@ -197,7 +198,8 @@ def largest_defect_px(width: int, height: int) -> float:
 
 
 def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, texture_contrast: float = 1.0,
-                flat_floor: tuple[float, float] | None = None, camera: CameraModel = CameraModel()) -> Scene:
+                flat_floor: tuple[float, float] | None = None, camera: CameraModel = CameraModel(),
+                round_defects: bool = False) -> Scene:
     z0 = spec.distance_mm
     e1, e2, n = plate_axes(spec.tilt_deg, spec.yaw_deg)
     p0 = np.array([0.0, 0.0, z0])
@@ -279,6 +281,7 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
             ):
                 continue
             shape_name, p, _ = CLASS_SHAPES[cls]
+            p = ROUND_EXPONENT if round_defects else p
             plateau = PLATEAU_R0 if flat_floor is None else float(rng.uniform(*flat_floor))
             placed.append(Defect(cls, source, shape_name, p, float(depth), (s, t), (float(a), float(b)), patch, pbox,
                                  plateau))
@@ -357,9 +360,9 @@ def quantise_disparity(disparity: np.ndarray) -> np.ndarray:
 
 def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, frame_id: str, ss: int = 2,
                  texture_contrast: float = 1.0, flat_floor: tuple[float, float] | None = None,
-                 camera: CameraModel = CameraModel()):
+                 camera: CameraModel = CameraModel(), round_defects: bool = False):
     """(left, right, gt disparity (quantised), labels dict, scene)."""
-    scene = build_scene(rng, calib, spec, crops, texture_contrast, flat_floor, camera)
+    scene = build_scene(rng, calib, spec, crops, texture_contrast, flat_floor, camera, round_defects)
     left, right, disparity, hits = render_pair(scene, rng, ss=ss, rectification_error_px=camera.rectification_error_px)
     largest = float(np.nanmax(disparity, initial=0.0))
     if largest > KITTI_MAX_DISPARITY:  # clipped, every label near it would read the plate as farther and flat
@@ -384,6 +387,7 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
             "shape": d.shape,
             "source": d.source,
             **({} if flat_floor is None else {"plateau": round(d.plateau, 3)}),
+            **({"exponent": d.exponent} if round_defects else {}),
         })
     labels = {
         "frame_id": frame_id,
@@ -441,7 +445,7 @@ def generate_sequence(
         spec = plan_frame(rng, i, distance_mm, tilt_deg, jitter, decks, ranges)
         left, right, gt, labels, _ = render_frame(rng, calib, spec, crops, frame_id, ss=supersample,
                                                   texture_contrast=texture_contrast, flat_floor=ranges.flat_floor,
-                                                  camera=camera)
+                                                  camera=camera, round_defects=ranges.round_defects)
         write_frame(out, frame_id, left, right, gt, labels, image_format)
         all_labels.append(labels)
         if log is not None:

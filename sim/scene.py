@@ -37,6 +37,7 @@ CLASS_SHAPES: dict[str, tuple[str, float, bool]] = {
     "rolled-in_scale": ("raised_scale", 6.0, True),
 }
 PLATEAU_R0 = 0.55  # the demo's and the default evaluation sets' floor: walls over the outer 45 %
+ROUND_EXPONENT = 2.0  # an ellipse: ``--round-defects``
 
 
 def smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from sim.generate import (
 )
 from sim.neu_crops import NEU_CLASSES
 from sim.render import render_pair
+from sim.scene import heightfield_patch
 
 W, H = 320, 180  # half WVGA: same field of view, small enough to be fast
 
@@ -262,6 +263,27 @@ def test_flat_floor_gives_flat_bottomed_pits_with_steep_walls(tmp_path):
     assert plateaus and all(0.8 <= p <= 0.95 for p in plateaus)
     # a flat floor under the whole region: the platform's deviation is the design depth
     assert all(abs(d["deviation_mm"] - d["design_depth_mm"]) < 0.05 for lab in labels for d in lab["defects"])
+
+
+def test_round_defects_are_ellipses_whose_wall_reaches_into_the_measured_region(tmp_path):
+    """``round_defects``: an ellipse's wall reaches the corners of the central 60 % of its box, which a
+    class's squarer outline keeps on its floor."""
+    from sim.generate import EvalRanges
+
+    calib = zed_calibration(W, H)
+    spec = FrameSpec(400.0, 0.0, 0.0, [("pitted_surface", 1.0)], [(40.0, 40.0)])
+    depth_at_corner = {}
+    for name, round_defects in (("class", False), ("round", True)):
+        scene = build_scene(np.random.default_rng(6), calib, spec, None, round_defects=round_defects)
+        (d,) = scene.defects
+        assert d.exponent == (2.0 if round_defects else 4.0)
+        (sc, tc), (a, b) = d.center, d.half
+        depth_at_corner[name] = float(heightfield_patch(d, np.array([sc + 0.6 * a]), np.array([tc + 0.6 * b]))[0])
+        assert float(heightfield_patch(d, np.array([sc]), np.array([tc]))[0]) == pytest.approx(1.0)
+    assert depth_at_corner["round"] < depth_at_corner["class"] - 0.3
+    labels = generate_sequence(tmp_path / "round", frames=1, seed=2, width=336, height=188, supersample=1,
+                               ranges=EvalRanges(depth_mm=(1.0, 2.0), round_defects=True))
+    assert labels[0]["defects"] and all(d["exponent"] == 2.0 for d in labels[0]["defects"])
 
 
 def test_flat_floor_must_leave_a_wall(tmp_path):

@@ -75,6 +75,10 @@ def register(cli: click.Group) -> None:
                   help="Evaluation set: the share of each defect's half-size that is flat floor, drawn per defect "
                        "(the wall rises over the rest; near 1: a flat-bottomed pit with a steep wall). Default: "
                        "0.55 for every defect.")
+    @click.option("--round-defects", is_flag=True, default=False,
+                  help="Evaluation set: every defect an ellipse (a round pit or bump) instead of its class's "
+                       "squarer outline, so that the central part of its box the depth is measured on reaches "
+                       "further into its wall.")
     @click.option("--rectification-error-px", default=0.0, show_default=True, type=Finite(-5.0, 5.0),
                   help="The right eye's rows this far below the left's (what a real camera's rectification "
                        "leaves, a few tenths of a pixel; 0: exactly rectified).")
@@ -89,8 +93,8 @@ def register(cli: click.Group) -> None:
                        "pixels alone, sharper than a real lens gives).")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
                  image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
-                 defects_per_frame, texture_contrast, flat_floor, rectification_error_px, noise_sigma, specular,
-                 lens_blur_px) -> None:
+                 defects_per_frame, texture_contrast, flat_floor, round_defects, rectification_error_px, noise_sigma,
+                 specular, lens_blur_px) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
@@ -144,7 +148,7 @@ def register(cli: click.Group) -> None:
             raise SystemExit(2)
         ranges = EvalRanges(distance_mm=distance_range_mm, defect_px=defect_size_px, depth_mm=depth_range_mm,
                             defects_per_frame=tuple(defects_per_frame),
-                            flat_floor=None if flat_floor is None else tuple(flat_floor))
+                            flat_floor=None if flat_floor is None else tuple(flat_floor), round_defects=round_defects)
 
         if not synthetic_defects and not Path(neu_det).is_dir():
             click.echo(f"error: NEU-DET folder not found: {neu_det} (give --neu-det DIR or --synthetic-defects)", err=True)

@@ -45,7 +45,7 @@ class Settings(BaseModel):
         annotation = cls.model_fields[info.field_name].annotation
         if isinstance(value, bool) and not takes_bool(annotation):
             raise ValueError("a boolean where a number or text is expected (YAML reads true, false, yes, no, on "
-                             "and off unquoted as booleans)")
+                             "and off unquoted as booleans: quote them where text is meant)")
         if isinstance(value, (list, tuple)) and not _items_take_bool(annotation):
             for position, item in enumerate(value):
                 if isinstance(item, bool):

@@ -29,10 +29,10 @@ def _items_take_bool(annotation: Any) -> bool:
     """For a list or tuple field: whether an item may be a boolean."""
     origin = get_origin(annotation)
     if origin in (Union, types.UnionType, Annotated):
-        return any(_items_take_bool(a) for a in get_args(annotation) if get_origin(a) in (list, tuple, Union,
-                                                                                        types.UnionType, Annotated))
+        return any(_items_take_bool(a) for a in get_args(annotation) if a is Any or get_origin(a) in (list, tuple))
     if origin in (list, tuple):
-        return any(takes_bool(a) for a in get_args(annotation) if a is not Ellipsis) or not get_args(annotation)
+        items = [a for a in get_args(annotation) if a is not Ellipsis]
+        return not items or any(takes_bool(a) for a in items)
     return True
 
 

@@ -23,7 +23,9 @@ from core.types import Calibration, Detection
 from drivers.sequence_folder import KITTI_MAX_DISPARITY, write_calibration, write_frame
 from sim.neu_crops import NEU_CLASSES, NeuCrops
 from sim.render import render_pair
-from sim.scene import CLASS_SHAPES, PLATEAU_R0, ROUND_EXPONENT, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, plate_axes
+from sim.scene import (
+    CLASS_SHAPES, PLATEAU_R0, ROUND_EXPONENT, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, plate_axes,
+)
 from sim.texture import PLATE_MEAN, belt_albedo, steel_albedo, synthetic_defect_patch
 
 ZED_WVGA = dict(width=672, height=376, focal_px=350.06, baseline_mm=120.0)

@@ -93,7 +93,6 @@ class StereoSection(Section):
             near, far = self.working_distance_mm
             if not 0 < near < far:
                 raise ValueError("working_distance_mm must be [near, far] with 0 < near < far")
-
         if self.region == "defects" and self.schedule == "every_frame":
             raise ValueError("region: defects matches only around detections; it needs schedule: on_defect")
         return self

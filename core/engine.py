@@ -655,6 +655,7 @@ def run(
             # the frames a free-running camera captured while the loop was busy are plates that went by unseen
             in_hand[:] = unread.between(item) + [item]
             for missed in in_hand[:-1]:
+                steps.arrived(part_id(missed))  # stamped on the clock as it stands now
                 finish(missed_outcome := inspect_frame(missed, part_id(missed), pipeline, loaded, rule))
                 if on_part:
                     on_part(missed_outcome)

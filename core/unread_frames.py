@@ -11,9 +11,13 @@ is timed from when its plate passed the camera) for every period with no frame s
 ``alarm`` raises one alarm per spell of them. The replay camera stamps the schedule it plays, so a replay
 never shows a gap; a camera that states no frame rate (one triggered by the parts) is never checked.
 
-Capture stamps are wall-clock times, which a clock set forward (NTP) moves by as much as it was set: the
-gap counted is never more than the time that passed on the monotonic clock since the frame before reached
-the loop, plus that frame's age then, so setting the clock cannot make an hour of frames out of a step.
+Capture stamps are wall-clock times, which setting the clock (NTP, an operator) moves by as much as it was
+set. The step since the frame before reached the loop (``core.clock_steps``) is taken out of the gap, and the
+unread frames are stamped on the clock as it now stands, so that their rejects fire at their plates: set back
+by a second, a half-second stall had read as a stamp going back, its plates not counted at all. The gap counted
+is also never more than the time that passed on the monotonic clock since the frame before reached the loop,
+plus that frame's age then, so that a step between a frame's capture and its arrival, which cannot be told from
+a late frame, cannot make an hour of frames either.
 """
 from __future__ import annotations
 
@@ -22,7 +26,10 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from core.clock_steps import ClockSteps
 from core.types import Alarm, FrameError, StereoFrame
+
+_LAST = "the frame before"  # ClockSteps' key for the last frame that reached the loop
 
 
 @dataclass
@@ -39,6 +46,7 @@ class UnreadFrames:
                  monotonic: Callable[[], float] = time.monotonic):
         self.rate = float(rate_fps) if rate_fps else None
         self._clock, self._monotonic = clock, monotonic
+        self._steps = ClockSteps(clock, monotonic)
         self._last: StereoFrame | FrameError | None = None
         self._last_reached: tuple[float, float] = (0.0, 0.0)  # (monotonic time, its age) when it reached the loop
         self._read_in_time = 0  # frames read in a row, each one period after the one before
@@ -47,19 +55,21 @@ class UnreadFrames:
 
     def between(self, item: StereoFrame | FrameError) -> list[UnreadFrame]:
         """The frame periods between the last item's capture and ``item``'s in which no frame was read, in
-        order, each stamped with its period's capture time (the last one's plus k periods). A capture time
-        that is not a number or goes back restarts the count from ``item``."""
+        order, each stamped with its period's capture time (the last one's plus k periods) on the clock as it
+        now stands. A capture time that is not a number or goes back restarts the count from ``item``."""
         last, self._last = self._last, item
+        step = self._steps.since(_LAST)  # the wall clock set since the last frame reached the loop
+        self._steps.arrived(_LAST)
         (then, age), now = self._last_reached, self._monotonic()
         self._last_reached = (now, self._clock() - item.timestamp if _finite(item.timestamp) else 0.0)
         if self.rate is None or last is None or not (_finite(item.timestamp) and _finite(last.timestamp)):
             return []
-        gap = min(item.timestamp - last.timestamp, now - then + max(age, 0.0))
+        gap = min(item.timestamp - last.timestamp - step, now - then + max(age, 0.0))
         periods = math.floor(gap * self.rate + 0.5)
         unread = [UnreadFrame(f"{last.frame_id}+{k}", last.index,
                               f"frame period {k} of {periods - 1} after frame {last.frame_id}: no frame was read "
                               f"(the camera runs at {self.rate:g} frames a second), so its part went by uninspected",
-                              last.timestamp + k / self.rate, item.source, k)
+                              last.timestamp + step + k / self.rate, item.source, k)
                   for k in range(1, periods)]
         if not unread:
             self._read_in_time += 1

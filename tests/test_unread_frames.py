@@ -78,6 +78,22 @@ class TestUnreadFrames:
         assert clocks.between(_frame(1, 3700.1), step_s=3600.0) == []
         assert len(clocks.between(_frame(2, 3700.4))) == 2  # and frames missed after it still count
 
+    def test_a_clock_set_back_during_a_stall_still_counts_its_frames_on_the_new_clock(self):
+        clocks = Clocks()
+        clocks.between(_frame(0, 100.0))
+        # half a second without a frame read, during which the clock was set back by a second: the next stamp
+        # lies before the last one, which had read as no gap at all
+        missed = clocks.between(_frame(1, 99.5), step_s=-1.0)
+        assert [m.frame_id for m in missed] == ["000000+1", "000000+2", "000000+3", "000000+4"]
+        # stamped on the clock as it now stands, so that each reject fires at its plate
+        assert [m.timestamp for m in missed] == pytest.approx([99.1, 99.2, 99.3, 99.4])
+
+    def test_frames_missed_across_a_clock_set_forward_are_stamped_on_the_new_clock(self):
+        clocks = Clocks()
+        clocks.between(_frame(0, 100.0))
+        missed = clocks.between(_frame(1, 3700.3), step_s=3600.0)
+        assert [m.timestamp for m in missed] == pytest.approx([3700.1, 3700.2])
+
     def test_a_stall_on_both_clocks_is_every_period_of_it(self):
         clocks = Clocks()
         clocks.between(_frame(0, 100.0))

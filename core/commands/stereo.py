@@ -32,14 +32,6 @@ def _parse_settings(pairs: tuple[str, ...], option: str = "--set") -> dict:
     return settings
 
 
-def _device(name: str) -> str:
-    if name != "auto":
-        return name
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"
-
-
 # One map at a time the best measured map is worth twice the time: torch_sgm's improved preset with both
 # views (docs/benchmarks.md); the line runs the preset alone. Settings given win; the seed stays the seed.
 BEST_SINGLE_MAP = {"torch_sgm": {"two_view": True}}
@@ -57,6 +49,7 @@ def make_backend(name: str, settings: dict, device: str):
     from pydantic import ValidationError
 
     from core.contracts import PluginContext
+    from core.engine import resolve_device
     from core.recipe.loader import first_problem
     from core.registry import UnknownPlugin, default_registry
 
@@ -65,7 +58,7 @@ def make_backend(name: str, settings: dict, device: str):
     except UnknownPlugin as exc:
         _fail(f"--backend: {exc}")
     try:
-        return plugin.spec.factory(dict(settings), PluginContext(device=_device(device)))
+        return plugin.spec.factory(dict(settings), PluginContext(device=resolve_device(device)))
     except ValidationError as exc:
         # worded as a recipe's plugin settings are
         loc, message = first_problem(exc, plugin.spec.settings_model)
@@ -275,9 +268,11 @@ def eval_stereo_command(folder, backends, scenes, out, settings, figure, device,
                        + (f"  ({scene.note})" if scene.note else ""))
     import torch
 
+    from core.engine import resolve_device
+
     meta = {"folder": str(folder), "backends": {n: per_backend[n] for n in names},
             "machine": f"{platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}",
-            "device": _device(device)}
+            "device": resolve_device(device)}
     json_path, md_path = ev.save_results(out, results, meta)
     click.echo("")
     click.echo(ev.markdown_table(results))

@@ -12,6 +12,10 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, ValidationInfo, field_validator
 
+# The longest back-off between a device's reconnection attempts (outputs, cameras): a device back on the line
+# waits no longer than this to be used again, and a wait too long for the clock (1e300 ms) cannot be set.
+MAX_RECONNECT_MS = 60_000.0
+
 
 def takes_bool(annotation: Any) -> bool:
     """Whether a field of this type may hold ``True`` or ``False`` as a value of its own."""

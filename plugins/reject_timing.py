@@ -12,7 +12,7 @@ from typing import Callable
 from pydantic import Field, model_validator
 
 from core.contracts import PluginContext
-from core.settings_model import Settings
+from core.settings_model import MAX_RECONNECT_MS, Settings
 from core.types import Alarm, OutputEvent, PartResult
 from drivers.reject_scheduler import Command, Record, RejectScheduler
 
@@ -24,9 +24,8 @@ class TimingSettings(Settings):
     actuator_distance_mm: float | None = Field(None, gt=0, description="camera line to actuator, along the belt")
     conveyor_speed_mm_s: float | None = Field(None, gt=0, description="belt speed")
     max_late_ms: float = Field(100.0, gt=0, description="a command not sent by due + this is an alarm")
-    # at most a minute: a PLC back on the line waits no longer than that for the first reject to reach it
-    reconnect_min_ms: float = Field(100.0, gt=0, le=60000, description="first reconnect back-off")
-    reconnect_max_ms: float = Field(2000.0, gt=0, le=60000, description="longest reconnect back-off")
+    reconnect_min_ms: float = Field(100.0, gt=0, le=MAX_RECONNECT_MS, description="first reconnect back-off")
+    reconnect_max_ms: float = Field(2000.0, gt=0, le=MAX_RECONNECT_MS, description="longest reconnect back-off")
 
     @model_validator(mode="after")
     def _one_delay(self):

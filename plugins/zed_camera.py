@@ -27,7 +27,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
-from core.settings_model import Settings
+from core.settings_model import MAX_RECONNECT_MS, Settings
 from core.types import Calibration, FrameError, StereoFrame
 from drivers.zed_calibration import CalibrationError, StereoRectifier, read_conf, serial_number
 from drivers.zed_uvc import (FPS_BY_RESOLUTION, Grab, ZedError, ZedSdk, ZedUvc, is_file_source, is_recording,
@@ -43,9 +43,9 @@ class ZedSettings(Settings):
     gain: float | None = Field(None, description="manual gain; null = automatic")
     backend: Literal["uvc", "sdk"] = "uvc"
     rectify_alpha: float = Field(-1.0, ge=-1.0, le=1.0, description="-1 keeps the focal length (as the SDK), 0 crops to valid pixels")
-    # at most a minute: each reopen waits that long, every plate meanwhile an ERROR part
-    reconnect_min_ms: float = Field(500.0, gt=0, le=60000)
-    reconnect_max_ms: float = Field(5000.0, gt=0, le=60000)
+    # each reopen waits that long, every plate meanwhile an ERROR part
+    reconnect_min_ms: float = Field(500.0, gt=0, le=MAX_RECONNECT_MS)
+    reconnect_max_ms: float = Field(5000.0, gt=0, le=MAX_RECONNECT_MS)
     max_frames: int | None = Field(None, ge=1)
 
     @field_validator("calibration")

@@ -81,7 +81,7 @@ class DetectAhead:
                 if self._limit is not None and read >= self._limit:
                     return
         except BaseException as exc:  # a camera that raises: handed to the loop, which raises it there
-            self._hand_over(_CameraFailed(exc))
+            self._hand_over(_RaisedInReader(exc))
         finally:
             self._hand_over(self._done)
 
@@ -110,7 +110,7 @@ class DetectAhead:
                 continue
             if entry is self._done:
                 return
-            if isinstance(entry, _CameraFailed):
+            if isinstance(entry, _RaisedInReader):
                 raise entry.exc
             yield entry
 
@@ -136,7 +136,9 @@ class DetectAhead:
         return left
 
 
-class _CameraFailed:
+class _RaisedInReader:
+    """What the camera raised in the reading thread, carried to the loop to be raised there."""
+
     def __init__(self, exc: BaseException):
         self.exc = exc
 

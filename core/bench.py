@@ -117,7 +117,7 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
                 try:
                     detections = detector.detect(frame.left)
                 except Exception as exc:  # timings of a loop that skipped it would be of other frames
-                    raise BenchInputError(f"frame {item.frame_id}: the detector failed: {type(exc).__name__}: "
+                    raise BenchInputError(f"frame {item.frame_id}: detection failed: {type(exc).__name__}: "
                                           f"{exc}") from None
                 t["detection"] = time.perf_counter()
                 measurements = []

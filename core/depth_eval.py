@@ -213,7 +213,7 @@ def detected(detector, frame: StereoFrame, recipe) -> list[Detection]:
     try:
         found = detector.detect(frame.left)
     except Exception as exc:  # as on the line, where such a frame is an ERROR part: here it ends the evaluation
-        raise StageFailed(f"frame {frame.frame_id}: the detector failed: {type(exc).__name__}: {exc}") from None
+        raise StageFailed(f"frame {frame.frame_id}: detection failed: {type(exc).__name__}: {exc}") from None
     kept, problem = kept_detections(found, detector, recipe, frame.left.shape[:2])
     if problem is not None:
         raise StageFailed(f"frame {frame.frame_id}: {problem}")

@@ -157,4 +157,4 @@ def test_a_detector_that_fails_on_a_frame_is_a_one_line_error_naming_it(tmp_path
     out = cli_here("bench", "--backends", "none", "--repeats", "1", "--frames", "3",
                    "--set", "detector.settings.max_det=1", "--out", str(tmp_path))
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
-    assert "frame 000001: the detector failed: DetectionLimit: the detector reached its max_det of 1" in out.stderr
+    assert "frame 000001: detection failed: DetectionLimit: the detector reached its max_det of 1" in out.stderr

@@ -168,7 +168,7 @@ def test_a_detector_that_fails_on_a_frame_is_a_one_line_error_naming_it(tmp_path
     result = cli_here("eval", "depth", str(DEMO), "--boxes", "detector", "--set", "detector.settings.max_det=1",
                       "--out", str(tmp_path), "--threads", "1", "--quiet")
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
-    assert re.search(r"frame \d{6}: the detector failed: DetectionLimit: the detector reached its max_det of 1 boxes",
+    assert re.search(r"frame \d{6}: detection failed: DetectionLimit: the detector reached its max_det of 1 boxes",
                      result.stderr), result.stderr
 
 

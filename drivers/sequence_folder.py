@@ -149,9 +149,19 @@ def write_calibration(folder: Path, calib: dict) -> None:
 
 
 def _by_stem(folder: Path) -> dict[str, Path]:
+    """The images of ``folder`` by frame id; ``SequenceError`` where one id has two (``000001.jpg`` and
+    ``000001.png``): which of them the part was is not the reader's guess to make."""
     if not folder.is_dir():
         return {}
-    return {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in IMAGE_SUFFIXES}
+    found: dict[str, Path] = {}
+    for p in sorted(folder.iterdir()):
+        if p.suffix.lower() not in IMAGE_SUFFIXES:
+            continue
+        if p.stem in found:
+            raise SequenceError(f"{folder}: two images for frame {p.stem} ({found[p.stem].name} and {p.name}): "
+                                f"keep one")
+        found[p.stem] = p
+    return found
 
 
 def list_frames(folder: Path) -> list[FrameFiles]:

@@ -88,6 +88,15 @@ def test_a_damaged_tiff_is_refused_without_pillows_warnings(plane_sequence, recw
     assert [str(w.message) for w in recwarn] == []
 
 
+def test_a_frame_with_two_images_in_one_eye_is_refused_naming_both(plane_sequence):
+    # which of them was the part is not the reader's guess to make (it took the later name silently)
+    info = plane_sequence([0.0, 0.0])
+    folder = info["folder"]
+    (folder / "left" / "000001.jpg").write_bytes((folder / "left" / "000001.png").read_bytes())
+    with pytest.raises(SequenceError, match=r"left: two images for frame 000001 \(000001.jpg and 000001.png\): keep one"):
+        _camera(folder)
+
+
 def test_missing_calibration(plane_sequence):
     info = plane_sequence([0.0])
     (info["folder"] / "calib.yaml").unlink()

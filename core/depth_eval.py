@@ -381,6 +381,9 @@ def markdown(body: dict[str, Any]) -> str:
                   f"{s['defects'] - s['missed']} of the {s['defects']} labelled defects boxed (IoU at least {MATCH_IOU:g}); "
                   f"{s['missed']} missed, {s['missed_beyond_a_limit']} of them beyond a limit (on the line their part "
                   "passes unless another box rejects it). The figures above are over the boxed ones."]
+    if body.get("unscored"):
+        lines += ["", f"Not scored: {body['unscored']} labelled defect(s) whose labels give no true distance or deviation "
+                  "(their truth could not be measured, as for a defect the right camera does not see)."]
     if body.get("seconds_per_defect") is not None:
         lines += ["", f"Depth per defect ({body['method']}): {1000 * body['seconds_per_defect']:.1f} ms on this machine."]
     return "\n".join(lines) + "\n"

@@ -66,6 +66,25 @@ def test_a_sequence_without_labels_is_a_one_line_error(tmp_path):
     assert cli("eval", "depth", str(tmp_path / "nowhere")).returncode == 2
 
 
+def test_labelled_defects_without_a_truth_are_counted_as_not_scored(evaluated, tmp_path):
+    # the generator writes a null deviation where the truth cannot be measured (a defect out of the right
+    # camera's view): leaving it out of the figures must be said, not left for the reader to count
+    copy = tmp_path / "seq"
+    shutil.copytree(TEXTURED, copy)
+    path = copy / "labels" / "000000.json"
+    labels = json.loads(path.read_text())
+    labels["defects"][0]["deviation_mm"] = None
+    path.write_text(json.dumps(labels))
+    result = cli("eval", "depth", str(copy), "--set", RANGE, "--out", str(tmp_path / "out"), "--threads", "1",
+                 "--no-figure")
+    assert result.returncode == 0, result.stderr
+    assert "Not scored: 1 labelled defect(s) whose labels give no true distance or deviation" in result.stdout
+    body = json.loads((tmp_path / "out" / "depth_eval.json").read_text())
+    whole = json.loads((evaluated[1] / "depth_eval.json").read_text())
+    assert body["unscored"] == 1 and whole["unscored"] == 0
+    assert body["all"]["measurement"]["defects"] == whole["sequences"]["plates_textured"]["measurement"]["defects"] - 1
+
+
 def test_a_broken_frame_anywhere_is_named_before_any_frame_is_matched(tmp_path):
     # the last frame's labels and the middle frame's right image broken: both found from the files, and the
     # first named with a count of the rest, before a frame is matched (no line per defect, nothing written)

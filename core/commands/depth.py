@@ -68,6 +68,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     stereo = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(loaded.plugin_settings["stereo"], ctx)
     replay = registry.get("camera", "replay")
     rows, timings = [], []
+    unscored = 0  # labelled defects whose truth has no distance or deviation
     box_error = ev.BoxError(box_scale, box_shift)
     detector = None
     if boxes == "detector":
@@ -94,6 +95,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
                 labels = read_labels(frame.meta["labels"], frame.left.shape[:2])
             except SequenceError as exc:
                 fail(str(exc))
+            unscored += sum(1 for d in labels["defects"] if d.get("deviation_mm") is None or d.get("distance_mm") is None)
             try:
                 new = ev.evaluate_frame(frame, labels, loaded, stereo, folder.name, timings, box_error, detector)
             except StageFailed as exc:
@@ -119,7 +121,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
             "machine": f"{m['cpu']}, {m['cores']} cores, {torch.get_num_threads()} torch threads"
                        + (f", GPU {m['gpu']}" if "gpu" in m and ctx.device.startswith("cuda") else ""),
             "python": platform.python_version(), "box_scale": box_scale, "box_shift": box_shift, "boxes": boxes,
-            "detector": loaded.recipe.detector.plugin, "confidence": loaded.recipe.detector.confidence}
+            "detector": loaded.recipe.detector.plugin, "confidence": loaded.recipe.detector.confidence,
+            "unscored": unscored}
     body = ev.report(rows, meta, sum(timings) / len(timings) if timings else None)
     written = ev.save(body, rows, out, figure)
     click.echo("")

@@ -31,7 +31,8 @@ from core import depth
 from core.contracts import PluginContext
 from core.decision import decide
 from core.depth import DepthRule, measure_frame
-from core.engine import compute_disparity, disparity_range, frame_disparity, resolve_device
+from core.devices import resolve_device
+from core.engine import compute_disparity, disparity_range, frame_disparity
 from core.recipe import LoadedRecipe
 from core.registry import Registry
 from core.types import FrameError, PartResult, StereoFrame

@@ -24,6 +24,7 @@ from core.checks import (RepeatedImages, delivery_problem, detections_problem, d
 from core.clock_steps import ClockSteps
 from core.contracts import PluginContext, missing_members
 from core.decision import decide, error_verdict
+from core.devices import resolve_device
 from core.depth import DepthRule, measure_frame
 from core.frame_source import DetectAhead, OneAtATime
 from core.image_quality import image_problem, image_stats
@@ -120,14 +121,6 @@ def single_threaded_blas() -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1, user_api="blas")
-
-
-def resolve_device(device: str) -> str:
-    if device != "auto":
-        return device
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"
 
 
 def make_plugin(loaded: LoadedRecipe, registry: Registry, ctx: PluginContext, kind: str, name: str, key: str,

@@ -43,7 +43,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     from core import depth_eval as ev
     from core.commands.inspection import _load, fail
     from core.contracts import PluginContext
-    from core.engine import StageFailed, command_threads, resolve_device
+    from core.devices import resolve_device
+    from core.engine import StageFailed, command_threads
     from core.registry import default_registry
     from drivers.sequence_folder import SequenceError, labelled_sequence_problem, read_labels
     from pydantic import ValidationError

@@ -37,14 +37,12 @@ def cuda_if_present(ctx, param, value):
     match = re.fullmatch(r"cuda(?::(\d+))?", str(value))
     if match is None:
         raise click.BadParameter(f"{value!r}: one of auto, cpu, cuda or cuda:N", ctx=ctx, param=param)
-    import torch
+    from core.devices import cuda_problem
 
-    if not torch.cuda.is_available():
-        raise click.BadParameter("torch sees no CUDA device on this machine (cpu, or auto for what there is)",
-                                 ctx=ctx, param=param)
-    if match.group(1) is not None and int(match.group(1)) >= torch.cuda.device_count():
-        raise click.BadParameter(f"{value!r}: torch sees {torch.cuda.device_count()} CUDA device(s), cuda:0 on",
-                                 ctx=ctx, param=param)
+    if (problem := cuda_problem()) is not None:
+        raise click.BadParameter(problem, ctx=ctx, param=param)
+    if match.group(1) is not None and (problem := cuda_problem(int(match.group(1)))) is not None:
+        raise click.BadParameter(f"{value!r}: {problem}", ctx=ctx, param=param)
     return value
 
 

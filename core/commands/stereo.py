@@ -49,7 +49,7 @@ def make_backend(name: str, settings: dict, device: str):
     from pydantic import ValidationError
 
     from core.contracts import PluginContext
-    from core.engine import resolve_device
+    from core.devices import resolve_device
     from core.recipe.loader import first_problem
     from core.registry import UnknownPlugin, default_registry
 
@@ -268,7 +268,7 @@ def eval_stereo_command(folder, backends, scenes, out, settings, figure, device,
                        + (f"  ({scene.note})" if scene.note else ""))
     import torch
 
-    from core.engine import resolve_device
+    from core.devices import resolve_device
 
     meta = {"folder": str(folder), "backends": {n: per_backend[n] for n in names},
             "machine": f"{platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}",

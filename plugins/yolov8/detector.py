@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import Field, field_validator
 
+from core.devices import cuda_problem
 from core.settings_model import Settings
 from core.types import Detection
 from plugins.yolov8 import tiling
@@ -166,11 +167,9 @@ class YoloDetector:
         if settings.device != "auto":
             device = settings.device
         if device.startswith("cuda") or device[0].isdigit():
-            import torch
-
-            if not torch.cuda.is_available():  # said before the first part, not as every part's ERROR
-                raise ValueError(f"device {device!r}: torch sees no CUDA device on this machine (cpu, or auto for what "
-                                 f"there is)")
+            problem = cuda_problem()  # said before the first part, not as every part's ERROR
+            if problem is not None:
+                raise ValueError(f"device {device!r}: {problem}")
         self.device = device
 
     def _predict(self, images: list[np.ndarray], imgsz: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:

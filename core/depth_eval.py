@@ -152,6 +152,11 @@ class BoxError:
         return cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2
 
 
+def has_truth(defect: dict) -> bool:
+    """Whether a labelled defect's truth gives a distance and a deviation to score against."""
+    return defect.get("deviation_mm") is not None and defect.get("distance_mm") is not None
+
+
 def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backend, sequence: str,
                    timings: list[float], box_error: BoxError = BoxError(), detector=None) -> list[DefectRow]:
     """Every labelled defect of one frame (defects whose truth has no deviation are skipped), measured in
@@ -160,7 +165,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     recipe = loaded.recipe
     rule = DepthRule.from_recipe(recipe)
     reference_rule = DepthRule.from_recipe(recipe, method="disparity")
-    truths = [t for t in labels["defects"] if t.get("deviation_mm") is not None and t.get("distance_mm") is not None]
+    truths = [t for t in labels["defects"] if has_truth(t)]
     if not truths:
         return []
     true_boxes = [tuple(float(v) for v in t["box"]) for t in truths]

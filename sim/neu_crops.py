@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from drivers import text_files
 from drivers.sequence_folder import incomplete
 
 NEU_CLASSES = ("crazing", "inclusion", "patches", "pitted_surface", "rolled-in_scale", "scratches")
@@ -61,7 +62,7 @@ class NeuCrops:
             raise NeuDetError(f"NEU-DET folder not found: {self.root}")
         if not split.exists():
             raise NeuDetError(f"{split}: val split list missing (not a NEU-DET folder?)")
-        self.stems = [s.strip() for s in split.read_text(encoding="utf-8-sig").splitlines() if s.strip()]
+        self.stems = [s.strip() for s in text_files.decode(split.read_bytes()).splitlines() if s.strip()]
         self.by_class: dict[str, list[NeuBox]] = {c: [] for c in NEU_CLASSES}
         for stem in self.stems:
             xml = self.root / "annotations" / f"{stem}.xml"

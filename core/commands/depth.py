@@ -96,7 +96,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
                 labels = read_labels(frame.meta["labels"], frame.left.shape[:2])
             except SequenceError as exc:
                 fail(str(exc))
-            unscored += sum(1 for d in labels["defects"] if d.get("deviation_mm") is None or d.get("distance_mm") is None)
+            unscored += sum(1 for d in labels["defects"] if not ev.has_truth(d))
             try:
                 new = ev.evaluate_frame(frame, labels, loaded, stereo, folder.name, timings, box_error, detector)
             except StageFailed as exc:

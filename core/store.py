@@ -387,6 +387,13 @@ def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
     ).fetchall():
         per_class.setdefault(cls, Counter())[verdict] += n
     alarms = db.execute(f"SELECT COUNT(*) FROM alarms {where}", args).fetchone()[0]
+    return {**verdict_counts(verdicts), "defects_per_class": {c: dict(v) for c, v in sorted(per_class.items())},
+            "alarms": alarms}
+
+
+def verdict_counts(verdicts: dict[str, int]) -> dict:
+    """Parts, passed, rejected, errors, flagged and the yield in % (None without parts) from parts per verdict:
+    what `inspect report` and the operator page count alike."""
     parts = sum(verdicts.values())
     return {
         "parts": parts,
@@ -395,8 +402,6 @@ def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
         "errors": verdicts.get("ERROR", 0),
         "flagged": verdicts.get("FLAG", 0),
         "yield_percent": round(100.0 * verdicts.get("PASS", 0) / parts, 1) if parts else None,
-        "defects_per_class": {c: dict(v) for c, v in sorted(per_class.items())},
-        "alarms": alarms,
     }
 
 

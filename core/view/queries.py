@@ -143,17 +143,8 @@ class StoreReader:
 
 def counters(verdicts: dict[str, int], rejects_per_class: dict[str, int], alarms: int) -> dict:
     """The page's counters from parts per verdict and rejected defects per class."""
-    parts = sum(verdicts.values())
-    return {
-        "parts": parts,
-        "passed": verdicts.get("PASS", 0),
-        "rejected": verdicts.get("REJECT", 0),
-        "errors": verdicts.get("ERROR", 0),
-        "flagged": verdicts.get("FLAG", 0),
-        "yield_percent": round(100.0 * verdicts.get("PASS", 0) / parts, 1) if parts else None,
-        "rejects_per_class": {cls: n for cls, n in sorted(rejects_per_class.items()) if n},
-        "alarms": alarms,
-    }
+    return {**store.verdict_counts(verdicts),
+            "rejects_per_class": {cls: n for cls, n in sorted(rejects_per_class.items()) if n}, "alarms": alarms}
 
 
 def _part_summary(row: sqlite3.Row) -> dict:

@@ -47,18 +47,7 @@ def scan_surface(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarr
     w = left.shape[1]
     top = w // 2 if max_disparity is None else min(int(max_disparity), w)
     d = np.arange(top)
-    columns = u[None, :] - d[:, None]  # (D, N)
-    inside = columns >= 0
-    a = np.where(inside, left[v, u].astype(np.float32)[None, :], np.float32(0))
-    b = np.where(inside, right[v[None, :], np.maximum(columns, 0)].astype(np.float32), np.float32(0))
-    n = inside.sum(axis=1)
-    scored = n >= MIN_OVERLAP * u.size
-    n = np.maximum(n, 1).astype(np.float32)
-    a = np.where(inside, a - (a.sum(axis=1) / n)[:, None], np.float32(0))
-    b = np.where(inside, b - (b.sum(axis=1) / n)[:, None], np.float32(0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        r = (a * b).sum(axis=1) / np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
-    r = np.where(scored & np.isfinite(r), r, -np.inf)
+    r = correlations(left, right, u, v, d)
     best = int(np.argmax(r))
     peak = float(r[best])
     away = np.abs(d - best) > 2
@@ -66,3 +55,21 @@ def scan_surface(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarr
     if not peak >= MIN_PEAK or second * MIN_CONTRAST > peak:
         return None
     return SurfaceMatch(float(best), peak)
+
+
+def correlations(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(D,) the zero-mean normalised correlation of the pixels (u, v) (N,) of ``left`` with ``right`` shifted by
+    each whole-pixel disparity of ``d`` (D,); -inf where less than MIN_OVERLAP of them lie in ``right``.
+    left, right: HxW float images; u, v inside them."""
+    columns = u[None, :] - d[:, None]  # (D, N)
+    inside = (columns >= 0) & (columns < right.shape[1])
+    a = np.where(inside, left[v, u].astype(np.float32)[None, :], np.float32(0))
+    b = np.where(inside, right[v[None, :], np.clip(columns, 0, right.shape[1] - 1)].astype(np.float32), np.float32(0))
+    n = inside.sum(axis=1)
+    scored = n >= MIN_OVERLAP * u.size
+    n = np.maximum(n, 1).astype(np.float32)
+    a = np.where(inside, a - (a.sum(axis=1) / n)[:, None], np.float32(0))
+    b = np.where(inside, b - (b.sum(axis=1) / n)[:, None], np.float32(0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = (a * b).sum(axis=1) / np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
+    return np.where(scored & np.isfinite(r), r, -np.inf)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from synthetic_pairs import step_pair
 
-from core.surface_scan import MAX_PIXELS, scan_surface
+from core.surface_scan import MAX_PIXELS, correlations, scan_surface
 
 
 def ring(x0: int, y0: int, x1: int, y1: int, width: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -49,3 +49,18 @@ class TestScanSurface:
         with pytest.raises(ValueError, match="same \\(N,\\)"):
             scan_surface(left, left, np.array([1, 2]), np.array([1]))
         assert scan_surface(left, left, np.array([], int), np.array([], int)) is None
+
+
+class TestCorrelations:
+    def test_peaks_at_the_shift_and_scores_only_the_shifts_asked_for(self):
+        left, right, _ = step_pair(width=240, height=100, plane=(0.0, 0.0, 37.0), step_box=None)
+        u, v = ring(150, 35, 200, 65)
+        d = np.arange(30, 45)
+        r = correlations(left, right, u, v, d)
+        assert r.shape == d.shape and d[np.argmax(r)] == 37 and r.max() > 0.8
+
+    def test_a_shift_that_takes_most_pixels_out_of_the_image_is_not_scored(self):
+        left, right, _ = step_pair(width=240, height=100, plane=(0.0, 0.0, 5.0), step_box=None)
+        u, v = ring(150, 35, 200, 65)
+        r = correlations(left, right, u, v, np.array([5, 190, -100]))
+        assert r[0] > 0.8 and np.isneginf(r[1]) and np.isneginf(r[2])

@@ -1,0 +1,100 @@
+"""Where a frame's images show the plate, for a frame in which the detector found nothing.
+
+A part with a defect is measured, and a plate outside the working distance (or a camera delivering its eyes
+the other way round) is told from the images around the defect (``core.depth``). A part without one had
+nothing measured: a camera knocked on its mount, a recipe loaded at the wrong station or a fixture at another
+height would pass every plate the detector finds nothing on, inspected where the recipe does not expect it.
+Patches of the frame, each correlated with the right image at every horizontal shift (``core.surface_scan``),
+show where the plate really is; only a surface seen, and seen only outside the searched disparities, says the
+plate is elsewhere: texture too faint to match says nothing either way.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.surface_fit import high_pass, to_grey
+from core.surface_scan import MIN_PEAK, correlations, scan_surface
+from core.types import Calibration
+
+GRID = (3, 4)  # rows x columns of patches over the part of the frame the right camera sees
+PATCH_PX = 48  # a patch's side: a plate tilted by 25 degrees moves about 2 px of disparity across it
+MIN_SIDE_PX = 2 * PATCH_PX  # a smaller frame is not checked
+BAND_PX = 32  # rows above and below a patch high-passed with it: beyond 3 of the high-pass's sigma
+TOLERANCE_PX = 1.0  # a surface this close to the searched range counts as in it (the scan's whole pixels)
+
+
+@dataclass(frozen=True)
+class PlateElsewhere:
+    """The plate as the images show it where the backend did not search: at ``disparity`` px (without doffs),
+    ``distance_mm``; or, with ``swapped``, within the searched range but only with the eyes exchanged."""
+
+    disparity: float
+    distance_mm: float
+    swapped: bool = False
+
+    def describe(self, searched: tuple[float, float]) -> str:
+        lo, hi = searched
+        if self.swapped:
+            return (f"the images match only with the left and right images swapped, at {self.disparity:.0f} px of "
+                    f"disparity (within the {lo:.0f}-{hi:.0f} px the stereo search covers): the camera delivers its "
+                    f"right eye's image as the left")
+        return (f"the images show the plate at {self.disparity:.0f} px of disparity ({self.distance_mm:.0f} mm), "
+                f"outside the {lo:.0f}-{hi:.0f} px the stereo search covers: the plate lies outside the working "
+                f"distance")
+
+
+def patch_pixels(shape: tuple[int, int], hi: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The (u, v) pixels (every other one in both directions) of each patch of ``GRID`` over the columns
+    from ``hi`` (the right camera sees a plate at the searched disparities there) to the right border, centre
+    rows first; none for a frame smaller than MIN_SIDE_PX."""
+    h, w = shape
+    x0 = int(min(max(hi, 0.0), w / 2))
+    if min(h, w - x0) < MIN_SIDE_PX:
+        return []
+    rows, cols = GRID
+    ys = np.linspace(0, h - PATCH_PX, rows).round().astype(int)
+    xs = np.linspace(x0, w - PATCH_PX, cols).round().astype(int)
+    order = sorted(((y, x) for y in ys for x in xs), key=lambda p: abs(p[0] + PATCH_PX / 2 - h / 2))
+    vv, uu = np.mgrid[0:PATCH_PX:2, 0:PATCH_PX:2]
+    return [((uu + x).ravel(), (vv + y).ravel()) for y, x in order]
+
+
+def plate_elsewhere(left: np.ndarray, right: np.ndarray, calib: Calibration,
+                    searched: tuple[float, float]) -> PlateElsewhere | None:
+    """Where the HxWx3 uint8 BGR pair shows the plate, if only outside ``searched`` (lo, hi: px of disparity
+    without doffs, the backend's range) or only with its eyes swapped; None where a patch matches within the
+    range, or none shows a surface at all."""
+    if left.shape != right.shape or left.ndim != 3:
+        raise ValueError(f"plate_elsewhere: left {left.shape} and right {right.shape} must be the same HxWx3")
+    lo, hi = searched
+    within = np.arange(math.floor(lo - TOLERANCE_PX), math.ceil(hi + TOLERANCE_PX) + 1)
+    outside = []
+    for band_l, band_r, u, v in _patches(left, right, hi):
+        # the searched shifts first: a plate where it belongs matches there, and nothing else need be tried
+        if np.max(correlations(band_l, band_r, u, v, within)) >= MIN_PEAK:
+            return None
+        found = scan_surface(band_l, band_r, u, v)
+        if found is not None and found.disparity + calib.doffs > 0:
+            outside.append(found.disparity)
+    if outside:
+        d = float(np.median(outside))
+        return PlateElsewhere(d, calib.focal_px * calib.baseline_mm / (d + calib.doffs))
+    # a left image that is the right eye's: its pixels match to their right, as the mirrored pair's to the left
+    for band_l, band_r, u, v in _patches(left[:, ::-1], right[:, ::-1], hi):
+        found = scan_surface(band_l, band_r, u, v)
+        if found is not None and lo - TOLERANCE_PX <= found.disparity <= hi + TOLERANCE_PX:
+            d = found.disparity
+            return PlateElsewhere(d, calib.focal_px * calib.baseline_mm / (d + calib.doffs), swapped=True)
+    return None
+
+
+def _patches(left: np.ndarray, right: np.ndarray, hi: float):
+    """Each patch of ``patch_pixels`` of the HxWx3 pair as (left band, right band, u, v in the band): the rows
+    about it of both images in grey, high-passed (the eyes' exposures and their sheen differ), one patch at a
+    time (the caller stops where the question is settled)."""
+    for u, v in patch_pixels(left.shape[:2], hi):
+        top, bottom = max(0, int(v.min()) - BAND_PX), min(left.shape[0], int(v.max()) + BAND_PX + 1)
+        yield high_pass(to_grey(left[top:bottom])), high_pass(to_grey(right[top:bottom])), u, v - top

@@ -1,0 +1,73 @@
+"""core.plate_view: where a frame without defects shows the plate, on rendered plates of known distance."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from synthetic_pairs import calib_for, render
+
+from core.plate_view import GRID, MIN_SIDE_PX, PATCH_PX, patch_pixels, plate_elsewhere
+
+CALIB = calib_for(320, 192)
+FB = CALIB.focal_px * CALIB.baseline_mm
+
+
+def searched(near_mm: float, far_mm: float) -> tuple[float, float]:
+    return FB / far_mm, FB / near_mm
+
+
+@pytest.fixture(scope="module")
+def plate_at_400():
+    left, right, _ = render(CALIB, 400.0, tilt_deg=5.0)
+    return left, right
+
+
+class TestPatchPixels:
+    def test_a_grid_of_patches_right_of_the_searched_columns_centre_rows_first(self):
+        patches = patch_pixels((192, 320), hi=140.0)
+        assert len(patches) == GRID[0] * GRID[1]
+        for u, v in patches:
+            assert u.shape == v.shape == ((PATCH_PX // 2) ** 2,)
+            assert u.min() >= 140 and u.max() < 320 and v.min() >= 0 and v.max() < 192
+        tops = [int(v.min()) for _, v in patches]
+        assert tops[:GRID[1]] == [72] * GRID[1] and sorted(set(tops)) == [0, 72, 144]  # the middle row first
+
+    def test_columns_start_at_half_the_width_at_most(self):
+        (u, _), *_ = patch_pixels((192, 320), hi=1000.0)
+        assert u.min() == 160
+
+    @pytest.mark.parametrize("shape, hi", [((MIN_SIDE_PX - 1, 320), 0.0), ((192, 2 * MIN_SIDE_PX - 2), 100.0)])
+    def test_a_frame_too_small_to_tell_has_none(self, shape, hi):
+        assert patch_pixels(shape, hi) == []
+
+
+class TestPlateElsewhere:
+    def test_a_plate_within_the_searched_range_is_where_it_belongs(self, plate_at_400):
+        assert plate_elsewhere(*plate_at_400, CALIB, searched(300, 600)) is None
+
+    @pytest.mark.parametrize("near, far", [(200, 300), (500, 800)])
+    def test_a_plate_nearer_or_farther_than_the_range_is_said_to_be_at_its_distance(self, plate_at_400, near, far):
+        found = plate_elsewhere(*plate_at_400, CALIB, searched(near, far))
+        assert found is not None and not found.swapped
+        assert found.distance_mm == pytest.approx(400, abs=12)  # whole pixels of disparity: 3.8 mm each at 400 mm
+        text = found.describe(searched(near, far))
+        assert "outside the" in text and "the plate lies outside the working distance" in text
+
+    def test_eyes_swapped_are_said_to_be_so(self, plate_at_400):
+        left, right = plate_at_400
+        found = plate_elsewhere(right, left, CALIB, searched(300, 600))
+        assert found is not None and found.swapped and found.distance_mm == pytest.approx(400, abs=12)
+        assert "right eye's image as the left" in found.describe(searched(300, 600))
+
+    def test_images_without_texture_to_match_say_nothing(self):
+        rng = np.random.default_rng(0)
+        left, right = (np.clip(rng.normal(128, 2, (192, 320, 3)), 0, 255).astype(np.uint8) for _ in range(2))
+        assert plate_elsewhere(left, right, CALIB, searched(200, 300)) is None
+
+    def test_a_frame_too_small_to_tell_is_not_judged(self, plate_at_400):
+        left, right = plate_at_400
+        assert plate_elsewhere(left[:MIN_SIDE_PX - 1], right[:MIN_SIDE_PX - 1], CALIB, searched(200, 300)) is None
+
+    def test_the_pair_must_be_two_colour_images_of_one_size(self, plate_at_400):
+        left, right = plate_at_400
+        with pytest.raises(ValueError, match="must be the same HxWx3"):
+            plate_elsewhere(left, right[:100], CALIB, searched(300, 600))

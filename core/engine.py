@@ -29,6 +29,7 @@ from core.depth import DepthRule, measure_frame
 from core.frame_source import DetectAhead, OneAtATime
 from core.image_quality import image_problem, image_stats
 from core.part_images import PartImages
+from core.plate_view import PlateElsewhere, plate_elsewhere
 from core.recipe import LoadedRecipe
 from core.recipe.loader import (camera_answer, detector_settings, file_sha256, named_classes, output_delays_s,
                                 unknown_class_message)
@@ -244,6 +245,7 @@ class FrameOutcome:
     per_defect: list[tuple[Status, list[str]]]  # each measurement's status and reasons
     image: np.ndarray | None
     timings: dict[str, float] = field(default_factory=dict)
+    plate: PlateElsewhere | None = None  # a frame without defects whose images show the plate elsewhere
 
     @property
     def defect_status(self) -> list[Status]:
@@ -338,6 +340,19 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         if detected.error is not None:
             raise StageFailed(detected.error)
         detections = detected.detections
+        if not detections:
+            # nothing measured says where the plate is: the images must not show it only where no search looks
+            stage = "plate check"
+            t0 = time.perf_counter()
+            searched = disparity_range(recipe.stereo, item.calib)
+            plate = plate_elsewhere(item.left, item.right, item.calib, searched)
+            timings["plate check"] = time.perf_counter() - t0
+            if plate is not None:
+                message = (f"frame {item.frame_id}: no defect found, but {plate.describe(searched)}; a plate "
+                           f"inspected where the recipe does not expect it does not pass")
+                part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message),
+                                  error=message)
+                return FrameOutcome(part, [], item.left, timings, plate)
         measurements = []
         if detections or recipe.stereo.schedule == "every_frame":
             stage = "stereo"
@@ -371,20 +386,24 @@ def capture_time_problem(timestamp: Any, now: float) -> str | None:
 
 
 class SurfaceElsewhere:
-    """Parts in a row whose defects' surroundings the images show where the stereo backend did not search: at
-    disparities outside its range (``DefectMeasurement.surface_elsewhere_mm``: a plate outside the working
-    distance), or only with the left and right images swapped (``eyes_swapped``: a camera delivering its eyes
-    the other way round). A part with a measured deviation ends such a run; a part without defects says
-    nothing of the plate."""
+    """Parts in a row whose images show the plate where the stereo backend did not search, around their defects
+    or, for a part without defects, anywhere in the frame (``core.plate_view``): at disparities outside its range
+    (``DefectMeasurement.surface_elsewhere_mm``: a plate outside the working distance), or only with the left and
+    right images swapped (``eyes_swapped``: a camera delivering its eyes the other way round). A part with a
+    measured deviation ends such a run."""
 
     def __init__(self, stereo: StereoSection):
         self.stereo = stereo
         self.runs = {"range": 0, "swapped": 0}
 
-    def alarms(self, part: PartResult) -> list[Alarm]:
-        """The alarm of each cause whose run reaches CAMERA_LOST_AFTER parts with this one (once per run)."""
+    def alarms(self, part: PartResult, plate: PlateElsewhere | None = None) -> list[Alarm]:
+        """The alarm of each cause whose run reaches CAMERA_LOST_AFTER parts with this one (once per run);
+        ``plate``: where the images of a part without defects show the plate, if elsewhere."""
         found = [m.surface_elsewhere_mm for m in part.measurements if m.surface_elsewhere_mm is not None]
-        seen = {"range": bool(found), "swapped": any(m.eyes_swapped for m in part.measurements)}
+        if plate is not None and not plate.swapped:
+            found.append(plate.distance_mm)
+        seen = {"range": bool(found),
+                "swapped": any(m.eyes_swapped for m in part.measurements) or (plate is not None and plate.swapped)}
         measured = any(m.deviation_mm is not None for m in part.measurements)
         for cause, now in seen.items():
             if now:
@@ -397,15 +416,15 @@ class SurfaceElsewhere:
         else:
             searched = "the disparities stereo.min_disparity and max_disparity search"
         what = {
-            "range": (f"plates outside the working distance: {CAMERA_LOST_AFTER} parts in a row whose defects' "
-                      f"surroundings the images show at about {float(np.median(found or [np.nan])):.0f} mm (last: frame "
+            "range": (f"plates outside the working distance: {CAMERA_LOST_AFTER} parts in a row whose images show "
+                      f"the plate at about {float(np.median(found or [np.nan])):.0f} mm (last: frame "
                       f"{part.frame_id}), outside {searched}", "the plates or the recipe are set right"),
-            "swapped": (f"left and right images swapped: {CAMERA_LOST_AFTER} parts in a row whose defects' surroundings "
-                        f"the images show within {searched} only with the camera's left and right images exchanged "
+            "swapped": (f"left and right images swapped: {CAMERA_LOST_AFTER} parts in a row whose images show the "
+                        f"plate within {searched} only with the camera's left and right images exchanged "
                         f"(last: frame {part.frame_id})", "the camera delivers its left eye's image as the left"),
         }
-        return [Alarm("depth", f"{said}; their defects cannot be measured and the parts are rejected as ERROR until "
-                               f"{until}", time.time(), part.part_id, cause)
+        return [Alarm("depth", f"{said}; they cannot be inspected and are rejected as ERROR until {until}",
+                      time.time(), part.part_id, cause)
                 for cause, (said, until) in what.items() if seen[cause] and self.runs[cause] == CAMERA_LOST_AFTER]
 
 
@@ -675,7 +694,7 @@ def run(
                 record([Alarm("camera", f"images unusable: {CAMERA_LOST_AFTER} frames in a row (last: frame "
                                         f"{item.frame_id}: {unusable}); parts are rejected as ERROR until they "
                                         f"show the plate", time.time(), part.part_id, "image")])
-            record(elsewhere.alarms(part))
+            record(elsewhere.alarms(part, outcome.plate))
             finish(outcome)
             stage_seconds.update(outcome.timings)
             frames += 1

@@ -192,8 +192,8 @@ def test_plates_outside_the_working_distance_are_errors_and_a_run_of_them_one_al
     assert "the plate lies outside the working distance" in first.note
     (alarm,) = summary.alarms
     assert alarm.cause == "range" and alarm.part_id == seen[2].part.part_id
-    assert alarm.message.startswith("plates outside the working distance: 3 parts in a row whose defects' "
-                                    "surroundings the images show at about 40"), alarm.message
+    assert alarm.message.startswith("plates outside the working distance: 3 parts in a row whose images show the "
+                                    "plate at about 40"), alarm.message
     assert "outside stereo.working_distance_mm (200-300 mm)" in alarm.message
     from core.commands.inspection import alarm_hints
     hints = alarm_hints(summary.alarms, loaded, plc_sim_given=False)
@@ -217,6 +217,49 @@ def test_a_camera_with_its_eyes_swapped_costs_errors_and_a_run_of_them_one_alarm
     from core.commands.inspection import alarm_hints
     hints = alarm_hints(summary.alarms, loaded, plc_sim_given=False)
     assert any("delivers its right eye's image as the left" in h for h in hints)
+
+
+def _no_defects_recipe(tmp_path, info, working_distance):
+    text = RECIPE.format(box=info["box"], output="log")
+    text = re.sub(r"    regions:\n      - \{name: pit, box: [^}]*\}\n", "    regions: []\n", text)
+    assert "regions: []" in text
+    return load_recipe(write_recipe(tmp_path / "r.yaml", text),
+                       [f"stereo.working_distance_mm={working_distance}"], registry=Registry(make_manager(
+                           (stereo_inspect_fixed_roi,))))
+
+
+@pytest.mark.parametrize("working_distance, swapped", [("[200, 300]", False), ("[500, 800]", False),
+                                                      ("[300, 600]", True)])
+def test_plates_without_defects_seen_where_no_search_looks_are_errors_and_a_run_of_them_one_alarm(
+        tmp_path, plane_sequence, working_distance, swapped):
+    # nothing found on them, so nothing measured: they passed wherever the plate was
+    info = plane_sequence([0.0] * 4)
+    if swapped:
+        folder = info["folder"]
+        (folder / "left").rename(folder / "was_left")
+        (folder / "right").rename(folder / "left")
+        (folder / "was_left").rename(folder / "right")
+    loaded = _no_defects_recipe(tmp_path, info, working_distance)
+    seen = []
+    summary = engine.run(loaded, registry=Registry(make_manager((stereo_inspect_fixed_roi,))), on_part=seen.append,
+                         device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.ERROR] * 4
+    assert all(o.plate is not None and o.plate.swapped == swapped for o in seen)
+    assert seen[0].plate.distance_mm == pytest.approx(400, abs=12)
+    assert seen[0].part.error.startswith("frame 000000: no defect found, but the images ")
+    (alarm,) = summary.alarms
+    assert alarm.cause == ("swapped" if swapped else "range") and alarm.part_id == seen[2].part.part_id
+    assert "they cannot be inspected and are rejected as ERROR" in alarm.message
+
+
+def test_plates_without_defects_within_the_working_distance_pass(tmp_path, plane_sequence):
+    info = plane_sequence([0.0] * 2)
+    loaded = _no_defects_recipe(tmp_path, info, "[300, 600]")
+    seen = []
+    summary = engine.run(loaded, registry=Registry(make_manager((stereo_inspect_fixed_roi,))), on_part=seen.append,
+                         device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.PASS] * 2 and not summary.alarms
+    assert all(o.plate is None and "plate check" in o.timings for o in seen)
 
 
 def test_a_dead_disk_still_sends_the_decided_reject_then_stops_with_an_alarm(tmp_path, plane_sequence, registry,
@@ -476,8 +519,8 @@ def test_eyes_swapped_alarm_once_per_run_of_them_apart_from_the_range_s():
         ("ok",), ("swapped",), ("swapped",)])]  # a measured plate ends both
     assert [(i, [a.cause for a in said]) for i, said in enumerate(alarms) if said] == [(3, ["swapped"]), (5, ["range"])]
     alarms = [a[0] if a else None for a in alarms]
-    assert alarms[3].message.startswith("left and right images swapped: 3 parts in a row whose defects' surroundings "
-                                        "the images show within stereo.working_distance_mm (350-500 mm) only with "
+    assert alarms[3].message.startswith("left and right images swapped: 3 parts in a row whose images show the plate "
+                                        "within stereo.working_distance_mm (350-500 mm) only with "
                                         "the camera's left and right images exchanged (last: frame 000003)")
 
 

@@ -29,6 +29,7 @@ from core.boxes import match_boxes
 from core.decision import judge_defect, rule_applies
 from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
+from core.plate_view import plate_elsewhere
 from core.recipe import LoadedRecipe
 from core.surface_fit import gradient_x, to_grey
 from core.types import Detection, DefectMeasurement, Status, StereoFrame
@@ -212,6 +213,15 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     return rows
 
 
+def plate_check(frame: StereoFrame, recipe) -> dict[str, Any] | None:
+    """What the engine's check of a part without defects (``core.plate_view``) says of ``frame`` at the
+    recipe's working distance: None where it lets the part be decided, else where it sees the plate."""
+    found = plate_elsewhere(frame.left, frame.right, frame.calib, disparity_range(recipe.stereo, frame.calib))
+    if found is None:
+        return None
+    return {"distance_mm": round(found.distance_mm, 1), "swapped": found.swapped}
+
+
 def detected(detector, frame: StereoFrame, recipe) -> list[Detection]:
     """The detector's boxes on the frame's left image as the line keeps them (``engine.kept_detections``);
     a detector that breaks its contract is an error, not an empty frame."""
@@ -389,6 +399,13 @@ def markdown(body: dict[str, Any]) -> str:
     if body.get("unscored"):
         lines += ["", f"Not scored: {body['unscored']} labelled defect(s) whose labels give no true distance or deviation "
                   "(their truth could not be measured, as for a defect the right camera does not see)."]
+    checked = body.get("plate_check")
+    if checked:
+        flagged = checked["flagged"]
+        swapped = sum(1 for f in flagged if f["swapped"])
+        lines += ["", f"The check of a part without defects (each frame as if the detector found nothing): "
+                  f"{len(flagged) - swapped} of {checked['frames']} frames show the plate outside the working "
+                  f"distance, {swapped} only with the eyes swapped (such a part is an ERROR)."]
     if body.get("seconds_per_defect") is not None:
         lines += ["", f"Depth per defect ({body['method']}): {1000 * body['seconds_per_defect']:.1f} ms on this machine."]
     return "\n".join(lines) + "\n"

@@ -37,6 +37,9 @@ def test_writes_json_markdown_and_figure(evaluated):
     # one line per defect: truth, measurement with its uncertainty, both decisions
     lines = [line for line in result.stdout.splitlines() if re.match(r"plates_\w+ \d{6} ", line)]
     assert len(lines) == len(body["rows"]) == 11 and all(" true " in line and "measured" in line for line in lines)
+    # every frame lies within the working distance: none would make a part without defects an ERROR
+    assert body["plate_check"]["frames"] > 0 and body["plate_check"]["flagged"] == []
+    assert f"0 of {body['plate_check']['frames']} frames show the plate outside" in table
 
 
 def test_the_surface_fit_beats_the_backend_alone_and_states_its_uncertainty(evaluated):
@@ -271,6 +274,10 @@ def test_a_plate_outside_the_working_distance_gets_no_deviation(tmp_path):
     for r in rows:
         assert r["deviation_mm"] is None and r["status"] == "ERROR", r
         assert "do not match" in r["note"] or "did not settle" in r["note"]
+    # without its defects the part would be an ERROR too: the images show its plate beyond 500 mm
+    (flagged,) = json.loads((tmp_path / "out" / "depth_eval.json").read_text())["plate_check"]["flagged"]
+    assert flagged["frame_id"] == "000000" and not flagged["swapped"] and flagged["distance_mm"] > 600
+    assert "1 of 1 frames show the plate outside the working distance" in result.stdout
 
 
 def test_a_set_rendered_without_noise_has_no_floor_to_compare_with(tmp_path):

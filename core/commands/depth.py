@@ -35,7 +35,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     """The engine's stereo and depth on labelled SEQUENCES (folders of `inspect sim generate`) with the
     true boxes: distance and deviation errors (median, p90, max), measured ÷ true, the physical floor,
     the calibration of the reported uncertainty and the decisions at the recipe's rules, for the
-    recipe's depth method and for the backend's disparity alone. Saves JSON, Markdown and a figure.
+    recipe's depth method and for the backend's disparity alone; and how many frames the check of a part
+    without defects would say show the plate outside the working distance. Saves JSON, Markdown and a figure.
 
     --box-scale and --box-shift measure in boxes that are off as a detector's are; --boxes detector in the
     boxes of the recipe's detector that match the labels, and counts the labelled defects it missed. The
@@ -70,6 +71,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     replay = registry.get("camera", "replay")
     rows, timings = [], []
     unscored = 0  # labelled defects whose truth has no distance or deviation
+    plate_check = {"frames": 0, "flagged": []}  # each frame's plate check, as if the detector found nothing
     box_error = ev.BoxError(box_scale, box_shift)
     detector = None
     if boxes == "detector":
@@ -97,6 +99,10 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
             except SequenceError as exc:
                 fail(str(exc))
             unscored += sum(1 for d in labels["defects"] if not ev.has_truth(d))
+            plate_check["frames"] += 1
+            said = ev.plate_check(frame, loaded.recipe)
+            if said is not None:
+                plate_check["flagged"].append({"sequence": folder.name, "frame_id": frame.frame_id, **said})
             try:
                 new = ev.evaluate_frame(frame, labels, loaded, stereo, folder.name, timings, box_error, detector)
             except StageFailed as exc:
@@ -123,7 +129,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
                        + (f", GPU {m['gpu']}" if "gpu" in m and ctx.device.startswith("cuda") else ""),
             "python": platform.python_version(), "box_scale": box_scale, "box_shift": box_shift, "boxes": boxes,
             "detector": loaded.recipe.detector.plugin, "confidence": loaded.recipe.detector.confidence,
-            "unscored": unscored}
+            "unscored": unscored, "plate_check": plate_check}
     body = ev.report(rows, meta, sum(timings) / len(timings) if timings else None)
     written = ev.save(body, rows, out, figure)
     click.echo("")

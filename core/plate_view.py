@@ -23,6 +23,7 @@ GRID = (3, 4)  # rows x columns of patches over the part of the frame the right 
 PATCH_PX = 48  # a patch's side: a plate tilted by 25 degrees moves about 2 px of disparity across it
 MIN_SIDE_PX = 2 * PATCH_PX  # a smaller frame is not checked
 BAND_PX = 32  # rows above and below a patch high-passed with it: beyond 3 of the high-pass's sigma
+ENOUGH_PATCHES = 3  # patches matching outside the range, where none matched inside: enough to say where
 TOLERANCE_PX = 1.0  # a surface this close to the searched range counts as in it (the scan's whole pixels)
 
 
@@ -71,30 +72,46 @@ def plate_elsewhere(left: np.ndarray, right: np.ndarray, calib: Calibration,
         raise ValueError(f"plate_elsewhere: left {left.shape} and right {right.shape} must be the same HxWx3")
     lo, hi = searched
     within = np.arange(math.floor(lo - TOLERANCE_PX), math.ceil(hi + TOLERANCE_PX) + 1)
+    patches = _Patches(left, right, hi)
+    # the searched shifts first, in every patch: a plate where it belongs matches there (a tilted one in some
+    # patches only), and nothing else need be tried
+    if any(np.max(correlations(*patch, within)) >= MIN_PEAK for patch in patches):
+        return None
+    # a left image that is the right eye's: its pixels match to their right, as the mirrored pair's to the left
+    for patch in _Patches(left[:, ::-1], right[:, ::-1], hi):
+        if np.max(correlations(*patch, within)) >= MIN_PEAK:
+            found = scan_surface(*patch)  # distinctly there, not a repeating texture's echo
+            if found is not None and lo - TOLERANCE_PX <= found.disparity <= hi + TOLERANCE_PX:
+                d = found.disparity
+                return PlateElsewhere(d, calib.focal_px * calib.baseline_mm / (d + calib.doffs), swapped=True)
     outside = []
-    for band_l, band_r, u, v in _patches(left, right, hi):
-        # the searched shifts first: a plate where it belongs matches there, and nothing else need be tried
-        if np.max(correlations(band_l, band_r, u, v, within)) >= MIN_PEAK:
-            return None
-        found = scan_surface(band_l, band_r, u, v)
+    for patch in patches:
+        found = scan_surface(*patch)  # a distinct match: outside the range, which matched nowhere
         if found is not None and found.disparity + calib.doffs > 0:
             outside.append(found.disparity)
+            if len(outside) == ENOUGH_PATCHES:
+                break
     if outside:
         d = float(np.median(outside))
         return PlateElsewhere(d, calib.focal_px * calib.baseline_mm / (d + calib.doffs))
-    # a left image that is the right eye's: its pixels match to their right, as the mirrored pair's to the left
-    for band_l, band_r, u, v in _patches(left[:, ::-1], right[:, ::-1], hi):
-        found = scan_surface(band_l, band_r, u, v)
-        if found is not None and lo - TOLERANCE_PX <= found.disparity <= hi + TOLERANCE_PX:
-            d = found.disparity
-            return PlateElsewhere(d, calib.focal_px * calib.baseline_mm / (d + calib.doffs), swapped=True)
     return None
 
 
-def _patches(left: np.ndarray, right: np.ndarray, hi: float):
+class _Patches:
     """Each patch of ``patch_pixels`` of the HxWx3 pair as (left band, right band, u, v in the band): the rows
-    about it of both images in grey, high-passed (the eyes' exposures and their sheen differ), one patch at a
-    time (the caller stops where the question is settled)."""
-    for u, v in patch_pixels(left.shape[:2], hi):
-        top, bottom = max(0, int(v.min()) - BAND_PX), min(left.shape[0], int(v.max()) + BAND_PX + 1)
-        yield high_pass(to_grey(left[top:bottom])), high_pass(to_grey(right[top:bottom])), u, v - top
+    about it of both images in grey, high-passed (the eyes' exposures and their sheen differ), made when first
+    asked for and kept for the patches beside it and the next pass over them."""
+
+    def __init__(self, left: np.ndarray, right: np.ndarray, hi: float):
+        self.left, self.right = left, right
+        self.pixels = patch_pixels(left.shape[:2], hi)
+        self.bands: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+    def __iter__(self):
+        for u, v in self.pixels:
+            rows = max(0, int(v.min()) - BAND_PX), min(self.left.shape[0], int(v.max()) + BAND_PX + 1)
+            if rows not in self.bands:
+                top, bottom = rows
+                self.bands[rows] = (high_pass(to_grey(self.left[top:bottom])),
+                                    high_pass(to_grey(self.right[top:bottom])))
+            yield *self.bands[rows], u, v - rows[0]

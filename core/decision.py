@@ -11,7 +11,9 @@ for a normal error). A rule's outcome is
 
 A part passes only if every defect passes every rule that covers it AND every measurement those
 rules need is available. A missing measurement is an ERROR (the part could not be inspected), which
-rejects the part like a REJECT does but is counted apart. Precedence: ERROR, REJECT, FLAG, PASS.
+rejects the part like a REJECT does but is counted apart; so is a defect whose images show the plate
+outside the working distance or the camera's eyes swapped, whatever rules cover it. Precedence: ERROR,
+REJECT, FLAG, PASS.
 """
 from __future__ import annotations
 
@@ -60,6 +62,10 @@ def conformance(value: float, band: float, op: str, threshold: float) -> str:
 def judge_defect(m: DefectMeasurement, decision: DecisionSection) -> tuple[Status, list[str]]:
     """Status and reasons for one defect."""
     label = f"{m.detection.class_name} ({m.detection.confidence:.2f})"
+    if m.surface_elsewhere_mm is not None or m.eyes_swapped:
+        # the images show the plate where the recipe does not expect it: no rule may pass the part, whether it
+        # needs depth or not (a confidence rule, a class no rule covers)
+        return Status.ERROR, [f"{label}: {m.note}"]
     rules = [r for r in decision.rules if rule_applies(r, m.detection.class_name)]
     if not rules:
         if decision.reject_unruled_defects:

@@ -79,6 +79,18 @@ def test_unruled_defects_optionally_rejected():
     assert decide([_m()], DecisionSection())[0].status is Status.PASS
 
 
+@pytest.mark.parametrize("found", [{"surface_elsewhere_mm": 712.0}, {"eyes_swapped": True}])
+def test_a_plate_the_images_show_elsewhere_is_an_error_whatever_the_rules(found):
+    # the map's values are gone with it, but a rule that needs none of them, or none at all, passed the part
+    m = replace(_m(distance=None, deviation=None, note="deviation unavailable: ... the plate lies outside ..."), **found)
+    confidence = DecisionSection.model_validate(
+        {"rules": [{"class": "any", "quantity": "confidence", "op": ">=", "threshold": 0.9}]})
+    for section in (DecisionSection(), confidence, RULES):
+        verdict, ((status, reasons),) = decide([m], section)
+        assert verdict.status is status is Status.ERROR and reasons == [f"scratches (0.80): {m.note}"]
+    assert decide([_m(distance=None, deviation=None)], DecisionSection())[0].status is Status.PASS  # unruled
+
+
 def test_confidence_rule():
     section = DecisionSection.model_validate({"rules": [{"class": "any", "quantity": "confidence", "op": ">=", "threshold": 0.5}]})
     assert decide([_m(conf=0.6)], section)[0].status is Status.REJECT

@@ -19,9 +19,12 @@ from core.surface_fit import high_pass, to_grey
 from core.surface_scan import MIN_PEAK, correlations, scan_surface
 from core.types import Calibration
 
-GRID = (3, 4)  # rows x columns of patches over the part of the frame the right camera sees
-PATCH_PX = 48  # a patch's side: a plate tilted by 25 degrees moves about 2 px of disparity across it
-MIN_SIDE_PX = 2 * PATCH_PX  # a smaller frame is not checked
+GRID = (5, 3)  # rows x columns of patches over the part of the frame the right camera sees
+# a patch's rows and columns: few rows, as a plate tilted towards the camera (by 35 degrees at WVGA) moves about
+# 2 px of disparity over 16 of them, which a correlation at whole pixels still finds; in 48 a square patch
+# smeared the peak of a plate tilted by 25 degrees; wide, for the pixels a correlation needs
+PATCH_ROWS, PATCH_COLUMNS = 16, 96
+MIN_SIDE_PX = 96  # a frame with fewer rows, or fewer columns right of the searched disparities, is not checked
 BAND_PX = 32  # rows above and below a patch high-passed with it: beyond 3 of the high-pass's sigma
 ENOUGH_PATCHES = 3  # patches matching outside the range, where none matched inside: enough to say where
 TOLERANCE_PX = 1.0  # a surface this close to the searched range counts as in it (the scan's whole pixels)
@@ -56,10 +59,10 @@ def patch_pixels(shape: tuple[int, int], hi: float) -> list[tuple[np.ndarray, np
     if min(h, w - x0) < MIN_SIDE_PX:
         return []
     rows, cols = GRID
-    ys = np.linspace(0, h - PATCH_PX, rows).round().astype(int)
-    xs = np.linspace(x0, w - PATCH_PX, cols).round().astype(int)
-    order = sorted(((y, x) for y in ys for x in xs), key=lambda p: abs(p[0] + PATCH_PX / 2 - h / 2))
-    vv, uu = np.mgrid[0:PATCH_PX:2, 0:PATCH_PX:2]
+    ys = np.linspace(0, h - PATCH_ROWS, rows).round().astype(int)
+    xs = np.linspace(x0, w - PATCH_COLUMNS, cols).round().astype(int)
+    order = sorted(((y, x) for y in ys for x in xs), key=lambda p: abs(p[0] + PATCH_ROWS / 2 - h / 2))
+    vv, uu = np.mgrid[0:PATCH_ROWS:2, 0:PATCH_COLUMNS:2]
     return [((uu + x).ravel(), (vv + y).ravel()) for y, x in order]
 
 

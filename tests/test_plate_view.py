@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from synthetic_pairs import calib_for, render
 
-from core.plate_view import GRID, MIN_SIDE_PX, PATCH_PX, patch_pixels, plate_elsewhere
+from core.plate_view import GRID, MIN_SIDE_PX, PATCH_COLUMNS, PATCH_ROWS, patch_pixels, plate_elsewhere
 
 CALIB = calib_for(320, 192)
 FB = CALIB.focal_px * CALIB.baseline_mm
@@ -26,10 +26,12 @@ class TestPatchPixels:
         patches = patch_pixels((192, 320), hi=140.0)
         assert len(patches) == GRID[0] * GRID[1]
         for u, v in patches:
-            assert u.shape == v.shape == ((PATCH_PX // 2) ** 2,)
+            assert u.shape == v.shape == ((PATCH_ROWS // 2) * (PATCH_COLUMNS // 2),)
             assert u.min() >= 140 and u.max() < 320 and v.min() >= 0 and v.max() < 192
         tops = [int(v.min()) for _, v in patches]
-        assert tops[:GRID[1]] == [72] * GRID[1] and sorted(set(tops)) == [0, 72, 144]  # the middle row first
+        assert len(set(tops)) == GRID[0] and min(tops) == 0 and max(tops) == 192 - PATCH_ROWS
+        middle = sorted(set(tops))[GRID[0] // 2]
+        assert tops[:GRID[1]] == [middle] * GRID[1]  # the middle row first
 
     def test_columns_start_at_half_the_width_at_most(self):
         (u, _), *_ = patch_pixels((192, 320), hi=1000.0)
@@ -51,6 +53,14 @@ class TestPlateElsewhere:
         assert found.distance_mm == pytest.approx(400, abs=12)  # whole pixels of disparity: 3.8 mm each at 400 mm
         text = found.describe(searched(near, far))
         assert "outside the" in text and "the plate lies outside the working distance" in text
+
+    def test_a_plate_tilted_towards_the_camera_is_found_as_well(self):
+        # 355-458 mm from its top to its bottom row: the disparity moves by 0.14 px a row
+        left, right, _ = render(CALIB, 400.0, tilt_deg=25.0)
+        assert plate_elsewhere(left, right, CALIB, searched(300, 600)) is None
+        found = plate_elsewhere(left, right, CALIB, searched(200, 300))
+        assert found is not None and not found.swapped and 355 <= found.distance_mm <= 458
+        assert plate_elsewhere(right, left, CALIB, searched(300, 600)).swapped
 
     def test_eyes_swapped_are_said_to_be_so(self, plate_at_400):
         left, right = plate_at_400

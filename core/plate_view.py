@@ -21,8 +21,8 @@ from core.types import Calibration
 
 GRID = (5, 3)  # rows x columns of patches over the part of the frame the right camera sees
 # a patch's rows and columns: few rows, as a plate tilted towards the camera (by 35 degrees at WVGA) moves about
-# 2 px of disparity over 16 of them, which a correlation at whole pixels still finds; in 48 a square patch
-# smeared the peak of a plate tilted by 25 degrees; wide, for the pixels a correlation needs
+# 2 px of disparity over 16 of them, which a correlation at whole pixels still finds; wide, for the pixels a
+# correlation needs
 PATCH_ROWS, PATCH_COLUMNS = 16, 96
 MIN_SIDE_PX = 96  # a frame with fewer rows, or fewer columns right of the searched disparities, is not checked
 BAND_PX = 32  # rows above and below a patch high-passed with it: beyond 3 of the high-pass's sigma

@@ -85,8 +85,7 @@ def plate_elsewhere(left: np.ndarray, right: np.ndarray, calib: Calibration,
         if np.max(correlations(*patch, within)) >= MIN_PEAK:
             found = scan_surface(*patch)  # distinctly there, not a repeating texture's echo
             if found is not None and lo - TOLERANCE_PX <= found.disparity <= hi + TOLERANCE_PX:
-                d = found.disparity
-                return PlateElsewhere(d, calib.focal_px * calib.baseline_mm / (d + calib.doffs), swapped=True)
+                return PlateElsewhere(found.disparity, _distance_mm(found.disparity, calib), swapped=True)
     outside = []
     for patch in patches:
         found = scan_surface(*patch)  # a distinct match: outside the range, which matched nowhere
@@ -96,8 +95,15 @@ def plate_elsewhere(left: np.ndarray, right: np.ndarray, calib: Calibration,
                 break
     if outside:
         d = float(np.median(outside))
-        return PlateElsewhere(d, calib.focal_px * calib.baseline_mm / (d + calib.doffs))
+        return PlateElsewhere(d, _distance_mm(d, calib))
     return None
+
+
+def _distance_mm(disparity: float, calib: Calibration) -> float:
+    """The distance of a surface at ``disparity`` px (without doffs); infinite at or beyond none (a range that
+    reaches 0 px, or a negative doffs)."""
+    d = disparity + calib.doffs
+    return calib.focal_px * calib.baseline_mm / d if d > 0 else math.inf
 
 
 class _Patches:

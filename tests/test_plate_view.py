@@ -1,6 +1,9 @@
 """core.plate_view: where a frame without defects shows the plate, on rendered plates of known distance."""
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from synthetic_pairs import calib_for, render
@@ -67,6 +70,14 @@ class TestPlateElsewhere:
         found = plate_elsewhere(right, left, CALIB, searched(300, 600))
         assert found is not None and found.swapped and found.distance_mm == pytest.approx(400, abs=12)
         assert "right eye's image as the left" in found.describe(searched(300, 600))
+
+    def test_eyes_swapped_at_a_disparity_of_no_distance_are_said_without_one(self, plate_at_400):
+        # a range reaching 0 px with doffs cancelling the disparity found: a division by zero made the part's
+        # plate check fail (an ERROR saying nothing of the camera)
+        left, right = plate_at_400
+        calib = replace(CALIB, doffs=-105.0)
+        found = plate_elsewhere(right, left, calib, (0.0, 120.0))
+        assert found is not None and found.swapped and found.disparity == 105.0 and found.distance_mm == math.inf
 
     def test_images_without_texture_to_match_say_nothing(self):
         rng = np.random.default_rng(0)

@@ -37,7 +37,8 @@ from core.recipe.schema import StereoSection
 from core.registry import Registry, default_registry
 from core.store import ResultsStore, StoreError, store_problem
 from core.stereo_region import disparity_around
-from core.types import Alarm, Calibration, Detection, FrameError, OutputEvent, PartResult, Status, StereoFrame
+from core.types import (Alarm, Calibration, DefectMeasurement, Detection, FrameError, OutputEvent, PartResult, Status,
+                        StereoFrame, Verdict)
 from core.unread_frames import UnreadFrame, UnreadFrames
 from core.watchdog import StallWatch
 
@@ -340,13 +341,12 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         if detected.error is not None:
             raise StageFailed(detected.error)
         detections = detected.detections
+        stage = "stereo"  # its search range, which the plate check reads too, may not fit the frame
+        searched = disparity_range(recipe.stereo, item.calib)
         if not detections:
             # nothing measured says where the plate is: the images must not show it only where no search looks
             stage = "plate check"
-            t0 = time.perf_counter()
-            searched = disparity_range(recipe.stereo, item.calib)
-            plate = plate_elsewhere(item.left, item.right, item.calib, searched)
-            timings["plate check"] = time.perf_counter() - t0
+            plate = _timed_plate_check(item, searched, timings)
             if plate is not None:
                 message = (f"frame {item.frame_id}: no defect found, but {plate.describe(searched)}; a plate "
                            f"inspected where the recipe does not expect it does not pass")
@@ -361,10 +361,20 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
             timings["stereo"] = time.perf_counter() - t0
             stage = "depth"
             t0 = time.perf_counter()
-            measurements = measure_frame(disparity, detections, item, rule, disparity_range(recipe.stereo, item.calib))
+            measurements = measure_frame(disparity, detections, item, rule, searched)
             timings["depth"] = time.perf_counter() - t0
         stage = "decision"
         verdict, per_defect = decide(measurements, recipe.decision)
+        if measurements and not any(_places_the_plate(m) for m in measurements):
+            # no defect measured, none seen elsewhere around its box: the frame's patches may still say where
+            stage = "plate check"
+            plate = _timed_plate_check(item, searched, timings)
+            if plate is not None:
+                message = (f"frame {item.frame_id}: no defect could be measured, and {plate.describe(searched)}; a "
+                           f"plate inspected where the recipe does not expect it does not pass")
+                part = PartResult(part_id, item.frame_id, item.index, item.timestamp,
+                                  Verdict(Status.ERROR, [message, *verdict.reasons]), measurements, error=message)
+                return FrameOutcome(part, per_defect, item.left, timings, plate)
     except Exception as exc:  # one part's failure must not stop the line; it rejects that part
         what = str(exc) if isinstance(exc, StageFailed) else f"{type(exc).__name__}: {exc}"
         message = f"frame {item.frame_id}: {stage} failed: {what}"
@@ -372,6 +382,20 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
         return FrameOutcome(part, [], item.left, timings)
     part = PartResult(part_id, item.frame_id, item.index, item.timestamp, verdict, measurements)
     return FrameOutcome(part, per_defect, item.left, timings)
+
+
+def _places_the_plate(m: DefectMeasurement) -> bool:
+    """Whether a defect's measurement says where its plate is: measured, or seen outside the searched range or
+    with the eyes swapped around its box."""
+    return m.deviation_mm is not None or m.surface_elsewhere_mm is not None or m.eyes_swapped
+
+
+def _timed_plate_check(item: StereoFrame, searched: tuple[float, float], timings: dict[str, float]):
+    """``plate_view.plate_elsewhere`` of the frame, its time added to ``timings``."""
+    t0 = time.perf_counter()
+    plate = plate_elsewhere(item.left, item.right, item.calib, searched)
+    timings["plate check"] = timings.get("plate check", 0.0) + time.perf_counter() - t0
+    return plate
 
 
 def capture_time_problem(timestamp: Any, now: float) -> str | None:

@@ -252,6 +252,25 @@ def test_plates_without_defects_seen_where_no_search_looks_are_errors_and_a_run_
     assert "they cannot be inspected and are rejected as ERROR" in alarm.message
 
 
+def test_a_part_whose_defects_say_nothing_of_the_plate_is_located_by_its_frame(tmp_path, plane_sequence, registry):
+    # a box at the left border, which the right camera does not see and whose ring cannot be scanned: the
+    # part was an ERROR that did not say the plate lay outside the working distance, nor counted towards it
+    info = plane_sequence([0.0] * 3)
+    text = RECIPE.format(box=[1.0, 80.0, 21.0, 110.0], output="log")
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), ["stereo.working_distance_mm=[200, 300]"],
+                         registry=registry)
+    seen = []
+    summary = engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.ERROR] * 3
+    first = seen[0]
+    assert first.part.measurements[0].surface_elsewhere_mm is None and first.plate is not None
+    assert first.plate.distance_mm == pytest.approx(400, abs=12)
+    assert first.part.verdict.reasons[0].startswith("frame 000000: no defect could be measured, and the images show "
+                                                    "the plate at ")
+    (alarm,) = summary.alarms
+    assert alarm.cause == "range" and alarm.part_id == seen[2].part.part_id
+
+
 def test_plates_without_defects_within_the_working_distance_pass(tmp_path, plane_sequence):
     info = plane_sequence([0.0] * 2)
     loaded = _no_defects_recipe(tmp_path, info, "[300, 600]")

@@ -246,7 +246,7 @@ class FrameOutcome:
     per_defect: list[tuple[Status, list[str]]]  # each measurement's status and reasons
     image: np.ndarray | None
     timings: dict[str, float] = field(default_factory=dict)
-    plate: PlateElsewhere | None = None  # a frame without defects whose images show the plate elsewhere
+    plate: PlateElsewhere | None = None  # where a frame whose defects placed no plate shows it, if elsewhere
 
     @property
     def defect_status(self) -> list[Status]:
@@ -348,11 +348,7 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
             stage = "plate check"
             plate = _timed_plate_check(item, searched, timings)
             if plate is not None:
-                message = (f"frame {item.frame_id}: no defect found, but {plate.describe(searched)}; a plate "
-                           f"inspected where the recipe does not expect it does not pass")
-                part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message),
-                                  error=message)
-                return FrameOutcome(part, [], item.left, timings, plate)
+                return _elsewhere_outcome(item, part_id, plate, searched, timings)
         measurements = []
         if detections or recipe.stereo.schedule == "every_frame":
             stage = "stereo"
@@ -370,11 +366,7 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
             stage = "plate check"
             plate = _timed_plate_check(item, searched, timings)
             if plate is not None:
-                message = (f"frame {item.frame_id}: no defect could be measured, and {plate.describe(searched)}; a "
-                           f"plate inspected where the recipe does not expect it does not pass")
-                part = PartResult(part_id, item.frame_id, item.index, item.timestamp,
-                                  Verdict(Status.ERROR, [message, *verdict.reasons]), measurements, error=message)
-                return FrameOutcome(part, per_defect, item.left, timings, plate)
+                return _elsewhere_outcome(item, part_id, plate, searched, timings, measurements, verdict, per_defect)
     except Exception as exc:  # one part's failure must not stop the line; it rejects that part
         what = str(exc) if isinstance(exc, StageFailed) else f"{type(exc).__name__}: {exc}"
         message = f"frame {item.frame_id}: {stage} failed: {what}"
@@ -388,6 +380,20 @@ def _places_the_plate(m: DefectMeasurement) -> bool:
     """Whether a defect's measurement says where its plate is: measured, or seen outside the searched range or
     with the eyes swapped around its box."""
     return m.deviation_mm is not None or m.surface_elsewhere_mm is not None or m.eyes_swapped
+
+
+def _elsewhere_outcome(item: StereoFrame, part_id: str, plate: PlateElsewhere, searched: tuple[float, float],
+                       timings: dict[str, float], measurements: list[DefectMeasurement] = (),
+                       verdict: Verdict | None = None, per_defect: list = ()) -> FrameOutcome:
+    """The ERROR part of a frame whose images show the plate ``plate`` says, not where the search looked: one
+    without defects, or whose ``measurements`` (judged ``verdict``, ``per_defect``) placed it nowhere."""
+    said = "no defect could be measured, and" if measurements else "no defect found, but"
+    message = (f"frame {item.frame_id}: {said} {plate.describe(searched)}; a plate inspected where the recipe does "
+               f"not expect it does not pass")
+    reasons = [message, *(verdict.reasons if verdict is not None else [])]
+    part = PartResult(part_id, item.frame_id, item.index, item.timestamp, Verdict(Status.ERROR, reasons),
+                      list(measurements), error=message)
+    return FrameOutcome(part, list(per_defect), item.left, timings, plate)
 
 
 def _timed_plate_check(item: StereoFrame, searched: tuple[float, float], timings: dict[str, float]):

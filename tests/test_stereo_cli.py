@@ -302,6 +302,11 @@ def test_eval_errors(tmp_path):
      "disp0GT.pfm: disparities from"),
     (lambda scene: _as_colour_pfm(scene / "disp0GT.pfm"),  # "64x40, but im0.png is 64x40"
      "disp0GT.pfm: a colour PFM (PF, 3 channels): a disparity map is a grey one (Pf)"),
+    # each scored the scene, and the average of all scenes, as NaN
+    (lambda scene: write_pfm(scene / "disp0GT.pfm", np.full((40, 64), np.inf, np.float32)),
+     "disp0GT.pfm: no pixel has a known disparity: nothing to score the scene on"),
+    (lambda scene: cv2.imwrite(str(scene / "mask0nocc.png"), np.zeros((40, 64), np.uint8)),
+     "disp0GT.pfm: no pixel has a known disparity where mask0nocc.png marks it visible"),
     (lambda scene: (scene / "calib.txt").write_text((scene / "calib.txt").read_text().replace("ndisp=32", "ndisp=-32")),
      "calib.txt: ndisp must be a number of disparities from 1 to the width, 64 (got -32)"),
 ])

@@ -32,6 +32,7 @@ residuals are correlated (the right image is interpolated; a JPEG has blocks).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -50,6 +51,8 @@ HUBER_K = 1.345  # 95 % efficiency for Gaussian noise
 TUKEY_K = 4.685  # likewise
 CLUSTER_PX = 4  # blocks over which residuals may be correlated
 CELL_PX = 4  # cells of the defect's region whose offsets are combined robustly
+BIRGE_CONFIDENCE_Z = 1.2816  # cells scattering less than their noise: the 90 % upper bound of that ratio,
+BIRGE_MIN = 0.25  # and never below a quarter (cells that agree to the digit would otherwise claim no uncertainty)
 RADIAL_MIN_CELLS = 6  # cells that tell a bowl from a plane and a constant
 RING_CELL_PX = 6  # cells of the ring that are kept or left out together
 MATCH_RATIO = 1.0  # residual / texture spread: 0.2-0.83 on the evaluation sets, 1.55 for a plate outside the range
@@ -667,7 +670,9 @@ def robust_offset(offsets: np.ndarray, sds: np.ndarray, start: float, iterations
     offsets, sds: (K,) each cell's offset and standard deviation. The cells are weighed by their
     information (1 / sd^2), or with ``areas`` (K,) by their share of the region. The variance is that of
     the weighted mean with the final weights held, times the Birge ratio (the weighted scatter of the kept
-    cells about the estimate over what their standard deviations predict) where that exceeds 1."""
+    cells about the estimate over what their standard deviations predict); below 1, its upper bound at
+    ``BIRGE_CONFIDENCE_Z`` (between ``BIRGE_MIN`` and 1), so that few cells keep the variance their noise
+    gives."""
     if offsets.shape != sds.shape or offsets.ndim != 1 or (areas is not None and np.shape(areas) != offsets.shape):
         raise ValueError(f"robust_offset: offsets {offsets.shape}, sds {sds.shape}"
                          f"{'' if areas is None else f' and areas {np.shape(areas)}'} must be the same (K,)")
@@ -696,8 +701,22 @@ def robust_offset(offsets: np.ndarray, sds: np.ndarray, start: float, iterations
     kept = w > 0
     birge = 1.0
     if kept.sum() >= 2:
-        birge = max(1.0, float(np.sum(w[kept] * ((x[kept] - mu) / s[kept]) ** 2) / (w[kept].sum() - 1 + 1e-12)))
+        dof = float(w[kept].sum()) - 1 + 1e-12
+        birge = float(np.sum(w[kept] * ((x[kept] - mu) / s[kept]) ** 2) / dof)
+        if birge < 1.0:
+            # Cells that agree better than their noise says: each cell's standard deviation comes from the
+            # fit's residuals, which hold the renderer's or the sensor's aliasing as well as noise, and that
+            # misfit moves an offset less than noise would. The scatter is believed only up to the upper
+            # bound of what so few cells could show at that ratio.
+            birge = min(1.0, max(BIRGE_MIN, birge / _chi2_lower_fraction(dof, BIRGE_CONFIDENCE_Z)))
     return RobustOffset(mu, variance * birge, int(x.size), float(w.sum()), birge)
+
+
+def _chi2_lower_fraction(dof: float, z: float) -> float:
+    """The ``z`` standard normal deviates' lower quantile of a chi-square with ``dof`` degrees of freedom,
+    over ``dof`` (Wilson-Hilferty); a ratio observed at ``r`` is at most ``r`` over it at that confidence."""
+    a = 2.0 / (9.0 * dof)
+    return max(1.0 - a - z * math.sqrt(a), 1e-6) ** 3
 
 
 def weighting_variance(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, estimate: float,
@@ -714,7 +733,7 @@ def weighting_variance(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, 
     by_area = robust_offset(offsets, sds, estimate, areas=areas)
     if not np.isfinite(by_area.variance):
         return 0.0
-    noise = by_area.variance / by_area.birge  # the cells' own noise, not their scatter
+    noise = by_area.variance / max(by_area.birge, 1.0)  # the cells' own noise, not their scatter beyond it
     return max(0.0, (by_area.delta - estimate) ** 2 - z * z * noise)
 
 

@@ -336,6 +336,27 @@ class TestRobustOffset:
         assert calm.birge < 1.6 < wild.birge
         assert wild.variance > 4 * calm.variance
 
+    def test_cells_that_agree_better_than_their_noise_narrow_it_to_the_bound_of_their_scatter(self):
+        # each cell's sd comes from residuals that hold aliasing as well as noise: cells scattering at 0.7
+        # of it say the offset is known better, but only as well as 100 cells can show it
+        rng = np.random.default_rng(2)
+        sds = np.full(100, 0.02)
+        model = 0.02**2 / 100
+        calm = sf.robust_offset(-0.3 + rng.normal(0, 0.014, 100), sds, -0.3)
+        assert 0.5 < calm.birge < 0.75
+        assert calm.variance == pytest.approx(model * calm.birge, rel=0.01)  # Tukey weights near 1
+
+    def test_few_cells_that_agree_keep_the_variance_their_noise_gives(self):
+        sds = np.full(4, 0.02)
+        few = sf.robust_offset(np.array([-0.31, -0.29, -0.30, -0.312]), sds, -0.3)  # at half their noise
+        assert few.birge == 1.0
+        assert few.variance == pytest.approx(0.02**2 / 4, rel=0.01)
+
+    def test_cells_that_agree_to_the_digit_keep_a_quarter_of_it(self):
+        same = sf.robust_offset(np.full(400, -0.3), np.full(400, 0.02), -0.3)
+        assert same.birge == sf.BIRGE_MIN
+        assert same.variance == pytest.approx(sf.BIRGE_MIN * 0.02**2 / 400)
+
     def test_by_area_each_cell_counts_by_its_share_of_the_region(self):
         # a quarter of the cells, on a wall's strongly textured edge, hold most of the information
         offsets = np.r_[np.full(30, -0.36), np.full(10, -0.18)]

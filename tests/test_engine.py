@@ -255,7 +255,7 @@ def test_plates_without_defects_seen_where_no_search_looks_are_errors_and_a_run_
 def test_a_part_whose_defects_say_nothing_of_the_plate_is_located_by_its_frame(tmp_path, plane_sequence, registry):
     # a box at the left border, which the right camera does not see and whose ring cannot be scanned: the
     # part was an ERROR that did not say the plate lay outside the working distance, nor counted towards it
-    info = plane_sequence([0.0] * 3)
+    plane_sequence([0.0] * 3)
     text = RECIPE.format(box=[1.0, 80.0, 21.0, 110.0], output="log")
     loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), ["stereo.working_distance_mm=[200, 300]"],
                          registry=registry)

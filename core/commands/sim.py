@@ -184,6 +184,39 @@ def register(cli: click.Group) -> None:
             raise SystemExit(2) from None
         click.echo(f"wrote {frames} frames to {out} in {time.perf_counter() - start:.1f} s")
 
+    @sim_group.command("raycast")
+    @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+    @click.option("--kind", type=click.Choice(["textured", "low"]), default="textured", show_default=True,
+                  help="textured: pits 30-80 px at 350-650 mm; low: faint texture, pits 10-25 px at 380-460 mm")
+    @click.option("--frames", default=8, show_default=True, type=click.IntRange(1, 1000))
+    @click.option("--seed", default=0, show_default=True, type=click.IntRange(0))
+    @click.option("--overwrite", is_flag=True, help="replace the frames of a sequence already in OUT")
+    def raycast(out, kind, frames, seed, overwrite) -> None:
+        """Render a labelled sequence with the second, independent renderer (sim/raycast.py): flat-bottomed
+        pits with vertical walls, ray cast, for checking ``inspect eval depth`` against plates that
+        ``inspect sim generate`` did not draw."""
+        from sim.raycast import render_sequence
+
+        old = existing_frame_files(out)
+        if old and not overwrite:
+            click.echo(f"error: {out} already holds a sequence ({len(old)} files); give --overwrite to replace it", err=True)
+            raise SystemExit(2)
+        for path in old:
+            path.unlink()
+        problem = make_folder(out)
+        if problem is not None:
+            click.echo(f"error: {problem}", err=True)
+            raise SystemExit(2)
+        start = time.perf_counter()
+        try:
+            render_sequence(out, kind, frames, seed)
+        except OSError as exc:
+            for path in existing_frame_files(out):
+                path.unlink(missing_ok=True)
+            click.echo(f"error: {exc}; the frames written before it were removed again", err=True)
+            raise SystemExit(2) from None
+        click.echo(f"wrote {frames} frames to {out} in {time.perf_counter() - start:.1f} s")
+
     @sim_group.command("faults")
     @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
     @click.option("--parts", default=200, show_default=True, type=click.IntRange(10), help="parts to inspect in all")

@@ -1,0 +1,176 @@
+"""A second, independent renderer of plates: flat-bottomed pits with vertical walls, ray cast.
+
+``sim/render.py`` draws the evaluation sets; a depth method tuned on them could fit that renderer's
+habits (its texture, its walls, its aliasing) rather than plates. This one shares none of its code:
+each pixel is the mean of SUPERSAMPLE x SUPERSAMPLE rays cast from the eye onto a tilted plane with
+rectangular or elliptical pits, a texture tabulated on the plate (``TEXEL_MM``) and sampled where each
+ray lands, a pit's floor as textured as the plate and its walls darker. The truth is the geometry's
+own: ``deviation_mm`` the pit's depth along the plate's normal, ``distance_mm`` the depth of its
+floor's centre. ZED WVGA geometry, as the goals' independently rendered plates.
+
+``render_sequence(out, kind, frames, seed)`` writes the sequence-folder layout (``left/``, ``right/``,
+``labels/``, ``calib.yaml``); ``kind`` is ``textured`` (pits 30-80 px at 350-650 mm) or ``low``
+(faint texture, pits 10-25 px at 380-460 mm).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from drivers.sequence_folder import write_calibration, write_frame
+
+CALIB = dict(focal_px=350.06, baseline_mm=120.0, cx=335.5, cy=187.5, width=672, height=376, doffs=0.0)
+TEXEL_MM = 0.25
+SUPERSAMPLE = 4
+WALL_SHADE = 0.55  # a wall turned from the light
+NOISE_SIGMA = 1.5  # grey levels, each eye
+RIGHT_GAIN, RIGHT_OFFSET = 1.03, 2.0
+
+
+@dataclass(frozen=True)
+class Kind:
+    distance_mm: tuple[float, float]
+    width_px: tuple[float, float]
+    contrast: float
+    scales: tuple[tuple[float, float], ...]  # (blur in texels, weight) of each noise layer
+    streaks: float  # weight of the rolling marks' directional layer
+
+
+KINDS = {
+    "textured": Kind((350.0, 650.0), (30.0, 80.0), 1.0, ((1.0, 1.0), (3.0, 0.7), (10.0, 0.5)), 0.6),
+    "low": Kind((380.0, 460.0), (10.0, 25.0), 0.35, ((1.5, 0.25), (25.0, 1.0)), 0.0),
+}
+
+
+@dataclass(frozen=True)
+class Pit:
+    s: float  # centre on the plate (mm, along its in-plane axes)
+    t: float
+    a: float  # half-sizes (mm)
+    b: float
+    depth: float  # along the plate's normal, away from the camera (mm)
+    round: bool
+
+    def holds(self, s: np.ndarray, t: np.ndarray) -> np.ndarray:
+        if self.round:
+            return ((s - self.s) / self.a) ** 2 + ((t - self.t) / self.b) ** 2 < 1.0
+        return (np.abs(s - self.s) < self.a) & (np.abs(t - self.t) < self.b)
+
+
+def plate_texture(rng: np.random.Generator, size_mm: float, kind: Kind) -> np.ndarray:
+    """A square of the plate's grey level, ``size_mm`` a side, TEXEL_MM a texel."""
+    n = int(size_mm / TEXEL_MM)
+    tex = np.zeros((n, n), np.float32)
+    for blur, weight in kind.scales:
+        layer = cv2.GaussianBlur(rng.standard_normal((n, n)).astype(np.float32), (0, 0), blur)
+        tex += weight * layer / layer.std()
+    if kind.streaks:
+        layer = cv2.GaussianBlur(rng.standard_normal((n, n)).astype(np.float32), (0, 0), sigmaX=12.0, sigmaY=0.8)
+        tex += kind.streaks * layer / layer.std()
+    return 120.0 + kind.contrast * 28.0 * tex / tex.std()
+
+
+def rotation(tilt_deg: float, yaw_deg: float) -> np.ndarray:
+    """Columns: the plate's in-plane axes and its normal, in camera coordinates."""
+    tx, ty = np.radians(tilt_deg), np.radians(yaw_deg)
+    rx = np.array([[1, 0, 0], [0, np.cos(tx), -np.sin(tx)], [0, np.sin(tx), np.cos(tx)]])
+    ry = np.array([[np.cos(ty), 0, np.sin(ty)], [0, 1, 0], [-np.sin(ty), 0, np.cos(ty)]])
+    return ry @ rx
+
+
+def render_eye(eye_x: float, z0: float, axes: np.ndarray, pits: list[Pit], texture: np.ndarray,
+               supersample: int = SUPERSAMPLE) -> np.ndarray:
+    """HxW float32 grey image of the plate (through (0, 0, z0), ``axes`` as ``rotation``) seen by a
+    rectified eye at (eye_x, 0, 0) mm."""
+    c = CALIB
+    f, w, h = c["focal_px"], c["width"], c["height"]
+    xs = (np.arange(w * supersample) + 0.5) / supersample - 0.5
+    ys = (np.arange(h * supersample) + 0.5) / supersample - 0.5
+    x, y = np.meshgrid(xs, ys)
+    rays = np.stack([(x - c["cx"]) / f, (y - c["cy"]) / f, np.ones_like(x)], -1)
+    eye, p0 = np.array([eye_x, 0.0, 0.0]), np.array([0.0, 0.0, z0])
+    e1, e2, n = axes[:, 0], axes[:, 1], axes[:, 2]
+    origin = -texture.shape[0] * TEXEL_MM / 2
+
+    def landing(depth: float) -> tuple[np.ndarray, np.ndarray]:
+        t = ((p0 + depth * n - eye) @ n) / (rays @ n)
+        rel = eye + t[..., None] * rays - p0
+        return rel @ e1, rel @ e2
+
+    def grey(s: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return cv2.remap(texture, ((s - origin) / TEXEL_MM).astype(np.float32),
+                         ((t - origin) / TEXEL_MM).astype(np.float32), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REFLECT)
+
+    s, t = landing(0.0)
+    image = grey(s, t)
+    for pit in pits:
+        mouth = pit.holds(s, t)
+        sf, tf = landing(pit.depth)
+        floor = mouth & pit.holds(sf, tf)
+        image = np.where(floor, grey(sf, tf), image)
+        # a ray through the mouth that misses the floor meets a wall on its way down
+        image = np.where(mouth & ~floor, WALL_SHADE * grey(0.5 * (s + sf), 0.5 * (t + tf)), image)
+    return cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+
+
+def plan_pits(rng: np.random.Generator, z0: float, axes: np.ndarray, kind: Kind) -> tuple[list[Pit], list[dict]]:
+    """2-4 pits that do not crowd each other, wholly in the right eye's view, and their labels."""
+    c = CALIB
+    f = c["focal_px"]
+    e1, e2, n = axes[:, 0], axes[:, 1], axes[:, 2]
+    p0 = np.array([0.0, 0.0, z0])
+    margin = f * c["baseline_mm"] / (z0 * 0.8) + 30  # the right eye sees columns beyond the disparity
+    pits, labels, boxes = [], [], []
+    for _ in range(rng.integers(2, 5)):
+        for _try in range(30):
+            wpx = rng.uniform(*kind.width_px)
+            hpx = wpx * rng.uniform(0.7, 1.4)
+            u = rng.uniform(margin + wpx / 2, c["width"] - 30 - wpx / 2)
+            v = rng.uniform(30 + hpx / 2, c["height"] - 30 - hpx / 2)
+            box = (u - wpx / 2, v - hpx / 2, u + wpx / 2, v + hpx / 2)
+            if all(box[2] + 30 < q[0] or q[2] + 30 < box[0] or box[3] + 30 < q[1] or q[3] + 30 < box[1]
+                   for q in boxes):
+                break
+        else:
+            continue
+        ray = np.array([(u - c["cx"]) / f, (v - c["cy"]) / f, 1.0])
+        hit = (p0 @ n) / (ray @ n) * ray
+        scale = hit[2] / f  # mm a pixel there
+        pit = Pit(float((hit - p0) @ e1), float((hit - p0) @ e2), wpx / 2 * scale, hpx / 2 * scale,
+                  float(rng.uniform(0.3, 2.6)), bool(rng.random() < 0.4))
+        corners = np.array([p0 + (pit.s + i * pit.a) * e1 + (pit.t + j * pit.b) * e2
+                            for i in (-1, 1) for j in (-1, 1)])
+        us, vs = f * corners[:, 0] / corners[:, 2] + c["cx"], f * corners[:, 1] / corners[:, 2] + c["cy"]
+        box = [float(np.floor(us.min())), float(np.floor(vs.min())), float(np.ceil(us.max())), float(np.ceil(vs.max()))]
+        floor = p0 + pit.s * e1 + pit.t * e2 + pit.depth * n
+        pits.append(pit)
+        boxes.append(box)
+        labels.append({"class": "pitted_surface", "box": box, "distance_mm": round(float(floor[2]), 3),
+                       "deviation_mm": round(pit.depth, 3), "shape": "round" if pit.round else "rectangle",
+                       "source": "raycast"})
+    return pits, labels
+
+
+def render_sequence(out: Path, kind: str = "textured", frames: int = 8, seed: int = 0,
+                    supersample: int = SUPERSAMPLE) -> None:
+    spec = KINDS[kind]
+    rng = np.random.default_rng(seed)
+    out = Path(out)
+    write_calibration(out, dict(CALIB, camera="ZED WVGA (ray cast)", generator=f"sim.raycast {kind} (seed {seed})"))
+    for i in range(frames):
+        z0 = float(rng.uniform(*spec.distance_mm))
+        axes = rotation(rng.uniform(-8, 8), rng.uniform(-8, 8))
+        texture = plate_texture(rng, 2.2 * z0 * CALIB["width"] / CALIB["focal_px"], spec)
+        pits, labels = plan_pits(rng, z0, axes, spec)
+        left = render_eye(0.0, z0, axes, pits, texture, supersample)
+        right = RIGHT_GAIN * render_eye(CALIB["baseline_mm"], z0, axes, pits, texture, supersample) + RIGHT_OFFSET
+        eyes = [np.clip(np.round(img + rng.normal(0, NOISE_SIGMA, img.shape)), 0, 255).astype(np.uint8)
+                for img in (left, right)]
+        frame_id = f"{i:06d}"
+        write_frame(out, frame_id, *(cv2.cvtColor(e, cv2.COLOR_GRAY2BGR) for e in eyes),
+                    labels={"frame_id": frame_id, "distance_mm": round(z0, 3), "sensor": {"noise_sigma": NOISE_SIGMA},
+                            "defects": labels})

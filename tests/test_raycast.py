@@ -1,0 +1,106 @@
+"""``sim/raycast.py``: the second, independent renderer, and ``inspect sim raycast``."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from core.cli import _build
+from drivers.sequence_folder import read_calibration, read_labels
+from sim import raycast
+
+
+def _eyes(z0, axes, pits, texture):
+    left = raycast.render_eye(0.0, z0, axes, pits, texture, supersample=2)
+    right = raycast.render_eye(raycast.CALIB["baseline_mm"], z0, axes, pits, texture, supersample=2)
+    return left, right
+
+
+@pytest.fixture(scope="module")
+def texture():
+    return raycast.plate_texture(np.random.default_rng(0), 1100.0, raycast.KINDS["textured"])
+
+
+class TestRenderEye:
+    def test_a_plate_facing_the_camera_lies_at_its_disparity_in_the_right_eye(self, texture):
+        z0 = 400.0
+        left, right = _eyes(z0, raycast.rotation(0, 0), [], texture)
+        assert left.shape == (raycast.CALIB["height"], raycast.CALIB["width"])
+        d = raycast.CALIB["focal_px"] * raycast.CALIB["baseline_mm"] / z0  # 105.02 px
+        x0 = 200  # a band the right eye sees: left column x is right column x - d
+        band_l = left[100:228, x0:x0 + 256].astype(np.float64)
+        band_r = right[100:228, x0 - 105:x0 - 105 + 256].astype(np.float64)
+        (shift, rows), _ = cv2.phaseCorrelate(band_r, band_l)
+        assert shift == pytest.approx(d - 105, abs=0.05)
+        assert rows == pytest.approx(0.0, abs=0.05)
+
+    def test_a_pits_floor_lies_at_the_floors_disparity_and_its_wall_is_darker(self, texture):
+        z0 = 400.0
+        scale = z0 / raycast.CALIB["focal_px"]
+        pit = raycast.Pit(0.0, 0.0, 110 * scale, 70 * scale, 2.0, False)  # at the image centre, 220 x 140 px
+        left, right = _eyes(z0, raycast.rotation(0, 0), [pit], texture)
+        plain, _ = _eyes(z0, raycast.rotation(0, 0), [], texture)
+        cx, cy = int(raycast.CALIB["cx"]), int(raycast.CALIB["cy"])
+        d = raycast.CALIB["focal_px"] * raycast.CALIB["baseline_mm"] / (z0 + 2.0)
+        band_l = left[cy - 48:cy + 48, cx - 64:cx + 64].astype(np.float64)
+        band_r = right[cy - 48:cy + 48, cx - 64 - 104:cx + 64 - 104].astype(np.float64)
+        (shift, _), _ = cv2.phaseCorrelate(band_r, band_l, cv2.createHanningWindow((128, 96), cv2.CV_64F))
+        assert shift == pytest.approx(d - 104, abs=0.05)
+
+    def test_the_wall_facing_an_eye_is_seen_darker_inside_the_mouth(self, texture):
+        z0 = 400.0
+        scale = z0 / raycast.CALIB["focal_px"]
+        deep = raycast.Pit(0.0, 0.0, 110 * scale, 70 * scale, 8.0, False)
+        left, _ = _eyes(z0, raycast.rotation(0, 0), [deep], texture)
+        plain, _ = _eyes(z0, raycast.rotation(0, 0), [], texture)
+        cx, cy = int(raycast.CALIB["cx"]), int(raycast.CALIB["cy"])
+        # 8 mm of wall 126 mm right of the axis: a pixel or two of the left eye's view before the mouth's edge
+        wall = np.s_[cy - 30:cy + 30, cx + 107:cx + 110]
+        assert (left[wall].mean(axis=0) - plain[wall].mean(axis=0)).min() < -30
+        floor = np.s_[cy - 30:cy + 30, cx - 100:cx - 90]  # its left wall is turned away: floor up to the edge
+        assert abs(left[floor].mean() - plain[floor].mean()) < 10
+
+
+class TestPlanPits:
+    def test_pits_lie_in_the_right_eyes_view_apart_and_their_labels_are_their_geometry(self):
+        rng = np.random.default_rng(3)
+        for _ in range(20):
+            z0 = rng.uniform(350, 650)
+            pits, labels = raycast.plan_pits(rng, z0, raycast.rotation(5, -5), raycast.KINDS["textured"])
+            assert 2 <= len(pits) <= 4
+            for pit, label in zip(pits, labels):
+                x0, y0, x1, y1 = label["box"]
+                disparity = raycast.CALIB["focal_px"] * raycast.CALIB["baseline_mm"] / label["distance_mm"]
+                assert x0 > disparity and x1 < raycast.CALIB["width"] and y0 > 0 and y1 < raycast.CALIB["height"]
+                assert label["deviation_mm"] == pytest.approx(pit.depth, abs=5e-4)
+                assert z0 * 0.85 < label["distance_mm"] < z0 * 1.15  # a plate tilted by 5 and -5°
+            boxes = [label["box"] for label in labels]
+            for i, a in enumerate(boxes):
+                for b in boxes[i + 1:]:
+                    assert a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1]
+
+
+def test_inspect_sim_raycast_writes_a_sequence_that_inspect_eval_depth_measures_within_its_uncertainty(tmp_path):
+    out = tmp_path / "rc"
+    result = CliRunner().invoke(_build(), ["sim", "raycast", str(out), "--frames", "1", "--seed", "4"])
+    assert result.exit_code == 0, result.output
+    calib = read_calibration(out)
+    assert calib["camera"] == "ZED WVGA (ray cast)"
+    labels = read_labels(out / "labels" / "000000.json", (calib["height"], calib["width"]))
+    assert labels["sensor"]["noise_sigma"] == raycast.NOISE_SIGMA and labels["defects"]
+
+    again = CliRunner().invoke(_build(), ["sim", "raycast", str(out), "--frames", "1"])
+    assert again.exit_code == 2 and "--overwrite" in again.output
+
+    report = tmp_path / "eval"
+    result = CliRunner().invoke(_build(), ["eval", "depth", str(out), "--out", str(report), "--threads", "1",
+                                           "--set", "stereo.working_distance_mm=[300,700]", "--no-figure"])
+    assert result.exit_code == 0, result.output
+    rows = [r for r in json.loads((report / "depth_eval.json").read_text())["rows"] if r["method"] == "surface"]
+    assert len(rows) == len(labels["defects"])
+    for row in rows:
+        assert row["deviation_mm"] is not None, row["note"]
+        assert abs(row["deviation_mm"] - row["true_deviation_mm"]) < 3 * row["deviation_sigma_mm"]

@@ -25,6 +25,22 @@ def existing_frame_files(out: Path) -> list[Path]:
     return files + ([out / "calib.yaml"] if (out / "calib.yaml").exists() else [])
 
 
+def prepare_folder(out: Path, overwrite: bool) -> None:
+    """OUT made ready for a new sequence, or a one-line error (exit 2): it may not hold one already unless
+    ``overwrite``, whose frames are then removed (stale frames, or another image format, would mix into
+    the new sequence)."""
+    old = existing_frame_files(out)
+    if old and not overwrite:
+        click.echo(f"error: {out} already holds a sequence ({len(old)} files); give --overwrite to replace it", err=True)
+        raise SystemExit(2)
+    for path in old:
+        path.unlink()
+    problem = make_folder(out)
+    if problem is not None:
+        click.echo(f"error: {problem}", err=True)
+        raise SystemExit(2)
+
+
 def register(cli: click.Group) -> None:
     if "sim" in cli.commands:
         return
@@ -153,16 +169,7 @@ def register(cli: click.Group) -> None:
         if not synthetic_defects and not Path(neu_det).is_dir():
             click.echo(f"error: NEU-DET folder not found: {neu_det} (give --neu-det DIR or --synthetic-defects)", err=True)
             raise SystemExit(2)
-        old = existing_frame_files(out)
-        if old and not overwrite:
-            click.echo(f"error: {out} already holds a sequence ({len(old)} files); give --overwrite to replace it", err=True)
-            raise SystemExit(2)
-        for path in old:  # stale frames (or another image format) would mix into the new sequence
-            path.unlink()
-        problem = make_folder(out)
-        if problem is not None:
-            click.echo(f"error: {problem}", err=True)
-            raise SystemExit(2)
+        prepare_folder(out, overwrite)
         start = time.perf_counter()
         try:
             generate_sequence(
@@ -197,16 +204,7 @@ def register(cli: click.Group) -> None:
         ``inspect sim generate`` did not draw."""
         from sim.raycast import render_sequence
 
-        old = existing_frame_files(out)
-        if old and not overwrite:
-            click.echo(f"error: {out} already holds a sequence ({len(old)} files); give --overwrite to replace it", err=True)
-            raise SystemExit(2)
-        for path in old:
-            path.unlink()
-        problem = make_folder(out)
-        if problem is not None:
-            click.echo(f"error: {problem}", err=True)
-            raise SystemExit(2)
+        prepare_folder(out, overwrite)
         start = time.perf_counter()
         try:
             render_sequence(out, kind, frames, seed)

@@ -164,7 +164,8 @@ def render_sequence(out: Path, kind: str = "textured", frames: int = 8, seed: in
     for i in range(frames):
         z0 = float(rng.uniform(*spec.distance_mm))
         axes = rotation(rng.uniform(-8, 8), rng.uniform(-8, 8))
-        texture = plate_texture(rng, 2.2 * z0 * CALIB["width"] / CALIB["focal_px"], spec)
+        # the plate the view holds, tilted by up to 8° (its far side a seventh farther), with room to spare
+        texture = plate_texture(rng, 1.3 * z0 * CALIB["width"] / CALIB["focal_px"], spec)
         pits, labels = plan_pits(rng, z0, axes, spec)
         left = render_eye(0.0, z0, axes, pits, texture, supersample)
         right = RIGHT_GAIN * render_eye(CALIB["baseline_mm"], z0, axes, pits, texture, supersample) + RIGHT_OFFSET

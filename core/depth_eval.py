@@ -51,7 +51,7 @@ class DefectRow:
     frame_id: str
     cls: str
     box: tuple[float, float, float, float]
-    true_distance_mm: float
+    true_distance_mm: float | None  # labels may give the deviation alone
     true_deviation_mm: float
     floor_mm: float | None
     method: str = ""
@@ -121,7 +121,7 @@ def defect_floor_mm(grey: np.ndarray, box, calib, rule: DepthRule, noise_sigma: 
 
 def true_measurement(detection: Detection, truth: dict) -> DefectMeasurement:
     """The labels as a measurement without uncertainty, for the decision the truth calls for."""
-    return DefectMeasurement(detection, truth["distance_mm"], truth["deviation_mm"], 1.0, 0.0, None,
+    return DefectMeasurement(detection, truth.get("distance_mm"), truth["deviation_mm"], 1.0, 0.0, None,
                              distance_sigma_mm=0.0, deviation_sigma_mm=0.0, method="truth")
 
 
@@ -130,7 +130,7 @@ def clear_cut(truth: dict, recipe) -> bool:
     for rule in recipe.decision.rules:
         if not rule_applies(rule, truth["class"]) or rule.quantity not in ("deviation_mm", "distance_mm"):
             continue
-        value = truth[rule.quantity]
+        value = truth.get(rule.quantity)
         if value is None or abs(value - rule.threshold) < CLEAR_CUT_MM:
             return False
     return True
@@ -154,8 +154,9 @@ class BoxError:
 
 
 def has_truth(defect: dict) -> bool:
-    """Whether a labelled defect's truth gives a distance and a deviation to score against."""
-    return defect.get("deviation_mm") is not None and defect.get("distance_mm") is not None
+    """Whether a labelled defect's truth gives a deviation to score against (its distance is scored where
+    the labels give one too)."""
+    return defect.get("deviation_mm") is not None
 
 
 def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backend, sequence: str,
@@ -196,10 +197,12 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     undecided_as_flag = recipe.decision.model_copy(update={"uncertain": "flag"})
     no_band = recipe.decision.model_copy(update={"coverage_factor": 0.0})
     for det, box, truth, m, ref in zip(boxed, true_boxes, truths, measured, reference):
-        # a set rendered without noise (``--noise-sigma 0``) has no noise floor to measure against
-        floor = None if not noise else defect_floor_mm(grey, box, frame.calib, rule, noise, truth["distance_mm"])
+        # a set rendered without noise (``--noise-sigma 0``) has no noise floor to measure against; the floor's
+        # pixels become millimetres at the true distance, or where the labels give none, at the measured one
+        at = next((z for z in (truth.get("distance_mm"), m.distance_mm, ref.distance_mm) if z is not None), None)
+        floor = None if not noise or at is None else defect_floor_mm(grey, box, frame.calib, rule, noise, at)
         rows.append(DefectRow(
-            sequence, frame.frame_id, truth["class"], box, truth["distance_mm"], truth["deviation_mm"], floor,
+            sequence, frame.frame_id, truth["class"], box, truth.get("distance_mm"), truth["deviation_mm"], floor,
             m.method, m.distance_mm, m.deviation_mm, m.distance_sigma_mm, m.deviation_sigma_mm,
             ref.distance_mm, ref.deviation_mm, m.note,
             true_status=judge_defect(true_measurement(det, truth), recipe.decision)[0].value,
@@ -238,7 +241,7 @@ def detected(detector, frame: StereoFrame, recipe) -> list[Detection]:
 def missed_row(sequence: str, frame_id: str, truth: dict, box, recipe) -> DefectRow:
     """A labelled defect no box of the detector found: no measurement, and the outcome ``MISSED``."""
     det = Detection(truth["class"], 1.0, box)
-    return DefectRow(sequence, frame_id, truth["class"], box, truth["distance_mm"], truth["deviation_mm"], None,
+    return DefectRow(sequence, frame_id, truth["class"], box, truth.get("distance_mm"), truth["deviation_mm"], None,
                      note="missed by the detector", true_status=judge_defect(true_measurement(det, truth),
                                                                              recipe.decision)[0].value,
                      status=MISSED, reference_status=MISSED, proven=MISSED, reference_proven=MISSED, plain=MISSED,
@@ -281,7 +284,7 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
     ok = [r for r in rows if getattr(r, dev) is not None]
     s = Summary(len(rows), len(ok))
     s.deviation_error_mm = _stats(abs(getattr(r, dev) - r.true_deviation_mm) for r in ok)
-    with_distance = [r for r in rows if getattr(r, dist) is not None]
+    with_distance = [r for r in rows if getattr(r, dist) is not None and r.true_distance_mm is not None]
     s.distance_error_mm = _stats(abs(getattr(r, dist) - r.true_distance_mm) for r in with_distance)
     s.distance_error_percent = _stats(100 * abs(getattr(r, dist) - r.true_distance_mm) / r.true_distance_mm
                                       for r in with_distance)
@@ -397,7 +400,7 @@ def markdown(body: dict[str, Any]) -> str:
                   f"{s['missed']} missed, {s['missed_beyond_a_limit']} of them beyond a limit (on the line their part "
                   "passes unless another box rejects it). The figures above are over the boxed ones."]
     if body.get("unscored"):
-        lines += ["", f"Not scored: {body['unscored']} labelled defect(s) whose labels give no true distance or deviation "
+        lines += ["", f"Not scored: {body['unscored']} labelled defect(s) whose labels give no true deviation "
                   "(their truth could not be measured, as for a defect the right camera does not see)."]
     checked = body.get("plate_check")
     if checked:
@@ -411,6 +414,12 @@ def markdown(body: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _distance_of(r: DefectRow) -> float:
+    """The defect's true distance, or where its labels give none, the measured one (NaN: not drawn)."""
+    found = (r.true_distance_mm, r.distance_mm, r.reference_distance_mm)
+    return next((float(z) for z in found if z is not None), float("nan"))
+
+
 def figure(rows: list[DefectRow], path: Path) -> None:
     """|deviation error| against distance and against defect width, with each defect's floor."""
     import matplotlib
@@ -420,7 +429,7 @@ def figure(rows: list[DefectRow], path: Path) -> None:
 
     ok = [r for r in rows if r.deviation_mm is not None]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
-    for ax, key, label in ((axes[0], lambda r: r.true_distance_mm, "distance mm"),
+    for ax, key, label in ((axes[0], _distance_of, "distance mm"),
                            (axes[1], lambda r: r.width_px, "defect width px (shorter side of the box)")):
         ax.scatter([key(r) for r in ok], [abs(r.deviation_mm - r.true_deviation_mm) for r in ok], s=14,
                    label=f"{rows[0].method if rows else ''} |error|")

@@ -81,11 +81,33 @@ def test_labelled_defects_without_a_truth_are_counted_as_not_scored(evaluated, t
     result = cli("eval", "depth", str(copy), "--set", RANGE, "--out", str(tmp_path / "out"), "--threads", "1",
                  "--no-figure")
     assert result.returncode == 0, result.stderr
-    assert "Not scored: 1 labelled defect(s) whose labels give no true distance or deviation" in result.stdout
+    assert "Not scored: 1 labelled defect(s) whose labels give no true deviation" in result.stdout
     body = json.loads((tmp_path / "out" / "depth_eval.json").read_text())
     whole = json.loads((evaluated[1] / "depth_eval.json").read_text())
     assert body["unscored"] == 1 and whole["unscored"] == 0
     assert body["all"]["measurement"]["defects"] == whole["sequences"]["plates_textured"]["measurement"]["defects"] - 1
+
+
+def test_labels_that_give_a_deviation_and_no_distance_score_the_deviation(evaluated, tmp_path):
+    # another renderer's labels may state a pit's depth alone: its defects were all left out as not scored
+    copy = tmp_path / "seq"
+    shutil.copytree(TEXTURED, copy)
+    for path in sorted((copy / "labels").glob("*.json")):
+        labels = json.loads(path.read_text())
+        for defect in labels["defects"]:
+            defect.pop("distance_mm", None)
+        path.write_text(json.dumps(labels))
+    result = cli("eval", "depth", str(copy), "--set", RANGE, "--out", str(tmp_path / "out"), "--threads", "1")
+    assert result.returncode == 0, result.stderr
+    assert "Not scored" not in result.stdout and " Z    n/a true " in result.stdout
+    body = json.loads((tmp_path / "out" / "depth_eval.json").read_text())["all"]["measurement"]
+    whole = json.loads((evaluated[1] / "depth_eval.json").read_text())["sequences"]["plates_textured"]["measurement"]
+    assert body["defects"] == whole["defects"] and body["measured"] == whole["measured"]
+    assert body["deviation_error_mm"] == whole["deviation_error_mm"]
+    # the floor at the measured distance instead of the true one: within a part in a thousand of it
+    assert body["floor_mm"]["median"] == pytest.approx(whole["floor_mm"]["median"], rel=2e-3)
+    assert not body["distance_error_mm"]
+    assert (tmp_path / "out" / "depth_eval.png").stat().st_size > 0
 
 
 def test_a_broken_frame_anywhere_is_named_before_any_frame_is_matched(tmp_path):

@@ -111,7 +111,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
             if not quiet:
                 for r in new:
                     dev = "n/a" if r.deviation_mm is None else f"{r.deviation_mm:+.3f}±{r.deviation_sigma_mm or 0:.3f}"
-                    click.echo(f"{folder.name} {r.frame_id} {r.cls:<16} Z {r.true_distance_mm:6.1f} true {r.true_deviation_mm:+.3f} "
+                    z = "   n/a" if r.true_distance_mm is None else f"{r.true_distance_mm:6.1f}"
+                    click.echo(f"{folder.name} {r.frame_id} {r.cls:<16} Z {z} true {r.true_deviation_mm:+.3f} "
                                f"measured {dev} mm ({r.status}; disparity alone "
                                f"{'n/a' if r.reference_deviation_mm is None else f'{r.reference_deviation_mm:+.3f}'}, "
                                f"{r.reference_status}){'  ' + r.note if r.note else ''}")

@@ -119,7 +119,7 @@ def load_scene(folder: Path) -> SceneData:
         # scored against nothing, every figure of the scene and of the average came out NaN
         raise SequenceError(f"{gt_path}: no pixel has a known disparity" + (" where mask0nocc.png marks it visible"
                             if known.size else "") + ": nothing to score the scene on")
-    if (known.min() < 0 or not 0.5 <= known.max() < gt.shape[1]):
+    if known.min() < 0 or not 0.5 <= known.max() < gt.shape[1]:
         # what a PFM read in the wrong byte order, or another scene's, gives: every score would be nonsense
         raise SequenceError(f"{gt_path}: disparities from {known.min():.4g} to {known.max():.4g} px, not "
                             f"within the image's 0-{gt.shape[1]} or all under half a pixel: not this scene's disparity "

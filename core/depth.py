@@ -396,7 +396,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         var_d += surface_fit.weighting_variance(offsets_px, sds, areas, cells.delta)
     # and it is known no better than the region's interior alone tells it (the border may be the walls' edges)
     # (the interior's variance comes from the same residuals as the cells': their scatter scales it alike)
-    var_d = max(var_d, interior * cells.birge if np.isfinite(cells.variance) and cells.birge < 1 else interior)
+    var_d = max(var_d, interior * min(cells.birge, 1.0))
     if d <= 0 or c <= 0:
         return _unavailable(reference, "the surface fit gave no disparity in front of the camera")
     a, b = fit.slopes

@@ -199,7 +199,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     for det, box, truth, m, ref in zip(boxed, true_boxes, truths, measured, reference):
         # a set rendered without noise (``--noise-sigma 0``) has no noise floor to measure against; the floor's
         # pixels become millimetres at the true distance, or where the labels give none, at the measured one
-        at = next((z for z in (truth.get("distance_mm"), m.distance_mm, ref.distance_mm) if z is not None), None)
+        at = _first_known(truth.get("distance_mm"), m.distance_mm, ref.distance_mm)
         floor = None if not noise or at is None else defect_floor_mm(grey, box, frame.calib, rule, noise, at)
         rows.append(DefectRow(
             sequence, frame.frame_id, truth["class"], box, truth.get("distance_mm"), truth["deviation_mm"], floor,
@@ -414,10 +414,15 @@ def markdown(body: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _first_known(*distances: float | None) -> float | None:
+    """The first of ``distances`` that is known: the true one, else the measured one, else the backend's."""
+    return next((float(z) for z in distances if z is not None), None)
+
+
 def _distance_of(r: DefectRow) -> float:
     """The defect's true distance, or where its labels give none, the measured one (NaN: not drawn)."""
-    found = (r.true_distance_mm, r.distance_mm, r.reference_distance_mm)
-    return next((float(z) for z in found if z is not None), float("nan"))
+    found = _first_known(r.true_distance_mm, r.distance_mm, r.reference_distance_mm)
+    return math.nan if found is None else found
 
 
 def figure(rows: list[DefectRow], path: Path) -> None:

@@ -41,6 +41,19 @@ def prepare_folder(out: Path, overwrite: bool) -> None:
         raise SystemExit(2)
 
 
+def discard_and_fail(out: Path, exc: Exception) -> None:
+    """End a render that failed with a one-line error (exit 2), the frames it wrote to OUT removed again:
+    half a sequence would evaluate as a whole one."""
+    written = existing_frame_files(out)
+    for path in written:
+        path.unlink(missing_ok=True)
+    frames_written = sum(p.parent.name == "left" for p in written)
+    gone = {0: "", 1: "; the frame written before it was removed again"}.get(
+        frames_written, f"; the {frames_written} frames written before it were removed again")
+    click.echo(f"error: {exc}{gone}", err=True)
+    raise SystemExit(2) from None
+
+
 def register(cli: click.Group) -> None:
     if "sim" in cli.commands:
         return
@@ -180,15 +193,7 @@ def register(cli: click.Group) -> None:
                 camera=CameraModel(noise_sigma, specular, lens_blur_px, rectification_error_px),
             )
         except (NeuDetError, GenerateError, OSError) as exc:  # OSError: a full disk, the folder removed under it
-            # half a sequence would evaluate as a whole one: what this call wrote goes again
-            written = existing_frame_files(out)
-            for path in written:
-                path.unlink(missing_ok=True)
-            frames_written = sum(p.parent.name == "left" for p in written)
-            gone = {0: "", 1: "; the frame written before it was removed again"}.get(
-                frames_written, f"; the {frames_written} frames written before it were removed again")
-            click.echo(f"error: {exc}{gone}", err=True)
-            raise SystemExit(2) from None
+            discard_and_fail(out, exc)
         click.echo(f"wrote {frames} frames to {out} in {time.perf_counter() - start:.1f} s")
 
     @sim_group.command("raycast")
@@ -208,11 +213,8 @@ def register(cli: click.Group) -> None:
         start = time.perf_counter()
         try:
             render_sequence(out, kind, frames, seed)
-        except OSError as exc:
-            for path in existing_frame_files(out):
-                path.unlink(missing_ok=True)
-            click.echo(f"error: {exc}; the frames written before it were removed again", err=True)
-            raise SystemExit(2) from None
+        except OSError as exc:  # a full disk, the folder removed under it
+            discard_and_fail(out, exc)
         click.echo(f"wrote {frames} frames to {out} in {time.perf_counter() - start:.1f} s")
 
     @sim_group.command("faults")

@@ -6,6 +6,7 @@ import sys
 import click
 
 from core.commands import bench, depth, hardware, inspection, sim, stereo, view
+from core.interrupts import raise_if_interrupted
 
 BUILTIN_COMMAND_MODULES = (inspection, bench, stereo, depth, hardware, sim, view)
 
@@ -59,6 +60,13 @@ def main(args: list[str] | None = None) -> None:
         sys.exit(_build().main(args, prog_name="inspect", standalone_mode=True))
     except BrokenPipeError:  # the reader of the output went away (`| head`): nothing left to tell
         sys.exit(1)
+    except SystemError as exc:
+        try:
+            raise_if_interrupted(exc)
+        except KeyboardInterrupt:  # Ctrl-C inside a compiled kernel: what click says of any other Ctrl-C
+            click.echo("Aborted!", err=True)
+            sys.exit(1)
+        raise
     except OSError as exc:
         # a path the system refuses (a name too long, a folder without permission) that no command checked
         # first: one line naming it, as for any other bad input, not a traceback

@@ -28,6 +28,7 @@ from core.devices import resolve_device
 from core.depth import DepthRule, measure_frame
 from core.frame_source import DetectAhead, OneAtATime
 from core.image_quality import image_problem, image_stats
+from core.interrupts import raise_if_interrupted
 from core.part_images import PartImages
 from core.plate_view import PlateElsewhere, plate_elsewhere
 from core.recipe import LoadedRecipe
@@ -280,6 +281,7 @@ def detect_frame(item: StereoFrame | FrameError, pipeline: Pipeline, recipe) -> 
     try:
         found = pipeline.detector.detect(_read_only(item.left))
     except Exception as exc:  # reported on the part by inspect_frame
+        raise_if_interrupted(exc)
         return Detected(None, time.perf_counter() - t0, f"{type(exc).__name__}: {exc}")
     kept, problem = kept_detections(found, pipeline.detector, recipe, item.left.shape[:2])
     return Detected(kept, time.perf_counter() - t0, problem)
@@ -368,6 +370,7 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
             if plate is not None:
                 return _elsewhere_outcome(item, part_id, plate, searched, timings, measurements, verdict, per_defect)
     except Exception as exc:  # one part's failure must not stop the line; it rejects that part
+        raise_if_interrupted(exc)
         what = str(exc) if isinstance(exc, StageFailed) else f"{type(exc).__name__}: {exc}"
         message = f"frame {item.frame_id}: {stage} failed: {what}"
         part = PartResult(part_id, item.frame_id, item.index, item.timestamp, error_verdict(message), error=message)

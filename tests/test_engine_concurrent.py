@@ -58,33 +58,51 @@ def test_camera_that_raises_is_still_an_alarm(tmp_path, plane_sequence):
     assert summary.exit_code == engine.EXIT_ALARMS and "USB device vanished" in summary.alarms[0].message
 
 
+def numba_interrupted() -> SystemError:
+    """What a Ctrl-C landing inside a numba function compiled with nogil raises (``TestNumbaInterrupted``)."""
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt as interrupt:
+        error = SystemError("CPUDispatcher(<function _system>) returned a result with an exception set")
+        error.__cause__ = interrupt
+        return error
+
+
 class InterruptedStereo:
-    """A matcher whose second frame is interrupted (Ctrl-C while that part is being measured)."""
+    """A matcher whose second frame is interrupted (Ctrl-C while that part is being measured), the interrupt
+    coming out as ``raises`` makes it."""
 
     name = "interrupted"
 
-    def __init__(self):
+    def __init__(self, raises):
         self.calls = 0
+        self.raises = raises
 
     def compute(self, left, right, min_disp, max_disp):
         self.calls += 1
         if self.calls == 2:
-            raise KeyboardInterrupt
+            raise self.raises()
         return np.full(left.shape[:2], 90.0, dtype=np.float32)
 
 
 class InterruptedStereoPlugin:
+    def __init__(self, raises=KeyboardInterrupt):
+        self.raises = raises
+
     @hookimpl
     def stereo_inspect_stereo_backends(self):
-        return [PluginSpec("interrupted", "stereo", lambda s, ctx: InterruptedStereo())]
+        return [PluginSpec("interrupted", "stereo", lambda s, ctx: InterruptedStereo(self.raises))]
 
 
+@pytest.mark.parametrize("raises", [KeyboardInterrupt, numba_interrupted], ids=["plain", "from-numba"])
 @pytest.mark.parametrize("concurrent", ["false", "true"])
-def test_an_interrupted_run_rejects_every_part_it_read_and_did_not_finish(tmp_path, plane_sequence, concurrent):
+def test_an_interrupted_run_rejects_every_part_it_read_and_did_not_finish(tmp_path, plane_sequence, concurrent,
+                                                                        raises):
     """Ctrl-C in the middle of a part: that part, and the next one detection had already read, are ERROR
-    (rejected, stored, sent to the outputs), not lost; the other parts are not read."""
+    (rejected, stored, sent to the outputs), not lost; the other parts are not read. Coming out of a numba
+    kernel as a SystemError, it was that part's "stereo failed" ERROR, and the run went on."""
     info = plane_sequence([0.0] * 6)
-    registry = Registry(make_manager((stereo_inspect_fixed_roi, InterruptedStereoPlugin())))
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, InterruptedStereoPlugin(raises))))
     text = RECIPE.format(box=info["box"], output="log").replace("backend: opencv_sgbm", "backend: interrupted")
     loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), [f"stereo.concurrent={concurrent}"], registry=registry)
     summary = engine.run(loaded, registry=registry, device="cpu")

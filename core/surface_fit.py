@@ -60,6 +60,7 @@ MIN_GAIN = 0.25  # the right eye's fitted gain: above 0.34 on the evaluation set
 # defect started 45 px from its surface
 SEARCH_STEP_PX = 0.05
 COARSE_STEP_PX = 0.2
+LEFT_SEARCH_PX = 0.5  # a fit that moves the offset this far from the searched minimum has found another surface
 PARAMS = ("c", "a", "b", "delta", "g", "g_u", "g_v", "o", "g_m", "o_m", "e")
 RING = [0, 1, 2, 4, 5, 6, 7, 10]
 E = 10  # the vertical offset between the eyes
@@ -364,11 +365,11 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     theta[3] = _search_offset(p, theta, delta0 - search_px, delta0 + search_px)
     searched = theta[3]
     theta, converged = p.gauss_newton(theta, ALL, JOINT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
-    if theta is None or abs(theta[3] - searched) > 0.5:  # left the searched minimum: not one surface
+    if theta is None or abs(theta[3] - searched) > LEFT_SEARCH_PX:  # left the searched minimum: not one surface
         return None
     prior[on_ring] = ring_prior[on_ring] * _ring_cell_weights(p, theta)
     theta, converged = p.gauss_newton(theta, ALL, REFIT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
-    if theta is None:
+    if theta is None or abs(theta[3] - searched) > LEFT_SEARCH_PX:  # the refit too (tests/test_surface_fit.py)
         return None
     r, J, ok = p.residuals(theta)
     kept = np.flatnonzero(ok)

@@ -59,7 +59,7 @@ def test_camera_that_raises_is_still_an_alarm(tmp_path, plane_sequence):
 
 
 def numba_interrupted() -> SystemError:
-    """What a Ctrl-C landing inside a numba function compiled with nogil raises (``TestNumbaInterrupted``)."""
+    """What a Ctrl-C landing inside a numba function compiled with nogil raises (tests/test_interrupts.py)."""
     try:
         raise KeyboardInterrupt
     except KeyboardInterrupt as interrupt:

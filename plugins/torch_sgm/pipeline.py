@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from plugins.torch_sgm import (aggregate, aggregate_numba, align, cost, cost_numba, planes, planes_numba, refine,
-                               refine_numba, search, select, select_numba, sgm, sgm_numba)
+                               refine_numba, search, select, select_numba, sgm, sgm_numba, sgm_triton)
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -199,6 +199,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
     with clock("SGM"):
         if compiled(p, volume):
             aggregated = sgm_numba.sgm_numba(volume, p.p1, penalty, paths)
+        elif on_gpu(p, volume):
+            aggregated = sgm_triton.sgm_triton(volume, p.p1, penalty, paths)
         else:
             aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
         del volume
@@ -221,7 +223,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
                  else None)
         if p.fill != "none" and p.view_check_edge > 0:
             labels = planes.edge_regions(edges, p.view_check_edge)
-            suspect = refine_numba.out_of_view_numba if compiled(p, raw_disp) else refine.out_of_view
+            suspect = (refine_numba.out_of_view_numba if compiled(p, raw_disp) else
+                       through_the_cpu(refine_numba.out_of_view_numba) if on_gpu(p, raw_disp) else refine.out_of_view)
             consistent = consistent & ~suspect(raw_disp, consistent, labels)
         disp = torch.where(consistent, disp, torch.full_like(disp, float("nan")))
     if p.fill != "none":
@@ -234,7 +237,8 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
                 disp, slope = planes.planes_and_slopes(
                     disp, raw_disp, consistent, edges, thresholds, p.plane_min_pixels, p.plane_inliers,
                     p.plane_samples, local, (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched),
-                    p.plane_seed, planes_numba.region_planes_numba if compiled(p, disp) else planes.region_planes)
+                    p.plane_seed, planes_numba.region_planes_numba if compiled(p, disp) else
+                    through_the_cpu(planes_numba.region_planes_numba) if on_gpu(p, disp) else planes.region_planes)
                 holes = ~torch.isfinite(disp)
         with clock("row filling and medians"):
             if p.fill == "four_way":
@@ -271,6 +275,27 @@ def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
     plane fits of the slanted-plane filling, the local plane fit, the weighted median) and the edges from
     OpenCV's filters stand in for the torch ones: the fast implementation, on float32 CPU tensors."""
     return p.implementation == "fast" and all(sgm_numba.available(t) for t in tensors)
+
+
+def on_gpu(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
+    """Whether the fast implementation's CUDA kernels stand in for the torch stages: SGM by
+    ``sgm_triton``, and the stages that walk a row or a region one pixel after another (the out-of-view
+    check, the plane fits of the slanted-plane filling) by their numba twins on a copy in the CPU's memory.
+    Either way in torch, each of those steps is a kernel launch of its own, thousands per frame."""
+    return p.implementation == "fast" and all(sgm_triton.available(t) for t in tensors)
+
+
+def through_the_cpu(kernel):
+    """``kernel`` (a numba stage of CPU tensors) for tensors on another device: its tensor arguments copied to
+    the CPU, its tensor results back to the device of the first one."""
+    def run(*args, **kwargs):
+        device = next(a.device for a in (*args, *kwargs.values()) if torch.is_tensor(a))
+        to_cpu = (lambda a: a.cpu() if torch.is_tensor(a) else a)
+        result = kernel(*map(to_cpu, args), **{k: to_cpu(v) for k, v in kwargs.items()})
+        if isinstance(result, tuple):
+            return tuple(r.to(device) for r in result)
+        return result.to(device)
+    return run
 
 
 def plane_fit(disp: torch.Tensor, left: torch.Tensor, p: TorchSGMParams) -> torch.Tensor:

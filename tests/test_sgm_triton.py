@@ -96,7 +96,8 @@ class TestLines:
     @pytest.mark.parametrize("path", sgm.PATHS_8)
     def test_every_pixel_lies_on_exactly_one_line(self, path):
         h, w = 5, 7
-        start, length = sgm_triton._lines(h, w, *path, torch.device("cpu"))
+        start, length, longest = sgm_triton._lines(h, w, *path, torch.device("cpu"))
+        assert longest == length.max()
         seen = torch.zeros(h, w, dtype=torch.long)
         for (y, x), n in zip(start.tolist(), length.tolist()):
             for i in range(n):

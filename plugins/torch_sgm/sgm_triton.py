@@ -27,12 +27,12 @@ BIG = 1e30  # a path cost no real one reaches: the disparities beyond the range'
 
 if triton is not None:
     # sizes left unspecialised: the crops of a live loop come in many sizes, and each specialisation is a compile
-    @triton.jit(do_not_specialize=["n_lines", "h", "w", "d_count"])
-    def _walk(cost_ptr, p2_ptr, out_ptr, scratch_ptr, start_ptr, length_ptr, n_lines, h, w, d_count, p1,
-              DY: tl.constexpr, DX: tl.constexpr, FIRST: tl.constexpr, BLOCK_D: tl.constexpr):
+    @triton.jit(do_not_specialize=["n_lines", "n_most", "h", "w", "d_count"])
+    def _walk(cost_ptr, p2_ptr, out_ptr, scratch_ptr, start_ptr, length_ptr, n_lines, n_most, h, w, d_count, p1,
+              DY: tl.constexpr, DX: tl.constexpr, FIRST: tl.constexpr, BLOCK_D: tl.constexpr, BIG: tl.constexpr):
         """One line of pixels of one path direction (DY, DX): L(p) from L(p - r) along it, added to out.
         cost, out (B, H, W, D); p2 (B, H, W); start (lines, 2) int32 y, x of each line's first pixel,
-        length (lines,) its pixel count; scratch (B, lines, BLOCK_D + 2), BIG at both ends of each row:
+        length (lines,) its pixel count, n_most the longest; scratch (B, lines, BLOCK_D + 2), BIG at both ends of each row:
         a program's previous path costs, read back shifted by one disparity either way."""
         line = tl.program_id(0)
         b = tl.program_id(1)
@@ -50,12 +50,15 @@ if triton is not None:
         else:
             total = tl.load(out_ptr + pixel * d_count + d, mask=inside, other=0.0)
             tl.store(out_ptr + pixel * d_count + d, total + path, mask=inside)
-        for _ in range(1, n):
+        # every program steps as often as the longest line, past its own end with its memory untouched: a
+        # loop bound read from memory is a tensor, which Triton's interpreter cannot count to
+        for i in range(1, n_most):
             y += DY
             x += DX
+            on = i < n
             pixel = ((b * h + y) * w + x).to(tl.int64)
-            here = tl.load(cost_ptr + pixel * d_count + d, mask=inside, other=BIG)
-            p2 = tl.load(p2_ptr + pixel)
+            here = tl.load(cost_ptr + pixel * d_count + d, mask=inside & on, other=BIG)
+            p2 = tl.load(p2_ptr + pixel, mask=on, other=0.0)
             # the neighbours' costs: through memory, since a program cannot shift its values across lanes
             tl.store(own + d, path, mask=inside)
             tl.debug_barrier()
@@ -67,16 +70,17 @@ if triton is not None:
             # every lane has read the old costs before the next step overwrites them
             tl.debug_barrier()
             if FIRST:
-                tl.store(out_ptr + pixel * d_count + d, path, mask=inside)
+                tl.store(out_ptr + pixel * d_count + d, path, mask=inside & on)
             else:
-                total = tl.load(out_ptr + pixel * d_count + d, mask=inside, other=0.0)
-                tl.store(out_ptr + pixel * d_count + d, total + path, mask=inside)
+                total = tl.load(out_ptr + pixel * d_count + d, mask=inside & on, other=0.0)
+                tl.store(out_ptr + pixel * d_count + d, total + path, mask=inside & on)
 
 
 @lru_cache(maxsize=64)
-def _lines(h: int, w: int, dy: int, dx: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+def _lines(h: int, w: int, dy: int, dx: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, int]:
     """The lines of pixels a path (dy, dx) walks: each starts at a pixel whose predecessor (y - dy, x - dx)
-    lies outside the image, and runs until the image ends. -> (lines, 2) int32 y, x; (lines,) int32 length."""
+    lies outside the image, and runs until the image ends. -> (lines, 2) int32 y, x; (lines,) int32 length;
+    the longest length."""
     ys, xs = np.mgrid[0:h, 0:w]
     first = (ys - dy < 0) | (ys - dy >= h) | (xs - dx < 0) | (xs - dx >= w)
     y, x = ys[first], xs[first]
@@ -84,7 +88,8 @@ def _lines(h: int, w: int, dy: int, dx: int, device: torch.device) -> tuple[torc
     rows = np.where(dy > 0, h - y, np.where(dy < 0, y + 1, big))
     columns = np.where(dx > 0, w - x, np.where(dx < 0, x + 1, big))
     start = torch.from_numpy(np.stack([y, x], 1).astype(np.int32)).to(device)
-    return start, torch.from_numpy(np.minimum(rows, columns).astype(np.int32)).to(device)
+    length = np.minimum(rows, columns).astype(np.int32)
+    return start, torch.from_numpy(length).to(device), int(length.max())
 
 
 def available(cost: torch.Tensor) -> bool:
@@ -111,9 +116,9 @@ def sgm_triton(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sg
     block = triton.next_power_of_2(d_count)
     warps = max(1, min(4, block // 64))
     for k, (dy, dx) in enumerate(paths):
-        start, length = _lines(h, w, dy, dx, cost.device)
+        start, length, longest = _lines(h, w, dy, dx, cost.device)
         scratch = torch.full((b, len(length), block + 2), BIG, dtype=cost.dtype, device=cost.device)
         _walk[(len(length), b)](volume, penalty[dy, dx].to(cost.dtype).contiguous(), out, scratch, start, length,
-                                len(length), h, w, d_count, float(p1), DY=dy, DX=dx, FIRST=k == 0,
-                                BLOCK_D=block, num_warps=warps)
+                                len(length), longest, h, w, d_count, float(p1), DY=dy, DX=dx,
+                                FIRST=k == 0, BLOCK_D=block, BIG=BIG, num_warps=warps)
     return out.permute(0, 3, 1, 2)

@@ -1,7 +1,7 @@
 """sgm_triton: the Triton kernel gives ``sgm.sgm``'s path sums.
 
 On a machine without a GPU the kernel runs in Triton's interpreter (TRITON_INTERPRET=1, which must be set
-before the kernel is defined, so in a process of its own); on a GPU the compiled kernel runs too.
+before the kernel is defined, so in a process of its own); on a GPU the compiled kernel runs instead.
 """
 from __future__ import annotations
 
@@ -30,35 +30,44 @@ CASES = {
     "a single disparity": (4, (1, 1, 5, 4), "paths"),
 }
 
+def run_cases(device: str, interpret: bool) -> dict:
+    """Each case's largest difference from the reference on ``device``; ``interpret`` runs the kernel in
+    Triton's interpreter (CPU tensors, TRITON_INTERPRET=1 set before ``sgm_triton`` was imported)."""
+    torch.manual_seed(0)
+    result = {}
+    for name, (n_paths, shape, p2) in CASES.items():
+        paths = sgm.PATHS_8 if n_paths == 8 else sgm.PATHS_4
+        volume = torch.rand(shape, device=device)
+        if p2 == "paths":
+            p2 = 0.3 + torch.rand(shape[0], len(paths), *shape[2:], device=device)
+        elif p2 == "one":
+            p2 = 0.3 + torch.rand(shape[0], *shape[2:], device=device)
+        out = sgm_triton.sgm_triton(volume, 0.1, p2, paths, interpret=interpret)
+        ref = sgm.sgm(volume, 0.1, p2, paths)
+        # the reference with the maps swapped between paths: how far a wrong pairing of map and path lands
+        swapped = sgm.sgm(volume, 0.1, p2.flip(1), paths) if torch.is_tensor(p2) and p2.dim() == 4 else ref
+        result[name] = {"shape": list(out.shape), "error": (out - ref).abs().max().item(),
+                        "swapped": (swapped - ref).abs().max().item(),
+                        "single": (out - len(paths) * volume).abs().max().item()}
+    return result
+
+
 _SCRIPT = """
-import json, sys, torch
-from plugins.torch_sgm import sgm, sgm_triton
-cases = json.loads(sys.argv[1])
-torch.manual_seed(0)
-result = {}
-for name, (n_paths, shape, p2) in cases.items():
-    paths = sgm.PATHS_8 if n_paths == 8 else sgm.PATHS_4
-    volume = torch.rand(shape)
-    if p2 == "paths":
-        p2 = 0.3 + torch.rand(shape[0], len(paths), *shape[2:])
-    elif p2 == "one":
-        p2 = 0.3 + torch.rand(shape[0], *shape[2:])
-    out = sgm_triton.sgm_triton(volume, 0.1, p2, paths, interpret=True)
-    ref = sgm.sgm(volume, 0.1, p2, paths)
-    # the reference with the maps swapped between paths: how far a wrong pairing of map and path lands
-    swapped = sgm.sgm(volume, 0.1, p2.flip(1), paths) if torch.is_tensor(p2) and p2.dim() == 4 else ref
-    result[name] = {"shape": list(out.shape), "error": (out - ref).abs().max().item(),
-                    "swapped": (swapped - ref).abs().max().item(),
-                    "single": (out - len(paths) * volume).abs().max().item()}
-print(json.dumps(result))
+import json, sys
+sys.path.insert(0, sys.argv[1])
+import test_sgm_triton
+print(json.dumps(test_sgm_triton.run_cases("cpu", interpret=True)))
 """
 
 
 @pytest.fixture(scope="module")
 def interpreted():
-    """Each case's largest difference from the reference, the kernel run by Triton's interpreter."""
+    """Each case's largest difference from the reference: the compiled kernel where there is a GPU, else the
+    kernel run by Triton's interpreter in a process of its own."""
+    if torch.cuda.is_available():
+        return run_cases("cuda", interpret=False)
     env = {**os.environ, "TRITON_INTERPRET": "1", "PYTHONPATH": str(ROOT)}
-    done = subprocess.run([sys.executable, "-c", _SCRIPT, json.dumps(CASES)], capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-c", _SCRIPT, str(ROOT / "tests")], capture_output=True, text=True,
                           env=env, cwd=ROOT, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -118,12 +127,11 @@ class TestOnCuda:
         assert torch.allclose(out, sgm.sgm(volume, 0.08, p2, paths), atol=1e-4)
 
     def test_the_pipeline_uses_the_gpu_kernels(self, monkeypatch):
-        from plugins.torch_sgm import pipeline, planes_numba, refine_numba
+        from plugins.torch_sgm import pipeline, refine_numba
         from plugins.torch_sgm.synthetic import layered_scene
 
         called = []
-        for module, name in ((sgm_triton, "sgm_triton"), (refine_numba, "out_of_view_numba"),
-                             (planes_numba, "region_planes_numba")):
+        for module, name in ((sgm_triton, "sgm_triton"), (refine_numba, "out_of_view_numba")):
             original = getattr(module, name)
 
             def spy(*args, _original=original, _name=name, **kwargs):
@@ -134,5 +142,5 @@ class TestOnCuda:
             monkeypatch.setattr(module, name, spy)
         left, right, _, _ = layered_scene(seed=5)
         disp, _ = pipeline.compute_disparity(left, right, 0, 32, pipeline.TorchSGMParams(), device="cuda")
-        assert {"sgm_triton", "out_of_view_numba", "region_planes_numba"} <= set(called)
+        assert {"sgm_triton", "out_of_view_numba"} <= set(called)
         assert torch.isfinite(torch.from_numpy(disp)).mean(dtype=torch.float32) > 0.9

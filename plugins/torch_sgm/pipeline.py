@@ -237,8 +237,7 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
                 disp, slope = planes.planes_and_slopes(
                     disp, raw_disp, consistent, edges, thresholds, p.plane_min_pixels, p.plane_inliers,
                     p.plane_samples, local, (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched),
-                    p.plane_seed, planes_numba.region_planes_numba if compiled(p, disp) else
-                    through_the_cpu(planes_numba.region_planes_numba) if on_gpu(p, disp) else planes.region_planes)
+                    p.plane_seed, planes_numba.region_planes_numba if compiled(p, disp) else planes.region_planes)
                 holes = ~torch.isfinite(disp)
         with clock("row filling and medians"):
             if p.fill == "four_way":
@@ -278,23 +277,17 @@ def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
 
 
 def on_gpu(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
-    """Whether the fast implementation's CUDA kernels stand in for the torch stages: SGM by
-    ``sgm_triton``, and the stages that walk a row or a region one pixel after another (the out-of-view
-    check, the plane fits of the slanted-plane filling) by their numba twins on a copy in the CPU's memory.
-    Either way in torch, each of those steps is a kernel launch of its own, thousands per frame."""
+    """Whether the fast implementation's CUDA kernels stand in for torch stages that step along the rows: SGM
+    by ``sgm_triton``, the out-of-view check by its numba twin on a copy in the CPU's memory. In torch each
+    step is a kernel launch of its own, thousands per frame."""
     return p.implementation == "fast" and all(sgm_triton.available(t) for t in tensors)
 
 
 def through_the_cpu(kernel):
-    """``kernel`` (a numba stage of CPU tensors) for tensors on another device: its tensor arguments copied to
-    the CPU, its tensor results back to the device of the first one."""
-    def run(*args, **kwargs):
-        device = next(a.device for a in (*args, *kwargs.values()) if torch.is_tensor(a))
-        to_cpu = (lambda a: a.cpu() if torch.is_tensor(a) else a)
-        result = kernel(*map(to_cpu, args), **{k: to_cpu(v) for k, v in kwargs.items()})
-        if isinstance(result, tuple):
-            return tuple(r.to(device) for r in result)
-        return result.to(device)
+    """``kernel`` (a numba stage of CPU tensors, returning one tensor) for tensors on another device: its
+    arguments copied to the CPU, its result back to their device."""
+    def run(*tensors: torch.Tensor) -> torch.Tensor:
+        return kernel(*(t.cpu() for t in tensors)).to(tensors[0].device)
     return run
 
 

@@ -463,14 +463,23 @@ class SurfaceElsewhere:
 
 def frame_refusal(item: StereoFrame | FrameError, repeats: RepeatedImages, check) -> tuple[str | None, str | None]:
     """Why a frame the camera delivered in good order may not decide its part: (its images are the frame
-    before's, in words, or None; its left image cannot show a defect, ``core.image_quality``, or None).
-    ``check``: the recipe's ``camera.image_check``."""
+    before's, in words, or None; its images cannot show a defect, ``core.image_quality``, or are one image
+    twice, or None). ``check``: the recipe's ``camera.image_check``."""
     if not isinstance(item, StereoFrame) or frame_problem(item) is not None:
         return None, None  # inspect_frame names those
     repeated = repeats.problem(item)
     if repeated is not None:
         return repeated, None
-    return None, image_problem(image_stats(item.left), check.min_mean_grey, check.max_saturated, check.min_texture)
+    limits = check.min_mean_grey, check.max_saturated, check.min_texture
+    left = image_problem(image_stats(item.left), *limits)
+    if left is not None:
+        return None, left
+    if np.array_equal(item.left, item.right):
+        # two sensors differ by their noise at least: one buffer handed over as both eyes shows no depth, and a
+        # part without defects would pass unchecked for where its plate lies
+        return None, ("the left and right images are the same, byte for byte: the camera delivers one eye's image "
+                      "as both")
+    return None, image_problem(image_stats(item.right), *limits, image="the right image")
 
 
 class StageFailed(Exception):

@@ -1,11 +1,14 @@
-"""Whether a frame's left image can show a defect at all: lit, not blinded, with texture.
+"""Whether a frame's images can show a defect at all: lit, not blinded, with texture.
 
 The detector reads the left image alone, and finding nothing there passes the part. On a black frame
 (the lights failed, a covered lens), a washed-out one (blinded, the exposure run away) or a featureless
 one (fogged, far out of focus, something in front of the lens) it finds nothing too, and the part would
 pass on a picture that showed nothing. Such a frame is its part's ERROR instead (``core.engine``).
-The limits are the recipe's ``camera.image_check``; the defaults trip only on images with no usable
-content, and ``docs/recipe-reference.md`` says how to tighten them for a line.
+The right image is held to the same limits: without it no defect is measured, and a part without defects
+passes only once its images show the plate where the recipe expects it (``core.plate_view``), which a dark
+or covered right eye would leave blind. The limits are the recipe's ``camera.image_check``; the defaults
+trip only on images with no usable content, and ``docs/recipe-reference.md`` says how to tighten them for a
+line.
 """
 from __future__ import annotations
 
@@ -41,16 +44,17 @@ def image_stats(image: np.ndarray) -> ImageStats:
     return ImageStats(float(small.mean()), float((small >= SATURATED_GREY).mean()), float(detail.std()))
 
 
-def image_problem(stats: ImageStats, min_mean_grey: float, max_saturated: float, min_texture: float) -> str | None:
-    """What makes an image with these ``stats`` unable to show a defect, in words, or None."""
+def image_problem(stats: ImageStats, min_mean_grey: float, max_saturated: float, min_texture: float,
+                  image: str = "the image") -> str | None:
+    """What makes an image with these ``stats`` unable to show a defect, in words naming it ``image``, or None."""
     if stats.mean_grey < min_mean_grey:
-        return (f"the image is too dark to inspect (mean grey {stats.mean_grey:.0f} of 255, at least "
+        return (f"{image} is too dark to inspect (mean grey {stats.mean_grey:.0f} of 255, at least "
                 f"{min_mean_grey:g} needed: camera.image_check.min_mean_grey): the lights, the exposure or a covered lens")
     if stats.saturated > max_saturated:
-        return (f"the image is washed out ({stats.saturated:.0%} of it saturated, at most {max_saturated:.0%}: "
+        return (f"{image} is washed out ({stats.saturated:.0%} of it saturated, at most {max_saturated:.0%}: "
                 f"camera.image_check.max_saturated): the exposure, or a light shining into the lens")
     if stats.texture < min_texture:
-        return (f"the image shows no texture to inspect ({stats.texture:.2f} grey levels of detail, at least "
+        return (f"{image} shows no texture to inspect ({stats.texture:.2f} grey levels of detail, at least "
                 f"{min_texture:g}: camera.image_check.min_texture): out of focus, a fogged lens or something in "
                 f"front of it")
     return None

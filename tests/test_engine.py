@@ -178,6 +178,22 @@ def test_frames_that_cannot_show_a_defect_are_errors_and_an_outage_one_alarm(tmp
     assert any("could not show a defect" in h for h in hints) and not any("stopped delivering" in h for h in hints)
 
 
+def test_a_right_eye_that_cannot_see_or_repeats_the_left_is_an_error(tmp_path, plane_sequence, registry):
+    info = plane_sequence([0.0] * 5)
+    rng = np.random.default_rng(1)
+    dark = np.clip(rng.normal(3.0, 2.0, (192, 320, 3)), 0, 255).astype(np.uint8)  # a covered right lens
+    cv2.imwrite(str(info["folder"] / "right" / "000001.png"), dark)
+    cv2.imwrite(str(info["folder"] / "right" / "000002.png"), np.full((192, 320, 3), 250, np.uint8))  # blinded
+    shutil.copy(info["folder"] / "left" / "000003.png", info["folder"] / "right" / "000003.png")  # one eye as both
+    summary, seen = _run(tmp_path, registry, info)
+    assert [o.part.verdict.status for o in seen] == [Status.PASS] + [Status.ERROR] * 3 + [Status.PASS]
+    assert "the right image is too dark to inspect" in seen[1].part.verdict.reasons[0]
+    assert "the right image is washed out" in seen[2].part.verdict.reasons[0]
+    assert "the left and right images are the same, byte for byte" in seen[3].part.verdict.reasons[0]
+    (alarm,) = summary.alarms
+    assert alarm.cause == "image" and alarm.message.startswith("images unusable: 3 frames in a row (last: frame 000003")
+
+
 def test_plates_outside_the_working_distance_are_errors_and_a_run_of_them_one_alarm(tmp_path, plane_sequence,
                                                                                      registry):
     # the plates lie at 400 mm, the recipe searches 200-300 mm (a part of another thickness, a camera moved)

@@ -229,8 +229,9 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
         lines.append("  the camera delivered the same images again (a stalled driver or USB stream): check its "
                      "cable and driver; the parts it did not see were rejected")
     if "image" in causes:
-        lines.append("  the camera's images could not show a defect (too dark, washed out or without texture): check "
-                     "the lights, the exposure and the lens (camera.image_check, docs/recipe-reference.md)")
+        lines.append("  the camera's images could not show a defect (too dark, washed out, without texture, or one "
+                     "eye's image as both): check the lights, the exposure, both lenses and the camera's driver "
+                     "(camera.image_check, docs/recipe-reference.md)")
     if "range" in causes:
         lines.append("  the plates lie outside the stereo search range (the alarm says at what distance): set "
                      "stereo.working_distance_mm to where they are, or the camera back where the recipe expects it")

@@ -391,8 +391,9 @@ def _elsewhere_outcome(item: StereoFrame, part_id: str, plate: PlateElsewhere, s
     """The ERROR part of a frame whose images show the plate ``plate`` says, not where the search looked: one
     without defects, or whose ``measurements`` (judged ``verdict``, ``per_defect``) placed it nowhere."""
     said = "no defect could be measured, and" if measurements else "no defect found, but"
-    message = (f"frame {item.frame_id}: {said} {plate.describe(searched)}; a plate inspected where the recipe does "
-               f"not expect it does not pass")
+    why = ("a part whose images cannot be checked does not pass" if plate.unmatched else
+           "a plate inspected where the recipe does not expect it does not pass")
+    message = f"frame {item.frame_id}: {said} {plate.describe(searched)}; {why}"
     reasons = [message, *(verdict.reasons if verdict is not None else [])]
     part = PartResult(part_id, item.frame_id, item.index, item.timestamp, Verdict(Status.ERROR, reasons),
                       list(measurements), error=message)
@@ -421,22 +422,24 @@ def capture_time_problem(timestamp: Any, now: float) -> str | None:
 class SurfaceElsewhere:
     """Parts in a row whose images show the plate where the stereo backend did not search, around their defects
     or, for a part without defects, anywhere in the frame (``core.plate_view``): at disparities outside its range
-    (``DefectMeasurement.surface_elsewhere_mm``: a plate outside the working distance), or only with the left and
-    right images swapped (``eyes_swapped``: a camera delivering its eyes the other way round). A part with a
-    measured deviation ends such a run."""
+    (``DefectMeasurement.surface_elsewhere_mm``: a plate outside the working distance), only with the left and
+    right images swapped (``eyes_swapped``: a camera delivering its eyes the other way round), or nowhere, the
+    two images not showing one scene (``PlateElsewhere.unmatched``). A part with a measured deviation ends such
+    a run."""
 
     def __init__(self, stereo: StereoSection):
         self.stereo = stereo
-        self.runs = {"range": 0, "swapped": 0}
+        self.runs = {"range": 0, "swapped": 0, "unmatched": 0}
 
     def alarms(self, part: PartResult, plate: PlateElsewhere | None = None) -> list[Alarm]:
         """The alarm of each cause whose run reaches CAMERA_LOST_AFTER parts with this one (once per run);
         ``plate``: where the images of a part without defects show the plate, if elsewhere."""
         found = [m.surface_elsewhere_mm for m in part.measurements if m.surface_elsewhere_mm is not None]
-        if plate is not None and not plate.swapped:
+        if plate is not None and not plate.swapped and not plate.unmatched:
             found.append(plate.distance_mm)
         seen = {"range": bool(found),
-                "swapped": any(m.eyes_swapped for m in part.measurements) or (plate is not None and plate.swapped)}
+                "swapped": any(m.eyes_swapped for m in part.measurements) or (plate is not None and plate.swapped),
+                "unmatched": plate is not None and bool(plate.unmatched)}
         measured = any(m.deviation_mm is not None for m in part.measurements)
         for cause, now in seen.items():
             if now:
@@ -455,6 +458,9 @@ class SurfaceElsewhere:
             "swapped": (f"left and right images swapped: {CAMERA_LOST_AFTER} parts in a row whose images show the "
                         f"plate within {searched} only with the camera's left and right images exchanged "
                         f"(last: frame {part.frame_id})", "the camera delivers its left eye's image as the left"),
+            "unmatched": (f"images that do not match: {CAMERA_LOST_AFTER} parts in a row whose left and right images "
+                          f"match nowhere (last: frame {part.frame_id})",
+                          "the camera delivers both eyes' images of one moment, whole"),
         }
         return [Alarm("depth", f"{said}; they cannot be inspected and are rejected as ERROR until {until}",
                       time.time(), part.part_id, cause)

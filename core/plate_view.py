@@ -6,7 +6,9 @@ nothing measured: a camera knocked on its mount, a recipe loaded at the wrong st
 height would pass every plate the detector finds nothing on, inspected where the recipe does not expect it.
 Patches of the frame, each correlated with the right image at every horizontal shift (``core.surface_scan``),
 show where the plate really is; only a surface seen, and seen only outside the searched disparities, says the
-plate is elsewhere: texture too faint to match says nothing either way.
+plate is elsewhere: texture too faint to match says nothing either way. Texture strong enough in both images
+that matches at no shift at all says the two images do not show one scene (a damaged image, one eye's image
+from another moment), and where nothing matched, that part cannot be vouched for either.
 """
 from __future__ import annotations
 
@@ -28,19 +30,27 @@ MIN_SIDE_PX = 96  # a frame with fewer rows, or fewer columns right of the searc
 BAND_PX = 32  # rows above and below a patch high-passed with it: beyond 3 of the high-pass's sigma
 ENOUGH_PATCHES = 3  # patches matching outside the range, where none matched inside: enough to say where
 TOLERANCE_PX = 1.0  # a surface this close to the searched range counts as in it (the scan's whole pixels)
+# grey levels of high-passed detail, in both images, above which a patch of one scene must match: sensor noise is
+# about 1, the faintest plates measured show 3-4, and each of their frames matched in most patches
+TEXTURED = 3.0
 
 
 @dataclass(frozen=True)
 class PlateElsewhere:
     """The plate as the images show it where the backend did not search: at ``disparity`` px (without doffs),
-    ``distance_mm``; or, with ``swapped``, within the searched range but only with the eyes exchanged."""
+    ``distance_mm``; or, with ``swapped``, within the searched range but only with the eyes exchanged; or, with
+    ``unmatched`` (disparity and distance NaN), nowhere: that many textured patches match at no shift."""
 
     disparity: float
     distance_mm: float
     swapped: bool = False
+    unmatched: int = 0
 
     def describe(self, searched: tuple[float, float]) -> str:
         lo, hi = searched
+        if self.unmatched:
+            return (f"the left and right images match at no shift in any of {self.unmatched} textured patches: they do "
+                    f"not show one scene (a damaged image, or one eye's image from another moment)")
         if self.swapped:
             return (f"the images match only with the left and right images swapped, at {self.disparity:.0f} px of "
                     f"disparity (within the {lo:.0f}-{hi:.0f} px the stereo search covers): the camera delivers its "
@@ -86,17 +96,33 @@ def plate_elsewhere(left: np.ndarray, right: np.ndarray, calib: Calibration,
             found = scan_surface(*patch)  # distinctly there, not a repeating texture's echo
             if found is not None and lo - TOLERANCE_PX <= found.disparity <= hi + TOLERANCE_PX:
                 return PlateElsewhere(found.disparity, _distance_mm(found.disparity, calib), swapped=True)
-    outside = []
+    outside, unmatched = [], 0
     for patch in patches:
         found = scan_surface(*patch)  # a distinct match: outside the range, which matched nowhere
         if found is not None and found.disparity + calib.doffs > 0:
             outside.append(found.disparity)
             if len(outside) == ENOUGH_PATCHES:
                 break
+        elif found is None and _textured(*patch) and not _matches_anywhere(*patch):
+            unmatched += 1
     if outside:
         d = float(np.median(outside))
         return PlateElsewhere(d, _distance_mm(d, calib))
+    if unmatched >= ENOUGH_PATCHES:
+        return PlateElsewhere(math.nan, math.nan, unmatched=unmatched)
     return None
+
+
+def _textured(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarray) -> bool:
+    """Whether the patch's pixels hold TEXTURED grey levels of detail or more in both high-passed bands."""
+    return bool(left[v, u].std() >= TEXTURED and right[v, u].std() >= TEXTURED)
+
+
+def _matches_anywhere(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarray) -> bool:
+    """Whether the patch correlates with the right band to MIN_PEAK at some shift, distinct or not (a repeating
+    texture matches at several)."""
+    shifts = np.arange(0, left.shape[1] // 2)
+    return bool(np.max(correlations(left, right, u, v, shifts)) >= MIN_PEAK)
 
 
 def _distance_mm(disparity: float, calib: Calibration) -> float:

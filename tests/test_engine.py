@@ -268,6 +268,25 @@ def test_plates_without_defects_seen_where_no_search_looks_are_errors_and_a_run_
     assert "they cannot be inspected and are rejected as ERROR" in alarm.message
 
 
+def test_plates_without_defects_whose_images_match_nowhere_are_errors_and_a_run_of_them_one_alarm(
+        tmp_path, plane_sequence):
+    info = plane_sequence([0.0] * 4)
+    rng = np.random.default_rng(3)
+    for i in range(3):  # a damaged left image: detail enough, but not of the plate the right eye sees
+        cv2.imwrite(str(info["folder"] / "left" / f"{i:06d}.png"), rng.integers(0, 256, (192, 320, 3), dtype=np.uint8))
+    loaded = _no_defects_recipe(tmp_path, info, "[300, 600]")
+    seen = []
+    summary = engine.run(loaded, registry=Registry(make_manager((stereo_inspect_fixed_roi,))), on_part=seen.append,
+                         device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.ERROR] * 3 + [Status.PASS]
+    assert seen[0].plate is not None and seen[0].plate.unmatched >= 3
+    assert "match at no shift" in seen[0].part.error and "cannot be checked does not pass" in seen[0].part.error
+    (alarm,) = summary.alarms
+    assert alarm.cause == "unmatched" and alarm.part_id == seen[2].part.part_id
+    from core.commands.inspection import alarm_hints
+    assert any("no common scene" in h for h in alarm_hints(summary.alarms, loaded, plc_sim_given=False))
+
+
 def test_a_part_whose_defects_say_nothing_of_the_plate_is_located_by_its_frame(tmp_path, plane_sequence, registry):
     # a box at the left border, which the right camera does not see and whose ring cannot be scanned: the
     # part was an ERROR that did not say the plate lay outside the working distance, nor counted towards it

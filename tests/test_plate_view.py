@@ -84,6 +84,24 @@ class TestPlateElsewhere:
         left, right = (np.clip(rng.normal(128, 2, (192, 320, 3)), 0, 255).astype(np.uint8) for _ in range(2))
         assert plate_elsewhere(left, right, CALIB, searched(200, 300)) is None
 
+    @pytest.mark.parametrize("other", ["another plate", "noise"])
+    def test_images_of_two_scenes_are_said_to_match_nowhere(self, plate_at_400, other):
+        # a damaged image, or one eye's image from another moment: the part passed as if its plate were in place
+        left, _ = plate_at_400
+        right = (render(CALIB, 400.0, seed=7)[1] if other == "another plate" else
+                 np.random.default_rng(0).integers(0, 256, left.shape, dtype=np.uint8))
+        found = plate_elsewhere(left, right, CALIB, searched(300, 600))
+        assert found is not None and found.unmatched >= 3 and not found.swapped and math.isnan(found.distance_mm)
+        assert "do not show one scene" in found.describe(searched(300, 600))
+
+    @pytest.mark.parametrize("rows, in_place", [(1, True), (3, False)])
+    def test_eyes_rows_apart_match_until_their_texture_no_longer_overlaps(self, plate_at_400, rows, in_place):
+        # a rectification that does not fit the camera: this fine texture still matches a row off, and 3 rows off
+        # nowhere, where no defect could be measured either
+        left, right = plate_at_400
+        found = plate_elsewhere(left, np.roll(right, rows, axis=0), CALIB, searched(300, 600))
+        assert (found is None) if in_place else (found is not None and found.unmatched >= 3)
+
     def test_a_frame_too_small_to_tell_is_not_judged(self, plate_at_400):
         left, right = plate_at_400
         assert plate_elsewhere(left[:MIN_SIDE_PX - 1], right[:MIN_SIDE_PX - 1], CALIB, searched(200, 300)) is None

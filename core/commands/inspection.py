@@ -239,6 +239,9 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
         lines.append("  the camera delivers its right eye's image as the left, or hangs upside down: exchange the eyes "
                      "in the camera's settings or wiring (its left eye is the one on the left seen from behind it), "
                      "or turn it")
+    if "unmatched" in causes:
+        lines.append("  the camera's left and right images show no common scene: check that both eyes are exposed "
+                     "together and that their images reach the computer whole (the camera's cable, its driver)")
     if "store" in causes:
         lines.append("  the results store could not be written (a full disk, its permissions, a removed drive): the "
                      "parts decided until then went to the outputs unrecorded; free the disk and start again")

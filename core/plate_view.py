@@ -6,9 +6,9 @@ nothing measured: a camera knocked on its mount, a recipe loaded at the wrong st
 height would pass every plate the detector finds nothing on, inspected where the recipe does not expect it.
 Patches of the frame, each correlated with the right image at every horizontal shift (``core.surface_scan``),
 show where the plate really is; only a surface seen, and seen only outside the searched disparities, says the
-plate is elsewhere: texture too faint to match says nothing either way. Texture strong enough in both images
-that matches at no shift at all says the two images do not show one scene (a damaged image, one eye's image
-from another moment), and where nothing matched, that part cannot be vouched for either.
+plate is elsewhere: texture too faint to match says nothing either way. Texture plain in both images that
+matches at no shift at all says the two images do not show one scene (a damaged image, one eye's image from
+another moment), and a part whose images cannot be checked is not passed either.
 """
 from __future__ import annotations
 

@@ -282,3 +282,20 @@ def test_exposure_warnings():
     assert exposure_warning("127.0.0.1", None) is None
     assert "WITHOUT AUTHENTICATION" in exposure_warning("0.0.0.0", None)
     assert "token" in exposure_warning("0.0.0.0", "s3cret-token")
+
+
+def test_a_ctrl_c_that_comes_with_the_serving_message_ends_the_serving_not_the_command(tmp_path, plane_sequence):
+    # the message printed before the wait began: a Ctrl-C straight after it ended `inspect run --keep-serving`
+    # with "Aborted!" and exit 1 instead of the run's own exit code
+    from core.commands.view import serve_until_interrupted
+
+    folder, _ = _run(tmp_path, plane_sequence, save_images="none", break_frame=None)
+    port = free_port()
+    server = ViewServer(create_app(folder, LiveFeed()), "127.0.0.1", port).start()
+
+    def interrupted_while_saying_so():
+        raise KeyboardInterrupt
+
+    serve_until_interrupted(server, interrupted_while_saying_so)
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", port), timeout=2).close()

@@ -69,7 +69,10 @@ def _start(args: list[str], env_extra: dict | None = None, cwd: Path | None = No
     """Start `inspect ...` and return it with the page's URL, read from its output."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", COLUMNS="200", **(env_extra or {}))
     exe = Path(sys.executable).parent / "inspect"
-    proc = subprocess.Popen([str(exe), *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=cwd)
+    # Ctrl-C as a terminal gives it: a suite started in the background (`make test &`) hands its children SIGINT
+    # ignored, and the page then stayed up until the test's timeout
+    proc = subprocess.Popen([str(exe), *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                            cwd=cwd, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     seen = []
     while time.monotonic() < deadline:

@@ -173,10 +173,10 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
     console.print(f"results: {loaded.resolve(loaded.recipe.results.path)}", markup=False)
     if server is not None:
         if keep_serving:
-            console.print(f"run finished; the page stays up at {server.url} until Ctrl-C", style="cyan", markup=False)
             from core.commands.view import serve_until_interrupted
 
-            serve_until_interrupted(server)
+            serve_until_interrupted(server, lambda: console.print(
+                f"run finished; the page stays up at {server.url} until Ctrl-C", style="cyan", markup=False))
         else:
             server.stop()
     if summary.signal:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import click
@@ -31,8 +32,11 @@ def start_view(results: Path, feed, host: str, port: int, token: str | None, jpe
     return server
 
 
-def serve_until_interrupted(server) -> None:
+def serve_until_interrupted(server, say: Callable[[], None] = lambda: None) -> None:
+    """Serve until Ctrl-C, then stop the server. ``say`` tells the user so, inside the wait: a Ctrl-C right after
+    the message must end the serving, not the command."""
     try:
+        say()
         while True:
             time.sleep(0.5)
     except KeyboardInterrupt:
@@ -59,8 +63,7 @@ def view_command(results: Path, host: str, port: int, token: str | None) -> None
     if token is not None and len(token) < 8:
         fail("--token: use at least 8 characters")
     server = start_view(results, None, host, port, token, jpeg_quality=85, max_fps=10.0)
-    click.echo("Ctrl-C stops serving")
-    serve_until_interrupted(server)
+    serve_until_interrupted(server, lambda: click.echo("Ctrl-C stops serving"))
 
 
 @click.command("bench-view")

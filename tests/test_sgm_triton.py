@@ -30,6 +30,7 @@ CASES = {
     "a single disparity": (4, (1, 1, 5, 4), "paths"),
 }
 
+
 def run_cases(device: str, interpret: bool) -> dict:
     """Each case's largest difference from the reference on ``device``; ``interpret`` runs the kernel in
     Triton's interpreter (CPU tensors, TRITON_INTERPRET=1 set before ``sgm_triton`` was imported)."""
@@ -61,7 +62,7 @@ print(json.dumps(test_sgm_triton.run_cases("cpu", interpret=True)))
 
 
 @pytest.fixture(scope="module")
-def interpreted():
+def kernel_results():
     """Each case's largest difference from the reference: the compiled kernel where there is a GPU, else the
     kernel run by Triton's interpreter in a process of its own."""
     if torch.cuda.is_available():
@@ -76,17 +77,17 @@ def interpreted():
 @needs_triton
 class TestSgmTriton:
     @pytest.mark.parametrize("name", list(CASES))
-    def test_equals_the_reference(self, interpreted, name):
-        case = interpreted[name]
+    def test_equals_the_reference(self, kernel_results, name):
+        case = kernel_results[name]
         assert case["shape"] == list(CASES[name][1])
         assert case["error"] < 1e-5
 
-    def test_each_path_reads_its_own_p2_map(self, interpreted):
+    def test_each_path_reads_its_own_p2_map(self, kernel_results):
         # the test above could not tell the maps apart if swapping them changed nothing
-        assert interpreted["8 paths, one map per path"]["swapped"] > 1e-3
+        assert kernel_results["8 paths, one map per path"]["swapped"] > 1e-3
 
-    def test_a_single_disparity_is_the_cost_times_the_paths(self, interpreted):
-        assert interpreted["a single disparity"]["single"] < 1e-6
+    def test_a_single_disparity_is_the_cost_times_the_paths(self, kernel_results):
+        assert kernel_results["a single disparity"]["single"] < 1e-6
 
     def test_refuses_what_it_cannot_compute(self):
         with pytest.raises(ValueError, match="float32 CUDA tensor"):

@@ -97,7 +97,7 @@ class TestPlateElsewhere:
     @pytest.mark.parametrize("rows, in_place", [(1, True), (3, False)])
     def test_eyes_rows_apart_match_until_their_texture_no_longer_overlaps(self, plate_at_400, rows, in_place):
         # a rectification that does not fit the camera: this fine texture still matches a row off, and 3 rows off
-        # nowhere, where no defect could be measured either
+        # nowhere
         left, right = plate_at_400
         found = plate_elsewhere(left, np.roll(right, rows, axis=0), CALIB, searched(300, 600))
         assert (found is None) if in_place else (found is not None and found.unmatched >= 3)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.surface_fit import high_pass, to_grey
-from core.surface_scan import MIN_PEAK, correlations, scan_surface
+from core.surface_scan import MIN_PEAK, correlations, distinct_best, scan_correlations, scan_surface
 from core.types import Calibration
 
 GRID = (5, 3)  # rows x columns of patches over the part of the frame the right camera sees
@@ -98,13 +98,14 @@ def plate_elsewhere(left: np.ndarray, right: np.ndarray, calib: Calibration,
                 return PlateElsewhere(found.disparity, _distance_mm(found.disparity, calib), swapped=True)
     outside, unmatched = [], 0
     for patch in patches:
-        found = scan_surface(*patch)  # a distinct match: outside the range, which matched nowhere
+        scores = scan_correlations(*patch)
+        found = distinct_best(scores)  # a distinct match: outside the range, which matched nowhere
         if found is not None and found.disparity + calib.doffs > 0:
             outside.append(found.disparity)
             if len(outside) == ENOUGH_PATCHES:
                 break
-        elif found is None and _textured(*patch) and not _matches_anywhere(*patch):
-            unmatched += 1
+        elif found is None and _textured(*patch) and not np.max(scores, initial=-np.inf) >= MIN_PEAK:
+            unmatched += 1  # no shift matches, distinct or not (a repeating texture matches at several)
     if outside:
         d = float(np.median(outside))
         return PlateElsewhere(d, _distance_mm(d, calib))
@@ -116,13 +117,6 @@ def plate_elsewhere(left: np.ndarray, right: np.ndarray, calib: Calibration,
 def _textured(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarray) -> bool:
     """Whether the patch's pixels hold TEXTURED grey levels of detail or more in both high-passed bands."""
     return bool(left[v, u].std() >= TEXTURED and right[v, u].std() >= TEXTURED)
-
-
-def _matches_anywhere(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarray) -> bool:
-    """Whether the patch correlates with the right band to MIN_PEAK at some shift, distinct or not (a repeating
-    texture matches at several)."""
-    shifts = np.arange(0, left.shape[1] // 2)
-    return bool(np.max(correlations(left, right, u, v, shifts)) >= MIN_PEAK)
 
 
 def _distance_mm(disparity: float, calib: Calibration) -> float:

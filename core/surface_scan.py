@@ -36,21 +36,33 @@ def scan_surface(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarr
 
     left, right: HxW float images (high-passed grey: the eyes' exposures may differ). u, v: (N,) integer
     pixel coordinates, inside the image."""
+    return distinct_best(scan_correlations(left, right, u, v, max_disparity))
+
+
+def scan_correlations(left: np.ndarray, right: np.ndarray, u: np.ndarray, v: np.ndarray,
+                      max_disparity: int | None = None) -> np.ndarray:
+    """``scan_surface``'s (D,) correlations, one per whole-pixel disparity 0 <= d < D; (0,) without pixels."""
     if left.shape != right.shape or left.ndim != 2:
         raise ValueError(f"scan_surface: left {left.shape} and right {right.shape} must be the same HxW")
     if u.shape != v.shape or u.ndim != 1:
         raise ValueError(f"scan_surface: u {u.shape} and v {v.shape} must be the same (N,)")
     if u.size == 0:
-        return None
+        return np.zeros(0, np.float32)
     step = -(-u.size // MAX_PIXELS)  # a few thousand pixels tell a correlation; the (D, N) arrays stay small
     u, v = u[::step], v[::step]
     w = left.shape[1]
     top = w // 2 if max_disparity is None else min(int(max_disparity), w)
-    d = np.arange(top)
-    r = correlations(left, right, u, v, d)
+    return correlations(left, right, u, v, np.arange(top))
+
+
+def distinct_best(r: np.ndarray) -> SurfaceMatch | None:
+    """The disparity of the (D,) correlations ``r`` (index = disparity) that stands out, as ``scan_surface``
+    says; None without one."""
+    if r.size == 0:
+        return None
     best = int(np.argmax(r))
     peak = float(r[best])
-    away = np.abs(d - best) > 2
+    away = np.abs(np.arange(r.size) - best) > 2
     second = float(np.max(r[away], initial=-np.inf))
     if not peak >= MIN_PEAK or second * MIN_CONTRAST > peak:
         return None

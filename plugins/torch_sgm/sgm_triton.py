@@ -32,8 +32,8 @@ if triton is not None:
               DY: tl.constexpr, DX: tl.constexpr, FIRST: tl.constexpr, BLOCK_D: tl.constexpr, BIG: tl.constexpr):
         """One line of pixels of one path direction (DY, DX): L(p) from L(p - r) along it, added to out.
         cost, out (B, H, W, D); p2 (B, H, W); start (lines, 2) int32 y, x of each line's first pixel; length
-        (lines,) its pixel count, n_most the longest; scratch (B, lines, BLOCK_D + 2), BIG at both ends of
-        each row: a program's previous path costs, read back shifted by one disparity either way."""
+        (lines,) its pixel count, n_most the longest; scratch (B * lines or more, BLOCK_D + 2), BIG at both
+        ends of each row: a program's previous path costs, read back shifted by one disparity either way."""
         line = tl.program_id(0)
         b = tl.program_id(1)
         y = tl.load(start_ptr + 2 * line)
@@ -115,9 +115,11 @@ def sgm_triton(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sg
     out = torch.empty_like(volume)  # the first path writes it
     block = triton.next_power_of_2(d_count)
     warps = max(1, min(4, block // 64))  # one warp per 64 disparities was the fastest on an H200
+    # one row per line of the direction with the most (h + w - 1, a diagonal's); its BIG ends are never written,
+    # so every direction reuses it
+    scratch = torch.full((b * (h + w - 1), block + 2), BIG, dtype=cost.dtype, device=cost.device)
     for k, (dy, dx) in enumerate(paths):
         start, length, longest = _lines(h, w, dy, dx, cost.device)
-        scratch = torch.full((b, len(length), block + 2), BIG, dtype=cost.dtype, device=cost.device)
         _walk[(len(length), b)](volume, penalty[dy, dx].to(cost.dtype).contiguous(), out, scratch, start, length,
                                 len(length), longest, h, w, d_count, float(p1), DY=dy, DX=dx,
                                 FIRST=k == 0, BLOCK_D=block, BIG=BIG, num_warps=warps)

@@ -359,6 +359,9 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
                f"and {fit.params[4] + fit.params[8]:.2f} on the defect): too little texture, the plate outside the "
                f"stereo search range (working distance), or the matcher far off on the defect")
         return _outside_search(_unavailable(reference, why), pair, ring_all, calib, searched)
+    settled = _settled_outside(fit, calib, searched)
+    if settled is not None:
+        return _outside_search(_unavailable(reference, settled), pair, ring_all, calib, searched)
     # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a
     # sheen upsets only the cells, the crop's edge only the backend's map there. The ring kept above holds
     # only the backend's pixels within tolerance, so a matched pixel of it is one the backend agrees with.
@@ -412,6 +415,23 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         reference.area_mm2 * (distance / reference.distance_mm) ** 2,
         distance_sigma_mm=float(fb / d**2 * np.sqrt(var_d)), deviation_sigma_mm=deviation_sigma, method="surface",
     )
+
+
+def _settled_outside(fit: surface_fit.SurfaceFit, calib: Calibration, searched: tuple[float, float] | None) -> str | None:
+    """Why a fit's surfaces (the ring's at the region's centre, the defect's) are none to measure on where one
+    lies outside ``searched`` (lo, hi: px without doffs) by more than a pixel, else None. The search range is
+    where the recipe says the plate is; a fit that settles beyond it has matched a texture at another shift
+    (near the left edge, starting from the backend's hole filling, a ring fitted at 832 mm on a plate at 437 mm),
+    not a plate the backend missed."""
+    if searched is None:
+        return None
+    lo, hi = searched
+    for what, d in (("the surface around the box", fit.c), ("the defect", fit.c + fit.delta)):
+        if not lo - 1.0 <= d <= hi + 1.0:
+            at = f" ({calib.focal_px * calib.baseline_mm / (d + calib.doffs):.0f} mm)" if d + calib.doffs > 0 else ""
+            return (f"the surface fit put {what} at {d:.0f} px of disparity{at}, outside the {lo:.0f}-{hi:.0f} px the "
+                    f"stereo search covers (the working distance)")
+    return None
 
 
 def _outside_search(m: DefectMeasurement, pair, ring: tuple[np.ndarray, np.ndarray], calib: Calibration,

@@ -256,6 +256,25 @@ def test_a_plate_beyond_the_searched_range_is_named_where_it_lies(backend_says):
     assert "matches the images at" not in held.note and held.surface_elsewhere_mm is None
 
 
+def test_a_fit_that_settles_outside_the_searched_range_is_no_measurement():
+    """The search range is where the recipe says the plate is: a surface fitted beyond it is a texture matched
+    at another shift (a faint plate's ring near the left edge, fitted from the backend's hole filling at 832 mm
+    on a plate at 437 mm, read a 0.79 mm scratch as a 221 mm bump). Here the backend's map is right and the fit
+    settles at the plate's 105 px, which a range of 40-90 px does not hold."""
+    left, right, disparity = render(CALIB, 400.0, 3.0, [Pit(160, 96, 25.0, 2.0)])
+    pair = (_grey(left), _grey(right))
+    m = measure_defect(disparity, Detection("pit", 0.9, BOX), CALIB, DepthRule(), pair, searched=(40.0, 90.0))
+    assert m.deviation_mm is None and m.deviation_sigma_mm is None and m.method == "surface"
+    assert m.note.startswith("deviation unavailable: the surface fit put the surface around the box at 105 px of "
+                             "disparity (400 mm), outside the 40-90 px the stereo search covers (the working "
+                             "distance)"), m.note
+    # and where the images put the plate, which the scan of the ring finds at the same place
+    assert "matches the images at 105 px" in m.note and m.distance_mm is None
+    # a range that holds it: measured as without one
+    held = measure_defect(disparity, Detection("pit", 0.9, BOX), CALIB, DepthRule(), pair, searched=(78.0, 126.0))
+    assert held == _surface(left, right, disparity) and held.deviation_mm > 1.0 and held.note == ""
+
+
 def test_a_plate_beyond_the_search_near_the_left_edge_is_named_too():
     """Near the left edge the backend's wrong 500 mm puts the region out of the right camera's view (at 84 px
     of disparity; the plate's 60 px would show it): that is said, and so is where the images put the plate,

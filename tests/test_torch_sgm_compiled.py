@@ -102,6 +102,24 @@ class TestAggregateNumba:
                                                                                          1e-3, None))
 
 
+class TestDirectBoxSums:
+    @pytest.mark.parametrize("shape", [(23, 31), (3, 2), (1, 12), (12, 1)])
+    @pytest.mark.parametrize("radius", [1, 2])
+    def test_equals_the_running_sums(self, shape, radius):
+        rng = np.random.default_rng(3)
+        first, second = (rng.random(shape).astype(np.float32) for _ in range(2))
+        want = [np.empty(shape, np.float32) for _ in range(2)]
+        aggregate_numba.box_sums(first, second, radius, np.empty((2, shape[1])), *want)
+        got = [np.full(shape, np.nan, np.float32) for _ in range(2)]
+        # scratch wider than needed, and not zeroed: the margins are its own business
+        aggregate_numba.direct_box_sums(first, second, radius, np.full((2, shape[1] + 2 * radius + 3), 7.0), *got)
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(g, w, rtol=1e-6, atol=1e-6)
+        # a corner's window is cut to the image: (r + 1)^2 pixels where both sides allow
+        if min(shape) > radius:
+            assert got[0][0, 0] == pytest.approx(first[:radius + 1, :radius + 1].sum(), rel=1e-6)
+
+
 class TestCheckedWinnersNumba:
     @staticmethod
     def same(a, b):

@@ -53,36 +53,101 @@ def box_sums(first, second, radius, rows, out_first, out_second):
                 row_b[x] -= second[y - radius, x]
 
 
+@njit(cache=True, nogil=True, fastmath=True)
+def direct_box_sums(first, second, radius, cols, out_first, out_second):
+    """``box_sums`` with the rows' window sums taken tap by tap: ``cols`` is (2, W + 2r) float64 scratch,
+    or wider (its columns past W + 2r go unread). The running sums down the columns stay (float64, each
+    row's update a loop along the row); across each row a running sum waits on its own previous addition
+    at every pixel, where the taps of a small window, added along the row, take 4 or 8 pixels at once."""
+    h, w = first.shape
+    col_a, col_b = cols[0], cols[1]
+    for x in range(cols.shape[1]):  # the margins stay zero: a window cut to the image
+        col_a[x] = 0.0
+        col_b[x] = 0.0
+    in_a, in_b = col_a[radius:radius + w], col_b[radius:radius + w]
+    for y in range(min(radius, h - 1) + 1):
+        _add(first[y], second[y], in_a, in_b)
+    for y in range(h):
+        row_a, row_b = out_first[y], out_second[y]
+        if radius == 1:
+            for x in range(w):
+                row_a[x] = col_a[x] + col_a[x + 1] + col_a[x + 2]
+                row_b[x] = col_b[x] + col_b[x + 1] + col_b[x + 2]
+        elif radius == 2:
+            for x in range(w):
+                row_a[x] = col_a[x] + col_a[x + 1] + col_a[x + 2] + col_a[x + 3] + col_a[x + 4]
+                row_b[x] = col_b[x] + col_b[x + 1] + col_b[x + 2] + col_b[x + 3] + col_b[x + 4]
+        else:
+            for x in range(w):
+                total_a, total_b = 0.0, 0.0
+                for i in range(2 * radius + 1):
+                    total_a += col_a[x + i]
+                    total_b += col_b[x + i]
+                row_a[x] = total_a
+                row_b[x] = total_b
+        if y + radius + 1 < h:
+            _add(first[y + radius + 1], second[y + radius + 1], in_a, in_b)
+        if y - radius >= 0:
+            _subtract(first[y - radius], second[y - radius], in_a, in_b)
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _add(a, b, to_a, to_b):
+    for x in range(to_a.shape[0]):
+        to_a[x] += a[x]
+        to_b[x] += b[x]
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _subtract(a, b, to_a, to_b):
+    for x in range(to_a.shape[0]):
+        to_a[x] -= a[x]
+        to_b[x] -= b[x]
+
+
+DIRECT_MAX_RADIUS = 2  # up to this radius ``direct_box_sums`` (measured faster at 1 and 2)
+
+
 @njit(cache=True, nogil=True)
-def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, rows, out):
+def _window_sums(first, second, radius, rows, cols, out_first, out_second):
+    if radius <= DIRECT_MAX_RADIUS:
+        direct_box_sums(first, second, radius, cols, out_first, out_second)
+    else:
+        box_sums(first, second, radius, rows, out_first, out_second)
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, rows, cols, out):
     """He et al.'s guided filter of the (H, W) slice ``p`` with the guide's statistics; scratch arrays
-    ip, mean_p, mean_ip (H, W) and rows (2, W); the result into ``out``."""
+    ip, mean_p, mean_ip (H, W), rows (2, W) and cols (2, W + 2 radius) float64; the result into
+    ``out``."""
     h, w = p.shape
     for y in range(h):
         for x in range(w):
             ip[y, x] = guide[y, x] * p[y, x]
-    box_sums(p, ip, radius, rows, mean_p, mean_ip)
+    _window_sums(p, ip, radius, rows, cols, mean_p, mean_ip)
     for y in range(h):
         for x in range(w):
             mp = mean_p[y, x] * inv_count[y, x]
             a = (mean_ip[y, x] * inv_count[y, x] - mean_i[y, x] * mp) * inv_var[y, x]
             mean_ip[y, x] = a
             mean_p[y, x] = mp - a * mean_i[y, x]
-    box_sums(mean_ip, mean_p, radius, rows, ip, out)  # the means of a and of b
+    _window_sums(mean_ip, mean_p, radius, rows, cols, ip, out)  # the means of a and of b
     for y in range(h):
         for x in range(w):
             out[y, x] = (ip[y, x] * guide[y, x] + out[y, x]) * inv_count[y, x]
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True, fastmath=True)
 def _aggregate(raw, guide, wide_stats, wide_radius, detail_stats, detail_radius, weight, out):
     n_b, n_d, h, w = raw.shape
     for job in prange(n_b * n_d):
         b, k = job // n_d, job % n_d
         ip, mean_p, mean_ip = np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.float32)
         wide, rows = np.empty((h, w), np.float32), np.empty((2, w), np.float64)
+        cols = np.empty((2, w + 2 * max(wide_radius, detail_radius)), np.float64)
         _guided(raw[b, k], guide[b], wide_stats[0, b], wide_stats[1, b], wide_stats[2, b], wide_radius, ip, mean_p,
-                mean_ip, rows, wide)
+                mean_ip, rows, cols, wide)
         if detail_radius < 0:
             out[b, k] = wide
             continue
@@ -91,7 +156,7 @@ def _aggregate(raw, guide, wide_stats, wide_radius, detail_stats, detail_radius,
         else:
             detail = np.empty((h, w), np.float32)
             _guided(raw[b, k], guide[b], detail_stats[0, b], detail_stats[1, b], detail_stats[2, b], detail_radius,
-                    ip, mean_p, mean_ip, rows, detail)
+                    ip, mean_p, mean_ip, rows, cols, detail)
         for y in range(h):
             for x in range(w):
                 out[b, k, y, x] = detail[y, x] + weight[b, y, x] * (wide[y, x] - detail[y, x])

@@ -181,17 +181,19 @@ class TestUniqueMinimumNumba:
 
 
 class TestLocalPlaneFitNumba:
-    def scene(self, seed=1):
-        left, _, gt, _ = layered_scene(40, 64, seed=seed)
+    def scene(self, seed=1, width=64):
+        left, _, gt, _ = layered_scene(40, width, seed=seed)
         image = bgr_to_tensor(left, torch.device("cpu"))
         g = torch.Generator().manual_seed(seed)
-        disp = torch.from_numpy(gt).float()[None] + 0.4 * torch.rand(1, 40, 64, generator=g)
+        disp = torch.from_numpy(gt).float()[None] + 0.4 * torch.rand(1, 40, width, generator=g)
         disp[:, 5:9, 10:20] = float("nan")  # holes take no part and stay holes
         return disp, image
 
-    @pytest.mark.parametrize("radius,sigma_colour,tolerance", [(3, 0.1, 1.0), (1, 1e3, 0.5), (4, 0.05, 2.0)])
-    def test_equals_the_reference(self, radius, sigma_colour, tolerance):
-        disp, image = self.scene()
+    @pytest.mark.parametrize("radius,sigma_colour,tolerance,width", [(3, 0.1, 1.0, 64), (1, 1e3, 0.5, 64),
+                                                                     (4, 0.05, 2.0, 64), (3, 0.1, 1.0, 150)])
+    def test_equals_the_reference(self, radius, sigma_colour, tolerance, width):
+        # 150 columns: rows fitted in blocks (FIT_BLOCK), the last one partly filled
+        disp, image = self.scene(width=width)
         ref = refine.local_plane_fit(disp, image, radius, sigma_colour, 5.0, tolerance)
         out = refine_numba.local_plane_fit_numba(disp, image, radius, sigma_colour, 5.0, tolerance)
         assert torch.equal(torch.isfinite(out), torch.isfinite(ref))

@@ -52,12 +52,14 @@ def _pair_weights(image, radius, inv_colour2, inv_space2, slot, weights):
                     continue
                 for x in range(lo, hi):
                     exponent[x] = np.float32(u * u + v * v) * inv_space2
+                # slices, indexed from 0: an index that may be negative would be wrapped, pixel by pixel
+                sums = exponent[lo:hi]
                 for c in range(n_c):
-                    here, there = image[b, c, y], image[b, c, yy]
-                    for x in range(lo, hi):
-                        diff = there[x + u] - here[x]
-                        exponent[x] += diff * diff * inv_colour2
-                exp_neg_(exponent[lo:hi], bits[lo:hi])
+                    here, there = image[b, c, y, lo:hi], image[b, c, yy, lo + u:hi + u]
+                    for i in range(hi - lo):
+                        diff = there[i] - here[i]
+                        sums[i] += diff * diff * inv_colour2
+                exp_neg_(sums, bits[lo:hi])
                 for x in range(lo):
                     target[x] = 0.0
                 for x in range(lo, hi):
@@ -66,55 +68,98 @@ def _pair_weights(image, radius, inv_colour2, inv_space2, slot, weights):
                     target[x] = 0.0
 
 
-@njit(cache=True, nogil=True, parallel=True)
+NAN_SAFE = {"nsz", "arcp", "contract", "afn", "reassoc"}  # fastmath less "nnan" and "ninf": NaN marks a hole
+FIT_BLOCK = 64  # pixels of a row fitted together: their neighbours' weights stay in the L1 cache
+
+
+@njit(cache=True, nogil=True, parallel=True, fastmath=NAN_SAFE)
 def _plane_fit(disp, weights, slot, radius, tolerance, out):
+    """Each pixel's weighted plane through the disparities of its window within ``tolerance`` of its own,
+    from the pairs' weights (``_pair_weights``). For a block of a row at a time, first every neighbour's
+    weight and weighted disparity (0 where it is out of tolerance, a hole or outside the image), then the
+    window's nine moments as sums of those rows times each offset's coefficients: loops along the row
+    that the processor runs several pixels at once, where a branch per neighbour kept each pixel scalar."""
     n_b, h, w = disp.shape
+    tol = np.float32(tolerance)
+    side = 2 * radius + 1
+    k = side * side
+    # each neighbour's coefficient in the moments s1, su, sv, suu, suv, svv (of the weights) and sd, sud, svd
+    # (of the weighted disparities), the window in reading order
+    coeff = np.empty((6, k))
+    for j in range(k):
+        u, v = float(j % side - radius), float(j // side - radius)
+        coeff[0, j], coeff[1, j], coeff[2, j] = 1.0, u, v
+        coeff[3, j], coeff[4, j], coeff[5, j] = u * u, u * v, v * v
     for job in prange(n_b * h):
         b, y = job // h, job % h
+        wt = np.empty((k, FIT_BLOCK), np.float32)
+        wr = np.empty((k, FIT_BLOCK), np.float32)
+        acc = np.empty((9, FIT_BLOCK))
         m = np.empty((3, 3))
         r = np.empty(3)
         sol = np.empty(3)
-        for x in range(w):
-            d0 = disp[b, y, x]
-            out[b, y, x] = d0
-            if not math.isfinite(d0):
-                continue
-            s1 = su = sv = suu = suv = svv = sd = sud = svd = 0.0
-            for v in range(-radius, radius + 1):
+        here = disp[b, y]
+        for x0 in range(0, w, FIT_BLOCK):
+            n = min(FIT_BLOCK, w - x0)
+            for j in range(k):
+                u, v = j % side - radius, j // side - radius
                 yy = y + v
+                wj, rj = wt[j], wr[j]
+                for i in range(n):
+                    wj[i] = 0.0
+                    rj[i] = 0.0
                 if yy < 0 or yy >= h:
                     continue
-                for u in range(-radius, radius + 1):
-                    xx = x + u
-                    if xx < 0 or xx >= w:
-                        continue
-                    rel = disp[b, yy, xx] - d0
-                    if not abs(rel) <= tolerance:  # NaN fails too
-                        continue
-                    if v == 0 and u == 0:
-                        weight = 1.0
-                    elif v > 0 or (v == 0 and u > 0):
-                        weight = weights[slot[v + radius, u + radius], b, y, x]
-                    else:  # the pair as its other pixel stored it
-                        weight = weights[slot[radius - v, radius - u], b, yy, xx]
-                    s1 += weight
-                    su += weight * u
-                    sv += weight * v
-                    suu += weight * u * u
-                    suv += weight * u * v
-                    svv += weight * v * v
-                    sd += weight * rel
-                    sud += weight * u * rel
-                    svd += weight * v * rel
-            m[0, 0], m[0, 1], m[0, 2] = suu, suv, su
-            m[1, 0], m[1, 1], m[1, 2] = suv, svv, sv
-            m[2, 0], m[2, 1], m[2, 2] = su, sv, s1
-            r[0], r[1], r[2] = sud, svd, sd
-            # the plane's value at the pixel: the third unknown, where the system has a finite solution
-            solved = solve3(m, r, sol)
-            shift = sol[2] if solved and math.isfinite(sol[0]) and math.isfinite(sol[1]) else math.nan
-            if math.isfinite(shift) and abs(shift) <= tolerance:
-                out[b, y, x] = d0 + shift
+                there = disp[b, yy]
+                lo, hi = max(x0, -u), min(x0 + n, w - u)  # where the neighbour lies inside the row
+                if v == 0 and u == 0:
+                    for x in range(lo, hi):
+                        wj[x - x0] = 1.0  # rel = 0: the pixel's own, unless a hole (the fit skips it)
+                    continue
+                forward = v > 0 or (v == 0 and u > 0)
+                # a pair's weight as the pixel first in reading order stored it
+                row = weights[slot[v + radius, u + radius], b, y] if forward else weights[slot[radius - v, radius - u], b, yy]
+                at = 0 if forward else u
+                # slices, indexed from 0: an index that may be negative would be wrapped, pixel by pixel
+                count = max(hi - lo, 0)
+                near, far, pair = here[lo:lo + count], there[lo + u:lo + u + count], row[lo + at:lo + at + count]
+                wo, ro = wj[lo - x0:lo - x0 + count], rj[lo - x0:lo - x0 + count]
+                for i in range(count):
+                    rel = far[i] - near[i]
+                    ok = abs(rel) <= tol  # NaN fails too
+                    weight = pair[i] if ok else np.float32(0.0)
+                    wo[i] = weight
+                    ro[i] = weight * rel if ok else np.float32(0.0)
+            for q in range(9):
+                for i in range(n):
+                    acc[q, i] = 0.0
+            for j in range(k):
+                wj, rj = wt[j], wr[j]
+                for q in range(6):
+                    c = coeff[q, j]
+                    if c != 0.0:
+                        for i in range(n):
+                            acc[q, i] += c * wj[i]
+                for q in range(3):
+                    c = coeff[q, j]
+                    if c != 0.0:
+                        for i in range(n):
+                            acc[6 + q, i] += c * rj[i]
+            for i in range(n):
+                x = x0 + i
+                d0 = here[x]
+                out[b, y, x] = d0
+                if not math.isfinite(d0):
+                    continue
+                m[0, 0], m[0, 1], m[0, 2] = acc[3, i], acc[4, i], acc[1, i]
+                m[1, 0], m[1, 1], m[1, 2] = acc[4, i], acc[5, i], acc[2, i]
+                m[2, 0], m[2, 1], m[2, 2] = acc[1, i], acc[2, i], acc[0, i]
+                r[0], r[1], r[2] = acc[7, i], acc[8, i], acc[6, i]
+                # the plane's value at the pixel: the third unknown, where the system has a finite solution
+                solved = solve3(m, r, sol)
+                shift = sol[2] if solved and math.isfinite(sol[0]) and math.isfinite(sol[1]) else math.nan
+                if math.isfinite(shift) and abs(shift) <= tolerance:
+                    out[b, y, x] = d0 + shift
 
 
 def _pair_slots(radius: int) -> np.ndarray:

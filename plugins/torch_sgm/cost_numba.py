@@ -53,8 +53,10 @@ def _shifted(row, d, out):
     hi = max(min(w + d, w), lo)
     for x in range(lo):
         out[x] = row[0]
-    for x in range(lo, hi):
-        out[x] = row[x - d]
+    # slices, indexed from 0: an index that may be negative would be wrapped, pixel by pixel
+    source, target = row[lo - d:hi - d], out[lo:hi]
+    for i in range(hi - lo):
+        target[i] = source[i]
     for x in range(hi, w):
         out[x] = row[w - 1]
 

@@ -55,19 +55,22 @@ def box_sums(first, second, radius, rows, out_first, out_second):
 
 @njit(cache=True, nogil=True, fastmath=True)
 def direct_box_sums(first, second, radius, cols, out_first, out_second):
-    """``box_sums`` with the rows' window sums taken tap by tap: ``cols`` is (2, W + 2r) float64 scratch,
-    or wider (its columns past W + 2r go unread). The running sums down the columns stay (float64, each
-    row's update a loop along the row); across each row a running sum waits on its own previous addition
-    at every pixel, where the taps of a small window, added along the row, take 4 or 8 pixels at once."""
+    """``box_sums`` for a small radius, each window summed tap by tap in float32 (a few numbers: none of
+    the drift of a running sum): down the columns a row at a time, then along the row. ``cols`` is
+    (2, W + 2r) float32 scratch, or wider (its columns past W + 2r go unread). Every loop runs along a row
+    with nothing carried from one pixel to the next, so the processor takes 8 pixels at once, where a
+    running sum waits on its own previous addition at every pixel."""
     h, w = first.shape
     col_a, col_b = cols[0], cols[1]
     for x in range(cols.shape[1]):  # the margins stay zero: a window cut to the image
         col_a[x] = 0.0
         col_b[x] = 0.0
     in_a, in_b = col_a[radius:radius + w], col_b[radius:radius + w]
-    for y in range(min(radius, h - 1) + 1):
-        _add(first[y], second[y], in_a, in_b)
     for y in range(h):
+        lo, hi = max(0, y - radius), min(h - 1, y + radius)
+        _copy(first[lo], second[lo], in_a, in_b)
+        for yy in range(lo + 1, hi + 1):
+            _add(first[yy], second[yy], in_a, in_b)
         row_a, row_b = out_first[y], out_second[y]
         if radius == 1:
             for x in range(w):
@@ -78,17 +81,16 @@ def direct_box_sums(first, second, radius, cols, out_first, out_second):
                 row_a[x] = col_a[x] + col_a[x + 1] + col_a[x + 2] + col_a[x + 3] + col_a[x + 4]
                 row_b[x] = col_b[x] + col_b[x + 1] + col_b[x + 2] + col_b[x + 3] + col_b[x + 4]
         else:
-            for x in range(w):
-                total_a, total_b = 0.0, 0.0
-                for i in range(2 * radius + 1):
-                    total_a += col_a[x + i]
-                    total_b += col_b[x + i]
-                row_a[x] = total_a
-                row_b[x] = total_b
-        if y + radius + 1 < h:
-            _add(first[y + radius + 1], second[y + radius + 1], in_a, in_b)
-        if y - radius >= 0:
-            _subtract(first[y - radius], second[y - radius], in_a, in_b)
+            _copy(col_a[:w], col_b[:w], row_a, row_b)
+            for i in range(1, 2 * radius + 1):
+                _add(col_a[i:i + w], col_b[i:i + w], row_a, row_b)
+
+
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _copy(a, b, to_a, to_b):
+    for x in range(to_a.shape[0]):
+        to_a[x] = a[x]
+        to_b[x] = b[x]
 
 
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
@@ -96,13 +98,6 @@ def _add(a, b, to_a, to_b):
     for x in range(to_a.shape[0]):
         to_a[x] += a[x]
         to_b[x] += b[x]
-
-
-@njit(cache=True, nogil=True, fastmath=True, inline="always")
-def _subtract(a, b, to_a, to_b):
-    for x in range(to_a.shape[0]):
-        to_a[x] -= a[x]
-        to_b[x] -= b[x]
 
 
 DIRECT_MAX_RADIUS = 2  # up to this radius ``direct_box_sums`` (measured faster at 1 and 2)
@@ -119,7 +114,7 @@ def _window_sums(first, second, radius, rows, cols, out_first, out_second):
 @njit(cache=True, nogil=True, fastmath=True)
 def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, rows, cols, out):
     """He et al.'s guided filter of the (H, W) slice ``p`` with the guide's statistics; scratch arrays
-    ip, mean_p, mean_ip (H, W), rows (2, W) and cols (2, W + 2 radius) float64; the result into
+    ip, mean_p, mean_ip (H, W), rows (2, W) float64 and cols (2, W + 2 radius) float32; the result into
     ``out``."""
     h, w = p.shape
     for y in range(h):
@@ -145,7 +140,7 @@ def _aggregate(raw, guide, wide_stats, wide_radius, detail_stats, detail_radius,
         b, k = job // n_d, job % n_d
         ip, mean_p, mean_ip = np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.float32)
         wide, rows = np.empty((h, w), np.float32), np.empty((2, w), np.float64)
-        cols = np.empty((2, w + 2 * max(wide_radius, detail_radius)), np.float64)
+        cols = np.empty((2, w + 2 * max(wide_radius, detail_radius)), np.float32)
         _guided(raw[b, k], guide[b], wide_stats[0, b], wide_stats[1, b], wide_stats[2, b], wide_radius, ip, mean_p,
                 mean_ip, rows, cols, wide)
         if detail_radius < 0:

@@ -156,10 +156,12 @@ class TestCheckedWinnersNumba:
 
 class TestUniqueMinimumNumba:
     @pytest.mark.parametrize("order", ["pixel-major", "cost volume"])
-    def test_equals_the_reference_ties_nan_and_range_ends_included(self, order):
+    @pytest.mark.parametrize("depth", [7, 21])  # fewer disparities than the eight minima taken in turn, and more
+    def test_equals_the_reference_ties_nan_and_range_ends_included(self, order, depth):
         g = torch.Generator().manual_seed(6)
-        memory = torch.randint(1, 6, (2, 5, 9, 7), generator=g).float()  # (B, H, W, D): ties and equal seconds
+        memory = torch.randint(1, 6, (2, 5, 9, depth), generator=g).float()  # (B, H, W, D): ties and equal seconds
         memory[1, 3, 4, 5] = float("nan")
+        memory[1, 2, 2, depth - 2] = float("nan")
         volume = memory.permute(0, 3, 1, 2) if order == "pixel-major" else memory.permute(0, 3, 1, 2).contiguous()
         index = volume.min(1).indices
         index[0, 0, 0], index[0, 0, 1] = 0, volume.shape[1] - 1  # winners at both ends of the range

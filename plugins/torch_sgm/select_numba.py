@@ -72,6 +72,33 @@ def checked_winners_numba(volume: torch.Tensor, disparities, lr_tolerance: float
     return disp, torch.from_numpy(index), right_disp, refine.left_right_check(disp, right_disp, lr_tolerance)
 
 
+@njit(cache=True, inline="always")
+def _least_of(values, lo, hi, least, nan):
+    """(least, nan) updated by ``values[lo:hi]``: their least, and whether one is NaN. Eight running minima
+    and NaN flags in turn, each waiting on its own previous value only (a NaN fails every comparison, so
+    it never enters a minimum)."""
+    part = values[lo:hi]
+    n = part.shape[0]
+    m0 = m1 = m2 = m3 = m4 = m5 = m6 = m7 = least
+    f0 = f1 = f2 = f3 = f4 = f5 = f6 = f7 = False
+    whole = n - n % 8
+    for d in range(0, whole, 8):
+        v0, v1, v2, v3 = part[d], part[d + 1], part[d + 2], part[d + 3]
+        v4, v5, v6, v7 = part[d + 4], part[d + 5], part[d + 6], part[d + 7]
+        m0, m1, m2, m3 = (v0 if v0 < m0 else m0), (v1 if v1 < m1 else m1), (v2 if v2 < m2 else m2), \
+            (v3 if v3 < m3 else m3)
+        m4, m5, m6, m7 = (v4 if v4 < m4 else m4), (v5 if v5 < m5 else m5), (v6 if v6 < m6 else m6), \
+            (v7 if v7 < m7 else m7)
+        f0, f1, f2, f3 = f0 | (v0 != v0), f1 | (v1 != v1), f2 | (v2 != v2), f3 | (v3 != v3)
+        f4, f5, f6, f7 = f4 | (v4 != v4), f5 | (v5 != v5), f6 | (v6 != v6), f7 | (v7 != v7)
+    for d in range(whole, n):
+        v = part[d]
+        m0 = v if v < m0 else m0
+        f0 |= v != v
+    m0, m1, m2, m3 = min(m0, m4), min(m1, m5), min(m2, m6), min(m3, m7)
+    return min(min(m0, m1), min(m2, m3)), nan | f0 | f1 | f2 | f3 | f4 | f5 | f6 | f7
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _unique_minimum(cost, index, ratio, out):
     n_b, h, w, d_count = cost.shape
@@ -79,16 +106,12 @@ def _unique_minimum(cost, index, ratio, out):
         b, y = job // h, job % h
         for x in range(w):
             i = index[b, y, x]
-            second = np.inf
-            for d in range(d_count):
-                if i - 1 <= d <= i + 1:
-                    continue
-                value = cost[b, y, x, d]
-                if value != value:  # a NaN, as torch's minimum propagates it
-                    second = np.nan
-                    break
-                second = min(second, value)
-            out[b, y, x] = second > (1.0 + ratio) * cost[b, y, x, i]
+            values = cost[b, y, x]
+            # the least cost beyond the winner's neighbours; a NaN anywhere there makes it NaN, as torch's
+            # minimum propagates it
+            second, nan = _least_of(values, 0, max(i - 1, 0), np.float32(np.inf), False)
+            second, nan = _least_of(values, min(i + 2, d_count), d_count, second, nan)
+            out[b, y, x] = not nan and second > (1.0 + ratio) * values[i]
 
 
 def unique_minimum_numba(volume: torch.Tensor, index: torch.Tensor, ratio: float) -> torch.Tensor:

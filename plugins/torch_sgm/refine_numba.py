@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import torch
 from numba import njit, prange
@@ -222,7 +223,8 @@ def _windowed(name, kernel, disp, image, radius, sigma_colour, sigma_space, last
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _weighted_median(disp, image, radius, inv_colour2, inv_space2, jump, out):
+def _weighted_median(disp, image, radius, inv_colour2, inv_space2, wanted, out):
+    """``refine.weighted_median`` of (B, H, W) ``disp`` at the (B, H, W) bool pixels ``wanted``, into ``out``."""
     n_b, h, w = disp.shape
     k = 2 * radius + 1
     for job in prange(n_b * h):
@@ -231,14 +233,8 @@ def _weighted_median(disp, image, radius, inv_colour2, inv_space2, jump, out):
         weights = np.empty(k * k)
         for x in range(w):
             out[b, y, x] = disp[b, y, x]
-            if jump > 0:  # the window's span over the pixels inside the image
-                top, bottom = -np.inf, np.inf
-                for yy in range(max(y - radius, 0), min(y + radius + 1, h)):
-                    for xx in range(max(x - radius, 0), min(x + radius + 1, w)):
-                        top = max(top, disp[b, yy, xx])
-                        bottom = min(bottom, disp[b, yy, xx])
-                if not top - bottom > jump:
-                    continue
+            if not wanted[b, y, x]:
+                continue
             n = 0
             for v in range(-radius, radius + 1):
                 yy = min(max(y + v, 0), h - 1)  # the border replicated, as the reference pads
@@ -264,7 +260,21 @@ def weighted_median_numba(disp: torch.Tensor, image: torch.Tensor, radius: int, 
     """``refine.weighted_median`` on the CPU: disp (B, H, W) float32 without holes, image (B, C, H, W)
     float32 -> (B, H, W); the same arguments and result (the weights are summed in float64, so where the
     running weight meets half the total within rounding a neighbouring value may be taken)."""
-    return _windowed("weighted_median_numba", _weighted_median, disp, image, radius, sigma_colour, sigma_space, jump)
+    return _windowed("weighted_median_numba", _weighted_median_spanning, disp, image, radius, sigma_colour, sigma_space,
+                     jump)
+
+
+def _weighted_median_spanning(disp, image, radius, inv_colour2, inv_space2, jump, out):
+    """The weighted median at the pixels whose window spans more than ``jump`` (all where ``jump`` <= 0), as
+    ``_windowed`` calls it: each window's largest and smallest value from OpenCV's dilation and erosion of the
+    map (a window cut to the image), one vectorised pass each, where taking them pixel by pixel was nine
+    tenths of this stage's time (a plate's windows mostly span less)."""
+    if jump > 0:
+        kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+        wanted = np.stack([cv2.dilate(m, kernel) - cv2.erode(m, kernel) > jump for m in disp])
+    else:
+        wanted = np.ones(disp.shape, np.bool_)
+    _weighted_median(disp, image, radius, inv_colour2, inv_space2, wanted, out)
 
 
 @njit(cache=True, nogil=True, parallel=True)

@@ -222,9 +222,9 @@ def plate_check(frame: StereoFrame, recipe) -> dict[str, Any] | None:
     found = plate_elsewhere(frame.left, frame.right, frame.calib, disparity_range(recipe.stereo, frame.calib))
     if found is None:
         return None
-    if found.unmatched:
-        return {"distance_mm": None, "swapped": False, "unmatched": True}
-    return {"distance_mm": round(found.distance_mm, 1), "swapped": found.swapped, "unmatched": False}
+    if found.unmatched or found.rows_apart:
+        return {"distance_mm": None, "swapped": False, "unmatched": bool(found.unmatched), "rows_apart": found.rows_apart}
+    return {"distance_mm": round(found.distance_mm, 1), "swapped": found.swapped, "unmatched": False, "rows_apart": 0}
 
 
 def detected(detector, frame: StereoFrame, recipe) -> list[Detection]:
@@ -409,10 +409,11 @@ def markdown(body: dict[str, Any]) -> str:
         flagged = checked["flagged"]
         swapped = sum(1 for f in flagged if f["swapped"])
         unmatched = sum(1 for f in flagged if f.get("unmatched"))
+        rows = sum(1 for f in flagged if f.get("rows_apart"))
         lines += ["", f"The check of a part without defects (each frame as if the detector found nothing): "
-                  f"{len(flagged) - swapped - unmatched} of {checked['frames']} frames show the plate outside the "
-                  f"working distance, {swapped} only with the eyes swapped, {unmatched} with images that match "
-                  f"nowhere (such a part is an ERROR)."]
+                  f"{len(flagged) - swapped - unmatched - rows} of {checked['frames']} frames show the plate outside "
+                  f"the working distance, {swapped} only with the eyes swapped, {rows} only with the eyes' rows apart, "
+                  f"{unmatched} with images that match nowhere (such a part is an ERROR)."]
     if body.get("seconds_per_defect") is not None:
         lines += ["", f"Depth per defect ({body['method']}): {1000 * body['seconds_per_defect']:.1f} ms on this machine."]
     return "\n".join(lines) + "\n"

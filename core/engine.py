@@ -380,9 +380,10 @@ def inspect_frame(item: StereoFrame | FrameError, part_id: str, pipeline: Pipeli
 
 
 def _places_the_plate(m: DefectMeasurement) -> bool:
-    """Whether a defect's measurement says where its plate is: measured, or seen outside the searched range or
-    with the eyes swapped around its box."""
-    return m.deviation_mm is not None or m.surface_elsewhere_mm is not None or m.eyes_swapped
+    """Whether a defect's measurement says where its plate is: measured, or seen outside the searched range,
+    with the eyes swapped or with their rows apart around its box."""
+    return (m.deviation_mm is not None or m.surface_elsewhere_mm is not None or m.eyes_swapped
+            or m.rows_apart_px is not None)
 
 
 def _elsewhere_outcome(item: StereoFrame, part_id: str, plate: PlateElsewhere, searched: tuple[float, float],
@@ -391,7 +392,7 @@ def _elsewhere_outcome(item: StereoFrame, part_id: str, plate: PlateElsewhere, s
     """The ERROR part of a frame whose images show the plate ``plate`` says, not where the search looked: one
     without defects, or whose ``measurements`` (judged ``verdict``, ``per_defect``) placed it nowhere."""
     said = "no defect could be measured, and" if measurements else "no defect found, but"
-    why = ("a part whose images cannot be checked does not pass" if plate.unmatched else
+    why = ("a part whose images cannot be checked does not pass" if plate.unmatched or plate.rows_apart else
            "a plate inspected where the recipe does not expect it does not pass")
     message = f"frame {item.frame_id}: {said} {plate.describe(searched)}; {why}"
     reasons = [message, *(verdict.reasons if verdict is not None else [])]
@@ -424,22 +425,27 @@ class SurfaceElsewhere:
     or, for a part without defects, anywhere in the frame (``core.plate_view``): at disparities outside its range
     (``DefectMeasurement.surface_elsewhere_mm``: a plate outside the working distance), only with the left and
     right images swapped (``eyes_swapped``: a camera delivering its eyes the other way round), or nowhere, the
-    two images not showing one scene (``PlateElsewhere.unmatched``). A part with a measured deviation ends such
-    a run."""
+    two images not showing one scene (``PlateElsewhere.unmatched``); and parts whose images show the eyes' rows
+    further apart than rectification leaves them (``rows_apart_px``: a calibration that is not this camera's).
+    A part with a measured deviation ends such a run."""
 
     def __init__(self, stereo: StereoSection):
         self.stereo = stereo
-        self.runs = {"range": 0, "swapped": 0, "unmatched": 0}
+        self.runs = {"range": 0, "swapped": 0, "unmatched": 0, "rectification": 0}
 
     def alarms(self, part: PartResult, plate: PlateElsewhere | None = None) -> list[Alarm]:
         """The alarm of each cause whose run reaches CAMERA_LOST_AFTER parts with this one (once per run);
         ``plate``: where the images of a part without defects show the plate, if elsewhere."""
         found = [m.surface_elsewhere_mm for m in part.measurements if m.surface_elsewhere_mm is not None]
-        if plate is not None and not plate.swapped and not plate.unmatched:
+        if plate is not None and not plate.swapped and not plate.unmatched and not plate.rows_apart:
             found.append(plate.distance_mm)
         seen = {"range": bool(found),
                 "swapped": any(m.eyes_swapped for m in part.measurements) or (plate is not None and plate.swapped),
                 "unmatched": plate is not None and bool(plate.unmatched)}
+        rows = [m.rows_apart_px for m in part.measurements if m.rows_apart_px is not None]
+        if plate is not None and plate.rows_apart:
+            rows.append(float(plate.rows_apart))
+        seen["rectification"] = bool(rows)
         measured = any(m.deviation_mm is not None for m in part.measurements)
         for cause, now in seen.items():
             if now:
@@ -461,6 +467,9 @@ class SurfaceElsewhere:
             "unmatched": (f"images that do not match: {CAMERA_LOST_AFTER} parts in a row whose left and right images "
                           f"match nowhere (last: frame {part.frame_id})",
                           "the camera delivers both eyes' images of one moment, whole"),
+            "rectification": (f"camera not rectified: {CAMERA_LOST_AFTER} parts in a row whose images show the right "
+                              f"eye's rows {float(np.median(rows or [np.nan])):+.1f} px from the left eye's (last: "
+                              f"frame {part.frame_id})", "the camera's own calibration file is in the recipe"),
         }
         return [Alarm("depth", f"{said}; they cannot be inspected and are rejected as ERROR until {until}",
                       time.time(), part.part_id, cause)

@@ -33,6 +33,8 @@ TOLERANCE_PX = 1.0  # a surface this close to the searched range counts as in it
 # grey levels of high-passed detail, in both images, above which a patch of one scene must match: sensor noise is
 # about 1, the faintest plates measured show 3-4, and each of their frames matched in most patches
 TEXTURED = 3.0
+MAX_ROWS_APART = 8  # rows between the eyes tried where the patches match nowhere with them together (BAND_PX above and
+# below each patch hold them)
 
 
 @dataclass(frozen=True)
@@ -45,9 +47,15 @@ class PlateElsewhere:
     distance_mm: float
     swapped: bool = False
     unmatched: int = 0
+    rows_apart: int = 0  # the patches match within the range only with the right eye's rows this far from the left's
 
     def describe(self, searched: tuple[float, float]) -> str:
         lo, hi = searched
+        if self.rows_apart:
+            return (f"the left and right images match within the {lo:.0f}-{hi:.0f} px the stereo search covers only with "
+                    f"the right eye's rows {self.rows_apart:+d} px from the left eye's, where a rectified camera leaves "
+                    f"them within a pixel or two: the camera's calibration file is not this camera's, or the camera has "
+                    f"changed since it was calibrated")
         if self.unmatched:
             return (f"the left and right images match at no shift in any of {self.unmatched} textured patches: they do "
                     f"not show one scene (a damaged image, or one eye's image from another moment)")
@@ -110,7 +118,37 @@ def plate_elsewhere(left: np.ndarray, right: np.ndarray, calib: Calibration,
         d = float(np.median(outside))
         return PlateElsewhere(d, _distance_mm(d, calib))
     if unmatched >= ENOUGH_PATCHES:
+        rows = _rows_apart(patches, within)
+        if rows is not None:
+            return PlateElsewhere(math.nan, math.nan, rows_apart=rows)
         return PlateElsewhere(math.nan, math.nan, unmatched=unmatched)
+    return None
+
+
+def _rows_apart(patches: "_Patches", within: np.ndarray) -> int | None:
+    """The whole rows (1 to MAX_ROWS_APART either way) by which the right eye's rows would have to lie from the
+    left eye's for ENOUGH_PATCHES textured patches to match within the searched shifts, where none did with the
+    rows together; None where no such offset is shared. A camera whose calibration file is another camera's
+    looks so, where images of two moments match at no offset."""
+    votes: dict[int, int] = {}
+    for left, right, u, v in patches:
+        if not _textured(left, right, u, v):
+            continue
+        best, at = MIN_PEAK, None
+        for rows in range(-MAX_ROWS_APART, MAX_ROWS_APART + 1):
+            keep = (v + rows >= 0) & (v + rows < right.shape[0])
+            if rows == 0 or keep.sum() < keep.size // 2:
+                continue
+            # the right band read ``rows`` further down: the left band and the pixels cut to the rows both have
+            top, bottom = max(0, -rows), right.shape[0] - max(0, rows)
+            r = float(np.max(correlations(left[top:bottom], right[top + rows:bottom + rows], u[keep],
+                                          v[keep] - top, within)))
+            if r >= best:
+                best, at = r, rows
+        if at is not None:
+            votes[at] = votes.get(at, 0) + 1
+            if votes[at] == ENOUGH_PATCHES:
+                return at
     return None
 
 

@@ -121,6 +121,10 @@ class DefectMeasurement:
     # the images show that surface at the searched disparities only with the left and right images swapped
     # (a camera's eyes wired or configured the other way round); the engine alarms when that persists
     eyes_swapped: bool = False
+    # the right eye's rows this far (px) from the left's around the box, where the surface fit found them further
+    # apart than a rectified camera leaves them (its calibration is not this camera's); the engine alarms when
+    # that persists
+    rows_apart_px: float | None = None
 
     def quantity(self, name: str) -> float | None:
         if name == "confidence":
@@ -197,8 +201,9 @@ class Alarm:
     camera handed over its last images again), image (frames in a row whose images could not show a
     defect), store (the results store could not be written), images (the parts' annotated images could not
     be saved), range (plates in a row outside the stereo search range), swapped (parts in a row whose
-    images match only with the left and right exchanged), behind (a free-running camera's frames went
-    unread while the loop was busy)."""
+    images match only with the left and right exchanged), unmatched (parts in a row whose images match
+    nowhere), rectification (parts in a row whose images show the eyes' rows further apart than rectification
+    leaves them), behind (a free-running camera's frames went unread while the loop was busy)."""
 
     source: str
     message: str

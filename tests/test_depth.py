@@ -275,6 +275,23 @@ def test_a_fit_that_settles_outside_the_searched_range_is_no_measurement():
     assert held == _surface(left, right, disparity) and held.deviation_mm > 1.0 and held.note == ""
 
 
+@pytest.mark.parametrize("rows", [3, -2])
+def test_eyes_whose_rows_lie_further_apart_than_rectification_leaves_them_are_named(rows):
+    """A calibration file that is not the camera's leaves the right eye's rows whole pixels off the left's. The
+    fit measures that offset (``e``) to a few hundredths of a pixel, but the model is one of a rectified pair:
+    beyond RECTIFIED_WITHIN_PX no deviation, and the note and ``rows_apart_px`` say by how much."""
+    left, right, disparity = render(CALIB, 400.0, 3.0, [Pit(160, 96, 25.0, 2.0)])
+    m = _surface(left, np.roll(right, rows, axis=0), disparity)
+    assert m.deviation_mm is None and m.deviation_sigma_mm is None and m.method == "surface"
+    assert m.rows_apart_px == pytest.approx(rows, abs=0.05)
+    assert f"the right eye's rows lie {rows:+.1f} px from the left eye's around the box, where a rectified camera " \
+           f"leaves them within 1.5 px" in m.note, m.note
+    # a row apart: within what rectification leaves, measured as the pair without it (the fit models the offset)
+    one = _surface(left, np.roll(right, 1, axis=0), disparity)
+    assert one.rows_apart_px is None and one.deviation_mm == pytest.approx(_surface(left, right, disparity).deviation_mm,
+                                                                           abs=0.1)
+
+
 def test_a_plate_beyond_the_search_near_the_left_edge_is_named_too():
     """Near the left edge the backend's wrong 500 mm puts the region out of the right camera's view (at 84 px
     of disparity; the plate's 60 px would show it): that is said, and so is where the images put the plate,

@@ -235,6 +235,23 @@ def test_a_camera_with_its_eyes_swapped_costs_errors_and_a_run_of_them_one_alarm
     assert any("delivers its right eye's image as the left" in h for h in hints)
 
 
+def test_a_camera_out_of_rectification_costs_errors_and_a_run_of_them_one_alarm(tmp_path, plane_sequence, registry):
+    """The right eye's images two rows below the left's, as a calibration file of another camera leaves them: each
+    part with a defect is an ERROR saying so, and three in a row one alarm."""
+    info = plane_sequence([0.0, 6.0, 0.0, 0.0])
+    for image in sorted((info["folder"] / "right").iterdir()):
+        cv2.imwrite(str(image), np.roll(cv2.imread(str(image)), 2, axis=0))
+    path = write_recipe(tmp_path / "r.yaml", RECIPE.format(box=info["box"], output="log"))
+    loaded = load_recipe(path, ["stereo.working_distance_mm=[350, 500]"], registry=registry)
+    seen = []
+    summary = engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.ERROR] * 4
+    assert all(o.part.measurements[0].rows_apart_px == pytest.approx(2.0, abs=0.1) for o in seen)
+    assert "the right eye's rows lie +2.0 px from the left eye's" in seen[0].part.verdict.reasons[0]
+    (alarm,) = summary.alarms
+    assert alarm.cause == "rectification" and alarm.part_id == seen[2].part.part_id
+
+
 def _no_defects_recipe(tmp_path, info, working_distance):
     text = RECIPE.format(box=info["box"], output="log")
     text = re.sub(r"    regions:\n      - \{name: pit, box: [^}]*\}\n", "    regions: []\n", text)
@@ -266,6 +283,24 @@ def test_plates_without_defects_seen_where_no_search_looks_are_errors_and_a_run_
     (alarm,) = summary.alarms
     assert alarm.cause == ("swapped" if swapped else "range") and alarm.part_id == seen[2].part.part_id
     assert "they cannot be inspected and are rejected as ERROR" in alarm.message
+
+
+def test_plates_without_defects_whose_eyes_rows_lie_apart_are_errors_and_a_run_of_them_one_alarm(
+        tmp_path, plane_sequence):
+    info = plane_sequence([0.0] * 4)
+    for image in sorted((info["folder"] / "right").iterdir()):  # another camera's calibration: 4 rows off
+        cv2.imwrite(str(image), np.roll(cv2.imread(str(image)), -4, axis=0))
+    loaded = _no_defects_recipe(tmp_path, info, "[300, 600]")
+    seen = []
+    summary = engine.run(loaded, registry=Registry(make_manager((stereo_inspect_fixed_roi,))), on_part=seen.append,
+                         device="cpu")
+    assert [o.part.verdict.status for o in seen] == [Status.ERROR] * 4
+    assert all(o.plate is not None and o.plate.rows_apart == -4 for o in seen)
+    assert "only with the right eye's rows -4 px from the left eye's" in seen[0].part.error
+    assert "cannot be checked does not pass" in seen[0].part.error
+    (alarm,) = summary.alarms
+    assert alarm.cause == "rectification" and alarm.part_id == seen[2].part.part_id
+    assert "the right eye's rows -4.0 px from the left eye's" in alarm.message
 
 
 def test_plates_without_defects_whose_images_match_nowhere_are_errors_and_a_run_of_them_one_alarm(
@@ -540,13 +575,13 @@ def test_a_detection_outside_the_image_is_an_error_naming_it_never_a_pass(tmp_pa
 
 def _part(index, *measured):
     """A part with one defect per value of ``measured``: 'far' (the images show the plate outside the search),
-    'swapped' (they show it only with the eyes exchanged), 'ok' (a deviation measured) or 'none' (no deviation,
-    the plate nowhere else)."""
+    'swapped' (they show it only with the eyes exchanged), 'rows' (the eyes' rows 2.5 px apart), 'ok' (a deviation
+    measured) or 'none' (no deviation, the plate nowhere else)."""
     from core.types import DefectMeasurement, Detection, PartResult, Verdict
 
     ms = [DefectMeasurement(Detection("pit", 0.9, (0, 0, 9, 9)), None if m != "ok" else 400.0,
                             0.5 if m == "ok" else None, 1.0, None, None, surface_elsewhere_mm=700.0 if m == "far" else None,
-                            eyes_swapped=m == "swapped")
+                            eyes_swapped=m == "swapped", rows_apart_px=2.5 if m == "rows" else None)
           for m in measured]
     return PartResult(f"P{index}", f"{index:06d}", index, 0.0, Verdict(Status.ERROR), ms)
 
@@ -576,6 +611,23 @@ def test_eyes_swapped_alarm_once_per_run_of_them_apart_from_the_range_s():
     assert alarms[3].message.startswith("left and right images swapped: 3 parts in a row whose images show the plate "
                                         "within stereo.working_distance_mm (350-500 mm) only with "
                                         "the camera's left and right images exchanged (last: frame 000003)")
+
+
+def test_a_camera_out_of_rectification_alarms_once_per_run_of_it():
+    from core.commands.inspection import alarm_hints
+    from core.recipe.schema import StereoSection
+
+    watch = engine.SurfaceElsewhere(StereoSection(working_distance_mm=(350.0, 500.0)))
+    alarms = [watch.alarms(_part(i, *m)) for i, m in enumerate([
+        ("rows",), (), ("rows", "rows"), ("rows",), ("rows",), ("ok",), ("rows",), ("rows",), ("rows",)])]
+    # a part without defects neither counts nor ends the run; one with a measured defect ends it
+    assert [(i, [a.cause for a in said]) for i, said in enumerate(alarms) if said] == [(3, ["rectification"]),
+                                                                                       (8, ["rectification"])]
+    alarm = alarms[3][0]
+    assert alarm.message == ("camera not rectified: 3 parts in a row whose images show the right eye's rows +2.5 px "
+                             "from the left eye's (last: frame 000003); they cannot be inspected and are rejected as "
+                             "ERROR until the camera's own calibration file is in the recipe")
+    assert any("camera.settings.calibration is this camera's file" in h for h in alarm_hints([alarm], None, False))
 
 
 def test_both_runs_reaching_their_alarm_on_one_part_raise_both():

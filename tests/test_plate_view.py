@@ -94,13 +94,26 @@ class TestPlateElsewhere:
         assert found is not None and found.unmatched >= 3 and not found.swapped and math.isnan(found.distance_mm)
         assert "do not show one scene" in found.describe(searched(300, 600))
 
-    @pytest.mark.parametrize("rows, in_place", [(1, True), (3, False)])
-    def test_eyes_rows_apart_match_until_their_texture_no_longer_overlaps(self, plate_at_400, rows, in_place):
-        # a rectification that does not fit the camera: this fine texture still matches a row off, and 3 rows off
-        # nowhere
+    @pytest.mark.parametrize("rows, in_place", [(1, True), (3, False), (-5, False), (8, False)])
+    def test_eyes_rows_apart_are_said_to_be_so_where_their_texture_no_longer_overlaps(self, plate_at_400, rows,
+                                                                                     in_place):
+        # a rectification that does not fit the camera: this fine texture still matches a row off; further off it
+        # matches nowhere with the rows together, and within the range with them as far apart as the camera has them
         left, right = plate_at_400
         found = plate_elsewhere(left, np.roll(right, rows, axis=0), CALIB, searched(300, 600))
-        assert (found is None) if in_place else (found is not None and found.unmatched >= 3)
+        if in_place:
+            assert found is None
+            return
+        assert found is not None and found.rows_apart == rows and not found.unmatched and not found.swapped
+        assert found.describe(searched(300, 600)).startswith(
+            f"the left and right images match within the 70-140 px the stereo search covers only with the right eye's "
+            f"rows {rows:+d} px from the left eye's")
+
+    def test_rows_further_apart_than_tried_or_another_scene_stay_unmatched(self, plate_at_400):
+        left, right = plate_at_400
+        for other in (np.roll(right, 12, axis=0), render(CALIB, 400.0, seed=7)[1]):
+            found = plate_elsewhere(left, other, CALIB, searched(300, 600))
+            assert found is not None and found.unmatched >= 3 and not found.rows_apart
 
     def test_a_frame_too_small_to_tell_is_not_judged(self, plate_at_400):
         left, right = plate_at_400

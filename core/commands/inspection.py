@@ -242,6 +242,10 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
     if "unmatched" in causes:
         lines.append("  the camera's left and right images show no common scene: check that both eyes are exposed "
                      "together and that their images reach the computer whole (the camera's cable, its driver)")
+    if "rectification" in causes:
+        lines.append("  the camera's images are not rectified as its calibration file says (their rows lie apart by "
+                     "the amount the alarm gives): check that camera.settings.calibration is this camera's file (its "
+                     "serial number), or have the camera recalibrated if it was knocked or opened")
     if "store" in causes:
         lines.append("  the results store could not be written (a full disk, its permissions, a removed drive): the "
                      "parts decided until then went to the outputs unrecorded; free the disk and start again")

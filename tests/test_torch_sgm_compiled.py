@@ -112,7 +112,8 @@ class TestDirectBoxSums:
         aggregate_numba.box_sums(first, second, radius, np.empty((2, shape[1])), *want)
         got = [np.full(shape, np.nan, np.float32) for _ in range(2)]
         # scratch wider than needed, and not zeroed: the margins are its own business
-        aggregate_numba.direct_box_sums(first, second, radius, np.full((2, shape[1] + 2 * radius + 3), 7.0), *got)
+        aggregate_numba.direct_box_sums(first, second, radius, np.full((2, shape[1] + 2 * radius + 3), 7.0, np.float32),
+                                        *got)
         for g, w in zip(got, want):
             np.testing.assert_allclose(g, w, rtol=1e-6, atol=1e-6)
         # a corner's window is cut to the image: (r + 1)^2 pixels where both sides allow

@@ -111,7 +111,7 @@ def _window_sums(first, second, radius, rows, cols, out_first, out_second):
         box_sums(first, second, radius, rows, out_first, out_second)
 
 
-@njit(cache=True, nogil=True, fastmath=True)
+@njit(cache=True, nogil=True)
 def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, rows, cols, out):
     """He et al.'s guided filter of the (H, W) slice ``p`` with the guide's statistics; scratch arrays
     ip, mean_p, mean_ip (H, W), rows (2, W) float64 and cols (2, W + 2 radius) float32; the result into
@@ -133,7 +133,7 @@ def _guided(p, guide, mean_i, inv_var, inv_count, radius, ip, mean_p, mean_ip, r
             out[y, x] = (ip[y, x] * guide[y, x] + out[y, x]) * inv_count[y, x]
 
 
-@njit(cache=True, nogil=True, parallel=True, fastmath=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _aggregate(raw, guide, wide_stats, wide_radius, detail_stats, detail_radius, weight, out):
     n_b, n_d, h, w = raw.shape
     for job in prange(n_b * n_d):

@@ -185,7 +185,7 @@ kernels = {f"{m.__name__}.{name}": k for m in (aggregate_numba, cost_numba, plan
                                                   sgm_numba, linalg_numba)
            for name, k in vars(m).items() if isinstance(k, numba.core.registry.CPUDispatcher)}
 # called only from other kernels and compiled into them: the inlined ones, and these
-inner = {"box_sums", "_guided"}
+inner = {"box_sums", "direct_box_sums", "_window_sums", "_guided"}
 print(sorted(n for n, k in kernels.items() if not k.signatures and k.targetoptions.get("inline") != "always"
              and n.rsplit(".", 1)[1] not in inner), len(kernels))
 """

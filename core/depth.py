@@ -430,7 +430,7 @@ def _settled_outside(fit: surface_fit.SurfaceFit, calib: Calibration, searched: 
     """Why a fit's surfaces (the ring's at the region's centre, the defect's) are none to measure on where one
     lies outside ``searched`` (lo, hi: px without doffs) by more than a pixel, else None. The search range is
     where the recipe says the plate is; a fit that settles beyond it has matched a texture at another shift
-    (near the left edge, starting from the backend's hole filling, a ring fitted at 832 mm on a plate at 437 mm),
+    (near the left edge, starting from the backend's hole filling, a ring fitted at 831 mm on a plate at 437 mm),
     not a plate the backend missed."""
     if searched is None:
         return None

@@ -258,7 +258,7 @@ def test_a_plate_beyond_the_searched_range_is_named_where_it_lies(backend_says):
 
 def test_a_fit_that_settles_outside_the_searched_range_is_no_measurement():
     """The search range is where the recipe says the plate is: a surface fitted beyond it is a texture matched
-    at another shift (a faint plate's ring near the left edge, fitted from the backend's hole filling at 832 mm
+    at another shift (a faint plate's ring near the left edge, fitted from the backend's hole filling at 831 mm
     on a plate at 437 mm, read a 0.79 mm scratch as a 221 mm bump). Here the backend's map is right and the fit
     settles at the plate's 105 px, which a range of 40-90 px does not hold."""
     left, right, disparity = render(CALIB, 400.0, 3.0, [Pit(160, 96, 25.0, 2.0)])

@@ -142,7 +142,15 @@ def _ring_window(shape, box, gap, width) -> tuple[tuple[int, int], np.ndarray]:
 
 SCORED_POINTS = 1024
 INTERIOR_MARGIN_PX = 1.0  # a region's interior: its pixels at least this far inside its border
-RECTIFIED_WITHIN_PX = 1.5  # the eyes' rows: a ZED's factory calibration leaves a few tenths of a pixel
+# the eyes' rows at WVGA (672 columns): a ZED's factory calibration leaves a few tenths of a pixel. An error of the
+# calibration is an angle, so a wider image of the same camera has its rows proportionally further apart
+RECTIFIED_WITHIN_PX = 1.5
+RECTIFIED_AT_WIDTH = 672
+
+
+def rectified_within_px(width: int) -> float:
+    """How far apart (px) the eyes' rows may lie in a rectified image ``width`` columns wide."""
+    return RECTIFIED_WITHIN_PX * max(1.0, width / RECTIFIED_AT_WIDTH)
 SCAN_MARGIN_PX = 32  # rows above and below the ring high-passed with it: beyond 3 of the high-pass's sigma
 
 
@@ -363,12 +371,12 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     settled = _settled_outside(fit, calib, searched)
     if settled is not None:
         return _outside_search(_unavailable(reference, settled), pair, ring_all, calib, searched)
-    rows = float(fit.params[surface_fit.E])
-    if abs(rows) > RECTIFIED_WITHIN_PX:
+    rows, limit = float(fit.params[surface_fit.E]), rectified_within_px(disparity.shape[1])
+    if abs(rows) > limit:
         # what the fit measured holds for a rectified pair; beyond that, a defect on faint texture was read at
-        # 0.01 +- 0.37 mm for a true 1.62 mm (docs/depth-conditions.md)
+        # 0.01 +- 0.37 mm for a true 1.62 mm (docs/research-log.md)
         return replace(_unavailable(reference, f"the right eye's rows lie {rows:+.1f} px from the left eye's around the "
-                                    f"box, where a rectified camera leaves them within {RECTIFIED_WITHIN_PX:g} px: "
+                                    f"box, where a rectified camera leaves them within {limit:.1f} px: "
                                     f"the camera's calibration file is not this camera's, or the camera has changed "
                                     f"since it was calibrated"), rows_apart_px=rows)
     # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a

@@ -279,7 +279,7 @@ def test_a_fit_that_settles_outside_the_searched_range_is_no_measurement():
 def test_eyes_whose_rows_lie_further_apart_than_rectification_leaves_them_are_named(rows):
     """A calibration file that is not the camera's leaves the right eye's rows whole pixels off the left's. The
     fit measures that offset (``e``) to a few hundredths of a pixel, but the model is one of a rectified pair:
-    beyond RECTIFIED_WITHIN_PX no deviation, and the note and ``rows_apart_px`` say by how much."""
+    beyond ``rectified_within_px`` no deviation, and the note and ``rows_apart_px`` say by how much."""
     left, right, disparity = render(CALIB, 400.0, 3.0, [Pit(160, 96, 25.0, 2.0)])
     m = _surface(left, np.roll(right, rows, axis=0), disparity)
     assert m.deviation_mm is None and m.deviation_sigma_mm is None and m.method == "surface"
@@ -290,6 +290,14 @@ def test_eyes_whose_rows_lie_further_apart_than_rectification_leaves_them_are_na
     one = _surface(left, np.roll(right, 1, axis=0), disparity)
     assert one.rows_apart_px is None and one.deviation_mm == pytest.approx(_surface(left, right, disparity).deviation_mm,
                                                                            abs=0.1)
+
+
+@pytest.mark.parametrize("width, within", [(320, 1.5), (672, 1.5), (1280, 1.5 * 1280 / 672), (2208, 1.5 * 2208 / 672)])
+def test_the_rows_a_rectified_camera_leaves_apart_grow_with_its_resolution(width, within):
+    # a calibration's error is an angle: at 2K the same camera's rows lie 3.3 times as many pixels apart as at WVGA
+    from core.depth import rectified_within_px
+
+    assert rectified_within_px(width) == pytest.approx(within)
 
 
 def test_a_plate_beyond_the_search_near_the_left_edge_is_named_too():

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from plugins.torch_sgm import (aggregate, aggregate_numba, cost, cost_numba, planes, planes_numba, refine, refine_numba,
-                               select, select_numba, sgm, sgm_numba)
+from plugins.torch_sgm import (aggregate, aggregate_numba, align, align_numba, cost, cost_numba, planes, planes_numba,
+                               refine, refine_numba, select, select_numba, sgm, sgm_numba)
 from plugins.torch_sgm.params import TorchSGMParams
 from plugins.torch_sgm.pipeline import bgr_to_tensor, compute_disparity
 from plugins.torch_sgm.synthetic import layered_scene
@@ -119,6 +119,39 @@ class TestDirectBoxSums:
         # a corner's window is cut to the image: (r + 1)^2 pixels where both sides allow
         if min(shape) > radius:
             assert got[0][0, 0] == pytest.approx(first[:radius + 1, :radius + 1].sum(), rel=1e-6)
+
+
+class TestResampleRowsNumba:
+    def test_equals_the_reference(self):
+        g = torch.Generator().manual_seed(4)
+        image = torch.rand(2, 3, 30, 41, generator=g)
+        ys, xs = torch.meshgrid(torch.arange(30.0), torch.arange(41.0), indexing="ij")
+        field = torch.stack([0.3 + 0.5 * xs / 41 - 0.4 * ys / 30, -1.2 + 0.1 * xs * ys / 1230])
+        field[0, :4, :6] = 0.0  # whole rows: the tap at the sample itself
+        field[1, -3:] = 2.5  # past the bottom border: rows clamped
+        out = align_numba.resample_rows_numba(image, field)
+        assert torch.allclose(out, align.resample_rows(image, field), atol=1e-5)
+        assert torch.equal(out[0, :, :4, :6], image[0, :, :4, :6])
+
+    def test_refuses_what_it_cannot_compute(self):
+        with pytest.raises(ValueError, match="float32 CPU image"):
+            align_numba.resample_rows_numba(torch.rand(1, 3, 4, 5).double(), torch.zeros(1, 4, 5))
+        with pytest.raises(ValueError, match=r"\(B, H, W\) offsets"):
+            align_numba.resample_rows_numba(torch.rand(1, 3, 4, 5), torch.zeros(1, 4, 6))
+
+
+class TestVerticalOffsetsNumba:
+    def test_equals_the_reference(self):
+        left, right, gt, _ = layered_scene(48, 80, seed=5)
+        l_t, r_t = bgr_to_tensor(left, torch.device("cpu")), bgr_to_tensor(right, torch.device("cpu"))
+        r_t = align.resample_rows(r_t, torch.full((1, 48, 80), 0.35))  # rows to find
+        first = torch.from_numpy(gt).float()[None].round()  # a first disparity a pixel off at most
+        ref_dy, ref_eigen = align.vertical_offsets(l_t, r_t, first, 3)
+        dy, eigen = align_numba.vertical_offsets_numba(l_t, r_t, first, 3)
+        assert torch.equal(eigen, ref_eigen)
+        assert (dy - ref_dy).abs().max() < 1e-3  # window sums in float64 against torch's float32 cumulative sums
+        textured = ref_eigen > ref_eigen.median()
+        assert dy[textured].median() == pytest.approx(-0.35, abs=0.1)  # and they found the offset
 
 
 class TestCheckedWinnersNumba:

@@ -178,11 +178,11 @@ def test_warm_up_reaches_every_compiled_kernel():
     script = """
 import numba
 from core.contracts import PluginContext
-from plugins.torch_sgm import aggregate_numba, cost_numba, planes_numba, refine_numba, select_numba, sgm_numba, linalg_numba
+from plugins.torch_sgm import aggregate_numba, align_numba, cost_numba, planes_numba, refine_numba, select_numba, sgm_numba, linalg_numba
 from plugins.torch_sgm.plugin import _factory
 _factory({}, PluginContext(device="cpu")).warm_up()
-kernels = {f"{m.__name__}.{name}": k for m in (aggregate_numba, cost_numba, planes_numba, refine_numba, select_numba,
-                                                  sgm_numba, linalg_numba)
+kernels = {f"{m.__name__}.{name}": k for m in (aggregate_numba, align_numba, cost_numba, planes_numba, refine_numba,
+                                                  select_numba, sgm_numba, linalg_numba)
            for name, k in vars(m).items() if isinstance(k, numba.core.registry.CPUDispatcher)}
 # called only from other kernels and compiled into them: the inlined ones, and these
 inner = {"box_sums", "direct_box_sums", "_window_sums", "_guided"}

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import torch
 
-from plugins.torch_sgm import (aggregate, aggregate_numba, align, cost, cost_numba, planes, planes_numba, refine,
-                               refine_numba, search, select, select_numba, sgm, sgm_numba, sgm_triton)
+from plugins.torch_sgm import (aggregate, aggregate_numba, align, align_numba, cost, cost_numba, planes, planes_numba,
+                               refine, refine_numba, search, select, select_numba, sgm, sgm_numba, sgm_triton)
 
 
 from plugins.torch_sgm.params import IMPROVED, TorchSGMParams  # noqa: F401  (re-exported)
@@ -156,12 +156,15 @@ def aligned_right(left: torch.Tensor, right: torch.Tensor, coarse: tuple[torch.T
     """``align: affine`` or ``projective``: the right image resampled along its columns by the field of
     vertical offsets measured against the left image at the coarse pass's disparities (see ``align``)."""
     h, w = left.shape[-2:]
+    fast = compiled(p, left, right)
     first, matched = align.upsample_disparity(*coarse, p.coarse_factor, (h, w))
-    dy, min_eigen = align.vertical_offsets(left, right, first, p.align_radius)
+    dy, min_eigen = (align_numba.vertical_offsets_numba if fast else align.vertical_offsets)(left, right, first,
+                                                                                             p.align_radius)
     coeffs = align.fit_row_field(dy, align.reliable_offsets(dy, min_eigen, matched), p.align)
     if not coeffs.any():
         return right
-    return align.quantise(align.resample_rows(right, align.row_field(coeffs, h, w, p.align)))
+    resample = align_numba.resample_rows_numba if fast else align.resample_rows
+    return align.quantise(resample(right, align.row_field(coeffs, h, w, p.align)))
 
 
 def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,
@@ -271,8 +274,9 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
 
 def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
     """Whether the stages compiled with numba (the cost and its aggregation, SGM, the out-of-view check, the
-    plane fits of the slanted-plane filling, the local plane fit, the weighted median) and the edges from
-    OpenCV's filters stand in for the torch ones: the fast implementation, on float32 CPU tensors."""
+    plane fits of the slanted-plane filling, the local plane fit, the weighted median, the vertical alignment's
+    offsets and resampling) and the edges from OpenCV's filters stand in for the torch ones: the fast
+    implementation, on float32 CPU tensors."""
     return p.implementation == "fast" and all(sgm_numba.available(t) for t in tensors)
 
 

@@ -1,7 +1,8 @@
-"""``align.resample_rows`` compiled for the CPU with numba: each pixel's Lanczos taps along its column in one
-pass, where the torch version builds a weight map, a gather and a sum per tap over the whole image (a third of
-the vertical alignment's time on a WVGA frame). ``align.resample_rows`` stays the reference the tests hold
-this one to.
+"""The vertical alignment's two whole-image stages compiled for the CPU with numba: ``align.vertical_offsets``'
+Lucas-Kanade iterations (a bilinear sample, two window sums and an update of every pixel each, where torch
+made a dozen whole-image passes) and ``align.resample_rows`` (each pixel's Lanczos taps along its column in
+one pass, where torch built a weight map, a gather and a sum per tap). The ``align`` functions stay the
+references the tests hold these to.
 """
 from __future__ import annotations
 
@@ -12,10 +13,12 @@ import torch
 from numba import njit, prange
 
 from plugins.torch_sgm import align, cost, sgm_numba
+from plugins.torch_sgm.aggregate_numba import box_sums
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _resample_rows(image, field, lobes, out):
+    """``align.resample_rows`` of the (B, C, H, W) image by the (B, H, W) field into ``out``."""
     n_b, n_c, h, w = image.shape
     third = math.pi / lobes
     taps = 2 * lobes
@@ -93,7 +96,9 @@ def _sample_error(grey_l, grey_r, gx, gy, disp, dx, dy, gxe, gye):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _step(p, q, a, bxy, c, det, inv_count, max_offset, dx, dy):
+def _lk_step(p, q, a, bxy, c, det, inv_count, max_offset, dx, dy):
+    """One Lucas-Kanade update of (dx, dy) from the window sums p, q of gx e and gy e, as ``align.vertical_offsets``
+    takes it."""
     h, w = p.shape
     for y in prange(h):
         for x in range(w):
@@ -109,11 +114,8 @@ def lucas_kanade_rows(grey_l: np.ndarray, grey_r: np.ndarray, gx: np.ndarray, gy
     one's gradients, ``windows`` (4, H, W) its window means of gx^2, gx gy, gy^2 and their determinant, a first
     ``disparity`` -> (H, W) float32 row offsets dy. The window sums of each iteration are running sums in float64
     (``aggregate_numba.box_sums``), one pass down the image."""
-    from plugins.torch_sgm.aggregate_numba import box_sums
-    from plugins.torch_sgm.cost import box_counts
-
     h, w = grey_l.shape
-    inv_count = np.ascontiguousarray(box_counts(h, w, radius).numpy())
+    inv_count = np.ascontiguousarray(cost.box_counts(h, w, radius).numpy())
     dx, dy = np.zeros((h, w), np.float32), np.zeros((h, w), np.float32)
     gxe, gye, p, q = (np.empty((h, w), np.float32) for _ in range(4))
     rows = np.empty((2, w))
@@ -121,15 +123,14 @@ def lucas_kanade_rows(grey_l: np.ndarray, grey_r: np.ndarray, gx: np.ndarray, gy
     for _ in range(iterations):
         _sample_error(grey_l, grey_r, gx, gy, disparity, dx, dy, gxe, gye)
         box_sums(gxe, gye, radius, rows, p, q)
-        _step(p, q, a, bxy, c, det, inv_count, np.float32(max_offset), dx, dy)
+        _lk_step(p, q, a, bxy, c, det, inv_count, np.float32(max_offset), dx, dy)
     return dy
 
 
 def vertical_offsets_numba(left: torch.Tensor, right: torch.Tensor, disparity: torch.Tensor, radius: int = 3,
                            iterations: int = 6, max_offset: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
     """``align.vertical_offsets`` on the CPU, the same arguments and results: the gradients' window means as
-    there, the Lucas-Kanade iterations (a bilinear sample, two window sums and an update of every pixel each)
-    compiled (``lucas_kanade_rows``), where torch spent a dozen whole-image passes on each."""
+    there, the Lucas-Kanade iterations compiled (``lucas_kanade_rows``)."""
     if not (available(left) and available(right) and available(disparity)):
         raise ValueError("vertical_offsets_numba: needs float32 CPU tensors")
     grey_l, grey_r = cost.to_grey(left), cost.to_grey(right)

@@ -49,8 +49,7 @@ def vertical_offsets(left: torch.Tensor, right: torch.Tensor, disparity: torch.T
     gradient matrix (B, H, W), which says how well the window pins both directions down.
     The gradients are the left image's (inverse compositional): they do not change between
     iterations, and they are not smoothed by the resampling of the right image."""
-    grey_l, grey_r = cost.to_grey(left), cost.to_grey(right)
-    gx, gy = _central_gradients(grey_l)
+    grey_l, grey_r, gx, gy, (a, bxy, c) = gradient_windows(left, right, radius)
     b, _, h, w = left.shape
     ys, xs = torch.meshgrid(torch.arange(h, dtype=left.dtype, device=left.device),
                             torch.arange(w, dtype=left.dtype, device=left.device), indexing="ij")
@@ -58,7 +57,6 @@ def vertical_offsets(left: torch.Tensor, right: torch.Tensor, disparity: torch.T
     def window(t: torch.Tensor) -> torch.Tensor:
         return cost.box_mean(t[:, None], radius)[:, 0]
 
-    a, bxy, c = window(gx * gx), window(gx * gy), window(gy * gy)
     det = a * c - bxy * bxy
     dx = torch.zeros_like(disparity)
     dy = torch.zeros_like(disparity)
@@ -68,8 +66,21 @@ def vertical_offsets(left: torch.Tensor, right: torch.Tensor, disparity: torch.T
         # tiny determinants belong to flat windows, which the eigenvalue test below discards anyway
         dx = (dx + (c * p - bxy * q) / (det + 1e-12)).clamp(-max_offset, max_offset)
         dy = (dy + (a * q - bxy * p) / (det + 1e-12)).clamp(-max_offset, max_offset)
-    min_eigen = (a + c) / 2 - torch.sqrt(((a - c) / 2) ** 2 + bxy * bxy)
-    return dy, min_eigen
+    return dy, min_eigenvalue(a, bxy, c)
+
+
+def gradient_windows(left: torch.Tensor, right: torch.Tensor, radius: int):
+    """What ``vertical_offsets``' iterations read and do not change: the (B, 1, H, W) grey images, the left one's
+    (B, H, W) central gradients gx, gy, and their (B, H, W) window means (gx^2, gx gy, gy^2)."""
+    grey_l, grey_r = cost.to_grey(left), cost.to_grey(right)
+    gx, gy = _central_gradients(grey_l)
+    windows = tuple(cost.box_mean(t[:, None], radius)[:, 0] for t in (gx * gx, gx * gy, gy * gy))
+    return grey_l, grey_r, gx, gy, windows
+
+
+def min_eigenvalue(a: torch.Tensor, bxy: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """The smaller eigenvalue of each window's gradient matrix [[a, bxy], [bxy, c]]."""
+    return (a + c) / 2 - torch.sqrt(((a - c) / 2) ** 2 + bxy * bxy)
 
 
 def reliable_offsets(dy: torch.Tensor, min_eigen: torch.Tensor, matched: torch.Tensor,

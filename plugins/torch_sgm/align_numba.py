@@ -133,9 +133,7 @@ def vertical_offsets_numba(left: torch.Tensor, right: torch.Tensor, disparity: t
     there, the Lucas-Kanade iterations compiled (``lucas_kanade_rows``)."""
     if not (available(left) and available(right) and available(disparity)):
         raise ValueError("vertical_offsets_numba: needs float32 CPU tensors")
-    grey_l, grey_r = cost.to_grey(left), cost.to_grey(right)
-    gx, gy = align._central_gradients(grey_l)
-    a, bxy, c = (cost.box_mean(t[:, None], radius)[:, 0] for t in (gx * gx, gx * gy, gy * gy))
+    grey_l, grey_r, gx, gy, (a, bxy, c) = align.gradient_windows(left, right, radius)
     det = a * c - bxy * bxy
     windows = torch.stack([a, bxy, c, det], 1).numpy()
     dy = torch.empty_like(disparity)
@@ -146,5 +144,4 @@ def vertical_offsets_numba(left: torch.Tensor, right: torch.Tensor, disparity: t
                 np.ascontiguousarray(gx[i].numpy()), np.ascontiguousarray(gy[i].numpy()),
                 np.ascontiguousarray(windows[i]), np.ascontiguousarray(disparity[i].numpy()), int(radius),
                 int(iterations), float(max_offset)))
-    min_eigen = (a + c) / 2 - torch.sqrt(((a - c) / 2) ** 2 + bxy * bxy)
-    return dy, min_eigen
+    return dy, align.min_eigenvalue(a, bxy, c)

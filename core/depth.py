@@ -445,7 +445,7 @@ def _settled_outside(fit: surface_fit.SurfaceFit, calib: Calibration, searched: 
     lo, hi = searched
     for what, d in (("the surface around the box", fit.c), ("the defect", fit.c + fit.delta)):
         if not lo - 1.0 <= d <= hi + 1.0:
-            at = f" ({calib.focal_px * calib.baseline_mm / (d + calib.doffs):.0f} mm)" if d + calib.doffs > 0 else ""
+            at = f" ({float(calib.distance_mm(d)):.0f} mm)" if d + calib.doffs > 0 else ""
             return (f"the surface fit put {what} at {d:.0f} px of disparity{at}, outside the {lo:.0f}-{hi:.0f} px the "
                     f"stereo search covers (the working distance)")
     return None
@@ -469,7 +469,7 @@ def _outside_search(m: DefectMeasurement, pair, ring: tuple[np.ndarray, np.ndarr
         return _eyes_swapped(m, left, right, (u, v - top), searched)
     if lo - 1.0 <= found.disparity <= hi + 1.0:
         return m
-    z = calib.focal_px * calib.baseline_mm / (found.disparity + calib.doffs)
+    z = float(calib.distance_mm(found.disparity))
     clause = (f"the surface around the box matches the images at {found.disparity:.0f} px of disparity "
               f"({z:.0f} mm), outside the {lo:.0f}-{hi:.0f} px the stereo search covers: the plate lies outside "
               f"the working distance")

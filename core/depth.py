@@ -176,7 +176,7 @@ def fit_plane_robust(
         return None
     candidates = np.linalg.solve(systems[solvable], d[picks][solvable][..., None])[..., 0]
     # Compiled, not ``candidates @ design.T``: a matrix product goes to the multi-threaded BLAS, whose
-    # threads keep spinning after it returns and slow the detector running next (docs/benchmarks.md).
+    # threads keep spinning after it returns and slow the detector running next (docs/research-log.md).
     best = candidates[np.argmax(depth_numba.inlier_counts(candidates, u[scored], v[scored], d[scored], tolerance))]
     keep = np.abs(best[0] * u + best[1] * v + best[2] - d) <= tolerance
     coeffs = None

@@ -120,7 +120,7 @@ def command_threads(threads: int | None) -> None:
 def single_threaded_blas() -> None:
     """NumPy's and OpenCV's BLAS on one thread. The project's matrix products are small (a surface fit's
     normal equations and covariance), and the threads OpenBLAS leaves spinning after each one slowed
-    the detector that runs next 2-3x (docs/benchmarks.md, the live loop)."""
+    the detector that runs next 2-3x (docs/research-log.md, the inspection loop)."""
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1, user_api="blas")

@@ -36,7 +36,8 @@ def test_cuda_map_matches_the_cpu_map(name):
     on_cpu, ok_cpu = compute_disparity(left, right, 0, 32, params, device="cpu")
     assert on_gpu.dtype == np.float32 and on_gpu.shape == on_cpu.shape
     assert (ok_gpu == ok_cpu).mean() > 0.995
-    # The two devices' maps are not bit-identical (docs/benchmarks.md, On CUDA): a few pixels may differ.
+    # The two devices' maps are not bit-identical (docs/research-log.md, On CUDA before the Triton kernel): a few
+    # pixels may differ.
     both = np.isfinite(on_gpu) & np.isfinite(on_cpu)
     assert (np.isfinite(on_gpu) == np.isfinite(on_cpu)).all()
     assert (np.abs(on_gpu - on_cpu)[both] > 0.05).mean() < 0.005

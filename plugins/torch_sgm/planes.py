@@ -75,7 +75,8 @@ def ransac_planes(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torc
     start = torch.cumsum(torch.where(eligible, count, 0), 0) - torch.where(eligible, count, 0)
     ids = eligible.nonzero()[:, 0]  # (R,)
     # Drawn on the CPU: CUDA's generator gives another stream for the same seed, and with its triples
-    # CUDA scored 7.90 % on Middlebury against 7.73 % with these (docs/benchmarks.md, On CUDA).
+    # CUDA scored 7.90 % on Middlebury against 7.73 % with these (docs/research-log.md, On CUDA before the Triton
+    # kernel).
     gen = torch.Generator().manual_seed(seed)
     draw = torch.rand(ids.numel(), samples, 3, generator=gen, dtype=torch.float64).to(dev)
     pick = start[ids, None, None] + (draw * count[ids, None, None]).long()  # (R, S, 3) into the sorted pixels

@@ -349,6 +349,45 @@ class TestRegionPlanesNumba:
             planes_numba.region_planes_numba(disp, matched[..., :-1], labels, 40, 0.5)
 
 
+class TestPlanesAndSlopesNumba:
+    def scene(self):
+        """Two frames of ``TestRegionPlanesNumba``'s regions, their borders from faint to strong (each edge
+        threshold splits fewer of them), one region without matches (bounded by strong edges), and winners before SGM with gaps."""
+        frames = [TestRegionPlanesNumba().scene(seed) for seed in (5, 6)]
+        disp = torch.cat([f[0] for f in frames])
+        labels = torch.cat([f[2] for f in frames])
+        matched = torch.cat([f[1] for f in frames]) & (labels != 2)
+        grey = torch.tensor([0.5, 0.30, 0.9, 0.302, 0.31, 0.34, 0.42])[labels]
+        magnitude = planes.edge_magnitude(grey[:, None].expand(-1, 3, -1, -1).contiguous(), 1.0)
+        g = torch.Generator().manual_seed(3)
+        local = torch.where(torch.rand(disp.shape, generator=g) < 0.35, float("nan"), disp)
+        return torch.where(matched, disp, torch.full_like(disp, float("nan"))), disp, matched, magnitude, local
+
+    @pytest.mark.parametrize("with_local", [False, True])
+    def test_equals_the_reference_with_the_compiled_fits(self, with_local):
+        filled, disp, matched, magnitude, local = self.scene()
+        args = (filled, disp, matched, magnitude, [0.0025 * 2 ** k for k in range(5)], 40, 0.5, 32,
+                local if with_local else None, (0.3, 0.18, 0.25) if with_local else None, 1)
+        ref, ref_slope = planes.planes_and_slopes(*args, fit=planes_numba.region_planes_numba)
+        out, out_slope = planes_numba.planes_and_slopes_numba(*args)
+        for got, want in ((out, ref), (out_slope, ref_slope)):
+            assert torch.equal(torch.isfinite(got), torch.isfinite(want))
+            assert torch.equal(got[torch.isfinite(want)], want[torch.isfinite(want)])
+        assert torch.isfinite(out_slope).any() and (torch.isfinite(out) & ~matched).any()
+        if with_local:  # the region without matches has a plane from the winners alone
+            without, _ = planes_numba.planes_and_slopes_numba(*args[:8])
+            assert (torch.isfinite(out) & ~torch.isfinite(without)).any()
+
+    def test_refuses_what_it_cannot_compute(self):
+        filled, disp, matched, magnitude, local = self.scene()
+        with pytest.raises(ValueError, match="float32 CPU"):
+            planes_numba.planes_and_slopes_numba(filled.double(), disp, matched, magnitude, [0.01], 40, 0.5)
+        with pytest.raises(ValueError, match="must be the"):
+            planes_numba.planes_and_slopes_numba(filled, disp, matched[..., :-1], magnitude, [0.01], 40, 0.5)
+        with pytest.raises(ValueError, match="local_test"):
+            planes_numba.planes_and_slopes_numba(filled, disp, matched, magnitude, [0.01], 40, 0.5, 32, local)
+
+
 class TestEdgeMagnitudeOpencv:
     # kornia's reference pads by half its kernel, which must stay inside the image
     @pytest.mark.parametrize("sigma, shape", [(0.0, (2, 3, 23, 31)), (1.0, (2, 3, 23, 31)), (2.0, (2, 3, 23, 31)),

@@ -237,10 +237,11 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
             with clock("slanted-plane filling"):
                 # first, so that the holes without a plane are filled from plane pixels as well as matched ones
                 thresholds = [p.plane_edge * 2 ** k for k in range(p.plane_levels)]
-                disp, slope = planes.planes_and_slopes(
-                    disp, raw_disp, consistent, edges, thresholds, p.plane_min_pixels, p.plane_inliers,
-                    p.plane_samples, local, (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched),
-                    p.plane_seed, planes_numba.region_planes_numba if compiled(p, disp) else planes.region_planes)
+                args = (disp, raw_disp, consistent, edges, thresholds, p.plane_min_pixels, p.plane_inliers,
+                        p.plane_samples, local,
+                        (p.plane_local_inliers, p.plane_local_density, p.plane_local_max_matched), p.plane_seed)
+                disp, slope = (planes_numba.planes_and_slopes_numba(*args) if compiled(p, disp)
+                               else planes.planes_and_slopes(*args))
                 holes = ~torch.isfinite(disp)
         with clock("row filling and medians"):
             if p.fill == "four_way":
@@ -274,7 +275,7 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
 
 def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
     """Whether the stages compiled with numba (the cost and its aggregation, SGM, the out-of-view check, the
-    plane fits of the slanted-plane filling, the local plane fit, the weighted median, the vertical alignment's
+    slanted-plane filling (its fits and the bookkeeping between them), the local plane fit, the weighted median, the vertical alignment's
     offsets and resampling) and the edges from OpenCV's filters stand in for the torch ones: the fast
     implementation, on float32 CPU tensors."""
     return p.implementation == "fast" and all(sgm_numba.available(t) for t in tensors)

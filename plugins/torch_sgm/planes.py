@@ -45,7 +45,9 @@ def edge_regions(magnitude: torch.Tensor, threshold: float) -> torch.Tensor:
     offset = 0
     for b in range(inner.shape[0]):
         count, lab = cv2.connectedComponents(inner[b], connectivity=4, ltype=cv2.CV_32S)
-        labels[b] = np.where(lab > 0, lab + offset, 0)
+        labels[b] = lab
+        if offset:
+            labels[b][lab > 0] += offset
         offset += count - 1
     return torch.from_numpy(labels).to(magnitude.device)
 

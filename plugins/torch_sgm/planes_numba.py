@@ -263,3 +263,102 @@ def edge_magnitude_opencv(image: torch.Tensor, sigma: float) -> torch.Tensor:
             gy = cv2.Sobel(blurred, -1, 0, 1, ksize=3, scale=1 / 8, borderType=cv2.BORDER_REPLICATE)
             np.maximum(best, cv2.magnitude(gx, gy), out=best)
     return torch.from_numpy(out)
+
+
+@njit(cache=True, nogil=True)
+def _local_wanted(index, matched, wanted, k, max_matched):
+    """``planes.local_planes``' regions worth its fit: ``wanted`` where fewer than ``max_matched`` of the
+    region's pixels matched."""
+    size = np.zeros(k)
+    hits = np.zeros(k)
+    for i in range(index.size):
+        size[index[i]] += 1.0
+        if matched[i]:
+            hits[index[i]] += 1.0
+    out = np.empty(index.size, np.bool_)
+    for i in range(index.size):
+        out[i] = wanted[i] and hits[index[i]] < max_matched * max(size[index[i]], 1.0)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _take_local(index, plane, supported, extra, backed, local, tolerance, density, k):
+    """``planes.planes_and_slopes``' merge of ``local_planes``: where no region plane is supported, the
+    winners' plane ``extra``; supported where ``backed`` and its inliers cover ``density`` of the region."""
+    size = np.zeros(k)
+    inliers = np.zeros(k)
+    for i in range(index.size):
+        size[index[i]] += 1.0
+        if np.isfinite(local[i]) and abs(local[i] - extra[i]) < tolerance:
+            inliers[index[i]] += 1.0
+    for i in range(index.size):
+        g = index[i]
+        if not supported[i]:
+            plane[i] = extra[i]
+            supported[i] = backed[i] and inliers[g] >= density * max(size[g], 1.0)
+
+
+@njit(cache=True, nogil=True)
+def _fill_level(index, plane, supported, w, slope, filled, todo):
+    """One threshold's result into ``slope`` (``planes.row_slope`` where first found), ``filled`` and
+    ``todo``, in place; all flat over (B, H, W) rows of ``w``."""
+    for i in range(index.size):
+        if supported[i] and not np.isfinite(slope[i]):
+            x = i % w
+            step = np.float32(np.nan)
+            if x < w - 1 and index[i + 1] == index[i]:
+                step = plane[i + 1] - plane[i]
+            if not np.isfinite(step):
+                step = np.float32(np.nan)
+                if x > 0 and index[i - 1] == index[i]:
+                    step = plane[i] - plane[i - 1]
+            slope[i] = step
+    for i in range(index.size):
+        if todo[i] and supported[i]:
+            filled[i] = plane[i]
+            todo[i] = False
+
+
+def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor,
+                            magnitude: torch.Tensor, thresholds: list[float], min_pixels: int, inlier_share: float,
+                            samples: int = 0, local: torch.Tensor | None = None,
+                            local_test: tuple[float, float, float] | None = None,
+                            seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """``planes.planes_and_slopes`` with ``region_planes_numba`` fits, on the CPU, with the same arguments
+    and results; the bookkeeping between the fits (which regions to fit, the local winners' density test,
+    the row slopes, the filling) in one pass each instead of some twenty tensor operations per threshold."""
+    if not (sgm_numba.available(disp) and sgm_numba.available(filled)):
+        raise ValueError(f"planes_and_slopes_numba: needs float32 CPU tensors, got {filled.dtype} and "
+                         f"{disp.dtype} on {disp.device}")
+    if not (filled.shape == disp.shape == matched.shape == magnitude.shape) or disp.dim() != 3:
+        raise ValueError(f"planes_and_slopes_numba: filled {tuple(filled.shape)}, disp {tuple(disp.shape)}, "
+                         f"matched {tuple(matched.shape)} and magnitude {tuple(magnitude.shape)} must be the "
+                         "same (B, H, W)")
+    if local is not None and local_test is None:
+        raise ValueError("planes_and_slopes_numba: local winners given without their local_test")
+    shape, w = disp.shape, disp.shape[-1]
+    out = filled.numpy().reshape(-1).copy()
+    matched_flat = np.ascontiguousarray(matched.numpy().reshape(-1))
+    todo = ~matched_flat
+    slope = np.full(out.size, np.nan, np.float32)
+    if local is not None:
+        local_flat = np.ascontiguousarray(local.numpy().reshape(-1))
+        finite = torch.isfinite(local)
+        inlier_share_local, density, max_matched = local_test
+    for threshold in thresholds:
+        if not todo.any():
+            break
+        labels = planes.edge_regions(magnitude, threshold)
+        index = labels.numpy().reshape(-1)
+        plane, supported = region_planes_numba(disp, matched, labels, min_pixels, inlier_share, samples=samples,
+                                               wanted=torch.from_numpy(todo.reshape(shape)), seed=seed)
+        plane, supported = plane.numpy().reshape(-1), supported.numpy().reshape(-1)
+        if local is not None:
+            k = int(index.max()) + 1 if index.size else 1
+            wanted = _local_wanted(index, matched_flat, todo & ~supported, k, float(max_matched))
+            extra, backed = region_planes_numba(local, finite, labels, min_pixels, inlier_share_local, 1.0, samples,
+                                                torch.from_numpy(wanted.reshape(shape)), seed)
+            _take_local(index, plane, supported, extra.numpy().reshape(-1), backed.numpy().reshape(-1), local_flat,
+                        1.0, float(density), k)
+        _fill_level(index, plane, supported, w, slope, out, todo)
+    return torch.from_numpy(out.reshape(shape)), torch.from_numpy(slope.reshape(shape))

@@ -176,8 +176,10 @@ class TestCheckedWinnersNumba:
             assert a.dtype == b.dtype and self.same(a, b), name
         assert 0.2 < got[3].float().mean() < 0.9  # the check passes some pixels and fails others
 
-    def test_disparities_beyond_the_image_land_nowhere(self):
+    @pytest.mark.parametrize("order", ["pixel-major", "cost volume"])
+    def test_disparities_beyond_the_image_land_nowhere(self, order):
         volume = torch.rand(1, 9, 3, 4).permute(0, 3, 1, 2)  # 4 disparities, 9 columns
+        volume = volume if order == "pixel-major" else volume.contiguous()
         _, _, right, consistent = select_numba.checked_winners_numba(volume, [20, 21, 22, 23], 1.0)
         assert right.isnan().all() and not consistent.any()
 
@@ -352,7 +354,8 @@ class TestRegionPlanesNumba:
 class TestPlanesAndSlopesNumba:
     def scene(self):
         """Two frames of ``TestRegionPlanesNumba``'s regions, their borders from faint to strong (each edge
-        threshold splits fewer of them), one region without matches (bounded by strong edges), and winners before SGM with gaps."""
+        threshold splits fewer of them), one region without matches (bounded by strong edges), and winners
+        before SGM with gaps."""
         frames = [TestRegionPlanesNumba().scene(seed) for seed in (5, 6)]
         disp = torch.cat([f[0] for f in frames])
         labels = torch.cat([f[2] for f in frames])

@@ -53,6 +53,55 @@ def _checked_winners(cost, d_first, parabola, disp, index, right_best, right_dis
                         right_disp[b, y, xr] = d_first + k
 
 
+@njit(cache=True, nogil=True, parallel=True)
+def _checked_winners_by_slice(cost, d_first, parabola, disp, index, right_best, right_disp):
+    """``_checked_winners`` of a (B, D, H, W) ``cost`` whose rows lie contiguous within each disparity slice
+    (the cost volume's own memory): each row's slices in turn, every pixel's running winner kept beside
+    them, so that the costs are read in memory order instead of one slice apart."""
+    n_b, d_count, h, w = cost.shape
+    half, two, tiny = np.float32(0.5), np.float32(2.0), np.float32(1e-12)
+    for job in prange(n_b * h):
+        b, y = job // h, job % h
+        best = cost[b, 0, y].copy()
+        winner = np.zeros(w, np.int64)
+        settled = best != best  # the first NaN wins, as torch's min(1).indices
+        for xr in range(w):
+            right_best[b, y, xr] = np.inf
+            right_disp[b, y, xr] = np.nan
+        for k in range(d_count):
+            row = cost[b, k, y]
+            if k > 0:
+                for x in range(w):  # selects, not branches: LLVM vectorises them
+                    value = row[x]
+                    nan = value != value
+                    take = not settled[x] and (nan or value < best[x])
+                    best[x] = value if take else best[x]
+                    winner[x] = k if take else winner[x]
+                    settled[x] = settled[x] or nan
+            # right pixel x - d sees this cost at d; d ascends, so a strict comparison keeps the lowest of equal
+            # costs, as the reference
+            # through slices from 0: an index that numba cannot prove non-negative keeps the loop scalar
+            shift = d_first + k
+            lo, hi = max(shift, 0), min(w, w + shift)
+            if hi <= lo:
+                continue
+            seen = row[lo:hi]
+            least, at = right_best[b, y, lo - shift:hi - shift], right_disp[b, y, lo - shift:hi - shift]
+            for x in range(hi - lo):
+                take = seen[x] < least[x]
+                least[x] = seen[x] if take else least[x]
+                at[x] = np.float32(shift) if take else at[x]
+        for x in range(w):
+            i = winner[x]
+            index[b, y, x] = i
+            c0, c1, c2 = cost[b, max(i - 1, 0), y, x], cost[b, i, y, x], cost[b, min(i + 1, d_count - 1), y, x]
+            spread = (c0 - two * c1 + c2) if parabola else (max(c0, c2) - c1)
+            offset = np.float32(0.0)
+            if 0 < i < d_count - 1 and spread > 0:
+                offset = min(max((c0 - c2) / (two * max(spread, tiny)), -half), half)
+            disp[b, y, x] = (np.float32(i) + offset) + np.float32(d_first)
+
+
 def checked_winners_numba(volume: torch.Tensor, disparities, lr_tolerance: float, fit=select.parabolic_subpixel,
                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """``select.checked_winners`` of a float32 CPU volume (B, D, H, W) in either memory order, ``fit``
@@ -66,8 +115,12 @@ def checked_winners_numba(volume: torch.Tensor, disparities, lr_tolerance: float
     disp, right_disp, best = (np.empty((b, h, w), np.float32) for _ in range(3))
     index = np.empty((b, h, w), np.int64)
     with sgm_numba.torch_threads():
-        _checked_winners(volume.permute(0, 2, 3, 1).numpy(), int(disparities[0]), fit is select.parabolic_subpixel,
-                         disp, index, best, right_disp)
+        if volume.is_contiguous():
+            _checked_winners_by_slice(volume.numpy(), int(disparities[0]), fit is select.parabolic_subpixel, disp,
+                                      index, best, right_disp)
+        else:
+            _checked_winners(volume.permute(0, 2, 3, 1).numpy(), int(disparities[0]),
+                             fit is select.parabolic_subpixel, disp, index, best, right_disp)
     disp, right_disp = torch.from_numpy(disp), torch.from_numpy(right_disp)
     return disp, torch.from_numpy(index), right_disp, refine.left_right_check(disp, right_disp, lr_tolerance)
 

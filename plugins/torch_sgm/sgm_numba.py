@@ -111,6 +111,19 @@ def _across_rows(cost, out, p2, p1, dy, dxs, first):
                           p2[k, b, y, x], fresh, first and k == 0)
 
 
+@njit(cache=True, nogil=True, parallel=True)
+def _pixel_major(cost, out):
+    """(B, D, H, W) -> ``out`` (B, H, W, D): rows in parallel (NumPy's copy of the transposed view runs on one
+    thread)."""
+    n_b, d_count, h, w = cost.shape
+    for job in prange(n_b * h):
+        b, y = job // h, job % h
+        for d in range(d_count):
+            row = cost[b, d, y]
+            for x in range(w):
+                out[b, y, x, d] = row[x]
+
+
 @contextmanager
 def torch_threads():
     """Run numba's parallel loops on as many threads as torch has, and leave torch's count as it was."""
@@ -145,7 +158,9 @@ def sgm_numba(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sgm
         maps = np.ascontiguousarray(torch.stack([penalty[path] for path in group]).to(cost.dtype).numpy())
         groups.append((dy, np.array([dx for _, dx in group], np.int64), maps))
     with torch_threads():
-        c = np.ascontiguousarray(cost.numpy().transpose(0, 2, 3, 1))  # (B, H, W, D)
+        volume = cost.numpy()
+        c = np.empty((volume.shape[0], *volume.shape[2:], volume.shape[1]), volume.dtype)
+        _pixel_major(volume, c)
         out = np.empty_like(c)  # the first path writes it
         for n, (dy, dxs, maps) in enumerate(groups):
             if dy == 0:

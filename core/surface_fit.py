@@ -195,18 +195,6 @@ def _cell_means(cell: np.ndarray, k: int, *values: np.ndarray) -> list[np.ndarra
     return [np.bincount(cell, x, minlength=k) / count for x in values]
 
 
-def _median(x: np.ndarray) -> float:
-    """``np.median`` of a 1-D array without NaN, by one partition (np.median's checks cost as much again,
-    and the fit takes two medians at every step)."""
-    k = x.size // 2
-    if x.size == 0:
-        return float("nan")
-    if x.size % 2:
-        return float(np.partition(x, k)[k])
-    part = np.partition(x, (k - 1, k))
-    return float(0.5 * (part[k - 1] + part[k]))
-
-
 def _e_prior(scale: float) -> float:
     """The vertical offset's prior information in the normal equations: one observation of 0 with spread
     E_PRIOR_PX, in units of the residuals' ``scale``."""
@@ -214,7 +202,7 @@ def _e_prior(scale: float) -> float:
 
 
 def _robust_scale(r: np.ndarray) -> float:
-    return float(1.4826 * _median(np.abs(r - _median(r)))) or 1e-3
+    return surface_fit_numba.robust_scale(np.ascontiguousarray(r, dtype=np.float64)) or 1e-3
 
 
 class _Problem:

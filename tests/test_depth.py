@@ -120,7 +120,7 @@ class TestWarmUp:
             from synthetic_pairs import step_pair
             from core import depth, depth_numba, surface_fit as sf, surface_fit_numba as sfn
             from test_surface_fit import PLANE, _regions
-            kernels = (sfn._system, sfn._offset_costs, depth_numba._inlier_counts)
+            kernels = (sfn._system, sfn._offset_costs, sfn.robust_scale, depth_numba._inlier_counts)
             depth.warm_up()
             before = sum(len(k.signatures) for k in kernels)
             left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=0)
@@ -133,7 +133,7 @@ class TestWarmUp:
         out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                              env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent)])})
         before, after = map(int, out.stdout.split())
-        assert before == after == 3  # one signature each, compiled by the warm-up
+        assert before == after == 4  # one signature each, compiled by the warm-up
 
 
 def test_area_in_square_mm():

@@ -121,6 +121,32 @@ class TestNormalEquations:
                                  theta[:4], idx, 1.0, 1e-3)
 
 
+class TestRobustScale:
+    @staticmethod
+    def cases():
+        rng = np.random.default_rng(4)
+        yield from (rng.standard_normal(n) for n in (1, 2, 3, 4, 9, 100, 101, 4000))
+        yield from (np.round(2 * rng.standard_normal(n)) for n in (2, 3, 10, 11, 1000, 1001))  # ties
+        # runs along an image, one value, a lone outlier, the middle pair in bins of their own
+        yield np.cumsum(rng.standard_normal(3000))
+        yield np.full(7, 3.0)
+        yield np.r_[np.zeros(500), 1e6]
+        yield np.r_[np.zeros(501), 1e6, -1e6]
+        yield np.r_[-1e6, np.zeros(3), np.ones(3), 1e6]
+
+    def test_the_median_is_numpys(self):
+        for x in self.cases():
+            assert sfn._median(x) == np.median(x), x.size
+        assert math.isnan(sfn._median(np.zeros(0)))
+
+    def test_the_scale_is_the_mad_of_normal_residuals(self):
+        for x in self.cases():
+            assert sfn.robust_scale(x) == 1.4826 * np.median(np.abs(x - np.median(x)))
+        x = np.random.default_rng(5).normal(0.0, 3.0, 20000)
+        x[:400] = 500.0  # a few outliers hardly move it
+        assert sfn.robust_scale(x) == pytest.approx(3.0, rel=0.05)
+
+
 class TestOffsetCosts:
     def _numpy(self, lv, image, u, v, base, gain, offset, w, e, delta, scale):
         """The offset search's cost as NumPy summed it, with OpenCV's samples."""

@@ -186,7 +186,15 @@ def _tukey_weights(z: np.ndarray) -> np.ndarray:
 
 def _cell_index(u: np.ndarray, v: np.ndarray, px: int) -> np.ndarray:
     """Each pixel's ``px`` square cell, numbered 0 .. K-1 over the cells present."""
-    return np.unique((v // px) * 100_000 + u // px, return_inverse=True)[1]
+    if u.size == 0:
+        return np.zeros(0, np.intp)
+    # np.unique's numbering (the cells in reading order) by a count of the cells present, not a sort
+    cu, cv = u.astype(np.intp) // px, v.astype(np.intp) // px
+    cu, cv = cu - cu.min(), cv - cv.min()
+    key = cv * (int(cu.max()) + 1) + cu
+    present = np.zeros(int(key.max()) + 1, np.intp)
+    present[key] = 1
+    return (np.cumsum(present) - 1)[key]
 
 
 def _cell_means(cell: np.ndarray, k: int, *values: np.ndarray) -> list[np.ndarray]:

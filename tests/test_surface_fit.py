@@ -121,6 +121,20 @@ class TestNormalEquations:
                                  theta[:4], idx, 1.0, 1e-3)
 
 
+class TestCellIndex:
+    def test_numbers_the_cells_present_in_reading_order(self):
+        u, v = np.array([7, 0, 8, 30, 2, 31]), np.array([0, 9, 1, 0, 8, 5])
+        # cells (column, row) (0, 0), (0, 1), (1, 0), (3, 0): row 0 first, then row 1
+        assert sf._cell_index(u, v, 8).tolist() == [0, 3, 1, 2, 3, 2]
+        rng = np.random.default_rng(1)
+        u, v = rng.integers(0, 700, 2000), rng.integers(0, 400, 2000)
+        for px in (1, 3, 12):
+            want = np.unique((v // px) * 100_000 + u // px, return_inverse=True)[1]
+            assert np.array_equal(sf._cell_index(u, v, px), want)
+            assert np.array_equal(sf._cell_index(u.astype(float), v.astype(float), px), want)
+        assert sf._cell_index(np.zeros(0, int), np.zeros(0, int), 3).size == 0
+
+
 class TestRobustScale:
     @staticmethod
     def cases():

@@ -19,7 +19,8 @@ own because its walls reflect the light differently towards each eye. ``e`` is w
 left of the eyes' vertical offset: a few tenths of a pixel on a real camera, which, unmodelled, the
 fit reads as disparity wherever the texture runs diagonally. Both images are high-passed
 first (what varies more slowly than ``HIGH_PASS_SIGMA`` is sheen, not texture), saturated pixels are
-left out and residuals are weighted with Huber's function.
+left out and residuals are weighted with Huber's function. The right image is read between its pixels
+from the cubic B-spline through them (``surface_fit_numba``).
 
 Steps (``fit_surface``): the ring alone, coarse to fine, from the backend's plane; the defect's offset
 by a search of the robust cost at full resolution (a narrow region, blurred, is mostly its ring);
@@ -146,27 +147,22 @@ def gradient_y(image: np.ndarray) -> np.ndarray:
     return g
 
 
-def sample(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bicubic samples of an HxW float32 image at float positions (1-D arrays); NaN where the kernel
-    (x - 1 .. x + 2, likewise y) leaves the image.
-
-    The border is replicated and the NaN set afterwards: with a NaN border value OpenCV's cubic remap
-    turns whole groups of 8 samples NaN when one of them is near the border (and every sample of a
-    map shorter than 8)."""
-    return samples((image,), x, y)[0]
+def spline(image: np.ndarray) -> np.ndarray:
+    """HxW -> HxW float32: the coefficients of the cubic B-spline through the image's pixels, which
+    ``sample`` reads."""
+    return surface_fit_numba.spline_coefficients(image)
 
 
-def samples(images: tuple[np.ndarray, ...], x: np.ndarray, y: np.ndarray) -> list[np.ndarray]:
-    """``sample`` of each of several HxW float32 images of one shape at the same positions."""
-    x32, y32 = x.astype(np.float32)[None, :], y.astype(np.float32)[None, :]
-    h, w = images[0].shape
-    outside = ~((x32[0] >= 1) & (x32[0] <= w - 3) & (y32[0] >= 1) & (y32[0] <= h - 3))
-    out = []
-    for image in images:
-        values = cv2.remap(image, x32, y32, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)[0].astype(np.float32, copy=False)
-        values[outside] = np.nan
-        out.append(values)
-    return out
+def sample(coefficients: np.ndarray, x: np.ndarray, rows: np.ndarray, e: float) -> np.ndarray:
+    """Samples of the cubic B-spline of HxW float32 ``coefficients`` (``spline``) at float columns ``x`` of
+    the integer ``rows`` moved by ``e`` (1-D arrays): every sample of the fit lies on a pixel row moved by
+    the eyes' vertical offset. NaN where its taps (x - 1 .. x + 2, likewise down the rows) leave the image."""
+    return surface_fit_numba.sample_rows((coefficients,), x, rows, e)[0]
+
+
+def samples(coefficients: tuple[np.ndarray, ...], x: np.ndarray, rows: np.ndarray, e: float) -> list[np.ndarray]:
+    """``sample`` of each of several splines of one shape at the same positions."""
+    return list(surface_fit_numba.sample_rows(coefficients, x, rows, e))
 
 
 def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
@@ -214,7 +210,8 @@ def _robust_scale(r: np.ndarray) -> float:
 
 
 class _Problem:
-    """The pixels of one fit and the images they are read from (high-passed), with the model's residuals."""
+    """The pixels of one fit and the images they are read from (high-passed), with the model's residuals.
+    ``R``, ``Rx``, ``Ry``: the right image and its gradients as the coefficients of their splines (``spline``)."""
 
     def __init__(self, left, right, ring, defect, prior, raw_left, raw_right, centre):
         self.u = np.concatenate([ring[0], defect[0]]).astype(np.float64)
@@ -238,7 +235,7 @@ class _Problem:
         """Read the images blurred by ``sigma`` from now on (0: as they are)."""
         if sigma not in self._levels:
             L, R = _blurred(self.left, sigma), _blurred(self.right, sigma)
-            Rx, Ry = gradient_x(R), gradient_y(R)
+            R, Rx, Ry = spline(R), spline(gradient_x(R)), spline(gradient_y(R))
             self._levels[sigma] = (L, R, Rx, Ry, np.dstack((R, Rx, Ry)), L[self.vi, self.ui])
         # stack: what a sample reads, side by side
         self.L, self.R, self.Rx, self.Ry, self.stack, self.lvals = self._levels[sigma]
@@ -250,7 +247,7 @@ class _Problem:
         du, dv, m, u, v = self.du[idx], self.dv[idx], self.m[idx], self.u[idx], self.v[idx]
         x = u - (theta[0] + theta[1] * du + theta[2] * dv + theta[3] * m)
         y = v + theta[E]
-        rv, gx, gy = samples((self.R, self.Rx, self.Ry), x, y)
+        rv, gx, gy = samples((self.R, self.Rx, self.Ry), x, v, theta[E])
         ok = self.usable[idx] & np.isfinite(rv) & np.isfinite(gx) & np.isfinite(gy)
         column = np.clip(np.rint(x), 0, self.R.shape[1] - 1).astype(np.intp)
         row = np.clip(np.rint(y), 0, self.R.shape[0] - 1).astype(np.intp)
@@ -490,7 +487,7 @@ def _exposure(p: _Problem, theta: np.ndarray) -> tuple[float, float]:
     """Gain and offset of the ring by least squares at the starting disparities."""
     ring = p.m == 0
     d = theta[0] + theta[1] * p.du[ring] + theta[2] * p.dv[ring]
-    rv = sample(p.R, p.u[ring] - d, p.v[ring] + theta[E])
+    rv = sample(p.R, p.u[ring] - d, p.v[ring], theta[E])
     lv = p.lvals[ring]
     ok = np.isfinite(rv)
     if ok.sum() < 3 or np.std(rv[ok]) < 1e-6:
@@ -557,12 +554,12 @@ def _covariance(J: np.ndarray, r: np.ndarray, h: np.ndarray, p: np.ndarray, u: n
 class DefectImages:
     """The high-passed window around a defect's region (``origin`` its top-left corner in the image): what
     ``cell_offsets`` and ``interior_variance`` read: the fit's own (``SurfaceFit.images``), or
-    ``defect_images``'s for other images."""
+    ``defect_images``'s for other images. ``R`` and ``Rx`` as their splines' coefficients (``spline``)."""
 
     origin: tuple[int, int]
     L: np.ndarray
     R: np.ndarray
-    Rx: np.ndarray  # R's horizontal gradient
+    Rx: np.ndarray  # of R's horizontal gradient
 
 
 def defect_images(left: np.ndarray, right: np.ndarray, fit: SurfaceFit,
@@ -572,7 +569,7 @@ def defect_images(left: np.ndarray, right: np.ndarray, fit: SurfaceFit,
     was given: its window holds the defect's and more)."""
     origin, left, right = _window(left, right, defect, defect, fit.params, 1.0)
     R = high_pass(right)
-    return DefectImages(origin, high_pass(left), R, gradient_x(R))
+    return DefectImages(origin, high_pass(left), spline(R), spline(gradient_x(R)))
 
 
 def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],
@@ -600,7 +597,7 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     j = np.zeros(len(u))
     for _ in range(iterations):
         x = u - plane - offsets[cell]
-        rv, gx = samples((R, Rx), x, v + th[E])
+        rv, gx = samples((R, Rx), x, v, th[E])
         ok = np.isfinite(rv) & np.isfinite(gx) & (p > 0)
         r = np.where(ok, lv - gain * rv - th[7] - th[9], 0.0)
         j = np.where(ok, gain * gx, 0.0)
@@ -643,7 +640,7 @@ def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defe
     uu, vv = (u[keep] - wx).astype(np.float64), (v[keep] - wy).astype(np.float64)
     du, dv = u[keep] - fit.centre[0], v[keep] - fit.centre[1]
     x = uu - (th[0] + th[1] * du + th[2] * dv + th[3])
-    gx = sample(Rx, x, vv + th[E])
+    gx = sample(Rx, x, vv, th[E])
     gain = th[4] + th[5] * du + th[6] * dv + th[8]
     j = np.where(np.isfinite(gx), gain * gx, 0.0)
     information = float(np.sum(p[keep] * j * j))

@@ -1,48 +1,189 @@
-"""The surface fit's inner loops compiled with numba: the Gauss-Newton system (one pass over a fit's pixels
-per step instead of some thirty NumPy operations on a few thousand of them each) and the costs of the
-defect's offset search.
+"""The surface fit's inner loops compiled with numba: the cubic B-spline the images are sampled from, the
+Gauss-Newton system (one pass over a fit's pixels per step instead of some thirty NumPy operations on a few
+thousand of them each) and the costs of the defect's offset search.
+
+The fit reads the right image between its pixels from the cubic B-spline through them (``spline_coefficients``,
+``sample_rows``): of the kernels tried, the one whose samples a sub-pixel shift moves least (the
+interpolating B-spline keeps frequencies near the pixel pitch that cubic convolution damps, and damps
+differently at each fraction of a pixel; docs/research-log.md). A sample at a float32 position is a number
+1 px from the left or top border and 2 px from the right or bottom one, as the four taps x - 1 .. x + 2 need.
 
 ``normal_equations`` is what ``surface_fit._Problem.residuals`` followed by the Huber-weighted products of
 ``gauss_newton`` give, ``offset_costs`` the Huber costs the search's NumPy version summed;
-``tests/test_surface_fit.py`` holds them to those. The right image is sampled as
-``surface_fit.samples`` samples it with OpenCV's bicubic ``remap``: its kernel, at the float32 positions
-OpenCV is given, nothing within 1 px of the left or top border or 2 px of the right or bottom one.
+``tests/test_surface_fit.py`` holds them to those.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
 
-CUBIC_A = -0.75  # OpenCV's INTER_CUBIC
 N_PARAMS = 11
 E = 10  # surface_fit.E: the eyes' vertical offset
+SPLINE_POLE = math.sqrt(3.0) - 2.0  # of the cubic B-spline's interpolation filter (Unser 1999)
+SPLINE_HORIZON = 30  # terms of the mirrored start of its causal pass: the pole's 30th power is below 1e-17
 
 
 @njit(cache=True, inline="always")
-def _cubic_weights(t):
-    a = CUBIC_A
-    w0 = ((a * (t + 1) - 5 * a) * (t + 1) + 8 * a) * (t + 1) - 4 * a
-    w1 = ((a + 2) * t - (a + 3)) * t * t + 1
-    s = 1 - t
-    w2 = ((a + 2) * s - (a + 3)) * s * s + 1
-    return w0, w1, w2, 1 - w0 - w1 - w2
+def _spline_weights(t):
+    """The cubic B-spline's weights of the taps x - 1 .. x + 2 at ``t`` in [0, 1) past x."""
+    s = 1.0 - t
+    t2 = t * t
+    t3 = t2 * t
+    return s * s * s / 6.0, (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0, (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0, t3 / 6.0
+
+
+@njit(cache=True, nogil=True)
+def _spline_columns(c):
+    """Each column of ``c`` (float64, in place) -> its cubic B-spline coefficients, the column mirrored beyond
+    its ends: a causal and an anticausal first-order recursion (Unser, Aldroubi & Eden 1993), run down the
+    rows so that each step is a pass along a row in memory order."""
+    n, w = c.shape
+    if n < 2:
+        return
+    z = SPLINE_POLE
+    first = np.zeros(w)
+    zk = 6.0
+    for k in range(min(n, SPLINE_HORIZON)):
+        row = c[k]
+        for x in range(w):
+            first[x] += zk * row[x]
+        zk *= z
+    for x in range(w):
+        c[0, x] = first[x]
+    for y in range(1, n):
+        above, row = c[y - 1], c[y]
+        for x in range(w):
+            row[x] = 6.0 * row[x] + z * above[x]
+    last, before = c[n - 1], c[n - 2]
+    for x in range(w):
+        last[x] = (z / (z * z - 1.0)) * (last[x] + z * before[x])
+    for y in range(n - 2, -1, -1):
+        below, row = c[y + 1], c[y]
+        for x in range(w):
+            row[x] = z * (below[x] - row[x])
+
+
+SPLINE_ROW_BLOCK = 8  # rows whose recursions along the row advance together: each waits on its own last step
+
+
+@njit(cache=True, nogil=True)
+def _spline_rows(c):
+    """``_spline_columns`` along each row of ``c`` (in place), a block of rows at a time."""
+    h, n = c.shape
+    if n < 2:
+        return
+    z = SPLINE_POLE
+    for top in range(0, h, SPLINE_ROW_BLOCK):
+        rows = c[top:min(top + SPLINE_ROW_BLOCK, h)]
+        b = rows.shape[0]
+        for r in range(b):
+            first, zk = 0.0, 6.0
+            for k in range(min(n, SPLINE_HORIZON)):
+                first += zk * rows[r, k]
+                zk *= z
+            rows[r, 0] = first
+        for x in range(1, n):
+            for r in range(b):
+                rows[r, x] = 6.0 * rows[r, x] + z * rows[r, x - 1]
+        for r in range(b):
+            rows[r, n - 1] = (z / (z * z - 1.0)) * (rows[r, n - 1] + z * rows[r, n - 2])
+        for x in range(n - 2, -1, -1):
+            for r in range(b):
+                rows[r, x] = z * (rows[r, x + 1] - rows[r, x])
+
+
+@njit(cache=True, nogil=True)
+def _spline_coefficients(image, out):
+    h, w = image.shape
+    c = np.empty((h, w))
+    for y in range(h):
+        for x in range(w):
+            c[y, x] = image[y, x]
+    _spline_columns(c)
+    _spline_rows(c)
+    for y in range(h):
+        for x in range(w):
+            out[y, x] = c[y, x]
+
+
+def spline_coefficients(image: np.ndarray) -> np.ndarray:
+    """HxW image -> HxW float32: the coefficients of the cubic B-spline that passes through its pixels (the
+    image mirrored beyond its border), which ``sample_rows`` reads."""
+    if image.ndim != 2:
+        raise ValueError(f"spline_coefficients: image {image.shape} must be HxW")
+    out = np.empty(image.shape, np.float32)
+    _spline_coefficients(np.asarray(image, dtype=np.float32), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _sample_rows(splines, x, rows, e, out):
+    h, w = splines[0].shape
+    n_k, n = len(splines), x.size
+    # every sample lies on a row ``rows + e``: the splines' vertical half is applied once to the rows and
+    # columns the samples read, and each sample then reads four columns
+    r_lo, r_hi, x_lo, x_hi = h, -1, w, -1
+    for i in range(n):
+        xf = np.float64(np.float32(x[i]))
+        if xf >= 1 and xf <= w - 3:
+            r_lo, r_hi = min(r_lo, rows[i]), max(r_hi, rows[i])
+            x_lo, x_hi = min(x_lo, int(np.floor(xf)) - 1), max(x_hi, int(np.floor(xf)) + 2)
+    n_rows, n_cols = max(r_hi - r_lo + 1, 0), max(x_hi - x_lo + 1, 0)
+    lines = np.empty((n_k, n_rows, n_cols))
+    for r in range(n_rows):
+        yf = np.float64(np.float32(r_lo + r + e))
+        if not (yf >= 1 and yf <= h - 3):
+            continue  # as _position: no sample is a number on this row
+        y0 = int(np.floor(yf))
+        wy0, wy1, wy2, wy3 = _spline_weights(yf - y0)
+        for k in range(n_k):
+            c = splines[k]
+            s0, s1 = c[y0 - 1, x_lo:x_lo + n_cols], c[y0, x_lo:x_lo + n_cols]
+            s2, s3 = c[y0 + 1, x_lo:x_lo + n_cols], c[y0 + 2, x_lo:x_lo + n_cols]
+            line = lines[k, r]
+            for j in range(n_cols):
+                line[j] = wy0 * s0[j] + wy1 * s1[j] + wy2 * s2[j] + wy3 * s3[j]
+    for i in range(n):
+        xf, _, inside = _position(x[i], rows[i] + e, h, w)
+        if not inside:
+            for k in range(n_k):
+                out[k, i] = np.nan
+            continue
+        x0 = int(np.floor(xf))
+        wx0, wx1, wx2, wx3 = _spline_weights(xf - x0)
+        c0, r = x0 - 1 - x_lo, rows[i] - r_lo
+        for k in range(n_k):
+            line = lines[k, r]
+            out[k, i] = wx0 * line[c0] + wx1 * line[c0 + 1] + wx2 * line[c0 + 2] + wx3 * line[c0 + 3]
+
+
+def sample_rows(splines: tuple[np.ndarray, ...], x: np.ndarray, rows: np.ndarray, e: float) -> np.ndarray:
+    """The cubic B-splines of HxW float32 coefficients (``spline_coefficients``, all one shape) at float
+    columns ``x`` (N,) of the integer ``rows`` (N,) moved by ``e`` -> (K, N) float32; NaN where a tap
+    (x - 1 .. x + 2, likewise down the rows) leaves the image."""
+    splines = tuple(np.ascontiguousarray(c) for c in splines)
+    if not splines or any(c.ndim != 2 or c.dtype != np.float32 or c.shape != splines[0].shape for c in splines):
+        raise ValueError(f"sample_rows: coefficients {[(c.shape, str(c.dtype)) for c in splines]} must be HxW "
+                         "float32 of one shape")
+    rows = np.asarray(rows)
+    if np.shape(x) != rows.shape or rows.ndim != 1:
+        raise ValueError(f"sample_rows: x {np.shape(x)} and rows {rows.shape} must be (N,) alike")
+    whole = rows.astype(np.int64)
+    if not np.array_equal(whole, rows):
+        raise ValueError("sample_rows: rows must be whole numbers (each sample lies on a pixel row moved by e)")
+    out = np.empty((len(splines), len(whole)), np.float32)
+    _sample_rows(splines, np.asarray(x, dtype=np.float64), whole, float(e), out)
+    return out
 
 
 @njit(cache=True, inline="always")
 def _position(x, y, h, w):
-    """(x, y) as OpenCV reads a float32 map, and whether its sample is a number there: 1 px from the left and
-    top border, 2 px from the right and bottom one (``surface_fit.samples``)."""
+    """(x, y) at float32 precision, and whether its sample is a number there: 1 px from the left and top
+    border, 2 px from the right and bottom one."""
     xf, yf = np.float64(np.float32(x)), np.float64(np.float32(y))
     return xf, yf, xf >= 1 and xf <= w - 3 and yf >= 1 and yf <= h - 3
-
-
-@njit(cache=True, inline="always")
-def _row(stack, y, x, w0, w1, w2, w3):
-    """The three images of ``stack`` interpolated along row ``y`` at the taps x - 1 .. x + 2."""
-    out0 = w0 * stack[y, x - 1, 0] + w1 * stack[y, x, 0] + w2 * stack[y, x + 1, 0] + w3 * stack[y, x + 2, 0]
-    out1 = w0 * stack[y, x - 1, 1] + w1 * stack[y, x, 1] + w2 * stack[y, x + 1, 1] + w3 * stack[y, x + 2, 1]
-    out2 = w0 * stack[y, x - 1, 2] + w1 * stack[y, x, 2] + w2 * stack[y, x + 1, 2] + w3 * stack[y, x + 2, 2]
-    return out0, out1, out2
 
 
 MEDIAN_BINS = 256
@@ -169,7 +310,7 @@ def _system(lvals, stack, right_saturated, usable, prior, u, v, du, dv, m, theta
         if not (yf >= 1 and yf <= h - 3):
             continue  # as _position: no sample is a number on this row
         y0 = int(np.floor(yf))
-        wy0, wy1, wy2, wy3 = _cubic_weights(yf - y0)
+        wy0, wy1, wy2, wy3 = _spline_weights(yf - y0)
         # the three images side by side: one run along the row's memory
         a, b = 3 * x_lo, 3 * (x_lo + n_cols)
         s0, s1 = stack[y0 - 1].reshape(3 * w)[a:b], stack[y0].reshape(3 * w)[a:b]
@@ -190,7 +331,7 @@ def _system(lvals, stack, right_saturated, usable, prior, u, v, du, dv, m, theta
         if right_saturated[row, column]:
             continue
         x0 = int(np.floor(xf))
-        wx0, wx1, wx2, wx3 = _cubic_weights(xf - x0)
+        wx0, wx1, wx2, wx3 = _spline_weights(xf - x0)
         line = lines[int(v[i]) - v_lo]
         c = x0 - x_lo
         rv = wx0 * line[c - 1, 0] + wx1 * line[c, 0] + wx2 * line[c + 1, 0] + wx3 * line[c + 2, 0]
@@ -241,9 +382,10 @@ def normal_equations(lvals: np.ndarray, stack: np.ndarray, right_saturated: np.n
     """The Huber-weighted Gauss-Newton system of the surface model at ``theta`` over the pixels ``idx``.
 
     lvals, usable, prior, u, v, du, dv, m: (N,) per pixel of the fit (left grey level, usable, share,
-    position, position from the region's centre, 1 on the defect); stack: HxWx3 float32, the right image
-    and its horizontal and vertical gradients side by side (what one sample reads); right_saturated: HxW
-    bool; theta: (11,); idx: (n,) int indices of the pixels to use.
+    position on integer rows, position from the region's centre, 1 on the defect); stack: HxWx3 float32, the
+    spline coefficients (``spline_coefficients``) of the right image and of its horizontal and vertical
+    gradients side by side (what one sample reads); right_saturated: HxW bool; theta: (11,); idx: (n,) int
+    indices of the pixels to use.
     Returns (A (11, 11), b (11,), the residuals' robust scale, the pixels used), ``A = sum w J J^T``,
     ``b = -sum w J r`` with ``w`` each pixel's share times its Huber weight at that scale
     (``scale_floor`` where the residuals' MAD is 0)."""
@@ -273,7 +415,7 @@ def _offset_costs(lvals, image, u, v, base, gain, offset, weight, e, deltas, sca
     x_lo = max(int(np.floor((u - base).min() - deltas.max())) - 2, 0)
     x_hi = min(int(np.ceil((u - base).max() - deltas.min())) + 3, w)
     shift = np.floor(e)
-    wy0, wy1, wy2, wy3 = _cubic_weights(e - shift)
+    wy0, wy1, wy2, wy3 = _spline_weights(e - shift)
     rows = np.full((v_hi - v_lo + 1, max(x_hi - x_lo, 0)), np.nan)
     for k in range(v_hi - v_lo + 1):
         y = v_lo + k + int(shift)
@@ -288,9 +430,9 @@ def _offset_costs(lvals, image, u, v, base, gain, offset, weight, e, deltas, sca
             x = u[i] - base[i] - deltas[t]
             xf, _, inside = _position(x, v[i] + e, h, w)
             if not inside:
-                continue  # OpenCV's sample is NaN there: the pixel costs nothing
+                continue  # the sample is NaN there: the pixel costs nothing
             x0 = int(np.floor(xf))
-            wx0, wx1, wx2, wx3 = _cubic_weights(xf - x0)
+            wx0, wx1, wx2, wx3 = _spline_weights(xf - x0)
             line = rows[int(v[i]) - v_lo]
             c = x0 - x_lo
             rv = wx0 * line[c - 1] + wx1 * line[c] + wx2 * line[c + 1] + wx3 * line[c + 2]
@@ -305,8 +447,8 @@ def offset_costs(lvals: np.ndarray, image: np.ndarray, u: np.ndarray, v: np.ndar
                  huber_k: float) -> np.ndarray:
     """The Huber cost ``sum weight * rho(lvals - gain * R(u - base - delta, v + e) - offset)`` of each of
     ``deltas`` (D,) over the pixels (N,) on integer rows ``v``, ``rho`` Huber's at ``huber_k * scale``, ``R``
-    the HxW float32 ``image`` sampled as ``surface_fit.samples`` samples it; a pixel whose sample is NaN there
-    costs nothing. Returns (D,)."""
+    the B-spline of the HxW float32 coefficients ``image`` (``sample_rows``); a pixel whose sample is NaN
+    there costs nothing. Returns (D,)."""
     n = len(lvals)
     for name, array in (("u", u), ("v", v), ("base", base), ("gain", gain), ("weight", weight)):
         if np.shape(array) != (n,):

@@ -5,6 +5,7 @@ import dataclasses
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from synthetic_pairs import step_pair
@@ -46,12 +47,53 @@ class TestHighPass:
         assert np.corrcoef(sf.high_pass(texture + 50).ravel(), texture.ravel())[0, 1] > 0.95
 
 
-class TestSample:
-    def test_a_sample_whose_kernel_leaves_the_image_is_nan_and_no_other(self):
-        image = np.arange(100, dtype=np.float32).reshape(10, 10)
-        out = sf.sample(image, np.array([1.0, 0.5, 4.25, 7.0, 7.5]), np.array([5.0, 5.0, 2.0, 5.0, 5.0]))
-        assert out[0] == pytest.approx(51.0) and math.isnan(out[1]) and out[2] == pytest.approx(24.25, abs=0.1)
-        assert out[3] == pytest.approx(57.0) and math.isnan(out[4])
+class TestSpline:
+    def test_passes_through_the_pixels(self):
+        image = np.random.default_rng(0).uniform(0, 255, (30, 40)).astype(np.float32)
+        c = sf.spline(image)
+        assert c.shape == image.shape and c.dtype == np.float32
+        v, u = np.mgrid[1:27, 1:37]
+        got = sf.sample(c, u.ravel().astype(float), v.ravel(), 0.0)
+        np.testing.assert_allclose(got, image[1:27, 1:37].ravel(), atol=1e-3)
+
+    @pytest.mark.parametrize("frequency, spline_within, cubic_beyond", [(0.1, 0.001, 0.02), (0.2, 0.01, 0.015)])
+    def test_a_shift_moves_texture_less_than_cubic_convolution(self, frequency, spline_within, cubic_beyond):
+        # texture of ``frequency`` cycles a pixel (amplitude 1) read a fraction of a pixel off its pixels: the
+        # spline returns it shifted; OpenCV's cubic convolution damps it by another amount at each fraction
+        x = np.arange(200, dtype=np.float64)
+        image = np.tile(np.sin(2 * np.pi * frequency * x), (12, 1)).astype(np.float32)
+        at = np.linspace(20.0, 180.0, 300) + 0.37
+        truth = np.sin(2 * np.pi * frequency * at)
+        spline = sf.sample(sf.spline(image), at, np.full(at.size, 6), 0.0)
+        cubic = cv2.remap(image, at.astype(np.float32)[None], np.full((1, at.size), 6, np.float32),
+                          cv2.INTER_CUBIC)[0]
+        assert np.abs(spline - truth).max() < spline_within < cubic_beyond < np.abs(cubic - truth).max()
+
+    def test_a_sample_whose_taps_leave_the_image_is_nan_and_no_other(self):
+        ramp = np.add.outer(10.0 * np.arange(10), np.arange(10)).astype(np.float32)  # reproduced exactly
+        c = sf.spline(ramp)
+        out = sf.sample(c, np.array([1.0, 0.5, 4.25, 7.0, 7.5, 3.0]), np.array([5, 5, 2, 5, 5, 7]), 0.0)
+        assert out[0] == pytest.approx(51.0, abs=1e-3) and math.isnan(out[1])
+        assert out[2] == pytest.approx(24.25, abs=1e-3) and out[3] == pytest.approx(57.0, abs=1e-3)
+        assert math.isnan(out[4])
+        assert out[5] == pytest.approx(73.0, abs=1e-3) and math.isnan(sf.sample(c, np.array([3.0]), np.array([7]), 0.5)[0])
+
+    def test_samples_on_rows_moved_by_e(self):
+        # a ramp, away from the border (the spline mirrors the image beyond it, and bends there)
+        ramp = np.add.outer(10.0 * np.arange(30), np.arange(30)).astype(np.float32)
+        out = sf.samples((sf.spline(ramp), sf.spline(2 * ramp)), np.array([9.5, 12.0]), np.array([10, 12]), -0.25)
+        np.testing.assert_allclose(out, [[107.0, 129.5], [214.0, 259.0]], atol=1e-3)
+
+    def test_shapes_and_rows_are_checked(self):
+        c = sf.spline(np.zeros((10, 10), np.float32))
+        with pytest.raises(ValueError, match="whole numbers"):
+            sf.sample(c, np.array([3.0]), np.array([4.5]), 0.0)
+        with pytest.raises(ValueError, match="alike"):
+            sf.sample(c, np.array([3.0, 4.0]), np.array([4]), 0.0)
+        with pytest.raises(ValueError, match="float32 of one shape"):
+            sf.samples((c, c[:5]), np.array([3.0]), np.array([4]), 0.0)
+        with pytest.raises(ValueError, match="HxW"):
+            sf.spline(np.zeros((4, 4, 3), np.float32))
 
 
 def _problem(theta_shift=0.0, saturate=False):
@@ -164,7 +206,7 @@ class TestRobustScale:
 class TestOffsetCosts:
     def _numpy(self, lv, image, u, v, base, gain, offset, w, e, delta, scale):
         """The offset search's cost as NumPy summed it, with OpenCV's samples."""
-        rv = sf.sample(image, u - base - delta, v + e)
+        rv = sf.sample(image, u - base - delta, v, e)
         r = np.where(np.isfinite(rv), lv - gain * rv - offset, 0.0)
         a, k = np.abs(r), sf.HUBER_K * scale
         return float(np.sum(w * np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))))  # Huber's rho
@@ -223,7 +265,9 @@ class TestFitSurface:
         fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
         floor = math.hypot(_floor(left, ring, 1.5), _floor(left, defect, 1.5))
         sd_delta = math.sqrt(fit.covariance[3, 3])
-        assert 0.8 * floor <= sd_delta <= 2.0 * floor
+        # below the floor's formula: interpolating the right eye filters its noise. Over 40 seeds of this pair
+        # the offsets scatter by 0.68x of the floor and the fit reports 0.83x
+        assert 0.7 * floor <= sd_delta <= 2.0 * floor
 
     def test_a_start_a_pixel_off_still_finds_the_surface(self):
         left, right, _ = step_pair(plane=PLANE, step_px=-0.5, seed=4)

@@ -620,7 +620,7 @@ def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defe
                       weights: np.ndarray | None, box: tuple[float, float, float, float], margin: float,
                       images: DefectImages | None = None) -> float:
     """The variance (px^2) of the defect's offset from its region's interior alone: the pixels at least
-    ``margin`` px inside ``box`` (x0, y0, x1, y1), whose interpolation reaches no pixel outside the region.
+    ``margin`` px inside ``box`` (x0, y0, x1, y1), whose interpolation reads little outside the region.
     ``fit.residual_sigma^2 * fit.inflation / sum (g * R_x)^2`` over them, at the fitted offset; inf where
     no interior pixel carries a gradient. images: ``defect_images`` of the pair, where already built.
 

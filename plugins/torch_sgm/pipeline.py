@@ -275,9 +275,9 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
 
 def compiled(p: TorchSGMParams, *tensors: torch.Tensor) -> bool:
     """Whether the stages compiled with numba (the cost and its aggregation, SGM, the out-of-view check, the
-    slanted-plane filling (its fits and the bookkeeping between them), the local plane fit, the weighted median, the vertical alignment's
-    offsets and resampling) and the edges from OpenCV's filters stand in for the torch ones: the fast
-    implementation, on float32 CPU tensors."""
+    slanted-plane filling (its fits and the bookkeeping between them), the local plane fit, the weighted
+    median, the vertical alignment's offsets and resampling) and the edges from OpenCV's filters stand in for
+    the torch ones: the fast implementation, on float32 CPU tensors."""
     return p.implementation == "fast" and all(sgm_numba.available(t) for t in tensors)
 
 

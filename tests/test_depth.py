@@ -1,6 +1,7 @@
 """Depth per defect against exact geometry."""
 from __future__ import annotations
 
+import json
 import os
 import pathlib
 import subprocess
@@ -116,24 +117,31 @@ class TestWarmUp:
     def test_compiles_what_a_measurement_runs(self):
         # in a process of its own: here other tests may have compiled every signature already
         script = textwrap.dedent("""
+            import json
             import numpy as np
             from synthetic_pairs import step_pair
             from core import depth, depth_numba, surface_fit as sf, surface_fit_numba as sfn
             from test_surface_fit import PLANE, _regions
-            kernels = (sfn._system, sfn._offset_costs, sfn.robust_scale, depth_numba._inlier_counts)
+            kernels = (sfn._system, sfn._offset_costs, sfn.robust_scale, sfn._spline_coefficients,
+                       sfn._sample_rows, depth_numba._inlier_counts)
             depth.warm_up()
-            before = sum(len(k.signatures) for k in kernels)
+            before = [len(k.signatures) for k in kernels]
             left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=0)
-            assert sf.fit_surface(left, right, *_regions(), PLANE, -0.3) is not None
+            fit = sf.fit_surface(left, right, *_regions(), PLANE, -0.3)
+            assert fit is not None
+            sf.cell_offsets(left, right, fit, _regions()[1])
+            sf.interior_variance(left, right, fit, _regions()[1], None, (68, 51, 92, 69), 1.0)
             u, v = np.meshgrid(np.arange(60.0), np.arange(40.0))
             assert depth.fit_plane_robust(u.ravel(), v.ravel(), 0.1 * u.ravel() + 50) is not None
-            print(before, sum(len(k.signatures) for k in kernels))
+            print(json.dumps([before, [len(k.signatures) for k in kernels]]))
         """)
         tests = pathlib.Path(__file__).parent
         out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                              env={**os.environ, "PYTHONPATH": os.pathsep.join([str(tests), str(tests.parent)])})
-        before, after = map(int, out.stdout.split())
-        assert before == after == 4  # one signature each, compiled by the warm-up
+        before, after = json.loads(out.stdout)
+        # every kernel compiled by the warm-up, and nothing more by a measurement: the sampler once for each
+        # number of splines it reads at once (1, 2, 3)
+        assert before == after == [1, 1, 1, 1, 3, 1], out.stdout
 
 
 def test_area_in_square_mm():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import random
+import re
 
 from conftest import cli, cli_here
 
@@ -39,7 +40,9 @@ def test_a_line_that_cannot_run_is_one_line_naming_why(tmp_path):
     assert not (tmp_path / "bad").exists()  # said before anything was rendered or started
     result = cli("sim", "faults", str(tmp_path / "ends"), "--parts", "10", "--kills", "0", "--set",
                  "camera.settings.max_frames=1")
-    assert result.returncode == 2 and result.stderr == "error: inspect run ended by itself (exit 0)\n", result.stderr
+    # exit 0, or 4 where the harness's cut of the PLC link came before the one frame was done (a slow machine)
+    assert result.returncode == 2 and re.fullmatch(r"error: inspect run ended by itself \(exit [04]\)\n",
+                                                   result.stderr), result.stderr
     # 10^20 kills were drawn one by one before anything ran
     result = cli_here("sim", "faults", str(tmp_path / "kills"), "--parts", "10", "--kills", str(10**20))
     assert result.returncode == 2 and "--kills: at most one per part" in result.stderr, result.stderr

@@ -7,7 +7,7 @@ import re
 import pytest
 from click.testing import CliRunner
 
-from conftest import cli
+from conftest import cli_here
 
 from core.cli import _build
 
@@ -56,6 +56,6 @@ def test_counts_below_one_are_usage_errors_not_something_else(args, option):
 @pytest.mark.parametrize("command", [("report",), ("eval", "depth"), ("eval", "stereo", "--middlebury"), ("view",)])
 def test_a_path_the_file_system_refuses_is_one_line_not_a_traceback(command):
     """A name longer than the file system takes raises OSError at the first look, in whichever command."""
-    result = cli(*command, "x" * 300)
+    result = cli_here(*command, "x" * 300)
     assert result.returncode == 2
     assert re.fullmatch(r"error: x{300}(/results.db)?: File name too long\n", result.stderr), result.stderr

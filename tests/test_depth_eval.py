@@ -62,11 +62,11 @@ def test_a_sequence_without_labels_is_a_one_line_error(tmp_path):
     copy = tmp_path / "seq"
     shutil.copytree(TEXTURED, copy)
     shutil.rmtree(copy / "labels")
-    result = cli("eval", "depth", str(copy), "--out", str(tmp_path / "out"))
+    result = cli_here("eval", "depth", str(copy), "--out", str(tmp_path / "out"))
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: ") and "labels/000000.json" in lines[0]
-    assert cli("eval", "depth", str(tmp_path / "nowhere")).returncode == 2
+    assert cli_here("eval", "depth", str(tmp_path / "nowhere")).returncode == 2
 
 
 def test_labelled_defects_without_a_truth_are_counted_as_not_scored(evaluated, tmp_path):
@@ -133,7 +133,7 @@ def test_a_sequence_with_a_bad_calibration_is_a_one_line_error_naming_the_file(t
         (copy / "calib.yaml").unlink()
     else:
         (copy / "calib.yaml").write_text(calibration)
-    result = cli("eval", "depth", str(copy), "--out", str(tmp_path / "out"))
+    result = cli_here("eval", "depth", str(copy), "--out", str(tmp_path / "out"))
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith(f"error: {copy}") and "calib.yaml" in lines[0], lines

@@ -311,7 +311,7 @@ def test_cli_validate_ok(recipe_dir):
 def test_missing_calibration_is_one_line_exit_2(recipe_dir, command):
     (recipe_dir / "seq" / "calib.yaml").unlink()
     path = write_recipe(recipe_dir / "r.yaml", GOOD)
-    result = cli(command, str(path))
+    result = cli_here(command, str(path))
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.count("\n") == 1 and "camera.settings.path:" in result.stderr
     assert "calib.yaml: calibration file missing" in result.stderr

@@ -6,7 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
-from conftest import cli, png_declaring
+from conftest import cli, cli_here, png_declaring
 
 from plugins.yolov8.voc_to_yolo import convert_voc
 
@@ -111,7 +111,7 @@ def test_split_files_a_windows_editor_saved_are_read_and_others_refused(tmp_path
     assert out.returncode == 0, out.stderr
     assert sorted(p.name for p in (tmp_path / "y" / "labels" / "train").iterdir()) == ["crazing_1.txt", "good_2.txt"]
     (src / "val.txt").write_bytes(b"outside_3\nr\xe9ject\n")
-    out = cli("data", "convert-voc", str(src), str(tmp_path / "z"))
+    out = cli_here("data", "convert-voc", str(src), str(tmp_path / "z"))
     assert out.returncode == 2 and out.stderr == (f"error: {src / 'val.txt'}:2: split file is not UTF-8 text (byte 0xe9): "
                                                   f"save it as UTF-8\n"), out.stderr
 

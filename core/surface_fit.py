@@ -236,9 +236,8 @@ class _Problem:
         if sigma not in self._levels:
             L, R = _blurred(self.left, sigma), _blurred(self.right, sigma)
             R, Rx, Ry = spline(R), spline(gradient_x(R)), spline(gradient_y(R))
-            self._levels[sigma] = (L, R, Rx, Ry, np.dstack((R, Rx, Ry)), L[self.vi, self.ui])
-        # stack: what a sample reads, side by side
-        self.L, self.R, self.Rx, self.Ry, self.stack, self.lvals = self._levels[sigma]
+            self._levels[sigma] = (L, R, Rx, Ry, L[self.vi, self.ui])
+        self.L, self.R, self.Rx, self.Ry, self.lvals = self._levels[sigma]
 
     def residuals(self, theta, idx=None):
         """(residuals, Jacobian rows (n, 11), usable) at ``theta`` on the current level's images, for the
@@ -303,7 +302,7 @@ class _Problem:
         """(A (11, 11), b (11,), scale, pixels used): the Huber-weighted system ``sum w J J^T`` and
         ``-sum w J r`` of ``residuals`` over the usable pixels of ``idx`` (indices), each weighted by its
         share, at the residuals' robust scale (compiled: ``surface_fit_numba``)."""
-        return surface_fit_numba.normal_equations(self.lvals, self.stack, self.right_saturated,
+        return surface_fit_numba.normal_equations(self.lvals, (self.R, self.Rx, self.Ry), self.right_saturated,
                                                   self.usable, self.prior, self.u, self.v, self.du, self.dv, self.m,
                                                   theta, idx, HUBER_K, 1e-3)
 

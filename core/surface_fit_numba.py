@@ -173,9 +173,9 @@ def sample_rows(splines: tuple[np.ndarray, ...], x: np.ndarray, rows: np.ndarray
     whole = rows.astype(np.int64)
     if not np.array_equal(whole, rows):
         raise ValueError("sample_rows: rows must be whole numbers (each sample lies on a pixel row moved by e)")
-    out = np.empty((len(splines), len(whole)), np.float32)
+    out = np.empty((len(splines), len(whole)))  # float64, as the Gauss-Newton system reads them: one kernel
     _sample_rows(splines, np.asarray(x, dtype=np.float64), whole, float(e), out)
-    return out
+    return out.astype(np.float32)
 
 
 @njit(cache=True, inline="always")
@@ -281,62 +281,30 @@ def _dot(x, y):
 
 
 @njit(cache=True, nogil=True)
-def _system(lvals, stack, right_saturated, usable, prior, u, v, du, dv, m, theta, idx, huber_k, scale_floor):
-    h, w = stack.shape[:2]
+def _system(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta, idx, huber_k, scale_floor):
+    h, w = splines[0].shape
     n = idx.size
     r = np.empty(n)
     jac = np.empty((N_PARAMS, n))
     weight = np.empty(n)
     count = 0
-    # every sample lies on a row v + e of its integer row v: the kernel's vertical half is that row's for all
-    # its samples, so it is applied once to the rows and columns they read, and each sample then reads four
-    # columns of three images instead of sixteen
-    xs = np.empty(n)
-    v_lo, v_hi, x_lo, x_hi = h, -1, w, -1
+    xs, rows = np.empty(n), np.empty(n, np.int64)
     for k in range(n):
         i = idx[k]
-        x = u[i] - (theta[0] + theta[1] * du[i] + theta[2] * dv[i] + theta[3] * m[i])
-        xs[k] = x
-        if usable[i] and np.isfinite(x):
-            xf = np.float32(x)
-            if xf >= 1 and xf <= w - 3:
-                row = int(v[i])
-                v_lo, v_hi = min(v_lo, row), max(v_hi, row)
-                x_lo, x_hi = min(x_lo, int(np.floor(xf)) - 1), max(x_hi, int(np.floor(xf)) + 2)
-    n_rows, n_cols = max(v_hi - v_lo + 1, 0), max(x_hi - x_lo + 1, 0)
-    lines = np.empty((n_rows, n_cols, 3))
-    for k in range(n_rows):
-        yf = np.float64(np.float32(v_lo + k + theta[E]))
-        if not (yf >= 1 and yf <= h - 3):
-            continue  # as _position: no sample is a number on this row
-        y0 = int(np.floor(yf))
-        wy0, wy1, wy2, wy3 = _spline_weights(yf - y0)
-        # the three images side by side: one run along the row's memory
-        a, b = 3 * x_lo, 3 * (x_lo + n_cols)
-        s0, s1 = stack[y0 - 1].reshape(3 * w)[a:b], stack[y0].reshape(3 * w)[a:b]
-        s2, s3 = stack[y0 + 1].reshape(3 * w)[a:b], stack[y0 + 2].reshape(3 * w)[a:b]
-        out = lines[k].reshape(3 * n_cols)
-        for j in range(3 * n_cols):
-            out[j] = wy0 * s0[j] + wy1 * s1[j] + wy2 * s2[j] + wy3 * s3[j]
+        xs[k] = u[i] - (theta[0] + theta[1] * du[i] + theta[2] * dv[i] + theta[3] * m[i])
+        rows[k] = int(v[i])
+    sampled = np.empty((3, n))
+    _sample_rows(splines, xs, rows, theta[E], sampled)  # NaN where a sample is no number
     for k in range(n):
         i = idx[k]
         if not usable[i]:
             continue
         x = xs[k]
-        xf, yf, inside = _position(x, v[i] + theta[E], h, w)
-        if not inside:
-            continue
         column = min(max(int(np.rint(x)), 0), w - 1)
         row = min(max(int(np.rint(v[i] + theta[E])), 0), h - 1)
         if right_saturated[row, column]:
             continue
-        x0 = int(np.floor(xf))
-        wx0, wx1, wx2, wx3 = _spline_weights(xf - x0)
-        line = lines[int(v[i]) - v_lo]
-        c = x0 - x_lo
-        rv = wx0 * line[c - 1, 0] + wx1 * line[c, 0] + wx2 * line[c + 1, 0] + wx3 * line[c + 2, 0]
-        gx = wx0 * line[c - 1, 1] + wx1 * line[c, 1] + wx2 * line[c + 1, 1] + wx3 * line[c + 2, 1]
-        gy = wx0 * line[c - 1, 2] + wx1 * line[c, 2] + wx2 * line[c + 1, 2] + wx3 * line[c + 2, 2]
+        rv, gx, gy = sampled[0, k], sampled[1, k], sampled[2, k]
         if not (np.isfinite(rv) and np.isfinite(gx) and np.isfinite(gy)):
             continue
         gain = theta[4] + theta[5] * du[i] + theta[6] * dv[i] + theta[8] * m[i]
@@ -375,17 +343,17 @@ def _system(lvals, stack, right_saturated, usable, prior, u, v, du, dv, m, theta
     return a, b, scale, count
 
 
-def normal_equations(lvals: np.ndarray, stack: np.ndarray, right_saturated: np.ndarray,
-                     usable: np.ndarray, prior: np.ndarray, u: np.ndarray, v: np.ndarray, du: np.ndarray,
+def normal_equations(lvals: np.ndarray, splines: tuple[np.ndarray, np.ndarray, np.ndarray],
+                     right_saturated: np.ndarray, usable: np.ndarray, prior: np.ndarray, u: np.ndarray,
+                     v: np.ndarray, du: np.ndarray,
                      dv: np.ndarray, m: np.ndarray, theta: np.ndarray, idx: np.ndarray, huber_k: float,
                      scale_floor: float) -> tuple[np.ndarray, np.ndarray, float, int]:
     """The Huber-weighted Gauss-Newton system of the surface model at ``theta`` over the pixels ``idx``.
 
     lvals, usable, prior, u, v, du, dv, m: (N,) per pixel of the fit (left grey level, usable, share,
-    position on integer rows, position from the region's centre, 1 on the defect); stack: HxWx3 float32, the
+    position on integer rows, position from the region's centre, 1 on the defect); splines: the HxW float32
     spline coefficients (``spline_coefficients``) of the right image and of its horizontal and vertical
-    gradients side by side (what one sample reads); right_saturated: HxW bool; theta: (11,); idx: (n,) int
-    indices of the pixels to use.
+    gradients; right_saturated: HxW bool; theta: (11,); idx: (n,) int indices of the pixels to use.
     Returns (A (11, 11), b (11,), the residuals' robust scale, the pixels used), ``A = sum w J J^T``,
     ``b = -sum w J r`` with ``w`` each pixel's share times its Huber weight at that scale
     (``scale_floor`` where the residuals' MAD is 0)."""
@@ -393,12 +361,13 @@ def normal_equations(lvals: np.ndarray, stack: np.ndarray, right_saturated: np.n
     for name, array in (("usable", usable), ("prior", prior), ("u", u), ("v", v), ("du", du), ("dv", dv), ("m", m)):
         if array.shape != (n,):
             raise ValueError(f"normal_equations: {name} {array.shape} must be ({n},) as lvals")
-    if stack.ndim != 3 or stack.shape[2] != 3 or stack.dtype != np.float32 or right_saturated.shape != stack.shape[:2]:
-        raise ValueError(f"normal_equations: stack {stack.shape} {stack.dtype} must be HxWx3 float32 and "
-                         f"right_saturated {right_saturated.shape} HxW of the same size")
+    if (len(splines) != 3 or any(c.ndim != 2 or c.dtype != np.float32 or not c.flags.c_contiguous
+                                 or c.shape != right_saturated.shape for c in splines)):
+        raise ValueError(f"normal_equations: splines {[(np.shape(c), str(c.dtype)) for c in splines]} must be three "
+                         f"C-contiguous HxW float32 and right_saturated {right_saturated.shape} HxW of their size")
     if theta.shape != (N_PARAMS,):
         raise ValueError(f"normal_equations: theta {theta.shape} must be ({N_PARAMS},)")
-    return _system(lvals.astype(np.float64, copy=False), stack, right_saturated, usable,
+    return _system(lvals.astype(np.float64, copy=False), tuple(splines), right_saturated, usable,
                    prior.astype(np.float64, copy=False), u, v, du, dv, m.astype(np.float64, copy=False),
                    theta.astype(np.float64, copy=False), np.asarray(idx, dtype=np.int64), float(huber_k),
                    float(scale_floor))

@@ -124,8 +124,8 @@ def _numpy_system(p, theta, idx):
 
 class TestNormalEquations:
     def _compiled(self, p, theta, idx, floor=1e-3):
-        return sfn.normal_equations(p.lvals, p.stack, p.right_saturated, p.usable, p.prior, p.u, p.v, p.du, p.dv, p.m,
-                                    theta, idx, sf.HUBER_K, floor)
+        return sfn.normal_equations(p.lvals, (p.R, p.Rx, p.Ry), p.right_saturated, p.usable, p.prior, p.u, p.v, p.du,
+                                    p.dv, p.m, theta, idx, sf.HUBER_K, floor)
 
     @pytest.mark.parametrize("level", [0.0, 2.0])
     @pytest.mark.parametrize("shift,saturate", [(0.0, False), (60.0, False), (0.0, True)])
@@ -145,7 +145,8 @@ class TestNormalEquations:
     def test_residuals_without_spread_take_the_floor_scale(self):
         p, theta = _problem()
         p.lvals = np.zeros_like(p.lvals)
-        p.stack = np.zeros_like(p.stack)  # every residual is -(o + o_m m): no spread on the ring alone
+        # every residual is -(o + o_m m): no spread on the ring alone
+        p.R, p.Rx, p.Ry = (np.zeros_like(p.R) for _ in range(3))
         ring = np.flatnonzero(p.m == 0)
         _, _, scale, count = self._compiled(p, theta, ring, floor=0.25)
         assert scale == 0.25 and count > 100
@@ -154,14 +155,14 @@ class TestNormalEquations:
         p, theta = _problem()
         idx = np.arange(10)
         with pytest.raises(ValueError, match="prior"):
-            sfn.normal_equations(p.lvals, p.stack, p.right_saturated, p.usable, p.prior[:-1], p.u, p.v, p.du, p.dv,
-                                 p.m, theta, idx, 1.0, 1e-3)
-        with pytest.raises(ValueError, match="stack"):
-            sfn.normal_equations(p.lvals, p.R, p.right_saturated, p.usable, p.prior, p.u, p.v, p.du, p.dv, p.m,
+            sfn.normal_equations(p.lvals, (p.R, p.Rx, p.Ry), p.right_saturated, p.usable, p.prior[:-1], p.u, p.v,
+                                 p.du, p.dv, p.m, theta, idx, 1.0, 1e-3)
+        with pytest.raises(ValueError, match="splines"):
+            sfn.normal_equations(p.lvals, (p.R, p.Rx), p.right_saturated, p.usable, p.prior, p.u, p.v, p.du, p.dv, p.m,
                                  theta, idx, 1.0, 1e-3)
         with pytest.raises(ValueError, match="theta"):
-            sfn.normal_equations(p.lvals, p.stack, p.right_saturated, p.usable, p.prior, p.u, p.v, p.du, p.dv, p.m,
-                                 theta[:4], idx, 1.0, 1e-3)
+            sfn.normal_equations(p.lvals, (p.R, p.Rx, p.Ry), p.right_saturated, p.usable, p.prior, p.u, p.v, p.du,
+                                 p.dv, p.m, theta[:4], idx, 1.0, 1e-3)
 
 
 class TestCellIndex:

@@ -13,13 +13,24 @@ from numba import njit, prange
 from plugins.torch_sgm import refine, select, sgm_numba
 
 
+@njit(cache=True, inline="always")
+def _subpixel(c0, c1, c2, i, d_count, d_first, parabola):
+    """The winner ``i``'s disparity from its cost ``c1`` and its neighbours' ``c0``, ``c2`` (float32, as torch
+    computes it): the parabola's or the equiangular fit's vertex, at most half a step away."""
+    half, two, tiny = np.float32(0.5), np.float32(2.0), np.float32(1e-12)
+    spread = (c0 - two * c1 + c2) if parabola else (max(c0, c2) - c1)
+    offset = np.float32(0.0)
+    if 0 < i < d_count - 1 and spread > 0:
+        offset = min(max((c0 - c2) / (two * max(spread, tiny)), -half), half)
+    return (np.float32(i) + offset) + np.float32(d_first)
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _checked_winners(cost, d_first, parabola, disp, index, right_best, right_disp):
     """Each row's winners of both views in one pass over its costs: (B, H, W, D) ``cost`` (any strides) ->
     ``disp`` (sub-pixel, float32 as torch computes it), ``index`` and the right view's ``right_disp``;
     ``right_best`` (B, H, W) scratch."""
     n_b, h, w, d_count = cost.shape
-    half, two, tiny = np.float32(0.5), np.float32(2.0), np.float32(1e-12)
     for job in prange(n_b * h):
         b, y = job // h, job % h
         for xr in range(w):
@@ -36,12 +47,8 @@ def _checked_winners(cost, d_first, parabola, disp, index, right_best, right_dis
                         if value != value:
                             break
             index[b, y, x] = i
-            c0, c1, c2 = cost[b, y, x, max(i - 1, 0)], cost[b, y, x, i], cost[b, y, x, min(i + 1, d_count - 1)]
-            spread = (c0 - two * c1 + c2) if parabola else (max(c0, c2) - c1)
-            offset = np.float32(0.0)
-            if 0 < i < d_count - 1 and spread > 0:
-                offset = min(max((c0 - c2) / (two * max(spread, tiny)), -half), half)
-            disp[b, y, x] = (np.float32(i) + offset) + np.float32(d_first)
+            disp[b, y, x] = _subpixel(cost[b, y, x, max(i - 1, 0)], cost[b, y, x, i],
+                                      cost[b, y, x, min(i + 1, d_count - 1)], i, d_count, d_first, parabola)
             # the right view: right pixel x - d sees this cost at d; disparities arrive in ascending order at
             # each right pixel, so a strict comparison keeps the lowest of equal costs, as the reference
             for k in range(d_count):
@@ -59,7 +66,6 @@ def _checked_winners_by_slice(cost, d_first, parabola, disp, index, right_best, 
     (the cost volume's own memory): each row's slices in turn, every pixel's running winner kept beside
     them, so that the costs are read in memory order instead of one slice apart."""
     n_b, d_count, h, w = cost.shape
-    half, two, tiny = np.float32(0.5), np.float32(2.0), np.float32(1e-12)
     for job in prange(n_b * h):
         b, y = job // h, job % h
         best = cost[b, 0, y].copy()
@@ -94,12 +100,8 @@ def _checked_winners_by_slice(cost, d_first, parabola, disp, index, right_best, 
         for x in range(w):
             i = winner[x]
             index[b, y, x] = i
-            c0, c1, c2 = cost[b, max(i - 1, 0), y, x], cost[b, i, y, x], cost[b, min(i + 1, d_count - 1), y, x]
-            spread = (c0 - two * c1 + c2) if parabola else (max(c0, c2) - c1)
-            offset = np.float32(0.0)
-            if 0 < i < d_count - 1 and spread > 0:
-                offset = min(max((c0 - c2) / (two * max(spread, tiny)), -half), half)
-            disp[b, y, x] = (np.float32(i) + offset) + np.float32(d_first)
+            disp[b, y, x] = _subpixel(cost[b, max(i - 1, 0), y, x], cost[b, i, y, x],
+                                      cost[b, min(i + 1, d_count - 1), y, x], i, d_count, d_first, parabola)
 
 
 def checked_winners_numba(volume: torch.Tensor, disparities, lr_tolerance: float, fit=select.parabolic_subpixel,

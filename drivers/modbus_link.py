@@ -19,6 +19,12 @@ import logging
 import re
 from dataclasses import dataclass
 
+# Imported here, not on the first connect: pymodbus's packages import each other in a circle, and a first
+# import in the scheduler's thread while another thread imports pymodbus.server (the in-process PLC
+# simulator) deadlocks or finds a module half-initialised.
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+
 from drivers.reject_scheduler import LinkError, LinkRefused
 
 # the standard exception codes (Modbus application protocol, section 7), in the words a commissioning engineer
@@ -97,11 +103,7 @@ class ModbusLink:
 
     def _make_client(self):
         if self.transport == "tcp":
-            from pymodbus.client import ModbusTcpClient
-
             return ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0)
-        from pymodbus.client import ModbusSerialClient
-
         return ModbusSerialClient(self.serial_port, baudrate=self.baudrate, parity=self.parity, stopbits=self.stopbits,
                                   bytesize=self.bytesize, timeout=self.timeout_s, retries=0)
 
@@ -123,8 +125,6 @@ class ModbusLink:
     def send(self, command: ModbusWrite) -> str:
         if self.client is None:
             raise LinkError(f"not connected to {self.where}")
-        from pymodbus.exceptions import ModbusException
-
         try:
             if command.table == "coil":
                 response = self.client.write_coil(command.address, bool(command.value), device_id=command.unit)

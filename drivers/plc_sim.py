@@ -26,6 +26,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+# Imported here, once, by whoever imports this module: pymodbus's packages import each other in a circle,
+# and two threads importing them for the first time at once (the simulator starting while an output's
+# thread connects) deadlock or find a module half-initialised.
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
 SIZE = 1024  # addresses 0..SIZE-1 of each table
 
 _COIL_WRITES = {5, 15}
@@ -109,8 +115,6 @@ class PlcState:
 
 
 def _build_server_device(state: PlcState, unit_ids: tuple[int, ...] | None):
-    from pymodbus.simulator import DataType, SimData, SimDevice
-
     def tables():
         return (
             [SimData(0, count=SIZE, values=False, datatype=DataType.BITS)],
@@ -192,8 +196,6 @@ def _start(
     unit_ids: tuple[int, ...] | None = None,
     delay_s: float = 0.0,
 ) -> PlcSimulator:
-    from pymodbus.server import ModbusSerialServer, ModbusTcpServer
-
     quiet_pymodbus()
     state = PlcState(on_change)
     state.delay_s = delay_s

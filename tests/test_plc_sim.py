@@ -41,6 +41,44 @@ def test_serve_in_thread_reports_changes_and_stops():
     assert [(w.table, w.address, w.value) for w in sim.writes] == [("coil", 0, 1), ("coil", 0, 1), ("register", 12, 345), ("coil", 0, 0)]
 
 
+# In a fresh interpreter: the first import of pymodbus is what raced. Before the drivers imported it themselves,
+# every run of this failed (a deadlock or a module found half-initialised).
+_FIRST_USE_IN_TWO_THREADS = """
+import threading
+from drivers import plc_sim
+from drivers.modbus_link import ModbusLink, ModbusWrite
+port = plc_sim.free_port()
+barrier, errors = threading.Barrier(2), []
+def serve():
+    barrier.wait()
+    try:
+        plc_sim.serve_in_thread("127.0.0.1", port, on_change=None).stop()
+    except Exception as exc:
+        errors.append(repr(exc))
+def connect():
+    barrier.wait()
+    try:
+        ModbusLink(transport="tcp", host="127.0.0.1", port=port)._make_client()
+    except Exception as exc:
+        errors.append(repr(exc))
+threads = [threading.Thread(target=serve), threading.Thread(target=connect)]
+for t in threads:
+    t.start()
+for t in threads:
+    t.join()
+print(errors)
+"""
+
+
+@pytest.mark.parametrize("attempt", range(3))
+def test_the_simulator_and_a_link_can_start_at_once_in_two_threads(attempt):
+    """`--plc-sim` serves from the same process whose outputs connect from their own threads."""
+    out = subprocess.run([sys.executable, "-c", _FIRST_USE_IN_TWO_THREADS], capture_output=True, text=True,
+                         cwd=ROOT, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
 def test_port_in_use_is_an_error():
     port = plc_sim.free_port()
     with plc_sim.serve_in_thread("127.0.0.1", port, on_change=None):

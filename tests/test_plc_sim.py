@@ -12,7 +12,7 @@ import pytest
 from conftest import start_pty_pair
 
 from drivers import plc_sim
-from drivers.modbus_link import ModbusLink, ModbusWrite
+from drivers.modbus_link import ModbusLink
 
 LINE = re.compile(r"^\d\d:\d\d:\d\d\.\d{3} (unit \d+ )?(coil|register) \d+ -> \d+$")
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,7 +46,7 @@ def test_serve_in_thread_reports_changes_and_stops():
 _FIRST_USE_IN_TWO_THREADS = """
 import threading
 from drivers import plc_sim
-from drivers.modbus_link import ModbusLink, ModbusWrite
+from drivers.modbus_link import ModbusLink
 port = plc_sim.free_port()
 barrier, errors = threading.Barrier(2), []
 def serve():

@@ -12,7 +12,7 @@ import pytest
 from conftest import start_pty_pair
 
 from drivers import plc_sim
-from drivers.modbus_link import ModbusLink
+from drivers.modbus_link import ModbusLink, ModbusWrite
 
 LINE = re.compile(r"^\d\d:\d\d:\d\d\.\d{3} (unit \d+ )?(coil|register) \d+ -> \d+$")
 ROOT = Path(__file__).resolve().parents[1]

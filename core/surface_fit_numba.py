@@ -119,6 +119,37 @@ def spline_coefficients(image: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
+def _rows_at(splines, r_lo, x_lo, e, lines):
+    """The splines' vertical half, applied once: ``lines`` (K, R, C) <- each spline interpolated on the rows
+    r_lo .. r_lo + R - 1 moved by ``e``, at the columns x_lo .. x_lo + C - 1. Rows on which no sample is a
+    number (``_position``) are left as they were."""
+    h = splines[0].shape[0]
+    n_k, n_rows, n_cols = lines.shape
+    for r in range(n_rows):
+        yf = np.float64(np.float32(r_lo + r + e))
+        if not (yf >= 1 and yf <= h - 3):
+            continue
+        y0 = int(np.floor(yf))
+        wy0, wy1, wy2, wy3 = _spline_weights(yf - y0)
+        for k in range(n_k):
+            c = splines[k]
+            s0, s1 = c[y0 - 1, x_lo:x_lo + n_cols], c[y0, x_lo:x_lo + n_cols]
+            s2, s3 = c[y0 + 1, x_lo:x_lo + n_cols], c[y0 + 2, x_lo:x_lo + n_cols]
+            line = lines[k, r]
+            for j in range(n_cols):
+                line[j] = wy0 * s0[j] + wy1 * s1[j] + wy2 * s2[j] + wy3 * s3[j]
+
+
+@njit(cache=True, inline="always")
+def _along_row(line, xf, x_lo):
+    """The horizontal half: a row of ``_rows_at`` (its first column x_lo) at column ``xf``."""
+    x0 = int(np.floor(xf))
+    wx0, wx1, wx2, wx3 = _spline_weights(xf - x0)
+    c0 = x0 - 1 - x_lo
+    return wx0 * line[c0] + wx1 * line[c0 + 1] + wx2 * line[c0 + 2] + wx3 * line[c0 + 3]
+
+
+@njit(cache=True, nogil=True)
 def _sample_rows(splines, x, rows, e, out):
     h, w = splines[0].shape
     n_k, n = len(splines), x.size
@@ -132,31 +163,15 @@ def _sample_rows(splines, x, rows, e, out):
             x_lo, x_hi = min(x_lo, int(np.floor(xf)) - 1), max(x_hi, int(np.floor(xf)) + 2)
     n_rows, n_cols = max(r_hi - r_lo + 1, 0), max(x_hi - x_lo + 1, 0)
     lines = np.empty((n_k, n_rows, n_cols))
-    for r in range(n_rows):
-        yf = np.float64(np.float32(r_lo + r + e))
-        if not (yf >= 1 and yf <= h - 3):
-            continue  # as _position: no sample is a number on this row
-        y0 = int(np.floor(yf))
-        wy0, wy1, wy2, wy3 = _spline_weights(yf - y0)
-        for k in range(n_k):
-            c = splines[k]
-            s0, s1 = c[y0 - 1, x_lo:x_lo + n_cols], c[y0, x_lo:x_lo + n_cols]
-            s2, s3 = c[y0 + 1, x_lo:x_lo + n_cols], c[y0 + 2, x_lo:x_lo + n_cols]
-            line = lines[k, r]
-            for j in range(n_cols):
-                line[j] = wy0 * s0[j] + wy1 * s1[j] + wy2 * s2[j] + wy3 * s3[j]
+    _rows_at(splines, r_lo, x_lo, e, lines)
     for i in range(n):
         xf, _, inside = _position(x[i], rows[i] + e, h, w)
         if not inside:
             for k in range(n_k):
                 out[k, i] = np.nan
             continue
-        x0 = int(np.floor(xf))
-        wx0, wx1, wx2, wx3 = _spline_weights(xf - x0)
-        c0, r = x0 - 1 - x_lo, rows[i] - r_lo
         for k in range(n_k):
-            line = lines[k, r]
-            out[k, i] = wx0 * line[c0] + wx1 * line[c0 + 1] + wx2 * line[c0 + 2] + wx3 * line[c0 + 3]
+            out[k, i] = _along_row(lines[k, rows[i] - r_lo], xf, x_lo)
 
 
 def sample_rows(splines: tuple[np.ndarray, ...], x: np.ndarray, rows: np.ndarray, e: float) -> np.ndarray:
@@ -385,15 +400,8 @@ def _offset_costs(lvals, image, u, v, base, gain, offset, weight, e, deltas, sca
     v_lo, v_hi = int(v.min()), int(v.max())
     x_lo = max(int(np.floor((u - base).min() - deltas.max())) - 2, 0)
     x_hi = min(int(np.ceil((u - base).max() - deltas.min())) + 3, w)
-    shift = np.floor(e)
-    wy0, wy1, wy2, wy3 = _spline_weights(e - shift)
-    rows = np.full((v_hi - v_lo + 1, max(x_hi - x_lo, 0)), np.nan)
-    for k in range(v_hi - v_lo + 1):
-        y = v_lo + k + int(shift)
-        if y - 1 >= 0 and y + 2 <= h - 1:
-            for x in range(x_lo, x_hi):
-                rows[k, x - x_lo] = (wy0 * image[y - 1, x] + wy1 * image[y, x] + wy2 * image[y + 1, x]
-                                     + wy3 * image[y + 2, x])
+    lines = np.empty((1, v_hi - v_lo + 1, max(x_hi - x_lo, 0)))
+    _rows_at((image,), v_lo, x_lo, e, lines)
     costs = np.zeros(deltas.size)
     for t in range(deltas.size):
         total = 0.0
@@ -402,11 +410,7 @@ def _offset_costs(lvals, image, u, v, base, gain, offset, weight, e, deltas, sca
             xf, _, inside = _position(x, v[i] + e, h, w)
             if not inside:
                 continue  # the sample is NaN there: the pixel costs nothing
-            x0 = int(np.floor(xf))
-            wx0, wx1, wx2, wx3 = _spline_weights(xf - x0)
-            line = rows[int(v[i]) - v_lo]
-            c = x0 - x_lo
-            rv = wx0 * line[c - 1] + wx1 * line[c] + wx2 * line[c + 1] + wx3 * line[c + 2]
+            rv = _along_row(lines[0, int(v[i]) - v_lo], xf, x_lo)
             size = abs(lvals[i] - gain[i] * rv - offset)
             total += weight[i] * (0.5 * size * size if size <= cut else cut * (size - 0.5 * cut))
         costs[t] = total

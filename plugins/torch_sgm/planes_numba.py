@@ -266,13 +266,11 @@ def edge_magnitude_opencv(image: torch.Tensor, sigma: float) -> torch.Tensor:
 
 
 @njit(cache=True, nogil=True)
-def _local_wanted(index, matched, wanted, k, max_matched):
+def _local_wanted(index, matched, wanted, size, max_matched):
     """``planes.local_planes``' regions worth its fit: ``wanted`` where fewer than ``max_matched`` of the
-    region's pixels matched."""
-    size = np.zeros(k)
-    hits = np.zeros(k)
+    region's pixels matched (``size``: each region's pixels)."""
+    hits = np.zeros(size.size)
     for i in range(index.size):
-        size[index[i]] += 1.0
         if matched[i]:
             hits[index[i]] += 1.0
     out = np.empty(index.size, np.bool_)
@@ -282,13 +280,12 @@ def _local_wanted(index, matched, wanted, k, max_matched):
 
 
 @njit(cache=True, nogil=True)
-def _take_local(index, plane, supported, extra, backed, local, tolerance, density, k):
+def _take_local(index, plane, supported, extra, backed, local, tolerance, density, size):
     """``planes.planes_and_slopes``' merge of ``local_planes``: where no region plane is supported, the
-    winners' plane ``extra``; supported where ``backed`` and its inliers cover ``density`` of the region."""
-    size = np.zeros(k)
-    inliers = np.zeros(k)
+    winners' plane ``extra``; supported where ``backed`` and its inliers cover ``density`` of the region
+    (``size``: each region's pixels)."""
+    inliers = np.zeros(size.size)
     for i in range(index.size):
-        size[index[i]] += 1.0
         if np.isfinite(local[i]) and abs(local[i] - extra[i]) < tolerance:
             inliers[index[i]] += 1.0
     for i in range(index.size):
@@ -354,11 +351,11 @@ def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: t
                                                wanted=torch.from_numpy(todo.reshape(shape)), seed=seed)
         plane, supported = plane.numpy().reshape(-1), supported.numpy().reshape(-1)
         if local is not None:
-            k = int(index.max()) + 1 if index.size else 1
-            wanted = _local_wanted(index, matched_flat, todo & ~supported, k, float(max_matched))
+            size = np.bincount(index, minlength=1).astype(np.float64)  # each region's pixels, for both steps
+            wanted = _local_wanted(index, matched_flat, todo & ~supported, size, float(max_matched))
             extra, backed = region_planes_numba(local, finite, labels, min_pixels, inlier_share_local, 1.0, samples,
                                                 torch.from_numpy(wanted.reshape(shape)), seed)
             _take_local(index, plane, supported, extra.numpy().reshape(-1), backed.numpy().reshape(-1), local_flat,
-                        1.0, float(density), k)
+                        1.0, float(density), size)
         _fill_level(index, plane, supported, w, slope, out, todo)
     return torch.from_numpy(out.reshape(shape)), torch.from_numpy(slope.reshape(shape))

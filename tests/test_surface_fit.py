@@ -207,7 +207,7 @@ class TestRobustScale:
 
 class TestOffsetCosts:
     def _numpy(self, lv, image, u, v, base, gain, offset, w, e, delta, scale):
-        """The offset search's cost as NumPy summed it, with OpenCV's samples."""
+        """The offset search's cost as NumPy sums it, from the spline's samples."""
         rv = sf.sample(image, u - base - delta, v, e)
         r = np.where(np.isfinite(rv), lv - gain * rv - offset, 0.0)
         a, k = np.abs(r), sf.HUBER_K * scale

@@ -142,6 +142,7 @@ def _ring_window(shape, box, gap, width) -> tuple[tuple[int, int], np.ndarray]:
 
 SCORED_POINTS = 1024
 INTERIOR_MARGIN_PX = 1.0  # a region's interior: its pixels at least this far inside its border
+WALL_PX = 0.5  # px of the defect's wall a region may hold unseen: what the evaluation sets' regions read short, median
 # the eyes' rows at WVGA (672 columns): a ZED's factory calibration leaves a few tenths of a pixel. An error of the
 # calibration is an angle, so a wider image of the same camera has its rows proportionally further apart
 RECTIFIED_WITHIN_PX = 1.5
@@ -404,10 +405,10 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         d, var_d = c + cells.delta, cells.variance
     else:
         d, var_d = c + fit.delta, cov[0, 0] + cov[3, 3] + 2 * cov[0, 3]
-    # The region may hold about a pixel of the defect's wall that the fit cannot tell from its floor
-    # (the wall facing the camera is seen broad, the other foreshortened): a share of 1 / w of a region
-    # w pixels across, and so of the offset. Measured on the evaluation sets (docs/benchmarks.md).
-    var_d += ((d - c) / max(min(inner[2] - inner[0], inner[3] - inner[1]), 1.0)) ** 2
+    # The region may hold part of a pixel of the defect's wall that the fit cannot tell from its floor
+    # (the wall facing the camera is seen broad, the other foreshortened): a share of WALL_PX / w of a region
+    # w pixels across, and so of the offset (docs/research-log.md).
+    var_d += (WALL_PX * (d - c) / max(min(inner[2] - inner[0], inner[3] - inner[1]), 1.0)) ** 2
     # and a floor that is not flat over the region (the box cut through a wall) widens it by how much
     var_d += surface_fit.unevenness_variance(offsets_px, sds, centres)
     # and by how much its strongly textured cells (the information weighs them) disagree with its area

@@ -18,6 +18,7 @@ class Pit:
     v: float
     radius_mm: float
     depth_mm: float  # + below the surface
+    floor: float = 0.0  # share of the radius that is flat at depth_mm, its wall a cone beyond; 0 = a paraboloid
 
 
 def calib_for(width: int, height: int, focal_px: float = 350.06, baseline_mm: float = 120.0) -> Calibration:
@@ -55,7 +56,11 @@ def render(calib: Calibration, distance_mm: float, tilt_deg: float = 0.0, pits: 
         depth = np.zeros(local.shape[:-1])
         for c, pit in centres:
             r2 = ((local - c) ** 2).sum(-1) / pit.radius_mm**2
-            depth += np.where(r2 < 1, pit.depth_mm * (1 - r2), 0.0)
+            if pit.floor > 0:
+                wall = (1 - np.sqrt(r2)) / (1 - pit.floor)
+                depth += pit.depth_mm * np.clip(wall, 0.0, 1.0)
+            else:
+                depth += np.where(r2 < 1, pit.depth_mm * (1 - r2), 0.0)
         return depth
 
     def hit(origin_x: float):

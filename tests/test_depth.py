@@ -14,7 +14,7 @@ import pytest
 from conftest import ROOT
 from synthetic_pairs import Pit, calib_for, render
 
-from core import depth_numba
+from core import depth, depth_numba
 from core.depth import DepthRule, fit_plane_robust, measure_defect, ring_mask
 from core.recipe import load_recipe
 from core.types import Detection
@@ -205,6 +205,20 @@ def test_surface_method_measures_a_pit_that_the_backend_blurs():
     m = _surface(left, right, blurred)
     assert abs(m.deviation_mm - truth.deviation_mm) <= 3 * m.deviation_sigma_mm + 0.05
     assert abs(m.deviation_mm - truth.deviation_mm) < abs(_measure(blurred).deviation_mm - truth.deviation_mm)
+
+
+def test_a_flat_bottomed_pit_keeps_an_uncertainty_near_what_its_pixels_allow(monkeypatch):
+    """The wall a region may hold unseen widens the deviation's uncertainty by half a pixel's share of it
+    (``WALL_PX``): on a pit whose region lies wholly on its flat floor that allowance is there, but it does not
+    swamp what the fit itself can tell."""
+    left, right, disparity = render(CALIB, 420.0, 6.0, [Pit(160, 96, 25.0, 1.5, floor=0.8)])
+    blurred = cv2.blur(np.round(disparity * 4) / 4, (9, 9))
+    m = _surface(left, right, blurred)
+    assert abs(m.deviation_mm - 1.5) <= 2 * m.deviation_sigma_mm
+    monkeypatch.setattr(depth, "WALL_PX", 0.0)
+    without = _surface(left, right, blurred)
+    assert without.deviation_mm == m.deviation_mm
+    assert without.deviation_sigma_mm < m.deviation_sigma_mm < 1.5 * without.deviation_sigma_mm
 
 
 def test_surface_method_without_the_pair_is_the_reference():

@@ -1,4 +1,4 @@
-"""Small exact stereo scenes for tests: a textured tilted plane with an optional spherical-cap pit.
+"""Small exact stereo scenes for tests: a textured tilted plane with optional pits (spherical caps or flat-bottomed).
 
 The geometry is ray-cast for both eyes so disparity is exact; kept tiny so tests stay fast.
 """

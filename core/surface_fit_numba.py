@@ -165,7 +165,7 @@ def _sample_rows(splines, x, rows, e, out):
     lines = np.empty((n_k, n_rows, n_cols))
     _rows_at(splines, r_lo, x_lo, e, lines)
     for i in range(n):
-        xf, _, inside = _position(x[i], rows[i] + e, h, w)
+        xf, inside = _position(x[i], rows[i] + e, h, w)
         if not inside:
             for k in range(n_k):
                 out[k, i] = np.nan
@@ -195,10 +195,10 @@ def sample_rows(splines: tuple[np.ndarray, ...], x: np.ndarray, rows: np.ndarray
 
 @njit(cache=True, inline="always")
 def _position(x, y, h, w):
-    """(x, y) at float32 precision, and whether its sample is a number there: 1 px from the left and top
+    """x at float32 precision, and whether the sample at (x, y) is a number: 1 px from the left and top
     border, 2 px from the right and bottom one."""
     xf, yf = np.float64(np.float32(x)), np.float64(np.float32(y))
-    return xf, yf, xf >= 1 and xf <= w - 3 and yf >= 1 and yf <= h - 3
+    return xf, xf >= 1 and xf <= w - 3 and yf >= 1 and yf <= h - 3
 
 
 MEDIAN_BINS = 256
@@ -407,7 +407,7 @@ def _offset_costs(lvals, image, u, v, base, gain, offset, weight, e, deltas, sca
         total = 0.0
         for i in range(n):
             x = u[i] - base[i] - deltas[t]
-            xf, _, inside = _position(x, v[i] + e, h, w)
+            xf, inside = _position(x, v[i] + e, h, w)
             if not inside:
                 continue  # the sample is NaN there: the pixel costs nothing
             rv = _along_row(lines[0, int(v[i]) - v_lo], xf, x_lo)

@@ -24,7 +24,8 @@ from drivers.sequence_folder import KITTI_MAX_DISPARITY, write_calibration, writ
 from sim.neu_crops import NEU_CLASSES, NeuCrops
 from sim.render import render_pair
 from sim.scene import (
-    CLASS_SHAPES, PLATEAU_R0, ROUND_EXPONENT, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, plate_axes,
+    CLASS_SHAPES, PLATEAU_R0, ROUND_EXPONENT, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, local_coords,
+    plate_axes,
 )
 from sim.texture import PLATE_MEAN, belt_albedo, steel_albedo, synthetic_defect_patch
 
@@ -58,6 +59,8 @@ class EvalRanges:
     defects_per_frame: tuple[int, int] = (1, 3)
     flat_floor: tuple[float, float] | None = None  # each defect's plateau (sim.scene), None: PLATEAU_R0
     round_defects: bool = False  # every defect an ellipse, its wall as steep all round, not its class's superellipse
+    aspect: tuple[float, float] | None = None  # each defect's length over its width; its length from ``defect_px``
+    angle_deg: tuple[float, float] | None = None  # each defect's outline turned on the plate by this much
 
     @property
     def plans_defects(self) -> bool:
@@ -103,6 +106,7 @@ class FrameSpec:
     yaw_deg: float
     requests: list[tuple[str, float]]  # (class, signed design depth)
     sizes_px: list[tuple[float, float]] | None = None  # (width, height) of each request's box, or from its appearance
+    angles_deg: list[float] | None = None  # each request's outline turned on the plate (sizes along its own sides)
 
 
 def plan_frame(rng, index: int, distance_mm: float, tilt_deg: float, jitter: bool, decks,
@@ -136,7 +140,7 @@ def plan_frame(rng, index: int, distance_mm: float, tilt_deg: float, jitter: boo
     elif kind == "mixed":
         shallow()
         deep()
-    return FrameSpec(float(distance), float(tilt), float(yaw), reqs, _sizes(rng, ranges, len(reqs)))
+    return FrameSpec(float(distance), float(tilt), float(yaw), reqs, *_outlines(rng, ranges, len(reqs)))
 
 
 def _jittered_pose(rng, tilt_deg: float) -> tuple[float, float]:
@@ -146,10 +150,16 @@ def _jittered_pose(rng, tilt_deg: float) -> tuple[float, float]:
     return tilt, rng.uniform(-2.0, 2.0)
 
 
-def _sizes(rng, ranges: EvalRanges, count: int) -> list[tuple[float, float]] | None:
-    if ranges.defect_px is None:
-        return None
-    return [(float(rng.uniform(*ranges.defect_px)), float(rng.uniform(*ranges.defect_px))) for _ in range(count)]
+def _outlines(rng, ranges: EvalRanges, count: int) -> tuple[list[tuple[float, float]] | None, list[float] | None]:
+    """Each defect's (length, width) in frame pixels (None: from its appearance) and its angle on the plate
+    (None: 0). Only the options given draw, so that a seed renders the same plates as before them."""
+    sizes = None
+    if ranges.defect_px is not None:
+        sizes = [(float(rng.uniform(*ranges.defect_px)), float(rng.uniform(*ranges.defect_px))) for _ in range(count)]
+        if ranges.aspect is not None:
+            sizes = [(length, length / float(rng.uniform(*ranges.aspect))) for length, _ in sizes]
+    angles = None if ranges.angle_deg is None else [float(rng.uniform(*ranges.angle_deg)) for _ in range(count)]
+    return sizes, angles
 
 
 def _planned_defects(rng, distance: float, tilt: float, yaw: float, decks, ranges: EvalRanges) -> FrameSpec:
@@ -159,7 +169,7 @@ def _planned_defects(rng, distance: float, tilt: float, yaw: float, decks, range
     for _ in range(int(rng.integers(ranges.defects_per_frame[0], ranges.defects_per_frame[1] + 1))):
         depth = float(rng.uniform(*ranges.depth_mm))
         reqs.append(((raised if depth < 0 else below).draw(), depth))
-    return FrameSpec(distance, tilt, yaw, reqs, _sizes(rng, ranges, len(reqs)))
+    return FrameSpec(distance, tilt, yaw, reqs, *_outlines(rng, ranges, len(reqs)))
 
 
 def _appearance(rng, cls: str, crops: NeuCrops | None, scale_px: float):
@@ -264,6 +274,11 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
         if spec.sizes_px is not None:  # the appearance is stretched over the footprint (_paste)
             bw, bh = spec.sizes_px[i]
         a, b = bw / 2 * mm_per_px, bh / 2 * mm_per_px / np.cos(np.radians(spec.tilt_deg))
+        angle = 0.0 if spec.angles_deg is None else spec.angles_deg[i]
+        outline = Defect(cls, source, "", 0.0, 0.0, (0.0, 0.0), (float(a), float(b)), angle_deg=angle)
+        ea, eb = outline.extent  # what the turned outline covers along s and t
+        if angle:  # the box it makes in the frame
+            bw, bh = 2 * ea / mm_per_px, 2 * eb * np.cos(np.radians(spec.tilt_deg)) / mm_per_px
         margin = ring_margin_px(calib.width)
         gap = max(GAP_PX * scale_px, 16.0) * mm_per_px
         slack = PLACEMENT_SLACK
@@ -275,10 +290,10 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
             u, v = rng.uniform(ulo, uhi), rng.uniform(vlo, vhi)
             _, s, t = flat_hit(calib, axes, np.zeros(3), np.array([u]), np.array([v]))
             s, t = float(s[0]), float(t[0])
-            if s_range is not None and not (s_range[0] + a + gap <= s <= s_range[1] - a - gap):
+            if s_range is not None and not (s_range[0] + ea + gap <= s <= s_range[1] - ea - gap):
                 continue
             if any(
-                abs(s - d.center[0]) < a + d.half[0] + gap and abs(t - d.center[1]) < b + d.half[1] + gap
+                abs(s - d.center[0]) < ea + d.extent[0] + gap and abs(t - d.center[1]) < eb + d.extent[1] + gap
                 for d in placed
             ):
                 continue
@@ -286,7 +301,7 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
             p = ROUND_EXPONENT if round_defects else p
             plateau = PLATEAU_R0 if flat_floor is None else float(rng.uniform(*flat_floor))
             placed.append(Defect(cls, source, shape_name, p, float(depth), (s, t), (float(a), float(b)), patch, pbox,
-                                 plateau))
+                                 plateau, angle))
             break
 
     for d in placed:
@@ -302,10 +317,16 @@ def _paste(d: Defect, albedo: np.ndarray, height: np.ndarray, origin, texel: flo
     mm_x, mm_y = 2 * a / (px1 - px0), 2 * b / (py1 - py0)  # mm per patch px
     ph, pw = d.patch.shape
     ps0, pt0 = sc - a - px0 * mm_x, tc - b - py0 * mm_y  # patch's top-left corner in mm
-    c0 = int(np.floor((ps0 - origin[0]) / texel))
-    r0 = int(np.floor((pt0 - origin[1]) / texel))
-    c1 = int(np.ceil((ps0 + pw * mm_x - origin[0]) / texel)) + 1
-    r1 = int(np.ceil((pt0 + ph * mm_y - origin[1]) / texel)) + 1
+    lo_s, lo_t, hi_s, hi_t = ps0, pt0, ps0 + pw * mm_x, pt0 + ph * mm_y
+    if d.angle_deg:  # the texels the turned patch covers
+        c, k = np.cos(np.radians(d.angle_deg)), np.sin(np.radians(d.angle_deg))
+        xs, ys = np.array([ps0, hi_s, ps0, hi_s]) - sc, np.array([pt0, pt0, hi_t, hi_t]) - tc
+        ss, ts = sc + xs * c - ys * k, tc + xs * k + ys * c
+        lo_s, lo_t, hi_s, hi_t = ss.min(), ts.min(), ss.max(), ts.max()
+    c0 = int(np.floor((lo_s - origin[0]) / texel))
+    r0 = int(np.floor((lo_t - origin[1]) / texel))
+    c1 = int(np.ceil((hi_s - origin[0]) / texel)) + 1
+    r1 = int(np.ceil((hi_t - origin[1]) / texel)) + 1
     c0, r0 = max(c0, 0), max(r0, 0)
     c1, r1 = min(c1, albedo.shape[1]), min(r1, albedo.shape[0])
     cols = np.arange(c0, c1)
@@ -313,6 +334,9 @@ def _paste(d: Defect, albedo: np.ndarray, height: np.ndarray, origin, texel: flo
     S, T = np.meshgrid(origin[0] + cols * texel, origin[1] + rows * texel)
     height[r0:r1, c0:c1] += heightfield_patch(d, S, T).astype(np.float32)
     # appearance: sample the patch at each texel (bilinear), feathered towards the patch border
+    if d.angle_deg:
+        ls, lt = local_coords(d, S, T)
+        S, T = ls + sc, lt + tc  # the texels in the patch's own axes
     mx = ((S - ps0) / mm_x - 0.5).astype(np.float32)
     my = ((T - pt0) / mm_y - 0.5).astype(np.float32)
     smooth = cv2.GaussianBlur(d.patch, (0, 0), max(0.5 * min(texel / mm_x, texel / mm_y), 0.01)) if min(mm_x, mm_y) < texel else d.patch
@@ -332,14 +356,18 @@ def _paste(d: Defect, albedo: np.ndarray, height: np.ndarray, origin, texel: flo
     albedo[r0:r1, c0:c1] = ((1 - alpha) * win + alpha * target).astype(np.float32)
 
 
+def on_footprint(d: Defect, centre_hits, h: int, w: int) -> np.ndarray:
+    """HxW bool: the pixels whose centre ray hits the defect's footprint rectangle."""
+    (a, b) = d.half
+    s, t = local_coords(d, centre_hits.s.reshape(h, w), centre_hits.t.reshape(h, w))
+    return (np.abs(s) <= a) & (np.abs(t) <= b) & centre_hits.on_plate.reshape(h, w)
+
+
 def defect_box(scene: Scene, d: Defect, centre_hits) -> tuple[float, float, float, float] | None:
     """The defect's footprint rectangle as seen by the left image: bounding box of the pixels
     whose centre ray hits it."""
-    (sc, tc), (a, b) = d.center, d.half
     h, w = scene.calib.height, scene.calib.width
-    s = centre_hits.s.reshape(h, w)
-    t = centre_hits.t.reshape(h, w)
-    mask = (np.abs(s - sc) <= a) & (np.abs(t - tc) <= b) & centre_hits.on_plate.reshape(h, w)
+    mask = on_footprint(d, centre_hits, h, w)
     rows, cols = np.nonzero(mask)
     if rows.size == 0:
         return None
@@ -379,7 +407,12 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
         box = defect_box(scene, d, hits)
         if box is None:
             continue
-        m = measure_defect(gt, Detection(d.class_name, 1.0, box), calib, DepthRule())
+        # the truth is the deviation where the region lies on the defect: a groove turned across its box leaves
+        # the surface in the rest of it (for an outline along the rows, the region lies on it whole)
+        on_defect = gt.copy()
+        x0, y0, x1, y1 = (int(v) for v in box)
+        on_defect[y0:y1, x0:x1][~on_footprint(d, hits, calib.height, calib.width)[y0:y1, x0:x1]] = np.nan
+        m = measure_defect(on_defect, Detection(d.class_name, 1.0, box), calib, DepthRule())
         defects.append({
             "class": d.class_name,
             "box": [round(v, 1) for v in box],
@@ -390,6 +423,7 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
             "source": d.source,
             **({} if flat_floor is None else {"plateau": round(d.plateau, 3)}),
             **({"exponent": d.exponent} if round_defects else {}),
+            **({"angle_deg": round(d.angle_deg, 2)} if d.angle_deg else {}),
         })
     labels = {
         "frame_id": frame_id,

@@ -15,10 +15,13 @@ Defect heightfields: a superellipse plateau over the defect's footprint rectangl
 (half-sizes a, b): ``h = D * (1 - smoothstep(r0, 1, r))``, ``r = (|ds/a|^p + |dt/b|^p)^(1/p)``:
 flat at the design depth D over the middle, a smooth wall, zero at the rectangle's border.
 ``r0`` is the defect's ``plateau`` (0.55 by default; near 1, a flat-bottomed pit with a steep wall).
-The footprint rectangle is the (scaled) NEU-DET VOC box, so the label box is the defect.
+(ds, dt) are along the rectangle's own sides, which an evaluation set may turn on the plate (``angle_deg``:
+a groove running diagonally across its box). The footprint rectangle is the (scaled) NEU-DET VOC box, so
+the label box is the defect.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,6 +69,14 @@ class Defect:
     patch: np.ndarray | None = None  # appearance (grey float32), box given by patch_box
     patch_box: tuple[int, int, int, int] = (0, 0, 0, 0)
     plateau: float = PLATEAU_R0  # share of the half-sizes that is flat floor; the wall rises over the rest
+    angle_deg: float = 0.0  # the outline turned on the plate, from the s axis towards t (``half`` along its own axes)
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        """(s, t) half-sizes of the rectangle on the plate that holds the turned outline, mm."""
+        a, b = self.half
+        c, k = abs(math.cos(math.radians(self.angle_deg))), abs(math.sin(math.radians(self.angle_deg)))
+        return a * c + b * k, a * k + b * c
 
 
 @dataclass
@@ -141,8 +152,18 @@ def flat_hit(calib: Calibration, scene_axes, origin: np.ndarray, u, v, offset: f
     return z, s, t
 
 
+def local_coords(defect: Defect, s: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Plate coordinates (s, t) mm -> the defect's own (along ``half[0]``, along ``half[1]``), from its centre."""
+    ds, dt = s - defect.center[0], t - defect.center[1]
+    if not defect.angle_deg:
+        return ds, dt
+    c, k = math.cos(math.radians(defect.angle_deg)), math.sin(math.radians(defect.angle_deg))
+    return ds * c + dt * k, dt * c - ds * k
+
+
 def heightfield_patch(defect: Defect, s: np.ndarray, t: np.ndarray) -> np.ndarray:
     a, b = defect.half
     p = defect.exponent
-    r = (np.abs((s - defect.center[0]) / a) ** p + np.abs((t - defect.center[1]) / b) ** p) ** (1.0 / p)
+    ls, lt = local_coords(defect, s, t)
+    r = (np.abs(ls / a) ** p + np.abs(lt / b) ** p) ** (1.0 / p)
     return defect.design_depth_mm * (1.0 - smoothstep(defect.plateau, 1.0, r))

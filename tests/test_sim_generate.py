@@ -286,6 +286,37 @@ def test_round_defects_are_ellipses_whose_wall_reaches_into_the_measured_region(
     assert labels[0]["defects"] and all(d["exponent"] == 2.0 for d in labels[0]["defects"])
 
 
+def test_a_groove_turned_on_the_plate_crosses_its_box_and_its_truth_is_its_own_depth(tmp_path):
+    """``aspect`` and ``angle_deg``: a long narrow outline turned by 45 degrees runs corner to corner of its
+    box, whose central region then holds the surface beside it too; the label's deviation is the groove's
+    where the region lies on it, not the region's median (the surface)."""
+    from sim.generate import EvalRanges
+
+    calib = zed_calibration(W, H)
+    spec = FrameSpec(400.0, 0.0, 0.0, [("scratches", 2.0)], [(80.0, 12.0)], [45.0])
+    scene = build_scene(np.random.default_rng(6), calib, spec, None, flat_floor=(0.8, 0.8))
+    (d,) = scene.defects
+    assert d.angle_deg == 45.0 and d.extent[0] == pytest.approx(d.extent[1])
+    (sc, tc), (a, b) = d.center, d.half
+    along = np.array([np.cos(np.pi / 4), np.sin(np.pi / 4)])
+    on_axis = heightfield_patch(d, np.array([sc + 0.5 * a * along[0]]), np.array([tc + 0.5 * a * along[1]]))[0]
+    corner = heightfield_patch(d, np.array([sc + 0.5 * a * along[0]]), np.array([tc - 0.5 * a * along[1]]))[0]
+    assert on_axis == pytest.approx(2.0) and corner == 0.0  # along the diagonal, and not across it
+    left, right, gt, labels, _ = render_frame(np.random.default_rng(7), calib, spec, None, "000000", ss=1,
+                                              flat_floor=(0.8, 0.8))
+    (label,) = labels["defects"]
+    x0, y0, x1, y1 = label["box"]
+    assert abs((x1 - x0) - (y1 - y0)) < 6 and label["angle_deg"] == 45.0
+    truth = label["deviation_mm"]
+    region_median = measure_defect(gt, Detection("scratches", 1.0, tuple(label["box"])), calib, DepthRule()).deviation_mm
+    assert truth == pytest.approx(2.0, abs=0.1) and region_median < 1.0
+    labels = generate_sequence(tmp_path / "grooves", frames=2, seed=2, width=336, height=188, supersample=1,
+                               ranges=EvalRanges(depth_mm=(1.0, 2.0), defect_px=(40.0, 60.0), aspect=(4.0, 6.0),
+                                                 angle_deg=(30.0, 60.0)))
+    drawn = [dd for lab in labels for dd in lab["defects"]]
+    assert drawn and all(30.0 <= dd["angle_deg"] <= 60.0 for dd in drawn)
+
+
 def test_flat_floor_must_leave_a_wall(tmp_path):
     from click.testing import CliRunner
 
@@ -294,6 +325,19 @@ def test_flat_floor_must_leave_a_wall(tmp_path):
     result = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects", "--frames", "1",
                                       "--depth-range-mm", "1", "2", "--flat-floor", "0.9", "1.0"])
     assert result.exit_code == 2 and "--flat-floor" in result.output and "no wall" in result.output
+
+
+def test_an_aspect_needs_the_size_it_divides_and_angles_stay_within_a_turn(tmp_path):
+    from click.testing import CliRunner
+
+    from core.cli import _build
+
+    base = ["sim", "generate", str(tmp_path / "x"), "--synthetic-defects", "--frames", "1", "--depth-range-mm", "1", "2"]
+    result = CliRunner().invoke(_build(), base + ["--defect-aspect", "4", "8"])
+    assert result.exit_code == 2 and "--defect-aspect" in result.output and "--defect-size-px" in result.output
+    result = CliRunner().invoke(_build(), base + ["--defect-angle-deg", "0", "270"])
+    assert result.exit_code == 2 and "--defect-angle-deg" in result.output and "180" in result.output
+    assert not (tmp_path / "x").exists()
 
 
 def test_the_camera_model_changes_only_what_it_names(tmp_path):

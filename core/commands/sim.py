@@ -108,6 +108,13 @@ def register(cli: click.Group) -> None:
                   help="Evaluation set: every defect an ellipse (a round pit or bump) instead of its class's "
                        "squarer outline, so that the central part of its box the depth is measured on reaches "
                        "further into its wall.")
+    @click.option("--defect-aspect", nargs=2, type=FINITE, default=None, metavar="MIN MAX",
+                  help="Evaluation set: each defect's length over its width, drawn uniformly (a groove: 4 or more); "
+                       "its length is drawn from --defect-size-px, which it needs.")
+    @click.option("--defect-angle-deg", nargs=2, type=FINITE, default=None, metavar="MIN MAX",
+                  help="Evaluation set: each defect's outline turned on the plate by an angle drawn uniformly (45: "
+                       "a groove running diagonally across its box, which then holds the surface beside it too); "
+                       "--defect-size-px gives its length and width before it is turned.")
     @click.option("--rectification-error-px", default=0.0, show_default=True, type=Finite(-5.0, 5.0),
                   help="The right eye's rows this far below the left's (what a real camera's rectification "
                        "leaves, a few tenths of a pixel; 0: exactly rectified).")
@@ -122,8 +129,8 @@ def register(cli: click.Group) -> None:
                        "pixels alone, sharper than a real lens gives).")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
                  image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
-                 defects_per_frame, texture_contrast, flat_floor, round_defects, rectification_error_px, noise_sigma,
-                 specular, lens_blur_px) -> None:
+                 defects_per_frame, texture_contrast, flat_floor, round_defects, defect_aspect, defect_angle_deg,
+                 rectification_error_px, noise_sigma, specular, lens_blur_px) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
@@ -136,7 +143,9 @@ def register(cli: click.Group) -> None:
                                       ("--defect-size-px", defect_size_px, 4.0, None),
                                       ("--depth-range-mm", depth_range_mm, -MAX_DEPTH_MM, MAX_DEPTH_MM),
                                       ("--defects-per-frame", defects_per_frame, 1, None),
-                                      ("--flat-floor", flat_floor, 0.0, None)):
+                                      ("--flat-floor", flat_floor, 0.0, None),
+                                      ("--defect-aspect", defect_aspect, 1.0, None),
+                                      ("--defect-angle-deg", defect_angle_deg, -180.0, 180.0)):
             if pair is None:
                 continue
             if pair[0] > pair[1]:
@@ -175,9 +184,14 @@ def register(cli: click.Group) -> None:
         if flat_floor is not None and flat_floor[1] >= 1.0:
             click.echo(f"error: --flat-floor: {flat_floor[1]:g} leaves no wall (give a share below 1)", err=True)
             raise SystemExit(2)
+        if defect_aspect is not None and defect_size_px is None:
+            click.echo("error: --defect-aspect: needs --defect-size-px, which gives each defect's length", err=True)
+            raise SystemExit(2)
         ranges = EvalRanges(distance_mm=distance_range_mm, defect_px=defect_size_px, depth_mm=depth_range_mm,
                             defects_per_frame=tuple(defects_per_frame),
-                            flat_floor=None if flat_floor is None else tuple(flat_floor), round_defects=round_defects)
+                            flat_floor=None if flat_floor is None else tuple(flat_floor), round_defects=round_defects,
+                            aspect=None if defect_aspect is None else tuple(defect_aspect),
+                            angle_deg=None if defect_angle_deg is None else tuple(defect_angle_deg))
 
         if not synthetic_defects and not Path(neu_det).is_dir():
             click.echo(f"error: NEU-DET folder not found: {neu_det} (give --neu-det DIR or --synthetic-defects)", err=True)

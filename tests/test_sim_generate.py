@@ -297,7 +297,7 @@ def test_a_groove_turned_on_the_plate_crosses_its_box_and_its_truth_is_its_own_d
     scene = build_scene(np.random.default_rng(6), calib, spec, None, flat_floor=(0.8, 0.8))
     (d,) = scene.defects
     assert d.angle_deg == 45.0 and d.extent[0] == pytest.approx(d.extent[1])
-    (sc, tc), (a, b) = d.center, d.half
+    (sc, tc), a = d.center, d.half[0]
     along = np.array([np.cos(np.pi / 4), np.sin(np.pi / 4)])
     on_axis = heightfield_patch(d, np.array([sc + 0.5 * a * along[0]]), np.array([tc + 0.5 * a * along[1]]))[0]
     corner = heightfield_patch(d, np.array([sc + 0.5 * a * along[0]]), np.array([tc - 0.5 * a * along[1]]))[0]

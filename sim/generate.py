@@ -25,7 +25,7 @@ from sim.neu_crops import NEU_CLASSES, NeuCrops
 from sim.render import render_pair
 from sim.scene import (
     CLASS_SHAPES, PLATEAU_R0, ROUND_EXPONENT, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, local_coords,
-    plate_axes,
+    plate_axes, turned_extent,
 )
 from sim.texture import PLATE_MEAN, belt_albedo, steel_albedo, synthetic_defect_patch
 
@@ -275,8 +275,7 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
             bw, bh = spec.sizes_px[i]
         a, b = bw / 2 * mm_per_px, bh / 2 * mm_per_px / np.cos(np.radians(spec.tilt_deg))
         angle = 0.0 if spec.angles_deg is None else spec.angles_deg[i]
-        outline = Defect(cls, source, "", 0.0, 0.0, (0.0, 0.0), (float(a), float(b)), angle_deg=angle)
-        ea, eb = outline.extent  # what the turned outline covers along s and t
+        ea, eb = turned_extent((float(a), float(b)), angle)  # what the turned outline covers along s and t
         if angle:  # the box it makes in the frame
             bw, bh = 2 * ea / mm_per_px, 2 * eb * np.cos(np.radians(spec.tilt_deg)) / mm_per_px
         margin = ring_margin_px(calib.width)
@@ -363,12 +362,10 @@ def on_footprint(d: Defect, centre_hits, h: int, w: int) -> np.ndarray:
     return (np.abs(s) <= a) & (np.abs(t) <= b) & centre_hits.on_plate.reshape(h, w)
 
 
-def defect_box(scene: Scene, d: Defect, centre_hits) -> tuple[float, float, float, float] | None:
-    """The defect's footprint rectangle as seen by the left image: bounding box of the pixels
-    whose centre ray hits it."""
-    h, w = scene.calib.height, scene.calib.width
-    mask = on_footprint(d, centre_hits, h, w)
-    rows, cols = np.nonzero(mask)
+def defect_box(footprint: np.ndarray) -> tuple[float, float, float, float] | None:
+    """The defect's footprint rectangle as seen by the left image (``on_footprint``): the bounding box of
+    its pixels."""
+    rows, cols = np.nonzero(footprint)
     if rows.size == 0:
         return None
     return (float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1))
@@ -404,14 +401,15 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
     gt = quantise_disparity(disparity)
     defects = []
     for d in scene.defects:
-        box = defect_box(scene, d, hits)
+        footprint = on_footprint(d, hits, calib.height, calib.width)
+        box = defect_box(footprint)
         if box is None:
             continue
         # the truth is the deviation where the region lies on the defect: a groove turned across its box leaves
         # the surface in the rest of it (for an outline along the rows, the region lies on it whole)
         on_defect = gt.copy()
         x0, y0, x1, y1 = (int(v) for v in box)
-        on_defect[y0:y1, x0:x1][~on_footprint(d, hits, calib.height, calib.width)[y0:y1, x0:x1]] = np.nan
+        on_defect[y0:y1, x0:x1][~footprint[y0:y1, x0:x1]] = np.nan
         m = measure_defect(on_defect, Detection(d.class_name, 1.0, box), calib, DepthRule())
         defects.append({
             "class": d.class_name,

@@ -74,9 +74,7 @@ class Defect:
     @property
     def extent(self) -> tuple[float, float]:
         """(s, t) half-sizes of the rectangle on the plate that holds the turned outline, mm."""
-        a, b = self.half
-        c, k = abs(math.cos(math.radians(self.angle_deg))), abs(math.sin(math.radians(self.angle_deg)))
-        return a * c + b * k, a * k + b * c
+        return turned_extent(self.half, self.angle_deg)
 
 
 @dataclass
@@ -150,6 +148,13 @@ def flat_hit(calib: Calibration, scene_axes, origin: np.ndarray, u, v, offset: f
     s = (d[0] + z * rx) * e1[0] + (d[1] + z * ry) * e1[1] + (d[2] + z) * e1[2]
     t = (d[0] + z * rx) * e2[0] + (d[1] + z * ry) * e2[1] + (d[2] + z) * e2[2]
     return z, s, t
+
+
+def turned_extent(half: tuple[float, float], angle_deg: float) -> tuple[float, float]:
+    """(s, t) half-sizes of the rectangle that holds a rectangle of half-sizes ``half`` turned by ``angle_deg``."""
+    a, b = half
+    c, k = abs(math.cos(math.radians(angle_deg))), abs(math.sin(math.radians(angle_deg)))
+    return a * c + b * k, a * k + b * c
 
 
 def local_coords(defect: Defect, s: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

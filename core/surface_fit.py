@@ -61,6 +61,7 @@ MIN_GAIN = 0.25  # the right eye's fitted gain: above 0.34 on the evaluation set
 # defect started 45 px from its surface
 SEARCH_STEP_PX = 0.05
 COARSE_STEP_PX = 0.2
+SEARCH_PX = 1.5  # the defect's offset is searched this far either side of the backend's
 LEFT_SEARCH_PX = 0.5  # a fit that moves the offset this far from the searched minimum has found another surface
 PARAMS = ("c", "a", "b", "delta", "g", "g_u", "g_v", "o", "g_m", "o_m", "e")
 RING = [0, 1, 2, 4, 5, 6, 7, 10]
@@ -310,7 +311,7 @@ class _Problem:
 def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.ndarray],
                 defect: tuple[np.ndarray, np.ndarray], plane: tuple[float, float, float],
                 delta0: float = 0.0, defect_weights: np.ndarray | None = None,
-                search_px: float = 1.5) -> SurfaceFit | None:
+                search_px: float = SEARCH_PX) -> SurfaceFit | None:
     """Fit the ring's disparity plane and the defect's offset to the grey levels of a rectified pair.
 
     left, right: HxW float32 grey images of the same shape. ring, defect: (u, v) integer pixel

@@ -21,6 +21,28 @@ class Pit:
     floor: float = 0.0  # share of the radius that is flat at depth_mm, its wall a cone beyond; 0 = a paraboloid
 
 
+@dataclass
+class Groove:
+    """A straight groove, flat-bottomed between sloping walls, with sloping ends."""
+
+    u: float  # centre in left-image pixels
+    v: float
+    angle_deg: float  # of its length from the image's rows
+    length_mm: float
+    width_mm: float
+    depth_mm: float
+    floor: float = 0.5  # share of its width that is flat at depth_mm
+
+    def depth(self, local: np.ndarray) -> np.ndarray:
+        """Depth (mm) at plate coordinates ``local`` (..., 2), relative to the groove's centre."""
+        a = np.deg2rad(self.angle_deg)
+        along = local[..., 0] * np.cos(a) + local[..., 1] * np.sin(a)
+        across = -local[..., 0] * np.sin(a) + local[..., 1] * np.cos(a)
+        wall = (1 - np.abs(across) / (self.width_mm / 2)) / (1 - self.floor)
+        end = (1 - np.abs(along) / (self.length_mm / 2)) / 0.1
+        return self.depth_mm * np.clip(np.minimum(wall, end), 0.0, 1.0)
+
+
 def calib_for(width: int, height: int, focal_px: float = 350.06, baseline_mm: float = 120.0) -> Calibration:
     return Calibration(focal_px, baseline_mm, (width - 1) / 2, (height - 1) / 2, width, height)
 
@@ -36,7 +58,7 @@ def _texture(seed: int, size: int = 1024) -> np.ndarray:
     return np.clip(40 + 180 * (tex - tex.min()) / (tex.max() - tex.min()), 0, 255).astype(np.float32)
 
 
-def render(calib: Calibration, distance_mm: float, tilt_deg: float = 0.0, pits: list[Pit] = (), seed: int = 0):
+def render(calib: Calibration, distance_mm: float, tilt_deg: float = 0.0, pits: list[Pit | Groove] = (), seed: int = 0):
     """Left, right (HxWx3 uint8) and the left image's exact disparity (HxW float32)."""
     f, b = calib.focal_px, calib.baseline_mm
     tex = _texture(seed)
@@ -55,6 +77,9 @@ def render(calib: Calibration, distance_mm: float, tilt_deg: float = 0.0, pits: 
     def depth_at(local: np.ndarray) -> np.ndarray:
         depth = np.zeros(local.shape[:-1])
         for c, pit in centres:
+            if isinstance(pit, Groove):
+                depth += pit.depth(local - c)
+                continue
             r2 = ((local - c) ** 2).sum(-1) / pit.radius_mm**2
             if pit.floor > 0:
                 wall = (1 - np.sqrt(r2)) / (1 - pit.floor)

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import ROOT
-from synthetic_pairs import Pit, calib_for, render
+from synthetic_pairs import Groove, Pit, calib_for, render
 
 from core import depth, depth_numba
 from core.depth import DepthRule, fit_plane_robust, measure_defect, ring_mask
@@ -219,6 +219,42 @@ def test_a_flat_bottomed_pit_keeps_an_uncertainty_near_what_its_pixels_allow(mon
     without = _surface(left, right, blurred)
     assert without.deviation_mm == m.deviation_mm
     assert without.deviation_sigma_mm < m.deviation_sigma_mm < 1.5 * without.deviation_sigma_mm
+
+
+def _groove_and_box(angle_deg: float, width_mm: float, depth_mm: float = 2.0):
+    """A pair with a straight groove across the middle at 420 mm, the groove's box (its footprint's upright
+    bounding box, as a detector gives it) and its truth: its mean depth where the box's region lies on it."""
+    left, right, disparity = render(CALIB, 420.0, 0.0, [Groove(160, 96, angle_deg, 70.0, width_mm, depth_mm)])
+    plate = CALIB.focal_px * CALIB.baseline_mm / 420.0
+    v, u = np.nonzero(disparity < plate - 1e-3)
+    box = (float(u.min()), float(v.min()), float(u.max() + 1), float(v.max() + 1))
+    x0, y0, x1, y1 = (int(round(c)) for c in depth.roi_box(box, DepthRule()))
+    region = disparity[y0:y1, x0:x1]
+    on = region < plate - 1e-3
+    return left, right, disparity, box, float(np.mean(CALIB.focal_px * CALIB.baseline_mm / region[on] - 420.0))
+
+
+@pytest.mark.parametrize("angle, width", [(40.0, 6.0), (130.0, 10.0), (25.0, 10.0)])
+def test_a_groove_across_its_box_is_measured_along_it(angle, width):
+    """Most of the box's region is the surface beside a turned groove: the region alone reads it at half its
+    depth or less, and proves it inside a limit it lies beyond (docs/depth-conditions.md)."""
+    left, right, disparity, box, truth = _groove_and_box(angle, width)
+    m = _surface(left, right, disparity, box)
+    assert "along a groove" in m.note
+    assert abs(m.deviation_mm - truth) <= 3 * m.deviation_sigma_mm + 0.05
+    assert m.deviation_mm + 2 * m.deviation_sigma_mm > 1.0  # never proven inside a 1 mm limit
+
+
+def test_a_band_too_faint_to_call_a_groove_widens_the_uncertainty_to_take_it_in(monkeypatch):
+    left, right, disparity, box, truth = _groove_and_box(40.0, 6.0)
+    monkeypatch.setattr(depth, "GROOVE_Z", np.inf)  # never sure enough to measure along it
+    widened = _surface(left, right, disparity, box)
+    monkeypatch.setattr(depth, "BAND_Z", np.inf)
+    region = _surface(left, right, disparity, box)
+    assert widened.note == region.note == "" and widened.deviation_mm == region.deviation_mm
+    assert truth - region.deviation_mm > 3 * region.deviation_sigma_mm  # the region alone reads it short
+    assert widened.deviation_sigma_mm > 1.5 * region.deviation_sigma_mm
+    assert widened.deviation_mm + 2 * widened.deviation_sigma_mm > 1.0
 
 
 def test_surface_method_without_the_pair_is_the_reference():

@@ -1,0 +1,96 @@
+"""A groove or scratch that crosses its box: the band of the region's cells that stands off from the rest.
+
+A detector's box is upright; a groove turned on the part runs across it, from corner to corner, and most
+of the region measured as the defect is then the surface beside it. Each of the region's small cells
+(``surface_fit.cell_offsets``) reads either the groove or the surface, too noisily to tell one alone, but
+the cells along the groove, summed, do: a straight groove passes through the centre of the box around it,
+so every band through the region's centre is tried, at every angle and a few widths, and the one whose
+cells stand off the rest the most is the groove's candidate.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+ANGLE_STEP_DEG = 7.5
+HALF_WIDTHS_PX = (2.0, 4.0, 8.0, 12.0)  # from one 4 px cell on the line to six: the evaluation sets' grooves are 5-33 px wide
+SHIFTS_PX = (-4.0, 0.0, 4.0)  # from the region's centre, a cell either way: the box's rounding and a groove's bend
+MIN_CELLS = 6  # in the band and outside it: fewer are a glint or a corner, not a groove and its surface
+
+
+@dataclass(frozen=True)
+class Band:
+    """The band of cells that stands off the rest the most: its angle (degrees from the image's rows),
+    half-width and shift from the region's centre (px), its cells (K,) bool, its and the rest's weighted
+    mean offsets (px), the variance of its mean (px^2, the cells' scatter about the fit included where it
+    exceeds their noise), and ``z``, how many standard deviations the band stands beyond a bowl through all
+    the cells."""
+
+    angle_deg: float
+    half_width_px: float
+    shift_px: float
+    cells: np.ndarray
+    offset: float
+    rest: float
+    variance: float
+    z: float
+
+
+def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, centre: tuple[float, float]
+                 ) -> Band | None:
+    """Of the straight bands through ``centre`` (every ANGLE_STEP_DEG, HALF_WIDTHS_PX wide, SHIFTS_PX off it)
+    with MIN_CELLS cells or more both in and out, the one that stands furthest, in standard deviations, beyond
+    the rest and a bowl fitted with it, away from 0 (the surface around the box): a groove reads farther from
+    the surface than the surface beside it, where a glint or a wall may read anything, and a round pit is as
+    deep along every line through its centre. None without one.
+
+    offsets, sds: (K,) the cells' offsets from the ring's plane and their standard deviations (px; cells
+    with sd inf or 0 carry nothing); centres: (K, 2) their (u, v); centre: the region's (u, v)."""
+    if offsets.shape != sds.shape or offsets.ndim != 1 or centres.shape != (offsets.size, 2):
+        raise ValueError(f"central_band: offsets {offsets.shape} and sds {sds.shape} must be (K,), "
+                         f"centres {centres.shape} (K, 2)")
+    ok = np.isfinite(sds) & (sds > 0) & np.isfinite(offsets)
+    if ok.sum() < 2 * MIN_CELLS:
+        return None
+    x, w = offsets[ok], 1.0 / sds[ok] ** 2
+    du, dv = centres[ok, 0] - centre[0], centres[ok, 1] - centre[1]
+    # a bowl (a round pit seen through a box about its size) is deepest along every line through its centre:
+    # the band is weighed against it, as the square of the distance from the centre in the region's half-widths
+    bowl = (du / max(np.abs(du).max(), 1.0)) ** 2 + (dv / max(np.abs(dv).max(), 1.0)) ** 2
+    angles = np.deg2rad(np.arange(0.0, 180.0, ANGLE_STEP_DEG))
+    across = -du[None, :] * np.sin(angles)[:, None] + dv[None, :] * np.cos(angles)[:, None]  # (A, K)
+    widths, shifts = np.array(HALF_WIDTHS_PX), np.array(SHIFTS_PX)
+    inside = np.abs(across[:, None, None, :] - shifts[None, None, :, None]) <= widths[None, :, None, None]  # (A, W, S, K)
+    n_in = inside.sum(axis=-1)
+    # weighted least squares of offset = mean + step * in_band + curvature * bowl, per band: its 3x3 normal
+    # equations from sums over the cells
+    wb, wq = inside * w, w * bowl
+    sums = {"1": w.sum(), "b": wb.sum(axis=-1), "q": wq.sum(), "bq": (wb * bowl).sum(axis=-1), "qq": (wq * bowl).sum(),
+            "x": (w * x).sum(), "bx": (wb * x).sum(axis=-1), "qx": (wq * x).sum(), "xx": (w * x * x).sum()}
+    shape = n_in.shape
+    normal = np.empty(shape + (3, 3))
+    for (i, j), key in {(0, 0): "1", (0, 1): "b", (0, 2): "q", (1, 1): "b", (1, 2): "bq", (2, 2): "qq"}.items():
+        normal[..., i, j] = normal[..., j, i] = sums[key]
+    rhs = np.stack(np.broadcast_arrays(sums["x"], sums["bx"], sums["qx"]), axis=-1)
+    usable = (n_in >= MIN_CELLS) & (x.size - n_in >= MIN_CELLS) & (np.abs(np.linalg.det(normal)) > 1e-12 * sums["1"] ** 3)
+    if not usable.any():
+        return None
+    normal[~usable] = np.eye(3)
+    inverse = np.linalg.inv(normal)
+    coeffs = np.einsum("...ij,...j->...i", inverse, rhs)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scatter = np.maximum((sums["xx"] - np.einsum("...i,...i->...", coeffs, rhs)) / max(x.size - 3, 1), 1.0)
+        z = coeffs[..., 1] / np.sqrt(inverse[..., 1, 1] * scatter)
+        w_in = sums["b"]
+        m_in, m_out = sums["bx"] / w_in, (sums["x"] - sums["bx"]) / (sums["1"] - w_in)
+    # the band stands beyond the rest, away from the surface
+    usable &= (np.abs(m_in) > np.abs(m_out)) & (np.sign(z) == np.sign(m_in)) & np.isfinite(z)
+    if not usable.any():
+        return None
+    best = np.unravel_index(np.argmax(np.where(usable, np.abs(z), -np.inf)), z.shape)
+    cells = np.zeros(offsets.size, dtype=bool)
+    cells[np.flatnonzero(ok)] = inside[best]
+    a, h, s = best
+    return Band(float(np.rad2deg(angles[a])), float(widths[h]), float(shifts[s]), cells, float(m_in[best]),
+                float(m_out[best]), float(scatter[best] / w_in[best]), float(z[best]))

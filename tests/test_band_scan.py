@@ -1,0 +1,91 @@
+"""The band of a region's cells that stands off the rest: a groove crossing its box."""
+import numpy as np
+import pytest
+
+from core import band_scan
+from core.band_scan import central_band
+
+
+def grid(width_px: int = 64, height_px: int = 64, cell_px: int = 4) -> np.ndarray:
+    """(K, 2) the centres of a region's cells, row by row."""
+    v, u = np.mgrid[cell_px / 2 - 0.5 : height_px : cell_px, cell_px / 2 - 0.5 : width_px : cell_px]
+    return np.stack([u.ravel(), v.ravel()], axis=1)
+
+
+def groove_cells(angle_deg: float, depth_px: float, half_width_px: float, noise_px: float, seed: int,
+                 size_px: int = 64) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[float, float]]:
+    """Cells of a square region on the surface (0) with a straight groove through its centre (offset
+    ``-depth_px``), each read with noise: offsets, sds, centres, on the groove (bool), the region's centre."""
+    centres = grid(size_px, size_px)
+    centre = ((size_px - 1) / 2, (size_px - 1) / 2)
+    a = np.deg2rad(angle_deg)
+    across = -(centres[:, 0] - centre[0]) * np.sin(a) + (centres[:, 1] - centre[1]) * np.cos(a)
+    on = np.abs(across) <= half_width_px
+    rng = np.random.default_rng(seed)
+    offsets = np.where(on, -depth_px, 0.0) + rng.normal(0.0, noise_px, len(centres))
+    return offsets, np.full(len(centres), noise_px), centres, on, centre
+
+
+class TestCentralBand:
+    @pytest.mark.parametrize("angle", [20.0, 45.0, 70.0, 135.0])
+    def test_finds_a_groove_across_the_region_where_single_cells_cannot(self, angle):
+        # each cell's noise nearly as large as the groove's offset: no cell alone tells it
+        offsets, sds, centres, on, centre = groove_cells(angle, 0.4, 6.0, 0.3, seed=int(angle))
+        band = central_band(offsets, sds, centres, centre)
+        assert band is not None and abs(band.z) >= 5.0
+        assert min(abs(band.angle_deg - angle), 180 - abs(band.angle_deg - angle)) <= band_scan.ANGLE_STEP_DEG
+        assert band.offset == pytest.approx(-0.4, abs=3 * np.sqrt(band.variance) + 0.05)
+        assert abs(band.rest) < 0.1
+        # most of the band's cells are the groove's
+        assert (band.cells & on).sum() >= 0.7 * band.cells.sum()
+
+    def test_a_flat_floor_has_no_band_standing_five_deviations_off(self):
+        zs = []
+        for seed in range(40):
+            rng = np.random.default_rng(seed)
+            centres = grid()
+            sds = rng.uniform(0.05, 0.5, len(centres))
+            band = central_band(-0.4 + rng.normal(0.0, sds), sds, centres, (31.5, 31.5))
+            zs.append(0.0 if band is None else abs(band.z))
+        assert max(zs) < 5.0
+        # and the scan is not blind: the best of a few hundred bands does stand a few deviations off
+        assert np.median(zs) > 1.0
+
+    def test_a_bowl_is_no_groove(self):
+        # a round pit's region: deepest at its centre, along every line through it, as a groove would be
+        centres = grid()
+        r2 = ((centres - 31.5) ** 2).sum(axis=1) / 32.0**2
+        rng = np.random.default_rng(5)
+        offsets = -0.6 * (1 - r2) + rng.normal(0.0, 0.03, len(r2))
+        # the trap: the band along its middle row stands far beyond the rest, by their means alone
+        on = np.abs(centres[:, 1] - 31.5) <= 4
+        assert abs(offsets[on].mean() - offsets[~on].mean()) / (0.03 * np.sqrt(1 / on.sum() + 1 / (~on).sum())) > 20
+        band = central_band(offsets, np.full(len(r2), 0.03), centres, (31.5, 31.5))
+        assert band is not None and abs(band.z) < 5.0
+
+    def test_cells_scattering_beyond_their_noise_widen_the_band_s_variance(self):
+        offsets, sds, centres, _, centre = groove_cells(45.0, 0.5, 6.0, 0.1, seed=1)
+        quiet = central_band(offsets, sds, centres, centre)
+        claimed = central_band(offsets, sds / 3, centres, centre)  # the same scatter, claimed three times finer
+        # the cells' noise alone would give a ninth of the variance: their scatter keeps it (less the chance of
+        # a scatter below the noise, which does not narrow it)
+        assert 0.7 * quiet.variance <= claimed.variance <= quiet.variance
+
+    def test_a_band_nearer_the_surface_than_the_rest_is_not_a_groove(self):
+        # a floor at -0.5 with a glint-like band back at the surface: never the candidate
+        _, sds, centres, on, centre = groove_cells(45.0, 0.5, 6.0, 0.02, seed=2)
+        glint = np.where(on, 0.0, -0.5) + np.random.default_rng(3).normal(0.0, 0.02, len(on))
+        band = central_band(glint, sds, centres, centre)
+        assert band is None or abs(band.offset) > abs(band.rest)
+        assert band is None or not (band.cells & on).sum() > 0.7 * band.cells.sum()
+
+    def test_too_few_cells_and_cells_without_noise_figures_give_none(self):
+        offsets, sds, centres, _, centre = groove_cells(45.0, 0.5, 6.0, 0.1, seed=4, size_px=16)
+        assert central_band(offsets[:8], sds[:8], centres[:8], centre) is None
+        assert central_band(offsets, np.full_like(sds, np.inf), centres, centre) is None
+
+    def test_shape_checks(self):
+        with pytest.raises(ValueError, match="central_band"):
+            central_band(np.zeros(5), np.ones(4), np.zeros((5, 2)), (0.0, 0.0))
+        with pytest.raises(ValueError, match="central_band"):
+            central_band(np.zeros(5), np.ones(5), np.zeros((5, 3)), (0.0, 0.0))

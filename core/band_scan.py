@@ -17,6 +17,7 @@ ANGLE_STEP_DEG = 7.5
 HALF_WIDTHS_PX = (2.0, 4.0, 8.0, 12.0)  # from one 4 px cell on the line to six: the evaluation sets' grooves are 5-33 px wide
 SHIFTS_PX = (-4.0, 0.0, 4.0)  # from the region's centre, a cell either way: the box's rounding and a groove's bend
 MIN_CELLS = 6  # in the band and outside it: fewer are a glint or a corner, not a groove and its surface
+REST_SDS = 3.0  # how far the rest may lie on the other side of the surface from the band, in its standard errors
 
 
 @dataclass(frozen=True)
@@ -24,8 +25,8 @@ class Band:
     """The band of cells that stands off the rest the most: its angle (degrees from the image's rows),
     half-width and shift from the region's centre (px), its cells (K,) bool, its and the rest's weighted
     mean offsets (px), the variance of its mean (px^2, the cells' scatter about the fit included where it
-    exceeds their noise), and ``z``, how many standard deviations the band stands beyond a bowl through all
-    the cells."""
+    exceeds their noise), and ``z``, how many standard deviations the band stands beyond a bowl and a plane
+    fitted with it to all the cells."""
 
     angle_deg: float
     half_width_px: float
@@ -41,9 +42,9 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
                  ) -> Band | None:
     """Of the straight bands through ``centre`` (every ANGLE_STEP_DEG, HALF_WIDTHS_PX wide, SHIFTS_PX off it)
     with MIN_CELLS cells or more both in and out, the one that stands furthest, in standard deviations, beyond
-    the rest and a bowl fitted with it, away from 0 (the surface around the box): a groove reads farther from
-    the surface than the surface beside it, where a glint or a wall may read anything, and a round pit is as
-    deep along every line through its centre. None without one.
+    the rest and a bowl and a plane fitted with it, away from 0 (the surface around the box): a groove reads
+    farther from the surface than the surface beside it, where a glint or a wall may read anything, a round pit
+    is as deep along every line through its centre, and a region across a pit's wall slopes. None without one.
 
     offsets, sds: (K,) the cells' offsets from the ring's plane and their standard deviations (px; cells
     with sd inf or 0 carry nothing); centres: (K, 2) their (u, v); centre: the region's (u, v)."""
@@ -55,37 +56,46 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
         return None
     x, w = offsets[ok], 1.0 / sds[ok] ** 2
     du, dv = centres[ok, 0] - centre[0], centres[ok, 1] - centre[1]
-    # a bowl (a round pit seen through a box about its size) is deepest along every line through its centre:
-    # the band is weighed against it, as the square of the distance from the centre in the region's half-widths
+    # a bowl (a round pit seen through a box about its size) is deepest along every line through its centre, and a
+    # region across a pit's wall slopes: the band is weighed against both, the bowl as the square of the distance
+    # from the centre in the region's half-widths
     bowl = (du / max(np.abs(du).max(), 1.0)) ** 2 + (dv / max(np.abs(dv).max(), 1.0)) ** 2
+    surface = np.stack([np.ones_like(x), bowl, du, dv], axis=1)  # (K, 4)
     angles = np.deg2rad(np.arange(0.0, 180.0, ANGLE_STEP_DEG))
     across = -du[None, :] * np.sin(angles)[:, None] + dv[None, :] * np.cos(angles)[:, None]  # (A, K)
     widths, shifts = np.array(HALF_WIDTHS_PX), np.array(SHIFTS_PX)
     inside = np.abs(across[:, None, None, :] - shifts[None, None, :, None]) <= widths[None, :, None, None]  # (A, W, S, K)
     n_in = inside.sum(axis=-1)
-    # weighted least squares of offset = mean + step * in_band + curvature * bowl, per band: its 3x3 normal
-    # equations from sums over the cells
-    wb, wq = inside * w, w * bowl
-    sums = {"1": w.sum(), "b": wb.sum(axis=-1), "q": wq.sum(), "bq": (wb * bowl).sum(axis=-1), "qq": (wq * bowl).sum(),
-            "x": (w * x).sum(), "bx": (wb * x).sum(axis=-1), "qx": (wq * x).sum(), "xx": (w * x * x).sum()}
-    shape = n_in.shape
-    normal = np.empty(shape + (3, 3))
-    for (i, j), key in {(0, 0): "1", (0, 1): "b", (0, 2): "q", (1, 1): "b", (1, 2): "bq", (2, 2): "qq"}.items():
-        normal[..., i, j] = normal[..., j, i] = sums[key]
-    rhs = np.stack(np.broadcast_arrays(sums["x"], sums["bx"], sums["qx"]), axis=-1)
-    usable = (n_in >= MIN_CELLS) & (x.size - n_in >= MIN_CELLS) & (np.abs(np.linalg.det(normal)) > 1e-12 * sums["1"] ** 3)
+    # weighted least squares of offset = surface + step * in_band, per band, from its 5x5 normal equations (the
+    # surface's block is the same for every band); elementwise sums, not matrix products (core/depth.py: the BLAS)
+    wb = inside * w
+    normal = np.empty(n_in.shape + (5, 5))
+    normal[..., :4, :4] = (surface[:, :, None] * surface[:, None, :] * w[:, None, None]).sum(axis=0)
+    normal[..., :4, 4] = normal[..., 4, :4] = (wb[..., None] * surface).sum(axis=-2)
+    normal[..., 4, 4] = w_in = wb.sum(axis=-1)
+    rhs = np.empty(n_in.shape + (5,))
+    rhs[..., :4] = (surface * (w * x)[:, None]).sum(axis=0)
+    rhs[..., 4] = wx_in = (wb * x).sum(axis=-1)
+    w_all, wx_all = w.sum(), (w * x).sum()
+    usable = (n_in >= MIN_CELLS) & (x.size - n_in >= MIN_CELLS)
+    scale = np.sqrt(np.maximum(np.diagonal(normal, axis1=-2, axis2=-1), 1e-300))
+    usable &= np.abs(np.linalg.det(normal / (scale[..., :, None] * scale[..., None, :]))) > 1e-9  # bands the rest can tell
     if not usable.any():
         return None
-    normal[~usable] = np.eye(3)
+    normal[~usable] = np.eye(5)
     inverse = np.linalg.inv(normal)
     coeffs = np.einsum("...ij,...j->...i", inverse, rhs)
     with np.errstate(invalid="ignore", divide="ignore"):
-        scatter = np.maximum((sums["xx"] - np.einsum("...i,...i->...", coeffs, rhs)) / max(x.size - 3, 1), 1.0)
-        z = coeffs[..., 1] / np.sqrt(inverse[..., 1, 1] * scatter)
-        w_in = sums["b"]
-        m_in, m_out = sums["bx"] / w_in, (sums["x"] - sums["bx"]) / (sums["1"] - w_in)
-    # the band stands beyond the rest, away from the surface
-    usable &= (np.abs(m_in) > np.abs(m_out)) & (np.sign(z) == np.sign(m_in)) & np.isfinite(z)
+        scatter = np.maximum(((w * x * x).sum() - np.einsum("...i,...i->...", coeffs, rhs)) / max(x.size - 5, 1), 1.0)
+        z = coeffs[..., 4] / np.sqrt(inverse[..., 4, 4] * scatter)
+        m_in, m_out = wx_in / w_in, (wx_all - wx_in) / (w_all - w_in)
+        sd_out = np.sqrt(scatter / (w_all - w_in))
+    # the band stands beyond the rest, away from the surface, and the rest lies on the band's side of the surface or
+    # on it: the surface beside a groove, or its walls (cells that matched the texture a pixel off read as a band
+    # beside cells that read as far the other way)
+    direction = np.sign(m_in)
+    usable &= (np.abs(m_in) > np.abs(m_out)) & (np.sign(z) == direction) & np.isfinite(z)
+    usable &= m_out * direction >= -REST_SDS * sd_out
     if not usable.any():
         return None
     best = np.unravel_index(np.argmax(np.where(usable, np.abs(z), -np.inf)), z.shape)

@@ -157,8 +157,9 @@ SCAN_MARGIN_PX = 32  # rows above and below the ring high-passed with it: beyond
 # across its box); on the nine evaluation sets, whose regions lie on their defects' floors, the best band stands
 # 3.2 at the 95th percentile, 4.7 at most
 GROOVE_Z = 5.0
-# from this many, the band may be the defect: the uncertainty widens to take it in
-BAND_Z = 2.0
+# from this many, the band may be the defect: the uncertainty widens to take it in (chance alone reaches it on one
+# flat floor in ten; from 2, every third, and the floors' uncertainty grew by a tenth for one groove more)
+BAND_Z = 3.0
 
 
 def fit_plane_robust(
@@ -403,10 +404,12 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     if not np.isfinite(interior):
         return _unavailable(reference, f"the region ({inner[2] - inner[0]:.0f} x {inner[3] - inner[1]:.0f} px) has no "
                             f"interior with a texture of its own to measure")
-    offsets_px, sds, centres = surface_fit.cell_offsets(left, right, fit, (uu, vv), weights, images=images)
+    offsets_px, sds, centres, settled = surface_fit.cell_offsets(left, right, fit, (uu, vv), weights, images=images)
     areas = surface_fit.cell_areas((uu, vv), weights)
-    band = band_scan.central_band(offsets_px, sds, centres, ((inner[0] + inner[2]) / 2 - 0.5,
-                                                             (inner[1] + inner[3]) / 2 - 0.5))
+    # a band only of cells that settled: on a scratch's repeating lines, cells that did not swing a pixel or more off
+    # together, and as a band would read a groove where there is none
+    band = band_scan.central_band(offsets_px, np.where(settled, sds, np.inf), centres,
+                                  ((inner[0] + inner[2]) / 2 - 0.5, (inner[1] + inner[3]) / 2 - 0.5))
     # the offset searched a pixel and a half either way: a band beyond that is a glint's, not the groove's
     groove = band is not None and abs(band.z) >= GROOVE_Z and abs(band.offset - fit.delta) <= surface_fit.SEARCH_PX
     width = min(inner[2] - inner[0], inner[3] - inner[1])

@@ -52,6 +52,7 @@ HUBER_K = 1.345  # 95 % efficiency for Gaussian noise
 TUKEY_K = 4.685  # likewise
 CLUSTER_PX = 4  # blocks over which residuals may be correlated
 CELL_PX = 4  # cells of the defect's region whose offsets are combined robustly
+CELL_SETTLED_PX = 0.05  # a cell's last Gauss-Newton step beyond this: it has not settled on an offset
 BIRGE_CONFIDENCE_Z = 1.2816  # cells scattering less than their noise: the 90 % upper bound of that ratio,
 BIRGE_MIN = 0.25  # and never below a quarter (cells that agree to the digit would otherwise claim no uncertainty)
 RADIAL_MIN_CELLS = 6  # cells that tell a bowl from a plane and a constant
@@ -577,13 +578,14 @@ def defect_images(left: np.ndarray, right: np.ndarray, fit: SurfaceFit,
 
 def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],
                  weights: np.ndarray | None = None, cell_px: int = CELL_PX, iterations: int = 8,
-                 images: DefectImages | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 images: DefectImages | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Each ``cell_px`` square cell's own offset from the fitted plane, the fit's plane and exposure held.
 
     left, right: HxW float32 grey images (as given to ``fit_surface``); defect and weights as there;
     images: ``defect_images`` of them, where already built.
     Returns (offsets (K,), standard deviations (K,), inf for a cell with no gradient, centres (K, 2) as
-    (u, v) px), K the cells the region's pixels fall in, by Gauss-Newton per cell on the high-passed images."""
+    (u, v) px, settled (K,) bool: the cell's last step within CELL_SETTLED_PX), K the cells the region's pixels
+    fall in, by Gauss-Newton per cell on the high-passed images."""
     th = fit.params
     images = images or defect_images(left, right, fit, defect)
     (x0, y0), L, R, Rx = images.origin, images.L, images.R, images.Rx
@@ -598,6 +600,7 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     lv = L[rows, cols].astype(np.float64)
     offsets = np.full(k, fit.delta)
     j = np.zeros(len(u))
+    step = np.zeros(k)
     for _ in range(iterations):
         x = u - plane - offsets[cell]
         rv, gx = samples((R, Rx), x, v, th[E])
@@ -616,7 +619,9 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     has = info > 0
     sd[has] = np.sqrt(fit.residual_sigma**2 * fit.inflation / info[has])
     centres = np.stack(_cell_means(cell, k, defect[0], defect[1]), axis=1)
-    return offsets, sd, centres
+    # a cell still stepping after the last iteration has not settled on one offset: on a texture that repeats
+    # across the rows (a scratch's lines) it swings between the pattern's copies, a pixel or more apart
+    return offsets, sd, centres, np.abs(step) <= CELL_SETTLED_PX
 
 
 def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],

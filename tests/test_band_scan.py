@@ -63,6 +63,16 @@ class TestCentralBand:
         band = central_band(offsets, np.full(len(r2), 0.03), centres, (31.5, 31.5))
         assert band is not None and abs(band.z) < 5.0
 
+    def test_a_region_across_a_pit_s_wall_is_no_groove(self):
+        # the region runs from the surface on its left down the wall to the floor: its right-hand columns stand off
+        centres = grid(16, 40)
+        rng = np.random.default_rng(6)
+        offsets = np.clip(-0.06 * (centres[:, 0] - 2.0), -0.6, 0.0) + rng.normal(0.0, 0.03, len(centres))
+        right = centres[:, 0] > 10
+        assert abs(offsets[right].mean() - offsets[~right].mean()) / (0.03 * np.sqrt(1 / right.sum() + 1 / (~right).sum())) > 20
+        band = central_band(offsets, np.full(len(centres), 0.03), centres, (7.5, 19.5))
+        assert band is None or abs(band.z) < 5.0
+
     def test_cells_scattering_beyond_their_noise_widen_the_band_s_variance(self):
         offsets, sds, centres, _, centre = groove_cells(45.0, 0.5, 6.0, 0.1, seed=1)
         quiet = central_band(offsets, sds, centres, centre)

@@ -371,8 +371,9 @@ class TestCellOffsets:
         left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=6)
         ring, defect = _regions()
         fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
-        offsets, sds, centres = sf.cell_offsets(left, right, fit, defect)
-        assert offsets.shape == sds.shape == (centres.shape[0],) and centres.shape[1] == 2
+        offsets, sds, centres, settled = sf.cell_offsets(left, right, fit, defect)
+        assert offsets.shape == sds.shape == settled.shape == (centres.shape[0],) and centres.shape[1] == 2
+        assert settled.all()
         assert np.all(np.isfinite(sds)) and np.median(np.abs(offsets + 0.3) / sds) < 1.5
 
     def test_the_fits_own_window_gives_the_cells_of_a_window_cut_for_them(self):
@@ -384,6 +385,18 @@ class TestCellOffsets:
         assert fit.images.L.shape != sf.defect_images(left, right, fit, defect).L.shape  # two windows
         # they differ only where the high-pass reaches a window's edge, by far less than the cells' noise
         assert np.max(np.abs(own[0] - cut[0]) / own[1]) < 0.01
+
+
+    def test_a_cell_still_stepping_at_the_end_has_not_settled(self):
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=6)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
+        # a fit that starts the cells 0.4 px off and stops them after one step leaves them still stepping
+        moved = dataclasses.replace(fit, params=fit.params + 0.4 * (np.arange(len(fit.params)) == sf.PARAMS.index("delta")))
+        *_, settled = sf.cell_offsets(left, right, moved, defect, iterations=1)
+        assert not settled.any()
+        offsets, sds, _, settled = sf.cell_offsets(left, right, moved, defect)
+        assert settled.all() and np.median(np.abs(offsets + 0.3) / sds) < 1.5
 
 
 class TestInteriorVariance:

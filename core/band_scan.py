@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 ANGLE_STEP_DEG = 7.5
-HALF_WIDTHS_PX = (2.0, 4.0, 8.0, 12.0)  # from one 4 px cell on the line to six: the evaluation sets' grooves are 5-33 px wide
+# from the one 4 px cell on the line to six cells: the evaluation sets' grooves are 5-33 px wide
+HALF_WIDTHS_PX = (2.0, 4.0, 8.0, 12.0)
 SHIFTS_PX = (-4.0, 0.0, 4.0)  # from the region's centre, a cell either way: the box's rounding and a groove's bend
 MIN_CELLS = 6  # in the band and outside it: fewer are a glint or a corner, not a groove and its surface
 REST_SDS = 3.0  # how far the rest may lie on the other side of the surface from the band, in its standard errors
@@ -64,10 +65,12 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
     angles = np.deg2rad(np.arange(0.0, 180.0, ANGLE_STEP_DEG))
     across = -du[None, :] * np.sin(angles)[:, None] + dv[None, :] * np.cos(angles)[:, None]  # (A, K)
     widths, shifts = np.array(HALF_WIDTHS_PX), np.array(SHIFTS_PX)
-    inside = np.abs(across[:, None, None, :] - shifts[None, None, :, None]) <= widths[None, :, None, None]  # (A, W, S, K)
+    # (A, W, S, K): each band's cells
+    inside = np.abs(across[:, None, None, :] - shifts[None, None, :, None]) <= widths[None, :, None, None]
     n_in = inside.sum(axis=-1)
     # weighted least squares of offset = surface + step * in_band, per band, from its 5x5 normal equations (the
-    # surface's block is the same for every band); elementwise sums, not matrix products (core/depth.py: the BLAS)
+    # surface's block is the same for every band), summed elementwise: a matrix product would go to the threaded
+    # BLAS, whose threads keep spinning after it and slow the detector (core/depth.py, fit_plane_robust)
     wb = inside * w
     normal = np.empty(n_in.shape + (5, 5))
     normal[..., :4, :4] = (surface[:, :, None] * surface[:, None, :] * w[:, None, None]).sum(axis=0)
@@ -79,7 +82,8 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
     w_all, wx_all = w.sum(), (w * x).sum()
     usable = (n_in >= MIN_CELLS) & (x.size - n_in >= MIN_CELLS)
     scale = np.sqrt(np.maximum(np.diagonal(normal, axis1=-2, axis2=-1), 1e-300))
-    usable &= np.abs(np.linalg.det(normal / (scale[..., :, None] * scale[..., None, :]))) > 1e-9  # bands the rest can tell
+    # bands whose step the surface's terms cannot take up
+    usable &= np.abs(np.linalg.det(normal / (scale[..., :, None] * scale[..., None, :]))) > 1e-9
     if not usable.any():
         return None
     normal[~usable] = np.eye(5)

@@ -155,10 +155,10 @@ def rectified_within_px(width: int) -> float:
 SCAN_MARGIN_PX = 32  # rows above and below the ring high-passed with it: beyond 3 of the high-pass's sigma
 # A band of the region's cells standing this many standard deviations beyond the rest is the defect (a groove
 # across its box); on the nine evaluation sets, whose regions lie on their defects' floors, the best band stands
-# 3.2 at the 95th percentile, 4.7 at most
+# 3.1 at the 95th percentile, 4.5 at most
 GROOVE_Z = 5.0
-# from this many, the band may be the defect: the uncertainty widens to take it in (chance alone reaches it on one
-# flat floor in ten; from 2, every third, and the floors' uncertainty grew by a tenth for one groove more)
+# from this many, the band may be the defect: the uncertainty widens to take it in. Chance reaches it on 6 % of
+# those floors, and 2 on a third of them (docs/research-log.md: what widening from 2 cost for what it caught)
 BAND_Z = 3.0
 
 

@@ -46,11 +46,14 @@ def _with_sigma(value: float | None, sigma: float | None, unit: str, signed: boo
 
 def part_line(outcome) -> str:
     """One line per part: each defect's class, confidence, distance and deviation with their standard
-    uncertainties (± u), then what decided the verdict."""
+    uncertainties (± u) and how it was measured where that is not as usual (along a groove), then what decided
+    the verdict."""
     part = outcome.part
     defects = "; ".join(
         f"{m.detection.class_name} {m.detection.confidence:.2f} Z={_with_sigma(m.distance_mm, m.distance_sigma_mm, 'mm')}"
         f" dev={_with_sigma(m.deviation_mm, m.deviation_sigma_mm, 'mm', True)}"
+        # a measurement's note; an unavailable one's is the verdict's reason already
+        + (f" ({m.note})" if m.note and m.deviation_mm is not None else "")
         for m in part.measurements
     ) or "no defect"
     line = f"{part.part_id} frame {part.frame_id} {part.verdict.status.value:<6} {defects}"

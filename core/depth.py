@@ -413,10 +413,15 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # the offset searched a pixel and a half either way: a band beyond that is a glint's, not the groove's
     groove = band is not None and abs(band.z) >= GROOVE_Z and abs(band.offset - fit.delta) <= surface_fit.SEARCH_PX
     width = min(inner[2] - inner[0], inner[3] - inner[1])
+    cells = surface_fit.robust_offset(offsets_px, sds, fit.delta)
+    if groove:
+        along = surface_fit.robust_offset(offsets_px[band.cells], sds[band.cells], fit.delta)
+        # read along the groove where that lies farther from the surface than the region reads it, never nearer
+        groove = abs(along.delta) > abs(cells.delta)
     if groove:
         offsets_px, sds, centres, areas = offsets_px[band.cells], sds[band.cells], centres[band.cells], areas[band.cells]
         width = min(width, 2 * band.half_width_px)
-    cells = surface_fit.robust_offset(offsets_px, sds, fit.delta)
+        cells = along
     cov = fit.covariance
     c = fit.c + calib.doffs  # the surrounding surface's disparity at the region's centre
     if np.isfinite(cells.variance):

@@ -1,6 +1,7 @@
 """Depth per defect against exact geometry."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -428,3 +429,24 @@ def test_a_recipes_plane_tolerance_counts_in_the_matchers_pixels():
     full = load_recipe(ROOT / "recipes" / "steel_plate.yaml", overrides=["stereo.scale=1", "depth.plane_tolerance_px=1.5"])
     assert DepthRule.from_recipe(full.recipe).plane_tolerance_px == pytest.approx(1.5)
     assert DepthRule.from_recipe(demo.recipe, method="disparity").method == "disparity"
+
+
+def test_a_band_that_reads_nearer_the_surface_than_the_region_is_not_taken(monkeypatch):
+    """Measuring along a groove may only find a defect deeper than its region reads it: a band of cells nearer the
+    surface than the region's own estimate is no groove to read instead."""
+    left, right, disparity, box, truth = _groove_and_box(40.0, 6.0)
+    along = _surface(left, right, disparity, box)
+    assert "along a groove" in along.note
+    found = depth.band_scan.central_band
+
+    def shallow(offsets, sds, centres, centre):
+        band = found(offsets, sds, centres, centre)
+        # the same band, its cells now the ones off it: the surface beside the groove
+        return dataclasses.replace(band, cells=~band.cells & np.isfinite(sds))
+
+    monkeypatch.setattr(depth.band_scan, "central_band", shallow)
+    region = _surface(left, right, disparity, box)
+    assert region.note == "" and abs(region.deviation_mm) < abs(along.deviation_mm)
+    monkeypatch.setattr(depth, "GROOVE_Z", np.inf)
+    monkeypatch.setattr(depth, "BAND_Z", np.inf)
+    assert _surface(left, right, disparity, box).deviation_mm == region.deviation_mm

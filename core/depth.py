@@ -437,9 +437,10 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # and by how much its strongly textured cells (the information weighs them) disagree with its area
     if np.isfinite(cells.variance):
         var_d += surface_fit.weighting_variance(offsets_px, sds, areas, cells.delta)
-    # and a band across the region that may be a groove, too faint to tell, by how far it stands off
+    # and a band across the region that may be a groove, too faint to tell, by how far it stands off (the square
+    # of that, less what the band's own noise puts in it: what is left is the groove's, unbiased)
     if band is not None and not groove and abs(band.z) >= BAND_Z and np.isfinite(cells.variance):
-        var_d += max(0.0, (band.offset - cells.delta) ** 2 - BAND_Z**2 * band.variance)
+        var_d += max(0.0, (band.offset - cells.delta) ** 2 - band.variance)
     # and it is known no better than the region's interior alone tells it (the border may be the walls' edges)
     # (the interior's variance comes from the same residuals as the cells': their scatter scales it alike)
     var_d = max(var_d, interior * min(cells.birge, 1.0))

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core import surface_fit
+
 ANGLE_STEP_DEG = 7.5
 # from the one 4 px cell on the line to six cells: the evaluation sets' grooves are 5-33 px wide
 HALF_WIDTHS_PX = (2.0, 4.0, 8.0, 12.0)
@@ -58,10 +60,8 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
     x, w = offsets[ok], 1.0 / sds[ok] ** 2
     du, dv = centres[ok, 0] - centre[0], centres[ok, 1] - centre[1]
     # a bowl (a round pit seen through a box about its size) is deepest along every line through its centre, and a
-    # region across a pit's wall slopes: the band is weighed against both, the bowl as the square of the distance
-    # from the centre in the region's half-widths
-    bowl = (du / max(np.abs(du).max(), 1.0)) ** 2 + (dv / max(np.abs(dv).max(), 1.0)) ** 2
-    surface = np.stack([np.ones_like(x), bowl, du, dv], axis=1)  # (K, 4)
+    # region across a pit's wall slopes: the band is weighed against both
+    surface = np.stack([np.ones_like(x), surface_fit.bowl(du, dv), du, dv], axis=1)  # (K, 4)
     angles = np.deg2rad(np.arange(0.0, 180.0, ANGLE_STEP_DEG))
     across = -du[None, :] * np.sin(angles)[:, None] + dv[None, :] * np.cos(angles)[:, None]  # (A, K)
     widths, shifts = np.array(HALF_WIDTHS_PX), np.array(SHIFTS_PX)

@@ -739,6 +739,12 @@ def weighting_variance(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, 
     return max(0.0, (by_area.delta - estimate) ** 2 - z * z * noise)
 
 
+def bowl(du: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    """(K,) the square of each cell's distance (du, dv) (K,) from a centre, in the cells' half-widths along u and
+    v: the shape of a round pit seen through a box about its size (``unevenness_variance``, ``band_scan``)."""
+    return (du / max(np.abs(du).max(), 1.0)) ** 2 + (dv / max(np.abs(dv).max(), 1.0)) ** 2
+
+
 def unevenness_variance(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, z: float = 2.0) -> float:
     """How much the defect's offset varies over its region beyond what the cells' noise explains, as a
     variance (px^2) to add to the offset's: a surface is fitted to the cells' offsets (weights 1 / sd^2), a
@@ -759,7 +765,7 @@ def unevenness_variance(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarra
     du, dv = c[:, 0] - np.average(c[:, 0], weights=w), c[:, 1] - np.average(c[:, 1], weights=w)
     terms = [du, dv]
     if len(x) >= RADIAL_MIN_CELLS:
-        r2 = (du / max(np.abs(du).max(), 1.0)) ** 2 + (dv / max(np.abs(dv).max(), 1.0)) ** 2
+        r2 = bowl(du, dv)
         terms.append(r2 - np.average(r2, weights=w))
     design = np.stack([np.ones_like(x), *terms], axis=1)
     normal = (design * w[:, None]).T @ design

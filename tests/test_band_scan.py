@@ -26,6 +26,12 @@ def groove_cells(angle_deg: float, depth_px: float, half_width_px: float, noise_
     return offsets, np.full(len(centres), noise_px), centres, on, centre
 
 
+def two_population_z(offsets: np.ndarray, on: np.ndarray, sd: float) -> float:
+    """How many standard deviations the cells ``on`` stand off the rest by their means alone (each cell's sd ``sd``):
+    what a band scan without the surface's terms would go by."""
+    return abs(offsets[on].mean() - offsets[~on].mean()) / (sd * np.sqrt(1 / on.sum() + 1 / (~on).sum()))
+
+
 class TestCentralBand:
     @pytest.mark.parametrize("angle", [20.0, 45.0, 70.0, 135.0])
     def test_finds_a_groove_across_the_region_where_single_cells_cannot(self, angle):
@@ -59,7 +65,7 @@ class TestCentralBand:
         offsets = -0.6 * (1 - r2) + rng.normal(0.0, 0.03, len(r2))
         # the trap: the band along its middle row stands far beyond the rest, by their means alone
         on = np.abs(centres[:, 1] - 31.5) <= 4
-        assert abs(offsets[on].mean() - offsets[~on].mean()) / (0.03 * np.sqrt(1 / on.sum() + 1 / (~on).sum())) > 20
+        assert two_population_z(offsets, on, 0.03) > 20
         band = central_band(offsets, np.full(len(r2), 0.03), centres, (31.5, 31.5))
         assert band is not None and abs(band.z) < 5.0
 
@@ -69,7 +75,7 @@ class TestCentralBand:
         rng = np.random.default_rng(6)
         offsets = np.clip(-0.06 * (centres[:, 0] - 2.0), -0.6, 0.0) + rng.normal(0.0, 0.03, len(centres))
         right = centres[:, 0] > 10
-        assert abs(offsets[right].mean() - offsets[~right].mean()) / (0.03 * np.sqrt(1 / right.sum() + 1 / (~right).sum())) > 20
+        assert two_population_z(offsets, right, 0.03) > 20
         band = central_band(offsets, np.full(len(centres), 0.03), centres, (7.5, 19.5))
         assert band is None or abs(band.z) < 5.0
 

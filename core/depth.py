@@ -447,7 +447,8 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # of that, less what the band's own noise puts in it: what is left is the groove's, unbiased)
     if band is not None and not groove and abs(band.z) >= BAND_Z and np.isfinite(cells.variance):
         var_d += max(0.0, (band.offset - cells.delta) ** 2 - band.variance)
-    # and it is known no better than the region's interior alone tells it (the border may be the walls' edges)
+    # and it is known no better than the region would be at its interior's information per pixel (the border
+    # may be the walls' edges, strong gradients that each eye sees at another place)
     # (the interior's variance comes from the same residuals as the cells': their scatter scales it alike)
     var_d = max(var_d, interior * min(cells.birge, 1.0))
     if d <= 0 or c <= 0:

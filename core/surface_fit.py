@@ -627,14 +627,16 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
 def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],
                       weights: np.ndarray | None, box: tuple[float, float, float, float], margin: float,
                       images: DefectImages | None = None) -> float:
-    """The variance (px^2) of the defect's offset from its region's interior alone: the pixels at least
-    ``margin`` px inside ``box`` (x0, y0, x1, y1), whose interpolation reads little outside the region.
-    ``fit.residual_sigma^2 * fit.inflation / sum (g * R_x)^2`` over them, at the fitted offset; inf where
-    no interior pixel carries a gradient. images: ``defect_images`` of the pair, where already built.
+    """The variance (px^2) of the defect's offset from a region whose every pixel carried its interior's
+    information: the interior the pixels at least ``margin`` px inside ``box`` (x0, y0, x1, y1), whose
+    interpolation reads little outside the region. ``fit.residual_sigma^2 * fit.inflation / sum (g * R_x)^2``
+    over them, at the fitted offset, times their share of the region's pixels; inf where no interior pixel
+    carries a gradient. images: ``defect_images`` of the pair, where already built.
 
     A region's border may hold the edges of the defect's walls, which each eye sees at other places (their
     shading is view-dependent): where the region has no texture of its own, those edges alone decide the
-    fit, and its curvature claims a precision the floor does not have."""
+    fit, and its curvature claims a precision the floor does not have. Where the border carries no more than
+    its share, this is the whole region's own variance: its pixels lie on the floor too."""
     u, v = defect
     x0, y0, x1, y1 = box
     keep = (u >= x0 + margin) & (u + 1 <= x1 - margin) & (v >= y0 + margin) & (v + 1 <= y1 - margin)
@@ -652,7 +654,8 @@ def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defe
     gain = th[4] + th[5] * du + th[6] * dv + th[8]
     j = np.where(np.isfinite(gx), gain * gx, 0.0)
     information = float(np.sum(p[keep] * j * j))
-    return fit.residual_sigma ** 2 * fit.inflation / information if information > 0 else float("inf")
+    share = float(np.sum(p[keep]) / np.sum(p))
+    return fit.residual_sigma ** 2 * fit.inflation * share / information if information > 0 else float("inf")
 
 
 def cell_areas(defect: tuple[np.ndarray, np.ndarray], weights: np.ndarray | None = None,

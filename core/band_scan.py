@@ -68,30 +68,36 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
     # (A, W, S, K): each band's cells
     inside = np.abs(across[:, None, None, :] - shifts[None, None, :, None]) <= widths[None, :, None, None]
     n_in = inside.sum(axis=-1)
-    # weighted least squares of offset = surface + step * in_band, per band, from its 5x5 normal equations (the
-    # surface's block is the same for every band), summed elementwise: a matrix product would go to the threaded
-    # BLAS, whose threads keep spinning after it and slow the detector (core/depth.py, fit_plane_robust)
-    wb = inside * w
-    normal = np.empty(n_in.shape + (5, 5))
-    normal[..., :4, :4] = (surface[:, :, None] * surface[:, None, :] * w[:, None, None]).sum(axis=0)
-    normal[..., :4, 4] = normal[..., 4, :4] = (wb[..., None] * surface).sum(axis=-2)
-    normal[..., 4, 4] = w_in = wb.sum(axis=-1)
-    rhs = np.empty(n_in.shape + (5,))
-    rhs[..., :4] = (surface * (w * x)[:, None]).sum(axis=0)
-    rhs[..., 4] = wx_in = (wb * x).sum(axis=-1)
+    # weighted least squares of offset = surface + step * in_band, per band. The surface's block S of the normal
+    # equations is the same for every band, so each band's step and its variance come from the Schur complement
+    # of that block, s = n_in - u' S^-1 u (u: the band's column against the surface's), without a 5x5 solve per
+    # band. Sums are einsum's own loops: a matrix product would go to the threaded BLAS, whose threads keep
+    # spinning after it and slow the detector (core/depth.py, fit_plane_robust)
+    wb = inside * w  # (A, W, S, K)
+    ws = surface * w[:, None]  # (K, 4)
+    block = np.einsum("ki,kj->ij", ws, surface)
+    r0 = np.einsum("ki,k->i", ws, x)
+    u = np.einsum("...k,ki->...i", wb, surface)  # (A, W, S, 4)
+    w_in = wb.sum(axis=-1)
+    wx_in = np.einsum("...k,k->...", wb, x)
     w_all, wx_all = w.sum(), (w * x).sum()
     usable = (n_in >= MIN_CELLS) & (x.size - n_in >= MIN_CELLS)
-    scale = np.sqrt(np.maximum(np.diagonal(normal, axis1=-2, axis2=-1), 1e-300))
-    # bands whose step the surface's terms cannot take up
-    usable &= np.abs(np.linalg.det(normal / (scale[..., :, None] * scale[..., None, :]))) > 1e-9
-    if not usable.any():
+    diagonal = np.sqrt(np.maximum(np.diag(block), 1e-300))
+    normalised = np.linalg.det(block / np.outer(diagonal, diagonal))
+    if not usable.any() or abs(normalised) <= 1e-9:
         return None
-    normal[~usable] = np.eye(5)
-    inverse = np.linalg.inv(normal)
-    coeffs = np.einsum("...ij,...j->...i", inverse, rhs)
+    inverse = np.linalg.inv(block)
+    solved_u = np.einsum("ij,...j->...i", inverse, u)  # S^-1 u per band
+    solved_r = inverse @ r0
+    schur = w_in - np.einsum("...i,...i->...", u, solved_u)
+    # bands whose step the surface's terms cannot take up: the 5x5 system's determinant, normalised by its
+    # diagonal, is the surface block's times schur / n_in
     with np.errstate(invalid="ignore", divide="ignore"):
-        scatter = np.maximum(((w * x * x).sum() - np.einsum("...i,...i->...", coeffs, rhs)) / max(x.size - 5, 1), 1.0)
-        z = coeffs[..., 4] / np.sqrt(inverse[..., 4, 4] * scatter)
+        usable &= np.abs(normalised * schur / np.where(w_in > 0, w_in, np.inf)) > 1e-9
+        step = (wx_in - np.einsum("...i,i->...", u, solved_r)) / schur
+        fitted = np.dot(r0, solved_r) + step * step * schur  # coeffs . rhs of the 5x5 system
+        scatter = np.maximum(((w * x * x).sum() - fitted) / max(x.size - 5, 1), 1.0)
+        z = step / np.sqrt(scatter / schur)
         m_in, m_out = wx_in / w_in, (wx_all - wx_in) / (w_all - w_in)
         sd_out = np.sqrt(scatter / (w_all - w_in))
     # the band stands beyond the rest, away from the surface, and the rest lies on the band's side of the surface or

@@ -431,7 +431,8 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         # truth than either on nearly every group of evaluation sets (docs/research-log.md). The cells'
         # variance stays: their scatter is what shows a region holding more than one surface. A groove is
         # read on its band alone.
-        d, var_d = c + (cells.delta if groove else (1 - FIT_SHARE) * cells.delta + FIT_SHARE * fit.delta), cells.variance
+        offset = cells.delta if groove else (1 - FIT_SHARE) * cells.delta + FIT_SHARE * fit.delta
+        d, var_d = c + offset, cells.variance
     else:
         d, var_d = c + fit.delta, cov[0, 0] + cov[3, 3] + 2 * cov[0, 3]
     # The region may hold part of a pixel of the defect's wall that the fit cannot tell from its floor

@@ -93,7 +93,7 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
     # bands whose step the surface's terms cannot take up: the 5x5 system's determinant, normalised by its
     # diagonal, is the surface block's times schur / n_in
     with np.errstate(invalid="ignore", divide="ignore"):
-        usable &= np.abs(normalised * schur / np.where(w_in > 0, w_in, np.inf)) > 1e-9
+        usable &= np.abs(normalised * schur / w_in) > 1e-9
         step = (wx_in - np.einsum("...i,i->...", u, solved_r)) / schur
         fitted = np.dot(r0, solved_r) + step * step * schur  # coeffs . rhs of the 5x5 system
         scatter = np.maximum(((w * x * x).sum() - fitted) / max(x.size - 5, 1), 1.0)

@@ -25,7 +25,7 @@ from sim.neu_crops import NEU_CLASSES, NeuCrops
 from sim.render import render_pair
 from sim.scene import (
     CLASS_SHAPES, PLATEAU_R0, ROUND_EXPONENT, Defect, Lighting, Scene, Sensor, flat_hit, heightfield_patch, local_coords,
-    plate_axes, turned_extent,
+    plate_axes, plate_coords, turned_extent,
 )
 from sim.texture import PLATE_MEAN, belt_albedo, steel_albedo, synthetic_defect_patch
 
@@ -318,9 +318,7 @@ def _paste(d: Defect, albedo: np.ndarray, height: np.ndarray, origin, texel: flo
     ps0, pt0 = sc - a - px0 * mm_x, tc - b - py0 * mm_y  # patch's top-left corner in mm
     lo_s, lo_t, hi_s, hi_t = ps0, pt0, ps0 + pw * mm_x, pt0 + ph * mm_y
     if d.angle_deg:  # the texels the turned patch covers
-        c, k = np.cos(np.radians(d.angle_deg)), np.sin(np.radians(d.angle_deg))
-        xs, ys = np.array([ps0, hi_s, ps0, hi_s]) - sc, np.array([pt0, pt0, hi_t, hi_t]) - tc
-        ss, ts = sc + xs * c - ys * k, tc + xs * k + ys * c
+        ss, ts = plate_coords(d, np.array([ps0, hi_s, ps0, hi_s]) - sc, np.array([pt0, pt0, hi_t, hi_t]) - tc)
         lo_s, lo_t, hi_s, hi_t = ss.min(), ts.min(), ss.max(), ts.max()
     c0 = int(np.floor((lo_s - origin[0]) / texel))
     r0 = int(np.floor((lo_t - origin[1]) / texel))

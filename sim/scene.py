@@ -166,6 +166,15 @@ def local_coords(defect: Defect, s: np.ndarray, t: np.ndarray) -> tuple[np.ndarr
     return ds * c + dt * k, dt * c - ds * k
 
 
+def plate_coords(defect: Defect, ls: np.ndarray, lt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The defect's own coordinates (along ``half[0]``, along ``half[1]``) from its centre -> plate (s, t) mm:
+    ``local_coords`` undone."""
+    if not defect.angle_deg:
+        return ls + defect.center[0], lt + defect.center[1]
+    c, k = math.cos(math.radians(defect.angle_deg)), math.sin(math.radians(defect.angle_deg))
+    return defect.center[0] + ls * c - lt * k, defect.center[1] + ls * k + lt * c
+
+
 def heightfield_patch(defect: Defect, s: np.ndarray, t: np.ndarray) -> np.ndarray:
     a, b = defect.half
     p = defect.exponent

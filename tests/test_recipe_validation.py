@@ -141,6 +141,26 @@ def test_a_threshold_that_is_not_a_finite_number_is_an_error(recipe_dir, value):
     assert ":13: decision.rules.0.threshold: must be a finite number" in message, message
 
 
+@pytest.mark.parametrize("value", ["nan", "NaN", "inf", "-infinity", "1e400", "'nan'"])
+def test_a_threshold_spelt_as_text_that_reads_as_nan_or_infinity_is_an_error(recipe_dir, value):
+    # not YAML floats but text, which pydantic would read as the number: a rule that never rejects
+    message = _error(recipe_dir, GOOD.replace("threshold: 1.0", f"threshold: {value}"))
+    assert ":13: decision.rules.0.threshold: Input should be a finite number" in message, message
+
+
+def test_a_plugin_setting_spelt_as_nan_is_an_error(recipe_dir):
+    message = _error(recipe_dir, GOOD.replace("    path: seq", "    path: seq\n    rate_fps: nan"))
+    assert ":6: camera.settings.rate_fps: Input should be a finite number" in message, message
+
+
+def test_an_alias_that_holds_itself_or_expands_without_bound_is_an_error(recipe_dir):
+    message = _error(recipe_dir, GOOD + "extra: &a [*a]\n")
+    assert re.search(r"r\.yaml:\d+: an alias \(\*name\) refers to a node that holds it", message), message
+    bomb = "".join(f"x{i}: &x{i} [" + ", ".join([f"*x{i - 1}"] * 9) + "]\n" for i in range(1, 10))
+    message = _error(recipe_dir, GOOD + "x0: &x0 [1, 2, 3, 4, 5, 6, 7, 8, 9]\n" + bomb)
+    assert "the document's aliases (*name) expand it beyond 100,000 values" in message, message
+
+
 def test_a_number_yaml_would_read_as_octal_or_base_60_is_an_error_naming_its_key(recipe_dir):
     # YAML 1.1 reads 010 as 8: an address written with a leading zero would pulse another coil
     text = GOOD.replace("  - plugin: log", "  - plugin: log\n    settings: {file: r.log, delay_ms: 010}")

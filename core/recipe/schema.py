@@ -164,7 +164,7 @@ class DepthSection(Section):
 class Rule(Section):
     """Reject a defect of ``class`` (or any class) when ``quantity op threshold``."""
 
-    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", populate_by_name=True, allow_inf_nan=False)
 
     class_: str = Field("any", alias="class", min_length=1)
     quantity: Literal["deviation_mm", "distance_mm", "confidence", "area_mm2"]

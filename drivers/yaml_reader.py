@@ -5,6 +5,10 @@ Modbus address or a time an integrator wrote in decimal: coil 8 pulsed instead o
 lost at the wrong gate; in a calibration file a baseline of ``0120`` mm read as 80. Such a scalar is an
 error naming its line; quoted, or written without the leading zero, it is whatever the key expects.
 
+An alias that refers to a node holding it (``a: &a [*a]``) is an error naming its line, and so is a document
+whose aliases expand to more than ``MAX_NODES`` values (a "billion laughs"): every reader of a recipe walks
+the expanded values, and would never return.
+
 This module imports nothing from the rest of stereo-inspect.
 """
 from __future__ import annotations
@@ -13,6 +17,7 @@ import re
 
 import yaml
 
+MAX_NODES = 100_000  # values after expanding aliases: a recipe holds a few hundred
 _OCTAL = re.compile(r"[-+]?0[0-7_]+")
 _BASE_60 = re.compile(r"[-+]?[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?")
 
@@ -25,6 +30,14 @@ class MisreadNumber(yaml.MarkedYAMLError):
         super().__init__(problem=f"{text}: {why}", problem_mark=mark)
         self.line = mark.line + 1
         self.key: tuple[str | int, ...] = ()
+
+
+class AliasError(yaml.MarkedYAMLError):
+    """An alias that contains itself, or aliases that expand the document beyond ``MAX_NODES`` values."""
+
+    def __init__(self, mark: yaml.Mark, why: str):
+        super().__init__(problem=why, problem_mark=mark)
+        self.line = mark.line + 1
 
 
 class _Loader(yaml.SafeLoader):
@@ -70,13 +83,45 @@ def _path_to(node: yaml.Node, index: int, path: tuple = ()) -> tuple | None:
     return None
 
 
+def _check_expansion(node: yaml.Node) -> None:
+    """``AliasError`` where a node holds itself or the expanded document passes MAX_NODES values. The walk
+    follows aliases as the document's readers will, and stops at the limit, so a bomb costs no more."""
+    count, holding = 0, set()
+
+    def walk(item: yaml.Node) -> None:
+        nonlocal count
+        count += 1
+        if count > MAX_NODES:
+            raise AliasError(item.start_mark, f"the document's aliases (*name) expand it beyond {MAX_NODES:,} values")
+        if isinstance(item, yaml.ScalarNode):
+            return
+        if id(item) in holding:
+            raise AliasError(item.start_mark, "an alias (*name) refers to a node that holds it: the value would "
+                             "contain itself without end")
+        holding.add(id(item))
+        for child in item.value:
+            for part in child if isinstance(child, tuple) else (child,):
+                walk(part)
+        holding.discard(id(item))
+
+    walk(node)
+
+
 def safe_load(text: str):
-    """``yaml.safe_load`` that raises ``MisreadNumber`` where YAML 1.1 would misread a number."""
+    """``yaml.safe_load`` that raises ``MisreadNumber`` where YAML 1.1 would misread a number, and
+    ``AliasError`` for an alias that holds itself or a document its aliases expand without bound."""
+    loader = _Loader(text)
     try:
-        return yaml.load(text, Loader=_Loader)
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_expansion(node)
+        return loader.construct_document(node)
     except MisreadNumber as exc:
         exc.key = _path_to(yaml.compose(text, Loader=yaml.SafeLoader), exc.problem_mark.index) or ()
         raise
+    finally:
+        loader.dispose()
 
 
 def option_value(raw: str):

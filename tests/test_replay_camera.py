@@ -129,6 +129,13 @@ class TestReadCalibration:
         with pytest.raises(SequenceError, match=re.escape(f"calib.yaml: {says}")):
             read_calibration(info["folder"])
 
+    def test_an_alias_that_holds_itself_is_named_not_followed(self, plane_sequence):
+        info = plane_sequence([0.0])
+        path = info["folder"] / "calib.yaml"
+        path.write_text(path.read_text() + "extra: &e [*e]\n")
+        with pytest.raises(SequenceError, match=r"calib.yaml: not valid YAML \(an alias \(\*name\) refers to a node"):
+            read_calibration(info["folder"])
+
     def test_a_camera_s_values_pass(self, plane_sequence):
         info = plane_sequence([0.0])
         path = info["folder"] / "calib.yaml"

@@ -261,12 +261,14 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     except OSError as exc:
         raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from None
     try:
+        data = yaml_reader.safe_load(text)  # first: it refuses the aliases that _line_map's walk would follow forever
         lines = _line_map(text)
-        data = yaml_reader.safe_load(text)
     except DuplicateKey as exc:
         raise RecipeError(f"{path}:{exc}") from None
     except yaml_reader.MisreadNumber as exc:
         raise RecipeError(f"{path}:{exc.line}: {_dotted(exc.key)}: {exc.problem}") from None
+    except yaml_reader.AliasError as exc:
+        raise RecipeError(f"{path}:{exc.line}: {exc.problem}") from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark
         where = f"{path}:{mark.line + 1}" if mark else str(path)

@@ -32,7 +32,7 @@ from core.contracts import PluginContext
 from core.decision import decide
 from core.depth import DepthRule, measure_frame
 from core.devices import resolve_device
-from core.engine import compute_disparity, disparity_range, frame_disparity
+from core.engine import compute_disparity, disparity_range, frame_disparity, make_plugin
 from core.recipe import LoadedRecipe
 from core.registry import Registry
 from core.types import FrameError, PartResult, StereoFrame
@@ -87,22 +87,24 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
     recipe = loaded.recipe
     ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=recipe.name, device=device)
     settings = loaded.plugin_settings["stereo"] if backend == recipe.stereo.backend else {}
-    stereo = None if backend == NO_STEREO else registry.get("stereo", backend).spec.factory(settings, ctx)
+    stereo = None if backend == NO_STEREO else make_plugin(loaded, registry, ctx, "stereo", backend, "stereo", settings)
     reference = stereo
     if versus and stereo is not None:
-        reference = registry.get("stereo", backend).spec.factory({**settings, **versus}, ctx)
+        reference = make_plugin(loaded, registry, ctx, "stereo", backend, "stereo", {**settings, **versus})
     compare = stereo is not None and (region != "full" or bool(versus))
     rule = DepthRule.from_recipe(recipe)
     section = recipe.stereo.model_copy(update={"region": region})
     diffs = {"defects": 0, "distance_mm": 0.0, "deviation_mm": 0.0, "availability_differs": 0}
-    camera_spec = registry.get("camera", recipe.camera.plugin).spec
+    def open_camera(max_frames):
+        settings = {**loaded.plugin_settings["camera"], "rate_fps": 0.0, "loop": False, "max_frames": max_frames}
+        return make_plugin(loaded, registry, ctx, "camera", recipe.camera.plugin, "camera", settings)
+
     with tempfile.TemporaryDirectory() as tmp:
         output = registry.get("output", "log").spec.factory({"file": str(Path(tmp) / "bench.log")}, ctx)
         passes: list[dict[str, float]] = []
-        _warm_up(camera_spec, loaded, ctx, detector, stereo, size)
+        _warm_up(open_camera(1), loaded, detector, stereo, size)
         for _ in range(repeats):
-            camera = camera_spec.factory({**loaded.plugin_settings["camera"], "rate_fps": 0.0, "loop": False,
-                                          "max_frames": frames}, ctx)
+            camera = open_camera(frames)
             totals = dict.fromkeys(STAGES, 0.0)
             count = 0
             iterator = iter(camera.frames())
@@ -183,11 +185,10 @@ def _compare_to_full(diffs: dict[str, Any], stereo: Any, frame: StereoFrame, sec
                 diffs[key] = max(diffs[key], abs(a - b))
 
 
-def _warm_up(camera_spec, loaded: LoadedRecipe, ctx: PluginContext, detector: Any, stereo: Any, size: tuple[int, int]) -> None:
-    """One untimed frame: first calls build models, allocate buffers and compile kernels (the surface fit's
-    too)."""
+def _warm_up(camera: Any, loaded: LoadedRecipe, detector: Any, stereo: Any, size: tuple[int, int]) -> None:
+    """One untimed frame of ``camera``, which it closes: first calls build models, allocate buffers and compile
+    kernels (the surface fit's too)."""
     depth.warm_up()
-    camera = camera_spec.factory({**loaded.plugin_settings["camera"], "rate_fps": 0.0, "loop": False, "max_frames": 1}, ctx)
     for item in camera.frames():
         if isinstance(item, StereoFrame):
             frame = resize_frame(item, size)
@@ -206,7 +207,7 @@ def run_bench(loaded: LoadedRecipe, registry: Registry, backends: list[str], res
     detector_settings = dict(loaded.plugin_settings["detector"], confidence=recipe.detector.confidence)
     if recipe.detector.weights is not None:
         detector_settings["weights"] = str(loaded.resolve(recipe.detector.weights))
-    detector = registry.get("detector", recipe.detector.plugin).spec.factory(detector_settings, ctx)
+    detector = make_plugin(loaded, registry, ctx, "detector", recipe.detector.plugin, "detector", detector_settings)
     size = RESOLUTIONS[resolution]
     results = [bench_backend(loaded, registry, b, size, device, repeats, frames, detector, r,
                              versus if b == recipe.stereo.backend else None)

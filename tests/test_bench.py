@@ -2,6 +2,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from conftest import ROOT, cli, cli_here
 
 
@@ -120,6 +122,18 @@ def test_a_frame_that_cannot_be_read_is_one_line_naming_it(tmp_path):
     assert out.stderr == f"error: {sequence}: {cut}: left image of frame 000001 is not whole: truncated JPEG (no " \
                          "end-of-image marker)\n"
     assert list((tmp_path / "o").iterdir()) == []  # no table of other frames
+
+
+@pytest.mark.parametrize("mode", [[], ["--soak", "2"]])
+def test_a_camera_that_cannot_open_is_one_line_naming_the_recipe_key(tmp_path, mode):
+    sequence = tmp_path / "seq"
+    (sequence / "left").mkdir(parents=True)
+    (sequence / "right").mkdir()
+    (sequence / "calib.yaml").write_text((ROOT / "sim_fixtures" / "steel_plate" / "calib.yaml").read_text())
+    out = cli("bench", "--sequence", str(sequence), "--backends", "none", "--repeats", "1", *mode,
+              "--out", str(tmp_path / "o"))
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert out.stderr == f"error: {ROOT / 'recipes' / 'steel_plate.yaml'}: camera: replay: {sequence}: no frames in left/\n"
 
 
 class TestResizeFrame:

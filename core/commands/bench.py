@@ -52,6 +52,7 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
     """Time capture, detection, stereo, depth, decision, outputs and the whole loop; print and save
     a table (JSON + Markdown). Backend "none" times detection alone."""
     from core.bench import NO_STEREO, BenchInputError, live_markdown, markdown, run_bench, run_live, run_soak
+    from core.engine import SetupError, command_threads
     from core.registry import default_registry
 
     overrides = list(overrides)
@@ -67,12 +68,13 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
                                               "stereo.min_disparity": "--min-disp", "stereo.max_disparity": "--max-disp",
                                               "threads": "--threads"})
     registry = default_registry()
-    from core.engine import command_threads
-
     command_threads(threads)
     if soak is not None:
-        report = run_soak(loaded, registry, soak, device, soak_every,
-                          None if quiet else lambda n, mb: click.echo(f"frame {n}: RSS {mb:.0f} MB"))
+        try:
+            report = run_soak(loaded, registry, soak, device, soak_every,
+                              None if quiet else lambda n, mb: click.echo(f"frame {n}: RSS {mb:.0f} MB"))
+        except SetupError as exc:
+            fail(str(exc))
         out.mkdir(parents=True, exist_ok=True)
         write_text(out / "soak.json", json.dumps(report, indent=2))
         click.echo(f"soak: {report['frames']} frames in {report['seconds']:.0f} s ({report['fps']:.2f} fps); RSS "
@@ -111,6 +113,8 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         report = run_bench(loaded, registry, names, resolution, device, repeats, frames, region_names, reference or None)
     except BenchInputError as exc:
         fail(f"{loaded.recipe.camera.settings.get('path', 'the camera')}: {exc}")
+    except SetupError as exc:
+        fail(str(exc))
     table = markdown(report)
     if live is not None:
         report["live"] = run_live(loaded, registry, live, report["device"])

@@ -153,6 +153,39 @@ def test_a_plugin_setting_spelt_as_nan_is_an_error(recipe_dir):
     assert ":6: camera.settings.rate_fps: Input should be a finite number" in message, message
 
 
+class _PlainModelOutput:
+    """A third-party output whose settings model is pydantic's own BaseModel, which reads "nan" as a number."""
+
+    @staticmethod
+    def spec():
+        from pydantic import BaseModel
+
+        from core.contracts import PluginSpec
+
+        class Plain(BaseModel):
+            limits: tuple[float, float] = (0.0, 1.0)
+
+        return PluginSpec("plain", "output", lambda s, ctx: None, settings_model=Plain)
+
+    from core.hookspecs import hookimpl
+
+    @hookimpl
+    def stereo_inspect_outputs(self):
+        return [self.spec()]
+
+
+def test_a_third_party_model_on_plain_pydantic_may_not_take_nan_either(recipe_dir):
+    from core.registry import Registry, make_manager
+
+    registry = Registry(make_manager((_PlainModelOutput(),)))
+    path = write_recipe(recipe_dir / "r.yaml", GOOD.replace("  - plugin: log", "  - plugin: plain\n    settings: "
+                                                                             "{limits: [0, nan]}"))
+    with pytest.raises(RecipeError, match=r"r\.yaml:16: outputs\.0\.settings\.limits\.1: must be a finite number "
+                                          r"\(got nan\)"):
+        load_recipe(path, registry=registry)
+    load_recipe(path, ["outputs.0.settings.limits=[0, 2]"], registry=registry)
+
+
 def test_an_alias_that_holds_itself_or_expands_without_bound_is_an_error(recipe_dir):
     message = _error(recipe_dir, GOOD + "extra: &a [*a]\n")
     assert re.search(r"r\.yaml:\d+: an alias \(\*name\) refers to a node that holds it", message), message

@@ -238,12 +238,15 @@ def _validate_plugin(
     if model is None:
         return dict(settings)
     try:
-        return model.model_validate(settings, context=context).model_dump()
+        validated = model.model_validate(settings, context=context).model_dump()
     except ValidationError as exc:
         raise _first_error(exc, key + ("settings",), locator, model) from None
     except OSError as exc:  # a validator that looked at a path the system refuses (a name too long, no permission)
         named = [k for k, v in settings.items() if isinstance(v, str) and v and v in str(exc.filename)]
         raise locator.error(key + ("settings",) + tuple(named[:1]), f"{exc.filename or ''}: {exc.strerror or exc}") from None
+    # a third-party model on pydantic's own BaseModel reads the text "nan" as a number
+    _check_finite(validated, key + ("settings",), locator)
+    return validated
 
 
 def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), registry: Registry | None = None,
@@ -333,7 +336,7 @@ def _check_finite(node: Any, key: KeyPath, locator: _Locator) -> None:
     rule whose threshold is ``.nan`` would never reject."""
     if isinstance(node, float) and not math.isfinite(node):
         raise locator.error(key, f"must be a finite number (got {node})")
-    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, (list, tuple)) else ()
     for k, value in items:
         _check_finite(value, key + (k,), locator)
 

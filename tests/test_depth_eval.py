@@ -69,6 +69,12 @@ def test_a_sequence_without_labels_is_a_one_line_error(tmp_path):
     assert cli_here("eval", "depth", str(tmp_path / "nowhere")).returncode == 2
 
 
+def test_a_sequence_given_twice_is_an_error_not_counted_twice(tmp_path):
+    result = cli_here("eval", "depth", str(TEXTURED), str(TEXTURED) + "/", "--out", str(tmp_path / "out"))
+    assert result.returncode == 2
+    assert result.stderr == f"error: {TEXTURED}: given twice (also as {TEXTURED})\n"
+
+
 def test_labelled_defects_without_a_truth_are_counted_as_not_scored(evaluated, tmp_path):
     # the generator writes a null deviation where the truth cannot be measured (a defect out of the right
     # camera's view): leaving it out of the figures must be said, not left for the reader to count

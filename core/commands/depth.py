@@ -57,9 +57,13 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
         overrides += [f"stereo.backend={backend}", "stereo.settings={}"]
     if boxes == "detector" and (box_scale != 1.0 or box_shift):
         fail("--box-scale and --box-shift change the true boxes; with --boxes detector the detector draws them")
+    seen = {}
     for folder in sequences:
         if not folder.is_dir():
             fail(f"{folder}: not a sequence folder")
+        if folder.resolve() in seen:  # its defects would count twice in every figure
+            fail(f"{folder}: given twice (also as {seen[folder.resolve()]})")
+        seen[folder.resolve()] = folder
         problem = labelled_sequence_problem(folder)  # it names the file
         if problem is not None:
             fail(problem)

@@ -28,11 +28,9 @@ from typing import Any
 import cv2
 
 from core import depth
-from core.contracts import PluginContext
 from core.decision import decide
 from core.depth import DepthRule, measure_frame
-from core.devices import resolve_device
-from core.engine import compute_disparity, disparity_range, frame_disparity, make_plugin
+from core.engine import compute_disparity, disparity_range, frame_disparity, make_plugin, plugin_context
 from core.recipe import LoadedRecipe
 from core.registry import Registry
 from core.types import FrameError, PartResult, StereoFrame
@@ -85,7 +83,7 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
     """``versus``: settings of the backend that change for the reference the depth numbers are compared
     against (full frame, untimed); without it, regions other than ``full`` are compared with ``full``."""
     recipe = loaded.recipe
-    ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=recipe.name, device=device)
+    ctx = plugin_context(loaded, device)
     settings = loaded.plugin_settings["stereo"] if backend == recipe.stereo.backend else {}
     stereo = None if backend == NO_STEREO else make_plugin(loaded, registry, ctx, "stereo", backend, "stereo", settings)
     reference = stereo
@@ -201,9 +199,8 @@ def _warm_up(camera: Any, loaded: LoadedRecipe, detector: Any, stereo: Any, size
 def run_bench(loaded: LoadedRecipe, registry: Registry, backends: list[str], resolution: str, device: str,
               repeats: int, frames: int | None, regions: tuple[str, ...] = ("full",),
               versus: dict[str, Any] | None = None) -> dict[str, Any]:
-    device = resolve_device(device)
     recipe = loaded.recipe
-    ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=recipe.name, device=device)
+    ctx = plugin_context(loaded, device)
     detector_settings = dict(loaded.plugin_settings["detector"], confidence=recipe.detector.confidence)
     if recipe.detector.weights is not None:
         detector_settings["weights"] = str(loaded.resolve(recipe.detector.weights))
@@ -212,7 +209,7 @@ def run_bench(loaded: LoadedRecipe, registry: Registry, backends: list[str], res
     results = [bench_backend(loaded, registry, b, size, device, repeats, frames, detector, r,
                              versus if b == recipe.stereo.backend else None)
                for b in backends for r in (regions if b != NO_STEREO else ("full",))]
-    return {"recipe": str(loaded.path), "resolution": f"{size[0]}x{size[1]}", "device": device,
+    return {"recipe": str(loaded.path), "resolution": f"{size[0]}x{size[1]}", "device": ctx.device,
             "machine": machine(), "when": time.strftime("%Y-%m-%d %H:%M"), "results": results}
 
 

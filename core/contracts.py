@@ -27,6 +27,9 @@ class PluginContext:
     recipe_name: str = ""
     device: str = "cpu"
     log: Callable[[str], None] = print
+    # True where ``device`` is what ``auto`` found (CUDA where torch sees one) rather than a device the command
+    # named: a plugin may then run work that goes faster elsewhere there (torch_sgm: small pairs on the CPU)
+    device_auto: bool = False
 
 
 @runtime_checkable

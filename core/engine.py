@@ -152,9 +152,16 @@ def build_detector(loaded: LoadedRecipe, registry: Registry, ctx: PluginContext)
     return detector
 
 
+def plugin_context(loaded: LoadedRecipe, device: str) -> PluginContext:
+    """What the recipe's plugins are built with on ``device`` (``auto``: CUDA where torch sees one, and the
+    plugins told that nobody named it)."""
+    return PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, device=resolve_device(device),
+                         device_auto=device == "auto")
+
+
 def build_pipeline(loaded: LoadedRecipe, registry: Registry, device: str = "auto") -> Pipeline:
     recipe = loaded.recipe
-    ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=recipe.name, device=resolve_device(device))
+    ctx = plugin_context(loaded, device)
 
     def make(kind: str, name: str, key: str, settings: dict) -> Any:
         return make_plugin(loaded, registry, ctx, kind, name, key, settings)

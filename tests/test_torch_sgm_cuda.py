@@ -51,6 +51,17 @@ def test_cuda_is_used_when_the_recipe_or_engine_asks_for_it():
     assert torch_sgm_plugin._factory({}, PluginContext(device="cpu")).device.type == "cpu"
 
 
+def test_auto_matches_small_pairs_on_the_cpu_and_a_named_cuda_every_pair_on_the_gpu():
+    auto = torch_sgm_plugin._factory({}, PluginContext(device="cuda", device_auto=True))
+    assert auto.device_for(48, 72).type == "cpu" and auto.device_for(376, 672).type == "cuda"
+    for named in (torch_sgm_plugin._factory({}, PluginContext(device="cuda")),
+                  torch_sgm_plugin._factory({"device": "cuda"}, PluginContext(device="cuda", device_auto=True))):
+        assert named.device_for(48, 72).type == "cuda"
+    left, right, _, _ = layered_scene(48, 72, seed=2)
+    auto.warm_up()  # both devices
+    assert np.isfinite(auto.compute(left, right, 0, 32)).any()
+
+
 def test_stereo_command_on_cuda_reports_its_peak_gpu_memory(tmp_path):
     import cv2
     from click.testing import CliRunner

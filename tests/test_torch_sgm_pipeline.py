@@ -112,6 +112,44 @@ def test_auto_device_follows_the_engine_and_falls_back_to_cpu():
     assert backend.device.type == ("cuda" if torch.cuda.is_available() else "cpu")
 
 
+class TestMatchingDevice:
+    """``device: auto`` on a machine with CUDA: small pairs on the CPU, where a map is not thousands of kernel
+    launches the GPU waits on; a device named by the recipe or the command is kept for every pair."""
+
+    def test_a_small_pair_goes_to_the_cpu_a_large_one_stays_on_the_gpu(self):
+        from plugins.torch_sgm.plugin import SMALL_ON_CPU_PIXELS, matching_device
+
+        gpu = torch.device("cuda")
+        assert matching_device(gpu, True, 94, 168).type == "cpu"  # the demo's frame at a quarter of the resolution
+        assert matching_device(gpu, True, 376, 672).type == "cuda"  # a whole WVGA frame
+        assert matching_device(gpu, True, 1, SMALL_ON_CPU_PIXELS).type == "cuda"
+        assert matching_device(gpu, True, 1, SMALL_ON_CPU_PIXELS - 1).type == "cpu"
+        assert matching_device(gpu, False, 94, 168).type == "cuda"
+        assert matching_device(torch.device("cpu"), True, 376, 672).type == "cpu"
+
+    @pytest.mark.parametrize("settings, ctx, small_on_cpu", [
+        ({}, {"device": "cpu", "device_auto": True}, True),
+        ({}, {"device": "cpu"}, False),  # the command named its device
+        ({"device": "cpu"}, {"device": "cpu", "device_auto": True}, False),  # the recipe named it
+    ])
+    def test_only_a_device_nobody_named_moves_small_pairs(self, settings, ctx, small_on_cpu):
+        assert torch_sgm_plugin._factory(settings, PluginContext(**ctx)).small_on_cpu is small_on_cpu
+
+    def test_the_engine_says_when_its_device_was_auto(self, tmp_path, plane_sequence):
+        from conftest import write_recipe
+
+        from core import engine
+        from core.recipe import load_recipe
+
+        plane_sequence([0.0])
+        text = ("name: t\ncamera: {plugin: replay, settings: {path: seq}}\nstereo: {backend: torch_sgm, "
+                "max_disparity: 32}\ndetector: {plugin: yolov8}\noutputs: [{plugin: log}]\n")
+        loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text))
+        auto, named = engine.plugin_context(loaded, "auto"), engine.plugin_context(loaded, "cpu")
+        assert auto.device_auto is True and auto.device in ("cpu", "cuda") and auto.recipe_dir == loaded.directory
+        assert named.device_auto is False and named.device == "cpu"
+
+
 def test_improved_preset_changes_defaults_but_explicit_settings_win():
     from plugins.torch_sgm.pipeline import IMPROVED
 

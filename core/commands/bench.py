@@ -117,7 +117,7 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         fail(str(exc))
     table = markdown(report)
     if live is not None:
-        report["live"] = run_live(loaded, registry, live, report["device"])
+        report["live"] = run_live(loaded, registry, live, device)
         table += "\n" + live_markdown(report["live"])
     out.mkdir(parents=True, exist_ok=True)
     stem = f"bench-{resolution}-{report['device']}"

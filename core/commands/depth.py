@@ -43,9 +43,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     floor stays the true box's."""
     from core import depth_eval as ev
     from core.commands.inspection import _load, fail
-    from core.contracts import PluginContext
-    from core.devices import resolve_device
-    from core.engine import StageFailed, command_threads
+    from core.engine import StageFailed, command_threads, plugin_context
     from core.registry import default_registry
     from drivers.sequence_folder import SequenceError, labelled_sequence_problem, read_labels
     from pydantic import ValidationError
@@ -70,7 +68,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     loaded = _load(recipe, tuple(overrides), {"stereo.backend": "--backend", "stereo.settings": "--backend"})
     command_threads(threads)
     registry = default_registry()
-    ctx = PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, device=resolve_device(device))
+    ctx = plugin_context(loaded, device)
     stereo = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(loaded.plugin_settings["stereo"], ctx)
     replay = registry.get("camera", "replay")
     rows, timings = [], []

@@ -58,7 +58,7 @@ def make_backend(name: str, settings: dict, device: str):
     except UnknownPlugin as exc:
         _fail(f"--backend: {exc}")
     try:
-        return plugin.spec.factory(dict(settings), PluginContext(device=resolve_device(device)))
+        return plugin.spec.factory(dict(settings), PluginContext(device=resolve_device(device), device_auto=device == "auto"))
     except ValidationError as exc:
         # worded as a recipe's plugin settings are
         loc, message = first_problem(exc, plugin.spec.settings_model)
@@ -145,8 +145,9 @@ def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings,
         _fail(f"--stages: the {backend} backend does not time its stages")
     import time
 
-    # A backend that holds a CUDA device also reports the peak GPU memory of this one map.
-    on_gpu = str(getattr(matcher, "device", "")).startswith("cuda")
+    # A backend that matches this pair on a CUDA device also reports the peak GPU memory of this one map.
+    device_for = getattr(matcher, "device_for", None)
+    on_gpu = str(device_for(*left_img.shape[:2]) if callable(device_for) else getattr(matcher, "device", "")).startswith("cuda")
     if on_gpu:
         import torch
 

@@ -9,32 +9,57 @@ from plugins.torch_sgm.params import TorchSGMParams
 
 
 BYTES_PER_CELL = 24  # the most measured (21 bytes per pixel and disparity) with room to spare
+# Below this many pixels ``device: auto`` matches a pair on the CPU even where it found CUDA: a map is
+# thousands of small kernel launches that a GPU waits on whatever the image's size. On an H200 the demo's
+# crops took 59.5 ms a frame on CUDA (7.2 ms on two CPU cores of the development machine), a whole WVGA
+# frame 146 ms (217-299 ms on those two cores): the GPU pays from about a third of a WVGA frame.
+SMALL_ON_CPU_PIXELS = 100_000
+
+
+def matching_device(device, small_on_cpu: bool, height: int, width: int):
+    """The torch device a ``height`` x ``width`` pair is matched on: ``device``, or the CPU where
+    ``small_on_cpu`` and the pair has fewer than SMALL_ON_CPU_PIXELS pixels while ``device`` is a GPU."""
+    import torch
+
+    if small_on_cpu and device.type == "cuda" and height * width < SMALL_ON_CPU_PIXELS:
+        return torch.device("cpu")
+    return device
 
 
 class TorchSGM:
-    def __init__(self, params: TorchSGMParams, device: str):
+    def __init__(self, params: TorchSGMParams, device: str, small_on_cpu: bool = False):
+        """``small_on_cpu``: pairs under SMALL_ON_CPU_PIXELS on the CPU where ``device`` is CUDA
+        (``matching_device``; what ``device: auto`` does)."""
         from plugins.torch_sgm.pipeline import pick_device  # torch loads only when the backend is used
 
         self.params = params
         self.device = pick_device(device)
+        self.small_on_cpu = small_on_cpu
+
+    def device_for(self, height: int, width: int):
+        """The torch device a pair of this size is matched on."""
+        return matching_device(self.device, self.small_on_cpu, height, width)
 
     def compute(self, left: np.ndarray, right: np.ndarray, min_disp: float, max_disp: float) -> np.ndarray:
         return self.compute_with_mask(left, right, min_disp, max_disp)[0]
 
     def warm_up(self) -> None:
-        """Match a small synthetic scene (matches, an occlusion, holes to fill) so that every stage's
-        kernels are compiled, or loaded from numba's cache, before the first part."""
+        """Match a small synthetic scene (matches, an occlusion, holes to fill) on every device this backend
+        may match on, so that every stage's kernels are compiled, or loaded from numba's cache, before the
+        first part."""
+        from plugins.torch_sgm.pipeline import compute_disparity
         from plugins.torch_sgm.synthetic import layered_scene
 
         left, right, _, _ = layered_scene()
-        self.compute(left, right, 0.0, 24.0)
+        for device in {self.device, self.device_for(*left.shape[:2])}:
+            compute_disparity(left, right, 0.0, 24.0, self.params, device)
 
     def memory_bytes(self, height: int, width: int, disparities: int) -> int:
         """Host memory one map takes at most: on the CPU the cost volume, the SGM sums and the stages'
         temporaries, measured at 18-21 bytes per pixel and disparity where the whole range is searched
         (WVGA and 1344x752, 128 and 256 disparities, with and without ``two_view``); on CUDA the images and
         maps alone (the GPU's own memory runs out as an exception, not a killed process)."""
-        if str(self.device).startswith("cuda"):
+        if self.device_for(height, width).type == "cuda":
             return 64 * height * width
         return BYTES_PER_CELL * height * width * disparities
 
@@ -43,8 +68,9 @@ class TorchSGM:
         from plugins.torch_sgm.pipeline import compute_disparity
         from plugins.torch_sgm.stage_clock import StageClock
 
-        clock = StageClock(self.device)
-        disp, _ = compute_disparity(left, right, min_disp, max_disp, self.params, self.device, clock)
+        device = self.device_for(*left.shape[:2])
+        clock = StageClock(device)
+        disp, _ = compute_disparity(left, right, min_disp, max_disp, self.params, device, clock)
         return disp, clock.seconds
 
     def compute_with_mask(self, left, right, min_disp, max_disp) -> tuple[np.ndarray, np.ndarray]:
@@ -52,18 +78,19 @@ class TorchSGM:
         the evaluation scores the latter as the sparse result."""
         from plugins.torch_sgm.pipeline import compute_disparity
 
-        return compute_disparity(left, right, min_disp, max_disp, self.params, self.device)
+        return compute_disparity(left, right, min_disp, max_disp, self.params, self.device_for(*left.shape[:2]))
 
 
 def _factory(settings: dict, ctx: PluginContext) -> TorchSGM:
     params = TorchSGMParams(**settings)
-    # The recipe's setting wins; "auto" defers to the engine's device, then to what is available.
+    # The recipe's setting wins; "auto" defers to the engine's device, then to what is available, and where
+    # neither named the device it matches small pairs on the CPU (SMALL_ON_CPU_PIXELS)
     device = params.device if params.device != "auto" else (ctx.device if ctx.device in ("cpu", "cuda") else "auto")
     if device == "cuda":
         import torch
         if not torch.cuda.is_available() and params.device == "auto":
             device = "cpu"
-    return TorchSGM(params, device)
+    return TorchSGM(params, device, small_on_cpu=params.device == "auto" and ctx.device_auto)
 
 
 @hookimpl

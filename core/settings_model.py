@@ -1,10 +1,10 @@
 """The base of every settings model, the recipe's sections and the plugins' settings alike.
 
 Three rules for what an integrator types: a key the model does not know is an error (a typo is not a
-silently ignored setting), so is a number that is not finite, and so is a YAML boolean where a number is
-expected. Pydantic takes ``true``
-for 1 and ``false`` for 0, so ``unit: false`` addressed every Modbus device on the line (unit 0 is the
-broadcast), ``address: yes`` pulsed coil 1, and ``threshold: on`` rejected defects deeper than 1 mm.
+silently ignored setting), so is a number that is not finite (pydantic reads the text ``nan`` as one, and a
+rule whose threshold is NaN never rejects), and so is a YAML boolean where a number is expected. Pydantic
+takes ``true`` for 1 and ``false`` for 0, so ``unit: false`` addressed every Modbus device on the line (unit
+0 is the broadcast), ``address: yes`` pulsed coil 1, and ``threshold: on`` rejected defects deeper than 1 mm.
 """
 from __future__ import annotations
 
@@ -42,8 +42,7 @@ def _items_take_bool(annotation: Any) -> bool:
 
 
 class Settings(BaseModel):
-    # allow_inf_nan: pydantic reads the text "nan" or "1e400" (unquoted YAML that is not a YAML float) as a
-    # number, and a rule whose threshold is NaN never rejects
+    # allow_inf_nan: unquoted YAML such as nan or 1e400 is text, not a YAML float, which pydantic reads as a number
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     @field_validator("*", mode="before")

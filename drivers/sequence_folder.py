@@ -318,6 +318,8 @@ def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
         labels = json.loads(read_text(path, "labels"))
     except ValueError as exc:
         raise SequenceError(f"{path}: labels are not JSON ({exc})") from None
+    except RecursionError:  # Python's JSON decoder recurses once per level
+        raise SequenceError(f"{path}: labels nest deeper than JSON can be read") from None
     if not isinstance(labels, dict) or not isinstance(labels.get("defects"), list):
         raise SequenceError(f"{path}: expected a mapping with a list of defects")
     for i, defect in enumerate(labels["defects"]):

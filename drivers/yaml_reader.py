@@ -5,9 +5,10 @@ Modbus address or a time an integrator wrote in decimal: coil 8 pulsed instead o
 lost at the wrong gate; in a calibration file a baseline of ``0120`` mm read as 80. Such a scalar is an
 error naming its line; quoted, or written without the leading zero, it is whatever the key expects.
 
-An alias that refers to a node holding it (``a: &a [*a]``) is an error naming its line, and so is a document
-whose aliases expand to more than ``MAX_NODES`` values (a "billion laughs"): every reader of a recipe walks
-the expanded values, and would never return.
+A document no reader could walk is an error naming its line too: an alias that refers to a node holding
+it (``a: &a [*a]``), aliases that expand the document to more than ``MAX_NODES`` values (a "billion laughs"),
+and nesting deeper than ``MAX_DEPTH`` levels (PyYAML's composer, and every reader of a recipe after it,
+recurse once per level).
 
 This module imports nothing from the rest of stereo-inspect.
 """
@@ -18,6 +19,7 @@ import re
 import yaml
 
 MAX_NODES = 100_000  # values after expanding aliases: a recipe holds a few hundred
+MAX_DEPTH = 100  # levels of nesting, aliases expanded: a recipe nests five
 _OCTAL = re.compile(r"[-+]?0[0-7_]+")
 _BASE_60 = re.compile(r"[-+]?[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?")
 
@@ -32,8 +34,9 @@ class MisreadNumber(yaml.MarkedYAMLError):
         self.key: tuple[str | int, ...] = ()
 
 
-class AliasError(yaml.MarkedYAMLError):
-    """An alias that contains itself, or aliases that expand the document beyond ``MAX_NODES`` values."""
+class StructureError(yaml.MarkedYAMLError):
+    """An alias that contains itself, aliases that expand the document beyond ``MAX_NODES`` values, or nesting
+    deeper than ``MAX_DEPTH`` levels."""
 
     def __init__(self, mark: yaml.Mark, why: str):
         super().__init__(problem=why, problem_mark=mark)
@@ -83,33 +86,54 @@ def _path_to(node: yaml.Node, index: int, path: tuple = ()) -> tuple | None:
     return None
 
 
-def _check_expansion(node: yaml.Node) -> None:
-    """``AliasError`` where a node holds itself or the expanded document passes MAX_NODES values. The walk
-    follows aliases as the document's readers will, and stops at the limit, so a bomb costs no more."""
-    count, holding = 0, set()
+def _check_nesting(text: str) -> None:
+    """``StructureError`` where the text nests deeper than MAX_DEPTH levels, from PyYAML's parser, which keeps
+    its own stack (its composer recurses, and Python's recursion limit would end it in a traceback)."""
+    depth = 0
+    for event in yaml.parse(text, Loader=yaml.SafeLoader):
+        if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+            depth += 1
+            if depth > MAX_DEPTH:
+                raise StructureError(event.start_mark, f"nested deeper than {MAX_DEPTH} levels")
+        elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+            depth -= 1
 
-    def walk(item: yaml.Node) -> None:
-        nonlocal count
+
+def _check_expansion(node: yaml.Node) -> None:
+    """``StructureError`` where a node holds itself, or the document with its aliases expanded passes
+    MAX_NODES values or MAX_DEPTH levels. The walk follows aliases as the document's readers will, on a stack
+    of its own, and stops at the limits, so a bomb costs no more."""
+    count, holding = 0, set()  # holding: the nodes on the way down to the one visited
+    stack = [(node, 0, False)]
+    while stack:
+        item, depth, leaving = stack.pop()
+        if leaving:
+            holding.discard(id(item))
+            continue
         count += 1
         if count > MAX_NODES:
-            raise AliasError(item.start_mark, f"the document's aliases (*name) expand it beyond {MAX_NODES:,} values")
+            raise StructureError(item.start_mark, f"the document's aliases (*name) expand it beyond {MAX_NODES:,} "
+                                 f"values")
+        if depth > MAX_DEPTH:
+            raise StructureError(item.start_mark, f"the document's aliases (*name) nest it deeper than {MAX_DEPTH} "
+                                 f"levels")
         if isinstance(item, yaml.ScalarNode):
-            return
+            continue
         if id(item) in holding:
-            raise AliasError(item.start_mark, "an alias (*name) refers to a node that holds it: the value would "
-                             "contain itself without end")
+            raise StructureError(item.start_mark, "an alias (*name) refers to a node that holds it: the value would "
+                                 "contain itself without end")
         holding.add(id(item))
-        for child in item.value:
-            for part in child if isinstance(child, tuple) else (child,):
-                walk(part)
-        holding.discard(id(item))
-
-    walk(node)
+        stack.append((item, depth, True))
+        for child in reversed(item.value):
+            for part in reversed(child) if isinstance(child, tuple) else (child,):
+                stack.append((part, depth + 1, False))
 
 
 def safe_load(text: str):
     """``yaml.safe_load`` that raises ``MisreadNumber`` where YAML 1.1 would misread a number, and
-    ``AliasError`` for an alias that holds itself or a document its aliases expand without bound."""
+    ``StructureError`` for a document no reader could walk (an alias that holds itself, aliases that expand it
+    without bound, nesting deeper than MAX_DEPTH)."""
+    _check_nesting(text)
     loader = _Loader(text)
     try:
         node = loader.get_single_node()

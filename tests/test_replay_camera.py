@@ -207,6 +207,7 @@ class TestReadLabels:
 
     @pytest.mark.parametrize("labels, message", [
         ("{not json", "000001.json: labels are not JSON"),
+        ('{"defects": ' + "[" * 100_000 + "]" * 100_000 + "}", "000001.json: labels nest deeper than JSON can be read"),
         ([1, 2], "000001.json: expected a mapping with a list of defects"),
         ({"defects": [{"box": [1, 2, 3, 4]}]}, "defects[0]: expected a mapping with a class name"),
         ({"defects": [{"class": "pit", "box": [1, 2, 3]}]}, "defects[0].box: expected [x0, y0, x1, y1]"),

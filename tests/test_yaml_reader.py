@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from drivers.yaml_reader import AliasError, MisreadNumber, safe_load
+from drivers.yaml_reader import MAX_DEPTH, MisreadNumber, StructureError, safe_load
 
 
 class TestSafeLoad:
@@ -34,7 +34,7 @@ class TestSafeLoad:
         assert info.value.line == 2 and info.value.key == ("a", "b", 1, "d")
 
 
-class TestAliases:
+class TestStructure:
     def test_anchors_aliases_and_merges_still_read(self):
         text = "m: &m {x: 1}\nn: {<<: *m, y: 2}\nl: [*m, *m]\n"
         assert safe_load(text) == {"m": {"x": 1}, "n": {"x": 1, "y": 2}, "l": [{"x": 1}, {"x": 1}]}
@@ -44,13 +44,28 @@ class TestAliases:
 
     @pytest.mark.parametrize("text, line", [("a: &a [*a]\n", 1), ("a:\n  b: &b {c: *b}\n", 2)])
     def test_an_alias_that_holds_itself_is_refused_with_its_line(self, text, line):
-        with pytest.raises(AliasError, match="refers to a node that holds it") as info:
+        with pytest.raises(StructureError, match="refers to a node that holds it") as info:
             safe_load(text)
         assert info.value.line == line
 
     def test_aliases_that_expand_beyond_the_limit_are_refused_before_they_are_built(self):
         levels = ["x0: &x0 [1, 2, 3, 4, 5, 6, 7, 8, 9]"]
         levels += [f"x{i}: &x{i} [" + ", ".join([f"*x{i - 1}"] * 9) + "]" for i in range(1, 10)]  # 9^10 values
-        with pytest.raises(AliasError, match="expand it beyond 100,000 values"):
+        with pytest.raises(StructureError, match="expand it beyond 100,000 values"):
             safe_load("\n".join(levels))
         assert len(safe_load("\n".join(levels[:4]))["x3"]) == 9  # 9^4 values: a document that large still reads
+
+    def test_nesting_deeper_than_the_limit_is_refused_with_its_line_not_a_recursion_error(self):
+        deep = "a:\n  b: " + "[" * (MAX_DEPTH + 1) + "]" * (MAX_DEPTH + 1) + "\n"
+        with pytest.raises(StructureError, match=f"nested deeper than {MAX_DEPTH} levels") as info:
+            safe_load(deep)
+        assert info.value.line == 2
+        assert safe_load("a: " + "[" * (MAX_DEPTH - 1) + "1" + "]" * (MAX_DEPTH - 1))["a"] is not None
+        with pytest.raises(StructureError):
+            safe_load("a: " + "[" * 5000 + "]" * 5000)
+
+    def test_aliases_that_nest_it_deeper_than_the_limit_are_refused(self):
+        half = MAX_DEPTH // 2 + 1
+        text = "x: &x " + "[" * half + "1" + "]" * half + "\ny: " + "[" * half + "*x" + "]" * half + "\n"
+        with pytest.raises(StructureError, match=f"nest it deeper than {MAX_DEPTH} levels"):
+            safe_load(text)

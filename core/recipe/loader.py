@@ -270,7 +270,7 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
         raise RecipeError(f"{path}:{exc}") from None
     except yaml_reader.MisreadNumber as exc:
         raise RecipeError(f"{path}:{exc.line}: {_dotted(exc.key)}: {exc.problem}") from None
-    except yaml_reader.AliasError as exc:
+    except yaml_reader.StructureError as exc:
         raise RecipeError(f"{path}:{exc.line}: {exc.problem}") from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark

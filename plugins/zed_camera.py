@@ -48,6 +48,12 @@ class ZedSettings(Settings):
     reconnect_max_ms: float = Field(5000.0, gt=0, le=MAX_RECONNECT_MS)
     max_frames: int | None = Field(None, ge=1)
 
+    @field_validator("resolution", mode="before")
+    @classmethod
+    def _any_case(cls, value):
+        # the SDK's names; `inspect bench --resolution` and the docs' prose write them in lower case
+        return value.upper() if isinstance(value, str) else value
+
     @field_validator("calibration")
     @classmethod
     def _calibration_exists(cls, value: str | None, info: ValidationInfo) -> str | None:

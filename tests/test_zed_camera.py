@@ -208,6 +208,13 @@ def test_plugin_settings_are_checked(tmp_path):
         spec.factory({"device": 0, "calibration": str(CONF), "reconnect_max_ms": 1e300}, ctx)
 
 
+def test_the_resolution_may_be_written_in_any_case():
+    from plugins.zed_camera import ZedSettings
+
+    assert [ZedSettings(calibration=str(CONF), resolution=r).resolution for r in ("wvga", "hd720", "2k", "HD1080")] \
+        == ["WVGA", "HD720", "2K", "HD1080"]
+
+
 def test_sdk_backend_is_optional(tmp_path):
     from core.contracts import PluginContext
     from core.registry import default_registry

@@ -164,8 +164,12 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
     result["peak_rss_mb"] = _peak_rss_mb()
     import torch
 
-    if device.startswith("cuda") and torch.cuda.is_available():
+    if ctx.device.startswith("cuda") and torch.cuda.is_available():
         result["peak_cuda_mb"] = torch.cuda.max_memory_allocated() / 2**20
+    # where the backend matched, if it says: torch_sgm's device auto sends small pairs to the CPU
+    used = getattr(stereo, "devices_used", None)
+    if used:
+        result["stereo_devices"] = sorted(str(d) for d in used)
     return result
 
 
@@ -232,7 +236,9 @@ def markdown(report: dict[str, Any]) -> str:
         versus = "" if diff is None else (f"{diff['distance_mm']:.3f} / {diff['deviation_mm']:.3f} ({diff['defects']}"
                                          + (f", {diff['availability_differs']} available in one only" if diff["availability_differs"] else "") + ")")
         ratio = r.get("stereo_and_depth_over_detection")
-        lines.append(f"| {r['backend']} | {r['region']} | " + " | ".join(cells)
+        elsewhere = [d for d in r.get("stereo_devices", ()) if d != report["device"]]
+        backend = r["backend"] + (f" (matched on {', '.join(r['stereo_devices'])})" if elsewhere else "")
+        lines.append(f"| {backend} | {r['region']} | " + " | ".join(cells)
                      + f" | {'' if ratio is None else f'{ratio:.2f}'} | {r['fps']:.2f} | {r['peak_rss_mb']:.0f} | {versus} |")
     return "\n".join(lines) + "\n"
 

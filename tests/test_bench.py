@@ -54,6 +54,32 @@ def test_bench_defect_region_is_compared_with_full_frame_and_detection_alone(tmp
     assert "| opencv_sgbm | defects |" in (tmp_path / "bench-wvga-cpu.md").read_text()
 
 
+def test_a_backend_that_matched_on_another_device_than_the_bench_s_says_so():
+    """torch_sgm's device auto matches small pairs on the CPU on a GPU machine: the table must not credit
+    the GPU with them."""
+    from core.bench import STAGES, markdown
+
+    stages = {s: {"median": 1.0, "min": 1.0, "max": 1.0} for s in STAGES}
+    row = {"region": "defects", "stages_ms": stages, "fps": 10.0, "peak_rss_mb": 100.0,
+           "stereo_and_depth_over_detection": 0.5}
+    report = {"recipe": "r.yaml", "resolution": "672x376", "device": "cuda", "when": "now",
+              "machine": {"cpu": "x", "cores": 16, "torch_threads": 8, "gpu": "H200"},
+              "results": [{**row, "backend": "torch_sgm", "stereo_devices": ["cpu"]},
+                          {**row, "backend": "torch_sgm", "region": "full", "stereo_devices": ["cuda"]},
+                          {**row, "backend": "opencv_sgbm"}]}
+    table = markdown(report)
+    assert "| torch_sgm (matched on cpu) | defects |" in table
+    assert "| torch_sgm | full |" in table and "| opencv_sgbm | defects |" in table
+
+
+def test_torch_sgm_says_where_it_matched(tmp_path):
+    out = cli("bench", "--backends", "torch_sgm", "--regions", "defects", "--frames", "2", "--repeats", "1",
+              "--out", str(tmp_path))
+    assert out.returncode == 0, out.stderr
+    result = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())["results"][0]
+    assert result["stereo_devices"] == ["cpu"]
+
+
 def test_bench_versus_compares_depth_with_other_settings_of_the_backend(tmp_path):
     """torch_sgm's coarse-to-fine search against its full search: the same depth for each defect found
     on frames 1-2 (the first frame is sound plate)."""

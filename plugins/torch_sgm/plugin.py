@@ -35,10 +35,17 @@ class TorchSGM:
         self.params = params
         self.device = pick_device(device)
         self.small_on_cpu = small_on_cpu
+        self.devices_used: set = set()  # what the maps ran on, for a benchmark to say
 
     def device_for(self, height: int, width: int):
         """The torch device a pair of this size is matched on."""
         return matching_device(self.device, self.small_on_cpu, height, width)
+
+    def _map_device(self, image: np.ndarray):
+        """``device_for`` the pair of which ``image`` is one, noted in ``devices_used``."""
+        device = self.device_for(*image.shape[:2])
+        self.devices_used.add(device.type)
+        return device
 
     def compute(self, left: np.ndarray, right: np.ndarray, min_disp: float, max_disp: float) -> np.ndarray:
         return self.compute_with_mask(left, right, min_disp, max_disp)[0]
@@ -68,7 +75,7 @@ class TorchSGM:
         from plugins.torch_sgm.pipeline import compute_disparity
         from plugins.torch_sgm.stage_clock import StageClock
 
-        device = self.device_for(*left.shape[:2])
+        device = self._map_device(left)
         clock = StageClock(device)
         disp, _ = compute_disparity(left, right, min_disp, max_disp, self.params, device, clock)
         return disp, clock.seconds
@@ -78,7 +85,7 @@ class TorchSGM:
         the evaluation scores the latter as the sparse result."""
         from plugins.torch_sgm.pipeline import compute_disparity
 
-        return compute_disparity(left, right, min_disp, max_disp, self.params, self.device_for(*left.shape[:2]))
+        return compute_disparity(left, right, min_disp, max_disp, self.params, self._map_device(left))
 
 
 def _factory(settings: dict, ctx: PluginContext) -> TorchSGM:

@@ -66,9 +66,15 @@ def score(pred: np.ndarray, gt: np.ndarray, nonocc: np.ndarray, claimed: np.ndar
     }
 
 
+def _is_scene(folder: Path) -> bool:
+    return folder.is_dir() and (folder / "im0.png").exists() and (folder / "calib.txt").exists()
+
+
 def list_scenes(folder: Path, only: list[str] | None = None) -> list[Path]:
+    """The scene folders (im0.png and calib.txt) inside ``folder``, or ``folder`` itself where it is one;
+    ``only`` picks them by name (ValueError naming those not there)."""
     folder = Path(folder)
-    scenes = sorted(p for p in folder.iterdir() if p.is_dir() and (p / "im0.png").exists() and (p / "calib.txt").exists())
+    scenes = [folder] if _is_scene(folder) else sorted(p for p in folder.iterdir() if _is_scene(p))
     if only:
         by_name = {p.name: p for p in scenes}
         missing = [s for s in only if s not in by_name]

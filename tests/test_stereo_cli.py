@@ -221,6 +221,18 @@ def test_eval_selects_scenes_and_passes_settings(tmp_path):
     assert not (out / "stereo_eval.png").exists()
 
 
+def test_one_scene_folder_may_be_given_itself(tmp_path):
+    write_scene(tmp_path / "mb" / "SceneA", seed=0)
+    out = tmp_path / "out"
+    result = invoke("eval", "stereo", "--middlebury", tmp_path / "mb" / "SceneA", "--backend", "opencv_sgbm",
+                    "--out", out, "--no-figure")
+    assert result.exit_code == 0, result.output
+    rows = json.loads((out / "stereo_eval.json").read_text())["backends"]["opencv_sgbm"]["scenes"]
+    assert [r["scene"] for r in rows] == ["SceneA"]
+    (tmp_path / "empty").mkdir()
+    _assert_error(invoke("eval", "stereo", "--middlebury", tmp_path / "empty"), "not a scene folder")
+
+
 def test_a_scene_without_an_occlusion_mask_is_scored_over_every_pixel_and_says_so(tmp_path):
     write_scene(tmp_path / "mb" / "Masked", seed=0)
     write_scene(tmp_path / "mb" / "Unmasked", seed=0)

@@ -204,8 +204,8 @@ def _split(values: tuple[str, ...]) -> list[str]:
 
 @click.command("stereo")
 @click.option("--middlebury", "folder", type=click.Path(path_type=Path), required=True,
-              help="folder of Middlebury scene folders (im0.png, im1.png, calib.txt, disp0GT.pfm or the 2014 "
-                   "datasets' disp0.pfm, and mask0nocc.png where there is one)")
+              help="a Middlebury scene folder (im0.png, im1.png, calib.txt, disp0GT.pfm or the 2014 datasets' "
+                   "disp0.pfm, and mask0nocc.png where there is one), or a folder of them")
 @click.option("--backend", "backends", multiple=True, help="repeatable or comma-separated; default torch_sgm")
 @click.option("--scenes", multiple=True, help="scene names, repeatable or comma-separated; default all")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("runs/stereo_eval"), show_default=True,
@@ -235,7 +235,7 @@ def eval_stereo_command(folder, backends, scenes, out, settings, figure, device,
     except ValueError as exc:
         _fail(f"--scenes: {exc}")
     if not scene_dirs:
-        _fail(f"--middlebury {folder}: no scene folders (im0.png + calib.txt) inside")
+        _fail(f"--middlebury {folder}: not a scene folder (im0.png + calib.txt), nor one that holds any")
     # before any scene is matched: a test scene without ground truth would otherwise end the run halfway
     unscored = [d for d in scene_dirs if ev.ground_truth_path(d) is None]
     if unscored:

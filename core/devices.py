@@ -11,6 +11,12 @@ def resolve_device(device: str) -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
+def plugin_device(device: str) -> dict:
+    """The device fields of a ``PluginContext`` for a command's ``device``: ``device`` (``auto`` resolved) and
+    ``device_auto``, whether ``auto`` chose it rather than the command naming it."""
+    return {"device": resolve_device(device), "device_auto": device == "auto"}
+
+
 def cuda_problem(index: int | None = None) -> str | None:
     """Why torch cannot run on CUDA (on device ``index``, where given), in words, or None. Said before the first
     part: a device the machine lacks made every part's detection or stereo an ERROR."""

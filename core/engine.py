@@ -24,7 +24,7 @@ from core.checks import (RepeatedImages, delivery_problem, detections_problem, d
 from core.clock_steps import ClockSteps
 from core.contracts import PluginContext, missing_members
 from core.decision import decide, error_verdict
-from core.devices import resolve_device
+from core.devices import plugin_device
 from core.depth import DepthRule, measure_frame
 from core.frame_source import DetectAhead, OneAtATime
 from core.image_quality import image_problem, image_stats
@@ -155,8 +155,7 @@ def build_detector(loaded: LoadedRecipe, registry: Registry, ctx: PluginContext)
 def plugin_context(loaded: LoadedRecipe, device: str) -> PluginContext:
     """What the recipe's plugins are built with on ``device`` (``auto``: CUDA where torch sees one, and the
     plugins told that nobody named it)."""
-    return PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, device=resolve_device(device),
-                         device_auto=device == "auto")
+    return PluginContext(recipe_dir=loaded.directory, recipe_name=loaded.recipe.name, **plugin_device(device))
 
 
 def build_pipeline(loaded: LoadedRecipe, registry: Registry, device: str = "auto") -> Pipeline:

@@ -49,7 +49,7 @@ def make_backend(name: str, settings: dict, device: str):
     from pydantic import ValidationError
 
     from core.contracts import PluginContext
-    from core.devices import resolve_device
+    from core.devices import plugin_device
     from core.recipe.loader import first_problem
     from core.registry import UnknownPlugin, default_registry
 
@@ -58,7 +58,7 @@ def make_backend(name: str, settings: dict, device: str):
     except UnknownPlugin as exc:
         _fail(f"--backend: {exc}")
     try:
-        return plugin.spec.factory(dict(settings), PluginContext(device=resolve_device(device), device_auto=device == "auto"))
+        return plugin.spec.factory(dict(settings), PluginContext(**plugin_device(device)))
     except ValidationError as exc:
         # worded as a recipe's plugin settings are
         loc, message = first_problem(exc, plugin.spec.settings_model)

@@ -44,6 +44,20 @@ class StructureError(yaml.MarkedYAMLError):
 
 
 class _Loader(yaml.SafeLoader):
+    _depth = 0  # collections open while composing
+
+    def compose_node(self, parent, index):
+        # the composer recurses once per level: refused with its line before Python's recursion limit ends it
+        # in a traceback
+        opens = int(self.check_event(yaml.SequenceStartEvent, yaml.MappingStartEvent))
+        if opens and self._depth >= MAX_DEPTH:
+            raise StructureError(self.peek_event().start_mark, f"nested deeper than {MAX_DEPTH} levels")
+        self._depth += opens
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= opens
+
     def construct_yaml_int(self, node):
         text = self.construct_scalar(node)
         try:
@@ -86,19 +100,6 @@ def _path_to(node: yaml.Node, index: int, path: tuple = ()) -> tuple | None:
     return None
 
 
-def _check_nesting(text: str) -> None:
-    """``StructureError`` where the text nests deeper than MAX_DEPTH levels, from PyYAML's parser, which keeps
-    its own stack (its composer recurses, and Python's recursion limit would end it in a traceback)."""
-    depth = 0
-    for event in yaml.parse(text, Loader=yaml.SafeLoader):
-        if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
-            depth += 1
-            if depth > MAX_DEPTH:
-                raise StructureError(event.start_mark, f"nested deeper than {MAX_DEPTH} levels")
-        elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
-            depth -= 1
-
-
 def _check_expansion(node: yaml.Node) -> None:
     """``StructureError`` where a node holds itself, or the document with its aliases expanded passes
     MAX_NODES values or MAX_DEPTH levels. The walk follows aliases as the document's readers will, on a stack
@@ -133,7 +134,6 @@ def safe_load(text: str):
     """``yaml.safe_load`` that raises ``MisreadNumber`` where YAML 1.1 would misread a number, and
     ``StructureError`` for a document no reader could walk (an alias that holds itself, aliases that expand it
     without bound, nesting deeper than MAX_DEPTH)."""
-    _check_nesting(text)
     loader = _Loader(text)
     try:
         node = loader.get_single_node()

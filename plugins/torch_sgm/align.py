@@ -100,10 +100,15 @@ def field_terms(x: torch.Tensor, y: torch.Tensor, model: str) -> torch.Tensor:
     centred): (..., 3) 1, x, y for ``affine``; (..., 5) with x y and y² added for ``projective``, the
     vertical component of a small relative rotation of the two cameras (pitch adds 1 + y², yaw x y,
     roll x) and of a difference in focal length (y), to first order."""
+    return torch.stack(torch.broadcast_tensors(*_terms(x, y, model)), -1)
+
+
+def _terms(x: torch.Tensor, y: torch.Tensor, model: str) -> list[torch.Tensor]:
+    """``field_terms``' K terms, each as broadcast from x and y (so (1, W) and (H, 1) give some of (H, W))."""
     base = [x, y, torch.ones_like(x)]
     if model == "projective":
         base += [x * y, y * y]
-    return torch.stack(base, -1)
+    return base
 
 
 def fit_row_field(dy: torch.Tensor, reliable: torch.Tensor, model: str = "affine",
@@ -120,13 +125,15 @@ def fit_row_field(dy: torch.Tensor, reliable: torch.Tensor, model: str = "affine
         ys, xs = torch.nonzero(reliable[i], as_tuple=True)
         if ys.numel() < min_pixels:
             continue
-        design = field_terms(xs.double() / w - 0.5, ys.double() / h - 0.5, model)
+        terms = field_terms(xs.double() / w - 0.5, ys.double() / h - 0.5, model).T.contiguous()  # (K, N)
         target = dy[i][reliable[i]].double()
         weight = torch.ones_like(target)
         for _ in range(_FIT_ITERATIONS):
-            root = weight.sqrt()[:, None]
-            coeffs = torch.linalg.lstsq(design * root, target[:, None] * root).solution[:, 0]
-            residual = design @ coeffs - target
+            # the normal equations: a K x K system instead of a QR of tens of thousands of rows (the terms
+            # are of order 1 over the centred image, so squaring their condition loses nothing in float64)
+            weighted = terms * weight
+            coeffs = torch.linalg.lstsq(weighted @ terms.T, (weighted @ target)[:, None]).solution[:, 0]
+            residual = coeffs @ terms - target
             weight = planes.tukey_weight(residual, _FIT_RADIUS)
         out[i] = coeffs
     return out
@@ -134,10 +141,12 @@ def fit_row_field(dy: torch.Tensor, reliable: torch.Tensor, model: str = "affine
 
 def row_field(coeffs: torch.Tensor, h: int, w: int, model: str = "affine") -> torch.Tensor:
     """(B, K) ``fit_row_field`` coefficients -> (B, H, W) float32 row offsets."""
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=coeffs.device),
-                            torch.arange(w, dtype=torch.float64, device=coeffs.device), indexing="ij")
-    terms = field_terms(xs / w - 0.5, ys / h - 0.5, model)  # (H, W, K)
-    return (terms[None] * coeffs[:, None, None, :]).sum(-1).float()
+    y = torch.arange(h, dtype=torch.float64, device=coeffs.device)[:, None] / h - 0.5
+    x = torch.arange(w, dtype=torch.float64, device=coeffs.device)[None, :] / w - 0.5
+    out = torch.zeros(coeffs.shape[0], h, w, dtype=torch.float64, device=coeffs.device)
+    for k, term in enumerate(_terms(x, y, model)):  # term by term: no (H, W, K) stack of them
+        out += coeffs[:, k, None, None] * term
+    return out.float()
 
 
 def lanczos(t: torch.Tensor, lobes: int = LANCZOS_LOBES) -> torch.Tensor:

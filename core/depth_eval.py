@@ -91,6 +91,7 @@ class Summary:
     # the floor whatever the set's mix of floors, where a set's median error follows its few largest floors
     error_over_floor_per_defect: float | None = None
     within_2_sigma: float | None = None
+    distance_within_2_sigma: float | None = None  # the distance's errors within 2 of its reported sigma
     sigma_over_floor_median: float | None = None
     # true outcome -> what the measurement proved (PASS, REJECT, undecided, ERROR) -> count
     confusion: dict[str, dict[str, int]] = field(default_factory=dict)
@@ -310,6 +311,10 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
         if sig:
             s.within_2_sigma = float(np.mean([abs(r.deviation_mm - r.true_deviation_mm) <= 2 * r.deviation_sigma_mm
                                               for r in sig]))
+            with_sigma = [r for r in with_distance if r.distance_sigma_mm]
+            if with_sigma:
+                s.distance_within_2_sigma = float(np.mean([abs(r.distance_mm - r.true_distance_mm)
+                                                           <= 2 * r.distance_sigma_mm for r in with_sigma]))
             with_floor = [r for r in sig if r.floor_mm]
             if with_floor:
                 s.sigma_over_floor_median = float(np.median([r.deviation_sigma_mm / r.floor_mm for r in with_floor]))
@@ -360,6 +365,11 @@ def _percent(v: float | None) -> str:
     return "n/a" if v is None else f"{100 * v:.0f} %"
 
 
+def _distance_calibration(s: dict[str, Any]) -> str:
+    share = s.get("distance_within_2_sigma")
+    return "" if share is None else f" ({_percent(share)})"
+
+
 def markdown(body: dict[str, Any]) -> str:
     """The report as Markdown: one table row per sequence and the pooled row, measurement and reference."""
     moved = (f"; the true boxes scaled by {body['box_scale']:g} and moved by {body['box_shift']:g} of their size"
@@ -371,7 +381,7 @@ def markdown(body: dict[str, Any]) -> str:
         "",
         "| sequence | method | defects (measured) | deviation error mm, median / p90 / max | floor mm, median / p90 "
         "| error ÷ floor, median / p90 | error ÷ floor per defect | measured ÷ true (narrow) | within ±2σ | σ ÷ floor "
-        "| distance error, median % of Z | clear-cut on the wrong side (silent PASS) "
+        "| distance error, median % of Z (within ±2σ) | clear-cut on the wrong side (silent PASS) "
         "| clear-cut on the wrong side without the guard band |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -385,7 +395,8 @@ def markdown(body: dict[str, Any]) -> str:
                 f"{_opt(s['error_over_floor_per_defect'])} | "
                 f"{_opt(s['ratio_median'])} ({_opt(s['narrow_ratio_median'])}) | "
                 f"{_percent(s['within_2_sigma'])} | "
-                f"{_opt(s['sigma_over_floor_median'])} | {_opt(s['distance_error_percent'].get('median'), 3)} | "
+                f"{_opt(s['sigma_over_floor_median'])} | {_opt(s['distance_error_percent'].get('median'), 3)}"
+                f"{_distance_calibration(s)} | "
                 f"{s['clear_cut_wrong']} ({s['clear_cut_silent_pass']}) | {s['clear_cut_wrong_plain']} |")
     lines += ["", "Decisions at the recipe's rules, all sequences: the true outcome against what the measurement proved "
               f"(undecided: within the guard band, resolved by the recipe's uncertain: {body['uncertain']}):", ""]

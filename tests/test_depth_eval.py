@@ -269,7 +269,15 @@ class TestSummarise:
         assert s.clear_cut_wrong_plain == 1  # the undecided 1.1 mm counts as out on its value: right side
         assert s.confusion == {"REJECT": {"REJECT": 1, "PASS": 2, "undecided": 1}}
         assert s.within_2_sigma == pytest.approx(0.25)  # only the first error is within 2 sigma
+        assert s.distance_within_2_sigma == 1.0  # each distance exact
         assert s.ratio_median == pytest.approx(np.median([1.45 / 1.5, 0.6 / 1.5, 1.1 / 1.5, 0.7 / 1.1]))
+
+    def test_the_distances_calibration_counts_its_errors_within_two_of_its_sigma(self):
+        rows = [self._row(1.5, 1.5, 0.05, "REJECT", "REJECT") for _ in range(4)]
+        for row, measured in zip(rows, (400.05, 399.85, 400.3, 399.0)):  # sigma 0.1 mm: 0.5, 1.5, 3 and 10 of it
+            row.distance_mm = measured
+        assert ev.summarise(rows).distance_within_2_sigma == pytest.approx(0.5)
+        assert ev.summarise(rows, reference=True).distance_within_2_sigma is None  # the backend reports no sigma
 
     def test_the_error_per_defect_is_one_at_the_floor_whatever_the_mix_of_floors(self):
         rng = np.random.default_rng(0)

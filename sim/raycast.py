@@ -6,7 +6,7 @@ each pixel is the mean of SUPERSAMPLE x SUPERSAMPLE rays cast from the eye onto 
 rectangular or elliptical pits, a texture tabulated on the plate (``TEXEL_MM``) and sampled where each
 ray lands, a pit's floor as textured as the plate and its walls darker. The truth is the geometry's
 own: ``deviation_mm`` the pit's depth along the plate's normal, ``distance_mm`` the depth of its
-floor's centre. ZED WVGA geometry, as the goals' independently rendered plates.
+floor where the centre of its box looks. ZED WVGA geometry, as the goals' independently rendered plates.
 
 ``render_sequence(out, kind, frames, seed)`` writes the sequence-folder layout (``left/``, ``right/``,
 ``labels/``, ``calib.yaml``); ``kind`` is ``textured`` (pits 30-80 px at 350-650 mm) or ``low``
@@ -145,11 +145,19 @@ def plan_pits(rng: np.random.Generator, z0: float, axes: np.ndarray, kind: Kind)
         corners = np.array([p0 + (pit.s + i * pit.a) * e1 + (pit.t + j * pit.b) * e2
                             for i in (-1, 1) for j in (-1, 1)])
         us, vs = f * corners[:, 0] / corners[:, 2] + c["cx"], f * corners[:, 1] / corners[:, 2] + c["cy"]
+        # us, vs count pixel centres from 0 (``render_eye``'s rays); a box counts pixel edges, pixel u spanning
+        # u to u + 1 (``Detection``, ``core.depth.region_weights``), half a pixel further on
+        us, vs = us + 0.5, vs + 0.5
         box = [float(np.floor(us.min())), float(np.floor(vs.min())), float(np.ceil(us.max())), float(np.ceil(vs.max()))]
-        floor = p0 + pit.s * e1 + pit.t * e2 + pit.depth * n
+        # the floor's depth where the box's centre looks, as the engine measures a defect's distance (at its
+        # region's centre; sim/generate.py's truth is the engine's own definition): a box rounded to whole pixels
+        # around a rectangle seen in perspective is centred up to a pixel or two off the floor's own centre,
+        # 0.1-0.3 mm of distance on a plate tilted by 8 degrees
+        centre = np.array([((box[0] + box[2]) / 2 - 0.5 - c["cx"]) / f, ((box[1] + box[3]) / 2 - 0.5 - c["cy"]) / f, 1.0])
+        floor_z = float(((p0 + pit.depth * n) @ n) / (centre @ n))
         pits.append(pit)
         boxes.append(box)
-        labels.append({"class": "pitted_surface", "box": box, "distance_mm": round(float(floor[2]), 3),
+        labels.append({"class": "pitted_surface", "box": box, "distance_mm": round(floor_z, 3),
                        "deviation_mm": round(pit.depth, 3), "shape": "round" if pit.round else "rectangle",
                        "source": "raycast"})
     return pits, labels

@@ -83,6 +83,42 @@ class TestPlanPits:
                     assert a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1]
 
 
+    def test_on_a_tilted_plate_the_distance_is_the_floors_where_the_boxs_centre_looks(self):
+        # as the engine measures it: a ray through the box's centre, not the floor's own centre a pixel or two away
+        rng = np.random.default_rng(6)
+        f, cx, cy = raycast.CALIB["focal_px"], raycast.CALIB["cx"], raycast.CALIB["cy"]
+        axes = raycast.rotation(8, -8)
+        n = axes[:, 2]
+        for _ in range(10):
+            z0 = rng.uniform(350, 650)
+            pits, labels = raycast.plan_pits(rng, z0, axes, raycast.KINDS["textured"])
+            for pit, label in zip(pits, labels):
+                x0, y0, x1, y1 = label["box"]
+                z = label["distance_mm"]
+                point = np.array([((x0 + x1) / 2 - 0.5 - cx) * z / f, ((y0 + y1) / 2 - 0.5 - cy) * z / f, z])
+                # that point lies on the floor's plane, pit.depth below the plate's along its normal
+                assert (point - np.array([0.0, 0.0, z0])) @ n == pytest.approx(pit.depth, abs=2e-3)
+
+    def test_a_box_counts_pixel_edges_as_the_engine_does_centred_on_its_pit(self):
+        # the engine's pixel u spans u to u + 1 (core.depth.region_weights); a box half a pixel off moves every
+        # defect's distance along a tilted plate's slope
+        rng = np.random.default_rng(5)
+        f, cx, cy = raycast.CALIB["focal_px"], raycast.CALIB["cx"], raycast.CALIB["cy"]
+        axes = raycast.rotation(0, 0)
+        off_u, off_v = [], []
+        for _ in range(30):
+            z0 = rng.uniform(350, 650)
+            pits, labels = raycast.plan_pits(rng, z0, axes, raycast.KINDS["textured"])
+            for pit, label in zip(pits, labels):
+                centre = np.array([0.0, 0.0, z0]) + pit.s * axes[:, 0] + pit.t * axes[:, 1]
+                u, v = f * centre[0] / centre[2] + cx, f * centre[1] / centre[2] + cy  # pixel centres from 0
+                x0, y0, x1, y1 = label["box"]
+                off_u.append((x0 + x1) / 2 - (u + 0.5))
+                off_v.append((y0 + y1) / 2 - (v + 0.5))
+                assert label["distance_mm"] == pytest.approx(z0 + pit.depth, abs=1e-3)  # the floor, facing the eye
+        assert np.abs(off_u).max() <= 0.5 + 1e-9 and np.abs(off_v).max() <= 0.5 + 1e-9  # whole pixels, outwards
+        assert abs(np.mean(off_u)) < 0.1 and abs(np.mean(off_v)) < 0.1
+
 def test_inspect_sim_raycast_writes_a_sequence_that_inspect_eval_depth_measures_within_its_uncertainty(tmp_path):
     out = tmp_path / "rc"
     result = CliRunner().invoke(_build(), ["sim", "raycast", str(out), "--frames", "1", "--seed", "4"])

@@ -5,7 +5,9 @@ of the region measured as the defect is then the surface beside it. Each of the 
 (``surface_fit.cell_offsets``) reads either the groove or the surface, too noisily to tell one alone, but
 the cells along the groove, summed, do: a straight groove passes through the centre of the box around it,
 so every band through the region's centre is tried, at every angle and a few widths, and the one whose
-cells stand off the rest the most is the groove's candidate.
+cells stand off the rest the most is the groove's candidate. Where the cells are too noisy for that, the
+left image may still show which way the groove runs: its two walls are the region's strongest edges, all
+one way (``edge_direction``), and the bands along them alone are worth a look.
 """
 from __future__ import annotations
 
@@ -21,6 +23,12 @@ HALF_WIDTHS_PX = (2.0, 4.0, 8.0, 12.0)
 SHIFTS_PX = (-4.0, 0.0, 4.0)  # from the region's centre, a cell either way: the box's rounding and a groove's bend
 MIN_CELLS = 6  # in the band and outside it: fewer are a glint or a corner, not a groove and its surface
 REST_SDS = 3.0  # how far the rest may lie on the other side of the surface from the band, in its standard errors
+# a region whose edges run one way: most of its gradient across one direction, and more of it, pixel for pixel,
+# than the surface around the box has across the same direction (a texture's streaks run through both)
+EDGE_COHERENCE = 0.5
+EDGE_CONTRAST = 3.0
+# the bands looked for about the edges' direction: the texture's own edges pull it by up to ten degrees
+EDGE_ANGLES_DEG = tuple(np.arange(-15.0, 15.1, 2.5))
 
 
 @dataclass(frozen=True)
@@ -41,8 +49,62 @@ class Band:
     z: float
 
 
-def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, centre: tuple[float, float]
-                 ) -> Band | None:
+@dataclass(frozen=True)
+class EdgeDirection:
+    """Which way a region's edges run: ``angle_deg`` (degrees from the image's rows, as ``Band``'s), ``coherence``
+    (0: every way alike, 1: every gradient across that way) and ``contrast`` (the region's gradient energy across
+    that way per pixel, over the surface's around the box)."""
+
+    angle_deg: float
+    coherence: float
+    contrast: float
+
+    @property
+    def oriented(self) -> bool:
+        """Edges all one way and stronger than the surface's: a groove's walls, not a texture's streaks."""
+        return self.coherence >= EDGE_COHERENCE and self.contrast >= EDGE_CONTRAST
+
+
+def edge_direction(image: np.ndarray, region: tuple[np.ndarray, np.ndarray], ring: tuple[np.ndarray, np.ndarray]
+                   ) -> EdgeDirection:
+    """The direction of the region's edges from its structure tensor (the mean outer product of the image's
+    gradient over its pixels), and how much stronger they are than the ring's across it.
+
+    image: HxW float (the high-passed left window); region, ring: (u, v) integer pixel coordinates in it, 1-D
+    arrays of equal length, not empty."""
+    if image.ndim != 2:
+        raise ValueError(f"edge_direction: image must be HxW, got {image.shape}")
+    for name, (u, v) in (("region", region), ("ring", ring)):
+        if u.shape != v.shape or u.ndim != 1 or u.size == 0:
+            raise ValueError(f"edge_direction: {name} must be two non-empty 1-D arrays of equal length, got "
+                             f"{u.shape} and {v.shape}")
+    # the gradients of the part of the image the pixels lie in, a pixel around it for the central differences
+    x0 = max(int(min(region[0].min(), ring[0].min())) - 1, 0)
+    y0 = max(int(min(region[1].min(), ring[1].min())) - 1, 0)
+    part = image[y0:int(max(region[1].max(), ring[1].max())) + 2, x0:int(max(region[0].max(), ring[0].max())) + 2]
+    part = part.astype(np.float64)
+    gx, gy = np.zeros_like(part), np.zeros_like(part)
+    gx[:, 1:-1] = 0.5 * (part[:, 2:] - part[:, :-2])
+    gy[1:-1] = 0.5 * (part[2:] - part[:-2])
+
+    def tensor(u: np.ndarray, v: np.ndarray) -> np.ndarray:  # mean gx^2, gx gy, gy^2
+        a, b = gx[v - y0, u - x0], gy[v - y0, u - x0]
+        return np.array([np.mean(a * a), np.mean(a * b), np.mean(b * b)])
+
+    inside, around = tensor(*region), tensor(*ring)
+    across = 0.5 * np.arctan2(2 * inside[1], inside[0] - inside[2])  # the gradients' own direction
+    coherence = np.hypot(inside[0] - inside[2], 2 * inside[1]) / max(inside[0] + inside[2], 1e-300)
+    c, s = np.cos(across), np.sin(across)
+
+    def energy(j: np.ndarray) -> float:
+        return float(c * c * j[0] + 2 * c * s * j[1] + s * s * j[2])
+
+    return EdgeDirection(float((np.rad2deg(across) + 90.0) % 180.0), float(coherence),
+                         energy(inside) / max(energy(around), 1e-300))
+
+
+def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, centre: tuple[float, float],
+                 angles_deg: np.ndarray | None = None) -> Band | None:
     """Of the straight bands through ``centre`` (every ANGLE_STEP_DEG, HALF_WIDTHS_PX wide, SHIFTS_PX off it)
     with MIN_CELLS cells or more both in and out, the one that stands furthest, in standard deviations, beyond
     the rest and a bowl and a plane fitted with it, away from 0 (the surface around the box): a groove reads
@@ -50,7 +112,8 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
     is as deep along every line through its centre, and a region across a pit's wall slopes. None without one.
 
     offsets, sds: (K,) the cells' offsets from the ring's plane and their standard deviations (px; cells
-    with sd inf or 0 carry nothing); centres: (K, 2) their (u, v); centre: the region's (u, v)."""
+    with sd inf or 0 carry nothing); centres: (K, 2) their (u, v); centre: the region's (u, v); angles_deg: the
+    bands' angles (degrees from the rows) where not every ANGLE_STEP_DEG."""
     if offsets.shape != sds.shape or offsets.ndim != 1 or centres.shape != (offsets.size, 2):
         raise ValueError(f"central_band: offsets {offsets.shape} and sds {sds.shape} must be (K,), "
                          f"centres {centres.shape} (K, 2)")
@@ -62,7 +125,8 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
     # a bowl (a round pit seen through a box about its size) is deepest along every line through its centre, and a
     # region across a pit's wall slopes: the band is weighed against both
     surface = np.stack([np.ones_like(x), surface_fit.bowl(du, dv), du, dv], axis=1)  # (K, 4)
-    angles = np.deg2rad(np.arange(0.0, 180.0, ANGLE_STEP_DEG))
+    angles = np.deg2rad(np.arange(0.0, 180.0, ANGLE_STEP_DEG) if angles_deg is None
+                        else np.asarray(angles_deg, dtype=np.float64) % 180.0)
     across = -du[None, :] * np.sin(angles)[:, None] + dv[None, :] * np.cos(angles)[:, None]  # (A, K)
     widths, shifts = np.array(HALF_WIDTHS_PX), np.array(SHIFTS_PX)
     # (A, W, S, K): each band's cells

@@ -161,6 +161,10 @@ GROOVE_Z = 5.0
 # from this many, the band may be the defect: the uncertainty widens to take it in. Chance reaches it on 6 % of
 # those floors, and 2 on a third of them (docs/research-log.md: what widening from 2 cost for what it caught)
 BAND_Z = 3.0
+# along the region's own edges, where the left image shows them all one way (a groove's walls), a band from this
+# many: the image, not the cells, says where to look (a 1.52 mm groove at 632 mm read 0.44 +- 0.14 mm, its band
+# along the walls 1.4 sigma out; docs/research-log.md)
+EDGE_BAND_Z = 1.0
 
 
 def fit_plane_robust(
@@ -411,8 +415,10 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     areas = surface_fit.cell_areas((uu, vv), weights)
     # a band only of cells that settled: on a scratch's repeating lines, cells that did not swing a pixel or more off
     # together, and as a band would read a groove where there is none
-    band = band_scan.central_band(offsets_px, np.where(settled, sds, np.inf), centres,
-                                  ((inner[0] + inner[2]) / 2 - 0.5, (inner[1] + inner[3]) / 2 - 0.5))
+    middle = ((inner[0] + inner[2]) / 2 - 0.5, (inner[1] + inner[3]) / 2 - 0.5)
+    band = band_scan.central_band(offsets_px, np.where(settled, sds, np.inf), centres, middle)
+    along_edges = _band_along_edges(images, (uu, vv), (ring_u, ring_v), offsets_px, np.where(settled, sds, np.inf),
+                                    centres, middle)
     # the offset searched a pixel and a half either way: a band beyond that is a glint's, not the groove's
     groove = band is not None and abs(band.z) >= GROOVE_Z and abs(band.offset - fit.delta) <= surface_fit.SEARCH_PX
     width = min(inner[2] - inner[0], inner[3] - inner[1])
@@ -447,9 +453,11 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     if np.isfinite(cells.variance):
         var_d += surface_fit.weighting_variance(offsets_px, sds, areas, cells.delta)
     # and a band across the region that may be a groove, too faint to tell, by how far it stands off (the square
-    # of that, less what the band's own noise puts in it: what is left is the groove's, unbiased)
-    if band is not None and not groove and abs(band.z) >= BAND_Z and np.isfinite(cells.variance):
-        var_d += max(0.0, (band.offset - cells.delta) ** 2 - band.variance)
+    # of that, less what the band's own noise puts in it: what is left is the groove's, unbiased); of the band
+    # the cells show and the one along the image's edges, the one that stands further off
+    if not groove and np.isfinite(cells.variance):
+        faint = [b for b, z in ((band, BAND_Z), (along_edges, EDGE_BAND_Z)) if b is not None and abs(b.z) >= z]
+        var_d += max([max(0.0, (b.offset - cells.delta) ** 2 - b.variance) for b in faint], default=0.0)
     # and it is known no better than the region would be at its interior's information per pixel (the border
     # may be the walls' edges, strong gradients that each eye sees at another place)
     # (the interior's variance comes from the same residuals as the cells': their scatter scales it alike)
@@ -470,6 +478,19 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         distance_sigma_mm=float(fb / d**2 * np.sqrt(var_d)), deviation_sigma_mm=deviation_sigma, method="surface",
         note=f"measured along a groove across the box, {band.angle_deg:.0f} degrees from its rows" if groove else "",
     )
+
+
+def _band_along_edges(images: surface_fit.DefectImages, region: tuple[np.ndarray, np.ndarray],
+                      ring: tuple[np.ndarray, np.ndarray], offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray,
+                      middle: tuple[float, float]) -> band_scan.Band | None:
+    """``band_scan.central_band`` about the direction of the region's edges in the left image, where they run one
+    way (``band_scan.edge_direction``), else None. region, ring: (u, v) image pixels; the rest as there."""
+    x0, y0 = images.origin
+    edges = band_scan.edge_direction(images.L, (region[0] - x0, region[1] - y0), (ring[0] - x0, ring[1] - y0))
+    if not edges.oriented:
+        return None
+    return band_scan.central_band(offsets, sds, centres, middle,
+                                  angles_deg=edges.angle_deg + np.array(band_scan.EDGE_ANGLES_DEG))
 
 
 def _settled_outside(fit: surface_fit.SurfaceFit, calib: Calibration, searched: tuple[float, float] | None) -> str | None:

@@ -58,8 +58,11 @@ def _texture(seed: int, size: int = 1024) -> np.ndarray:
     return np.clip(40 + 180 * (tex - tex.min()) / (tex.max() - tex.min()), 0, 255).astype(np.float32)
 
 
-def render(calib: Calibration, distance_mm: float, tilt_deg: float = 0.0, pits: list[Pit | Groove] = (), seed: int = 0):
-    """Left, right (HxWx3 uint8) and the left image's exact disparity (HxW float32)."""
+def render(calib: Calibration, distance_mm: float, tilt_deg: float = 0.0, pits: list[Pit | Groove] = (), seed: int = 0,
+           shading: float = 0.0):
+    """Left, right (HxWx3 uint8) and the left image's exact disparity (HxW float32). ``shading``: the walls lit
+    from one side, the texture brightened by that much per unit of the surface's slope down the plate (mm per
+    mm; the same for both eyes, as diffuse light is)."""
     f, b = calib.focal_px, calib.baseline_mm
     tex = _texture(seed)
     t = np.deg2rad(tilt_deg)
@@ -108,6 +111,9 @@ def render(calib: Calibration, distance_mm: float, tilt_deg: float = 0.0, pits: 
         mx = (local[..., 0] * 2.0 + 512).astype(np.float32)
         my = (local[..., 1] * 2.0 + 512).astype(np.float32)
         grey = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        if shading:
+            slope = (depth_at(local + np.array([0.0, 0.05])) - depth_at(local - np.array([0.0, 0.05]))) / 0.1
+            grey = grey * np.clip(1.0 + shading * slope, 0.2, 2.0).astype(np.float32)
         images.append(np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, axis=2))
         if origin_x == 0.0:
             disparity = (f * b / p[..., 2]).astype(np.float32)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from core import band_scan
-from core.band_scan import central_band
+from core.band_scan import central_band, edge_direction
 
 
 def grid(width_px: int = 64, height_px: int = 64, cell_px: int = 4) -> np.ndarray:
@@ -100,8 +100,64 @@ class TestCentralBand:
         assert central_band(offsets[:8], sds[:8], centres[:8], centre) is None
         assert central_band(offsets, np.full_like(sds, np.inf), centres, centre) is None
 
+    def test_only_the_angles_asked_for_are_tried(self):
+        offsets, sds, centres, on, centre = groove_cells(45.0, 0.4, 6.0, 0.3, seed=7)
+        near = central_band(offsets, sds, centres, centre, angles_deg=np.array([32.5, 57.5]))
+        assert near is not None and near.angle_deg in (32.5, 57.5)
+        along = central_band(offsets, sds, centres, centre, angles_deg=np.array([225.0]))  # 45 degrees, turned once
+        assert along.angle_deg == pytest.approx(45.0) and abs(along.z) > abs(near.z)
+        across = central_band(offsets, sds, centres, centre, angles_deg=np.array([135.0]))
+        assert across is None or abs(across.z) < abs(along.z) / 2
+
     def test_shape_checks(self):
         with pytest.raises(ValueError, match="central_band"):
             central_band(np.zeros(5), np.ones(4), np.zeros((5, 2)), (0.0, 0.0))
         with pytest.raises(ValueError, match="central_band"):
             central_band(np.zeros(5), np.ones(5), np.zeros((5, 3)), (0.0, 0.0))
+
+
+def plate_with_groove(angle_deg: float | None, wall_contrast: float, seed: int = 0, size: int = 96,
+                      streaks: float = 0.0) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """A textured window (``streaks``: vertical streaks on top) with, where ``angle_deg`` is given, a groove's two
+    walls through its centre, one lit and one shaded (``wall_contrast`` grey levels); its central 32 px region and
+    the 12 px ring 3 px outside it, as (u, v)."""
+    rng = np.random.default_rng(seed)
+    image = rng.normal(0.0, 4.0, (size, size)) + streaks * rng.normal(0.0, 1.0, (1, size))
+    v, u = np.mgrid[0:size, 0:size]
+    c = (size - 1) / 2
+    if angle_deg is not None:
+        a = np.deg2rad(angle_deg)
+        across = -(u - c) * np.sin(a) + (v - c) * np.cos(a)
+        inside = np.abs((u - c) * np.cos(a) + (v - c) * np.sin(a)) < 18  # the groove ends in its box
+        image += inside * wall_contrast * (np.exp(-0.5 * (across + 4) ** 2) - np.exp(-0.5 * (across - 4) ** 2))
+    inner = (np.abs(u - c) < 16) & (np.abs(v - c) < 16)
+    ring = (np.abs(u - c) < 31) & (np.abs(v - c) < 31) & ~((np.abs(u - c) < 19) & (np.abs(v - c) < 19))
+    return image, (u[inner], v[inner]), (u[ring], v[ring])
+
+
+class TestEdgeDirection:
+    @pytest.mark.parametrize("angle", [0.0, 30.0, 90.0, 150.0])
+    def test_a_groove_s_walls_give_its_direction(self, angle):
+        image, region, ring = plate_with_groove(angle, 60.0, seed=int(angle))
+        edges = edge_direction(image, region, ring)
+        assert min(abs(edges.angle_deg - angle), 180 - abs(edges.angle_deg - angle)) <= 3.0
+        assert edges.oriented and edges.coherence > 0.5 and edges.contrast > 3.0
+
+    def test_texture_alone_runs_no_way(self):
+        edges = edge_direction(*plate_with_groove(None, 0.0, seed=1))
+        assert not edges.oriented and edges.coherence < 0.3 and edges.contrast == pytest.approx(1.0, abs=0.3)
+
+    def test_streaks_through_the_whole_plate_are_no_groove(self):
+        # coherent, but the surface around the box is streaked alike: no stronger inside than out
+        edges = edge_direction(*plate_with_groove(None, 0.0, seed=2, streaks=20.0))
+        assert edges.coherence > 0.5 and edges.angle_deg == pytest.approx(90.0, abs=5.0)
+        assert not edges.oriented
+
+    def test_shape_checks(self):
+        image, region, ring = plate_with_groove(30.0, 60.0)
+        with pytest.raises(ValueError, match="edge_direction"):
+            edge_direction(image[None], region, ring)
+        with pytest.raises(ValueError, match="edge_direction"):
+            edge_direction(image, (region[0], region[1][:-1]), ring)
+        with pytest.raises(ValueError, match="edge_direction"):
+            edge_direction(image, region, (ring[0][:0], ring[1][:0]))

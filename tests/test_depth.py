@@ -242,10 +242,12 @@ def test_the_cells_and_the_joint_fit_together_scatter_less_than_the_cells_alone(
     assert spread(0.5) < 0.98 * spread(0.0)  # 0.95 of it
 
 
-def _groove_and_box(angle_deg: float, width_mm: float, depth_mm: float = 2.0):
+def _groove_and_box(angle_deg: float, width_mm: float, depth_mm: float = 2.0, shading: float = 0.0):
     """A pair with a straight groove across the middle at 420 mm, the groove's box (its footprint's upright
-    bounding box, as a detector gives it) and its truth: its mean depth where the box's region lies on it."""
-    left, right, disparity = render(CALIB, 420.0, 0.0, [Groove(160, 96, angle_deg, 70.0, width_mm, depth_mm)])
+    bounding box, as a detector gives it) and its truth: its mean depth where the box's region lies on it.
+    ``shading``: its walls lit from one side (``render``)."""
+    left, right, disparity = render(CALIB, 420.0, 0.0, [Groove(160, 96, angle_deg, 70.0, width_mm, depth_mm)],
+                                    shading=shading)
     plate = CALIB.focal_px * CALIB.baseline_mm / 420.0
     v, u = np.nonzero(disparity < plate - 1e-3)
     box = (float(u.min()), float(v.min()), float(u.max() + 1), float(v.max() + 1))
@@ -269,6 +271,7 @@ def test_a_groove_across_its_box_is_measured_along_it(angle, width):
 def test_a_band_too_faint_to_call_a_groove_widens_the_uncertainty_to_take_it_in(monkeypatch):
     left, right, disparity, box, truth = _groove_and_box(40.0, 6.0)
     monkeypatch.setattr(depth, "GROOVE_Z", np.inf)  # never sure enough to measure along it
+    monkeypatch.setattr(depth, "EDGE_BAND_Z", np.inf)  # nor looked for along the image's edges
     widened = _surface(left, right, disparity, box)
     monkeypatch.setattr(depth, "BAND_Z", np.inf)
     region = _surface(left, right, disparity, box)
@@ -276,6 +279,26 @@ def test_a_band_too_faint_to_call_a_groove_widens_the_uncertainty_to_take_it_in(
     assert truth - region.deviation_mm > 3 * region.deviation_sigma_mm  # the region alone reads it short
     assert widened.deviation_sigma_mm > 1.5 * region.deviation_sigma_mm
     assert widened.deviation_mm + 2 * widened.deviation_sigma_mm > 1.0
+
+
+def test_a_band_along_the_walls_the_image_shows_widens_the_uncertainty_where_the_cells_alone_do_not(monkeypatch):
+    left, right, disparity, box, truth = _groove_and_box(130.0, 10.0, shading=1.0)
+    monkeypatch.setattr(depth, "GROOVE_Z", np.inf)
+    monkeypatch.setattr(depth, "BAND_Z", np.inf)  # the scan of every angle says nothing
+    along_edges = _surface(left, right, disparity, box)
+    monkeypatch.setattr(depth, "EDGE_BAND_Z", np.inf)
+    region = _surface(left, right, disparity, box)
+    assert along_edges.deviation_mm == region.deviation_mm  # the value stays the region's
+    assert truth - region.deviation_mm > 3 * region.deviation_sigma_mm
+    assert along_edges.deviation_sigma_mm > 1.5 * region.deviation_sigma_mm
+    assert along_edges.deviation_mm + 2 * along_edges.deviation_sigma_mm > 1.0
+
+
+def test_a_round_pit_s_edges_run_every_way_and_add_nothing(monkeypatch):
+    left, right, disparity = render(CALIB, 400.0, 4.0, [Pit(160, 96, 25.0, 2.0)])
+    looked = _surface(left, right, disparity)
+    monkeypatch.setattr(depth, "EDGE_BAND_Z", np.inf)
+    assert _surface(left, right, disparity) == looked
 
 
 def test_surface_method_without_the_pair_is_the_reference():
@@ -461,8 +484,8 @@ def test_a_band_that_reads_nearer_the_surface_than_the_region_is_not_taken(monke
     assert "along a groove" in along.note
     found = depth.band_scan.central_band
 
-    def shallow(offsets, sds, centres, centre):
-        band = found(offsets, sds, centres, centre)
+    def shallow(offsets, sds, centres, centre, angles_deg=None):
+        band = found(offsets, sds, centres, centre, angles_deg)
         # the same band, its cells now the ones off it: the surface beside the groove
         return dataclasses.replace(band, cells=~band.cells & np.isfinite(sds))
 

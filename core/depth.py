@@ -364,7 +364,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     seen = uu - (shift[0] * uu + shift[1] * vv + shift[2]) >= 2  # the right image holds the point
     if np.sum(weights * seen) < 0.5 * np.sum(weights):
         # the backend's disparities there are its hole filling: no measurement of either kind, nor a distance
-        # (its filling put such regions 0.5-0.8 % of Z off, four times the uncertainty it would carry); or its
+        # (its filling put such regions 0.6-0.9 % of Z off, 2-4 times the uncertainty it would carry); or its
         # map is wrong there, as for a plate beyond the searched range, which the images then tell
         unseen = replace(_unavailable(reference, f"the right camera does not see the region "
                                       f"({np.sum(weights * seen) / np.sum(weights):.0%} of it in its view)"),

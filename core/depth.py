@@ -161,10 +161,6 @@ GROOVE_Z = 5.0
 # from this many, the band may be the defect: the uncertainty widens to take it in. Chance reaches it on 6 % of
 # those floors, and 2 on a third of them (docs/research-log.md: what widening from 2 cost for what it caught)
 BAND_Z = 3.0
-# along the region's own edges, where the left image shows them all one way (a groove's walls), a band from this
-# many: the image, not the cells, says where to look (a 1.52 mm groove at 632 mm read 0.44 +- 0.14 mm, its band
-# along the walls 1.4 sigma out; docs/research-log.md)
-EDGE_BAND_Z = 1.0
 
 
 def fit_plane_robust(
@@ -453,10 +449,13 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     if np.isfinite(cells.variance):
         var_d += surface_fit.weighting_variance(offsets_px, sds, areas, cells.delta)
     # and a band across the region that may be a groove, too faint to tell, by how far it stands off (the square
-    # of that, less what the band's own noise puts in it: what is left is the groove's, unbiased); of the band
-    # the cells show and the one along the image's edges, the one that stands further off
+    # of that, less what the band's own noise puts in it: what is left is the groove's, unbiased); so too the
+    # band along the region's own edges where the left image shows them all one way, however faint: there the
+    # image, not the cells, says where the groove runs (a 1.52 mm groove at 632 mm read 0.44 +- 0.14 mm and
+    # passed, its band along the walls 1.4 sigma out; docs/research-log.md). Of the two, the one further off
     if not groove and np.isfinite(cells.variance):
-        faint = [b for b, z in ((band, BAND_Z), (along_edges, EDGE_BAND_Z)) if b is not None and abs(b.z) >= z]
+        faint = [b for b in (band if band is not None and abs(band.z) >= BAND_Z else None, along_edges)
+                 if b is not None]
         var_d += max([max(0.0, (b.offset - cells.delta) ** 2 - b.variance) for b in faint], default=0.0)
     # and it is known no better than the region would be at its interior's information per pixel (the border
     # may be the walls' edges, strong gradients that each eye sees at another place)

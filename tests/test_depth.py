@@ -271,7 +271,7 @@ def test_a_groove_across_its_box_is_measured_along_it(angle, width):
 def test_a_band_too_faint_to_call_a_groove_widens_the_uncertainty_to_take_it_in(monkeypatch):
     left, right, disparity, box, truth = _groove_and_box(40.0, 6.0)
     monkeypatch.setattr(depth, "GROOVE_Z", np.inf)  # never sure enough to measure along it
-    monkeypatch.setattr(depth, "EDGE_BAND_Z", np.inf)  # nor looked for along the image's edges
+    monkeypatch.setattr(depth, "_band_along_edges", lambda *args: None)  # nor looked for along the image's edges
     widened = _surface(left, right, disparity, box)
     monkeypatch.setattr(depth, "BAND_Z", np.inf)
     region = _surface(left, right, disparity, box)
@@ -286,7 +286,7 @@ def test_a_band_along_the_walls_the_image_shows_widens_the_uncertainty_where_the
     monkeypatch.setattr(depth, "GROOVE_Z", np.inf)
     monkeypatch.setattr(depth, "BAND_Z", np.inf)  # the scan of every angle says nothing
     along_edges = _surface(left, right, disparity, box)
-    monkeypatch.setattr(depth, "EDGE_BAND_Z", np.inf)
+    monkeypatch.setattr(depth, "_band_along_edges", lambda *args: None)
     region = _surface(left, right, disparity, box)
     assert along_edges.deviation_mm == region.deviation_mm  # the value stays the region's
     assert truth - region.deviation_mm > 3 * region.deviation_sigma_mm
@@ -297,7 +297,7 @@ def test_a_band_along_the_walls_the_image_shows_widens_the_uncertainty_where_the
 def test_a_round_pit_s_edges_run_every_way_and_add_nothing(monkeypatch):
     left, right, disparity = render(CALIB, 400.0, 4.0, [Pit(160, 96, 25.0, 2.0)])
     looked = _surface(left, right, disparity)
-    monkeypatch.setattr(depth, "EDGE_BAND_Z", np.inf)
+    monkeypatch.setattr(depth, "_band_along_edges", lambda *args: None)
     assert _surface(left, right, disparity) == looked
 
 

@@ -83,9 +83,7 @@ def edge_direction(image: np.ndarray, region: tuple[np.ndarray, np.ndarray], rin
     y0 = max(int(min(region[1].min(), ring[1].min())) - 1, 0)
     part = image[y0:int(max(region[1].max(), ring[1].max())) + 2, x0:int(max(region[0].max(), ring[0].max())) + 2]
     part = part.astype(np.float64)
-    gx, gy = np.zeros_like(part), np.zeros_like(part)
-    gx[:, 1:-1] = 0.5 * (part[:, 2:] - part[:, :-2])
-    gy[1:-1] = 0.5 * (part[2:] - part[:-2])
+    gx, gy = surface_fit.gradient_x(part), surface_fit.gradient_y(part)
 
     def tensor(u: np.ndarray, v: np.ndarray) -> np.ndarray:  # mean gx^2, gx gy, gy^2
         a, b = gx[v - y0, u - x0], gy[v - y0, u - x0]

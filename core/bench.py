@@ -32,6 +32,7 @@ from core.decision import decide
 from core.depth import DepthRule, measure_frame
 from core.engine import compute_disparity, disparity_range, frame_disparity, make_plugin, plugin_context
 from core.recipe import LoadedRecipe
+from core.recipe.loader import detector_settings
 from core.registry import Registry
 from core.types import FrameError, PartResult, StereoFrame
 from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
@@ -205,10 +206,8 @@ def run_bench(loaded: LoadedRecipe, registry: Registry, backends: list[str], res
               versus: dict[str, Any] | None = None) -> dict[str, Any]:
     recipe = loaded.recipe
     ctx = plugin_context(loaded, device)
-    detector_settings = dict(loaded.plugin_settings["detector"], confidence=recipe.detector.confidence)
-    if recipe.detector.weights is not None:
-        detector_settings["weights"] = str(loaded.resolve(recipe.detector.weights))
-    detector = make_plugin(loaded, registry, ctx, "detector", recipe.detector.plugin, "detector", detector_settings)
+    detector = make_plugin(loaded, registry, ctx, "detector", recipe.detector.plugin, "detector",
+                           detector_settings(loaded))
     size = RESOLUTIONS[resolution]
     results = [bench_backend(loaded, registry, b, size, device, repeats, frames, detector, r,
                              versus if b == recipe.stereo.backend else None)

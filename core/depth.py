@@ -362,9 +362,8 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         # the backend's disparities there are its hole filling: no measurement of either kind, nor a distance
         # (its filling put such regions 0.6-0.9 % of Z off, 2-4 times the uncertainty it would carry); or its
         # map is wrong there, as for a plate beyond the searched range, which the images then tell
-        unseen = replace(_unavailable(reference, f"the right camera does not see the region "
-                                      f"({np.sum(weights * seen) / np.sum(weights):.0%} of it in its view)"),
-                         distance_mm=None, distance_sigma_mm=None, area_mm2=None, depth_resolution_mm=None)
+        unseen = _without_distance(_unavailable(reference, f"the right camera does not see the region "
+                                                f"({np.sum(weights * seen) / np.sum(weights):.0%} of it in its view)"))
         return _outside_search(unseen, pair, ring_all, calib, searched)
     start = -float(np.median(offsets))
     left, right = pair
@@ -412,9 +411,9 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # a band only of cells that settled: on a scratch's repeating lines, cells that did not swing a pixel or more off
     # together, and as a band would read a groove where there is none
     middle = ((inner[0] + inner[2]) / 2 - 0.5, (inner[1] + inner[3]) / 2 - 0.5)
-    band = band_scan.central_band(offsets_px, np.where(settled, sds, np.inf), centres, middle)
-    along_edges = _band_along_edges(images, (uu, vv), (ring_u, ring_v), offsets_px, np.where(settled, sds, np.inf),
-                                    centres, middle)
+    settled_sds = np.where(settled, sds, np.inf)
+    band = band_scan.central_band(offsets_px, settled_sds, centres, middle)
+    along_edges = _band_along_edges(images, (uu, vv), (ring_u, ring_v), offsets_px, settled_sds, centres, middle)
     # the offset searched a pixel and a half either way: a band beyond that is a glint's, not the groove's
     groove = band is not None and abs(band.z) >= GROOVE_Z and abs(band.offset - fit.delta) <= surface_fit.SEARCH_PX
     width = min(inner[2] - inner[0], inner[3] - inner[1])
@@ -557,8 +556,13 @@ def _not_where_searched(m: DefectMeasurement, clause: str, **found: Any) -> Defe
     what the map gave (its distance, the area from it, a deviation from it): it is that of a plate where
     there is none, and no rule may decide on it."""
     note = f"{m.note}; {clause}" if m.deviation_mm is None else f"deviation unavailable: {clause}"
-    return replace(m, note=note, distance_mm=None, distance_sigma_mm=None, area_mm2=None, depth_resolution_mm=None,
-                   deviation_mm=None, deviation_sigma_mm=None, **found)
+    return replace(_without_distance(m), note=note, deviation_mm=None, deviation_sigma_mm=None, **found)
+
+
+def _without_distance(m: DefectMeasurement) -> DefectMeasurement:
+    """``m`` without what depends on its distance (the distance, the area, the depth resolution): where the
+    backend's map, the only source left, is not one to vouch for."""
+    return replace(m, distance_mm=None, distance_sigma_mm=None, area_mm2=None, depth_resolution_mm=None)
 
 
 def _unavailable(reference: DefectMeasurement, why: str) -> DefectMeasurement:

@@ -43,7 +43,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     floor stays the true box's."""
     from core import depth_eval as ev
     from core.commands.inspection import _load, fail
-    from core.engine import StageFailed, command_threads, plugin_context
+    from core.engine import SetupError, StageFailed, command_threads, make_plugin, plugin_context
     from core.registry import default_registry
     from drivers.sequence_folder import SequenceError, labelled_sequence_problem, read_labels
     from pydantic import ValidationError
@@ -69,7 +69,11 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     command_threads(threads)
     registry = default_registry()
     ctx = plugin_context(loaded, device)
-    stereo = registry.get("stereo", loaded.recipe.stereo.backend).spec.factory(loaded.plugin_settings["stereo"], ctx)
+    try:
+        stereo = make_plugin(loaded, registry, ctx, "stereo", loaded.recipe.stereo.backend, "stereo",
+                             loaded.plugin_settings["stereo"])
+    except SetupError as exc:
+        fail(str(exc))
     replay = registry.get("camera", "replay")
     rows, timings = [], []
     unscored = 0  # labelled defects whose truth has no distance or deviation
@@ -77,7 +81,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     box_error = ev.BoxError(box_scale, box_shift)
     detector = None
     if boxes == "detector":
-        from core.engine import SetupError, build_detector
+        from core.engine import build_detector
 
         try:
             detector = build_detector(loaded, registry, ctx)

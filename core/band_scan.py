@@ -7,7 +7,8 @@ the cells along the groove, summed, do: a straight groove passes through the cen
 so every band through the region's centre is tried, at every angle and a few widths, and the one whose
 cells stand off the rest the most is the groove's candidate. Where the cells are too noisy for that, the
 left image may still show which way the groove runs: its two walls are the region's strongest edges, all
-one way (``edge_direction``), and the bands along them alone are worth a look.
+one way (``edge_direction``), and the bands along them alone are worth a look. A box larger than its
+defect holds the surface all round it, and its central part alone reads the defect (``central_patch``).
 """
 from __future__ import annotations
 
@@ -29,6 +30,10 @@ EDGE_COHERENCE = 0.5
 EDGE_CONTRAST = 3.0
 # the bands looked for about the edges' direction: the texture's own edges pull it by up to ten degrees
 EDGE_ANGLES_DEG = tuple(np.arange(-15.0, 15.1, 2.5))
+# the central part of a region: within this share of its half-widths of its centre, the defect in a box twice
+# its size; fewer cells than PATCH_MIN_CELLS there read a glint as much as a floor
+PATCH_SHARE = 0.5
+PATCH_MIN_CELLS = 3
 
 
 @dataclass(frozen=True)
@@ -176,3 +181,26 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
     a, h, s = best
     return Band(float(np.rad2deg(angles[a])), float(widths[h]), float(shifts[s]), cells, float(m_in[best]),
                 float(m_out[best]), float(scatter[best] / w_in[best]), float(z[best]))
+
+
+def central_patch(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centres: np.ndarray,
+                  centre: tuple[float, float], half_widths: tuple[float, float]) -> surface_fit.RobustOffset | None:
+    """The offset of the region's central part: ``surface_fit.robust_offset`` of the cells whose centres lie within
+    PATCH_SHARE of the region's half-widths of its centre, each by its share of the region (the information would
+    weigh a glint's or a wall's cell over the floor's), or None with fewer than PATCH_MIN_CELLS of them. What the
+    region would read if the defect were only that part of it, as in a box twice the defect's size.
+
+    offsets, sds: (K,) as in ``central_band``; areas: (K,) the cells' shares of the region
+    (``surface_fit.cell_areas``); centres: (K, 2) their (u, v); centre: the region's (u, v); half_widths: its
+    half-widths along u and v (px)."""
+    if offsets.shape != sds.shape or offsets.shape != areas.shape or offsets.ndim != 1 \
+            or centres.shape != (offsets.size, 2):
+        raise ValueError(f"central_patch: offsets {offsets.shape}, sds {sds.shape} and areas {areas.shape} must be "
+                         f"(K,), centres {centres.shape} (K, 2)")
+    inside = ((np.abs(centres[:, 0] - centre[0]) <= PATCH_SHARE * half_widths[0])
+              & (np.abs(centres[:, 1] - centre[1]) <= PATCH_SHARE * half_widths[1])
+              & np.isfinite(sds) & (sds > 0) & np.isfinite(offsets) & (areas > 0))
+    if inside.sum() < PATCH_MIN_CELLS:
+        return None
+    start = float(np.median(offsets[inside]))
+    return surface_fit.robust_offset(offsets[inside], sds[inside], start, areas=areas[inside])

@@ -161,6 +161,10 @@ GROOVE_Z = 5.0
 # from this many, the band may be the defect: the uncertainty widens to take it in. Chance reaches it on 6 % of
 # those floors, and 2 on a third of them (docs/research-log.md: what widening from 2 cost for what it caught)
 BAND_Z = 3.0
+# from this many of its standard deviations further from the surface than the whole region, the region's central
+# part may be the defect in a box larger than it, and the uncertainty widens to take it in: the evidence a band
+# needs (from 2, the deeper centres of round pits in boxes that fit them widened a tenth of them; docs/research-log.md)
+PATCH_Z = 3.0
 
 
 def fit_plane_robust(
@@ -447,15 +451,12 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # and by how much its strongly textured cells (the information weighs them) disagree with its area
     if np.isfinite(cells.variance):
         var_d += surface_fit.weighting_variance(offsets_px, sds, areas, cells.delta)
-    # and a band across the region that may be a groove, too faint to tell, by how far it stands off (the square
-    # of that, less what the band's own noise puts in it: what is left is the groove's, unbiased); so too the
-    # band along the region's own edges where the left image shows them all one way, however faint: there the
-    # image, not the cells, says where the groove runs (a 1.52 mm groove at 632 mm read 0.44 +- 0.14 mm and
-    # passed, its band along the walls 1.4 sigma out; docs/research-log.md). Of the two, the one further off
+    # and a part of the region that may be the defect, too faint to measure on: a band across it, along its edges,
+    # or its central part (``_parts_variance``)
     if not groove and np.isfinite(cells.variance):
-        faint = [b for b in (band if band is not None and abs(band.z) >= BAND_Z else None, along_edges)
-                 if b is not None]
-        var_d += max([max(0.0, (b.offset - cells.delta) ** 2 - b.variance) for b in faint], default=0.0)
+        patch = band_scan.central_patch(offsets_px, settled_sds, areas, centres, middle,
+                                        ((inner[2] - inner[0]) / 2, (inner[3] - inner[1]) / 2))
+        var_d += _parts_variance(cells.delta, band, along_edges, patch)
     # and it is known no better than the region would be at its interior's information per pixel (the border
     # may be the walls' edges, strong gradients that each eye sees at another place)
     # (the interior's variance comes from the same residuals as the cells': their scatter scales it alike)
@@ -476,6 +477,28 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         distance_sigma_mm=float(fb / d**2 * np.sqrt(var_d)), deviation_sigma_mm=deviation_sigma, method="surface",
         note=f"measured along a groove across the box, {band.angle_deg:.0f} degrees from its rows" if groove else "",
     )
+
+
+def _parts_variance(region: float, band: band_scan.Band | None, along_edges: band_scan.Band | None,
+                    patch: surface_fit.RobustOffset | None) -> float:
+    """The variance (px^2) to add to a region's offset ``region`` (px) for a part of it that may be the defect while
+    the region reads mostly the surface beside it: the square of how far that part's offset stands from the
+    region's, less what the part's own noise puts in it (what is left is the defect's, unbiased); of several, the
+    one further off; 0 for none.
+
+    The parts: the scan's ``band`` across the region where it stands BAND_Z or more beyond the rest (a groove too
+    faint to measure along); ``along_edges``, the band along the region's edges where the left image shows them all
+    one way, however faint (there the image, not the cells, says where a groove runs: a 1.52 mm groove at 632 mm
+    read 0.44 +- 0.14 mm and passed, its band along the walls 1.4 sigma out); and the region's central ``patch``
+    where it stands PATCH_Z of its standard deviations or more further from the surface than the region (a box
+    twice a narrow pit's size on a polished plate read 0.04 +- 0.36 mm for 2.06 mm and passed).
+    docs/research-log.md has what each threshold cost and caught."""
+    parts = [(b.offset, b.variance) for b in (band if band is not None and abs(band.z) >= BAND_Z else None,
+                                              along_edges) if b is not None]
+    if patch is not None and abs(patch.delta) > abs(region) \
+            and abs(patch.delta - region) >= PATCH_Z * np.sqrt(patch.variance):
+        parts.append((patch.delta, patch.variance))
+    return max([max(0.0, (offset - region) ** 2 - variance) for offset, variance in parts], default=0.0)
 
 
 def _band_along_edges(images: surface_fit.DefectImages, region: tuple[np.ndarray, np.ndarray],

@@ -161,3 +161,63 @@ class TestEdgeDirection:
             edge_direction(image, (region[0], region[1][:-1]), ring)
         with pytest.raises(ValueError, match="edge_direction"):
             edge_direction(image, region, (ring[0][:0], ring[1][:0]))
+
+
+def pit_cells(size_px: int, pit_px: int, depth_px: float, noise_px: float, seed: int
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[float, float]]:
+    """Cells of a square region on the surface (0) with a square pit ``pit_px`` wide at its centre (offset
+    ``-depth_px``), each read with noise: offsets, sds, areas (16 px each), centres, the region's centre."""
+    centres = grid(size_px, size_px)
+    centre = ((size_px - 1) / 2, (size_px - 1) / 2)
+    on = np.all(np.abs(centres - centre) <= pit_px / 2, axis=1)
+    rng = np.random.default_rng(seed)
+    offsets = np.where(on, -depth_px, 0.0) + rng.normal(0.0, noise_px, len(centres))
+    return offsets, np.full(len(centres), noise_px), np.full(len(centres), 16.0), centres, centre
+
+
+class TestCentralPatch:
+    def test_reads_a_pit_in_a_box_twice_its_size(self):
+        offsets, sds, areas, centres, centre = pit_cells(32, 16, 0.5, 0.05, seed=0)
+        patch = band_scan.central_patch(offsets, sds, areas, centres, centre, (16.0, 16.0))
+        assert patch is not None and patch.cells == 16
+        assert patch.delta == pytest.approx(-0.5, abs=3 * np.sqrt(patch.variance))
+        # where the whole region reads a quarter of it
+        assert np.mean(offsets) == pytest.approx(-0.125, abs=0.03)
+
+    def test_a_glint_s_cell_is_cut(self):
+        # a glint matches sharply (a small sd) at a shift of its own
+        offsets, sds, areas, centres, centre = pit_cells(32, 16, 0.5, 0.1, seed=1)
+        glint = int(np.argmin(np.linalg.norm(centres - centre, axis=1)))
+        offsets[glint], sds[glint] = 1.2, 0.005
+        patch = band_scan.central_patch(offsets, sds, areas, centres, centre, (16.0, 16.0))
+        assert patch.delta == pytest.approx(-0.5, abs=0.15)
+
+    def test_the_cells_count_by_their_share_of_the_region_not_their_information(self):
+        # strongly textured cells (a wall's edge) reading nearer the surface than the weakly textured floor, each
+        # within its noise: by information the patch would read the wall
+        offsets, sds, areas, centres, centre = pit_cells(32, 16, 0.5, 0.05, seed=3)
+        central = np.flatnonzero(np.all(np.abs(centres - centre) <= 8, axis=1))
+        offsets[central[::2]], sds[central[::2]] = -0.45, 0.05
+        offsets[central[1::2]], sds[central[1::2]] = -0.55, 0.5
+        patch = band_scan.central_patch(offsets, sds, areas, centres, centre, (16.0, 16.0))
+        assert patch.delta == pytest.approx(-0.5, abs=0.01)
+        areas[central[1::2]] = 4.0  # the floor's cells cut by the region's border
+        assert band_scan.central_patch(offsets, sds, areas, centres, centre, (16.0, 16.0)).delta == pytest.approx(
+            -0.47, abs=0.01)
+
+    def test_only_settled_cells_with_a_share_of_the_region_count(self):
+        offsets, sds, areas, centres, centre = pit_cells(32, 16, 0.5, 0.05, seed=2)
+        central = np.flatnonzero(np.all(np.abs(centres - centre) <= 8, axis=1))
+        sds[central[:10]] = np.inf
+        areas[central[10:13]] = 0.0
+        patch = band_scan.central_patch(offsets, sds, areas, centres, centre, (16.0, 16.0))
+        assert patch.cells == 3
+        sds[central[13]] = np.inf
+        assert band_scan.central_patch(offsets, sds, areas, centres, centre, (16.0, 16.0)) is None
+
+    def test_shape_checks(self):
+        offsets, sds, areas, centres, centre = pit_cells(32, 16, 0.5, 0.05, seed=0)
+        with pytest.raises(ValueError, match="central_patch"):
+            band_scan.central_patch(offsets, sds, areas[:-1], centres, centre, (16.0, 16.0))
+        with pytest.raises(ValueError, match="central_patch"):
+            band_scan.central_patch(offsets, sds, areas, centres[:, :1], centre, (16.0, 16.0))

@@ -15,7 +15,7 @@ import pytest
 from conftest import ROOT
 from synthetic_pairs import Groove, Pit, calib_for, render
 
-from core import depth, depth_numba
+from core import band_scan, depth, depth_numba, surface_fit
 from core.depth import DepthRule, fit_plane_robust, measure_defect, ring_mask
 from core.recipe import load_recipe
 from core.types import Detection
@@ -299,6 +299,41 @@ def test_a_round_pit_s_edges_run_every_way_and_add_nothing(monkeypatch):
     looked = _surface(left, right, disparity)
     monkeypatch.setattr(depth, "_band_along_edges", lambda *args: None)
     assert _surface(left, right, disparity) == looked
+
+
+def _band(offset: float, variance: float, z: float) -> band_scan.Band:
+    return band_scan.Band(45.0, 4.0, 0.0, np.ones(8, dtype=bool), offset, 0.0, variance, z)
+
+
+def _patch(delta: float, variance: float) -> surface_fit.RobustOffset:
+    return surface_fit.RobustOffset(delta, variance, 6, 6.0, 1.0)
+
+
+class TestPartsVariance:
+    def test_none_adds_nothing(self):
+        assert depth._parts_variance(-0.2, None, None, None) == 0.0
+
+    def test_a_band_counts_from_band_z_less_its_own_noise(self):
+        assert depth._parts_variance(-0.1, _band(-0.5, 0.01, depth.BAND_Z), None, None) == pytest.approx(0.15)
+        assert depth._parts_variance(-0.1, _band(-0.5, 0.01, 0.9 * depth.BAND_Z), None, None) == 0.0
+
+    def test_the_band_along_the_edges_counts_however_faint(self):
+        assert depth._parts_variance(-0.1, None, _band(-0.5, 0.01, 0.1), None) == pytest.approx(0.15)
+
+    def test_the_central_patch_counts_where_it_stands_clearly_further_from_the_surface(self):
+        # a box twice a pit's size: the region reads mostly the surface around it, its centre the pit
+        assert depth._parts_variance(-0.01, None, None, _patch(-0.5, 0.0081)) == pytest.approx(0.49 ** 2 - 0.0081)
+        # within PATCH_Z of its own noise of the region: chance, on a region that is all floor
+        sd = 0.49 / (0.95 * depth.PATCH_Z)
+        assert depth._parts_variance(-0.01, None, None, _patch(-0.5, sd * sd)) == 0.0
+        # nearer the surface than the region: the region's own reading is the further off, and stands
+        assert depth._parts_variance(-0.5, None, None, _patch(-0.01, 0.0001)) == 0.0
+        # a raised defect is further from the surface too
+        assert depth._parts_variance(0.01, None, None, _patch(0.5, 0.0081)) > 0.2
+
+    def test_of_several_parts_the_one_further_off(self):
+        assert depth._parts_variance(-0.1, _band(-0.3, 0.0, depth.BAND_Z), _band(-0.4, 0.0, 0.1),
+                                     _patch(-0.6, 0.0001)) == pytest.approx(0.25 - 0.0001)
 
 
 def test_surface_method_without_the_pair_is_the_reference():

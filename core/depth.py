@@ -161,10 +161,9 @@ GROOVE_Z = 5.0
 # from this many, the band may be the defect: the uncertainty widens to take it in. Chance reaches it on 6 % of
 # those floors, and 2 on a third of them (docs/research-log.md: what widening from 2 cost for what it caught)
 BAND_Z = 3.0
-# from this many of its standard deviations further from the surface than the whole region, the region's central
-# part may be the defect in a box larger than it, and the uncertainty widens to take it in: the evidence a band
-# needs (from 2, the deeper centres of round pits in boxes that fit them widened a tenth of them; docs/research-log.md)
-PATCH_Z = 3.0
+# from this many of its standard deviations off, a region's central part that reads more than twice its offset may
+# be the defect in a box larger than it, and the uncertainty widens to take it in (``_parts_variance``)
+PATCH_Z = 2.0
 
 
 def fit_plane_robust(
@@ -490,12 +489,13 @@ def _parts_variance(region: float, band: band_scan.Band | None, along_edges: ban
     faint to measure along); ``along_edges``, the band along the region's edges where the left image shows them all
     one way, however faint (there the image, not the cells, says where a groove runs: a 1.52 mm groove at 632 mm
     read 0.44 +- 0.14 mm and passed, its band along the walls 1.4 sigma out); and the region's central ``patch``
-    where it stands PATCH_Z of its standard deviations or more further from the surface than the region (a box
-    twice a narrow pit's size on a polished plate read 0.04 +- 0.36 mm for 2.06 mm and passed).
-    docs/research-log.md has what each threshold cost and caught."""
+    where the region reads less than half its offset, as a region that is mostly the surface around the defect
+    does, and it stands PATCH_Z of its standard deviations or more further off (a box twice a narrow pit's size on
+    a polished plate read 0.04 +- 0.36 mm for 2.06 mm and passed; a round pit's centre in a box that fits it is
+    deeper than the region, but not twice as deep). docs/research-log.md has what each threshold cost and caught."""
     parts = [(b.offset, b.variance) for b in (band if band is not None and abs(band.z) >= BAND_Z else None,
                                               along_edges) if b is not None]
-    if patch is not None and abs(patch.delta) > abs(region) \
+    if patch is not None and abs(patch.delta) > 2 * abs(region) \
             and abs(patch.delta - region) >= PATCH_Z * np.sqrt(patch.variance):
         parts.append((patch.delta, patch.variance))
     return max([max(0.0, (offset - region) ** 2 - variance) for offset, variance in parts], default=0.0)

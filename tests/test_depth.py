@@ -328,6 +328,10 @@ class TestPartsVariance:
         assert depth._parts_variance(-0.01, None, None, _patch(-0.5, sd * sd)) == 0.0
         # nearer the surface than the region: the region's own reading is the further off, and stands
         assert depth._parts_variance(-0.5, None, None, _patch(-0.01, 0.0001)) == 0.0
+        # further off, but the region reads more than half of it: a round pit's deeper centre, not a region that
+        # is mostly the surface around its defect
+        assert depth._parts_variance(-0.3, None, None, _patch(-0.5, 0.0001)) == 0.0
+        assert depth._parts_variance(-0.2, None, None, _patch(-0.5, 0.0001)) == pytest.approx(0.09 - 0.0001)
         # a raised defect is further from the surface too
         assert depth._parts_variance(0.01, None, None, _patch(0.5, 0.0081)) > 0.2
 

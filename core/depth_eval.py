@@ -11,7 +11,8 @@ reach: the disparity standard deviation ``sigma_noise * sqrt(2) / sqrt(sum I_x^2
 defect's region and over its ring (I_x the left image's horizontal gradient, sigma_noise the sensor
 noise the generator added, from the labels), the two combined in quadrature and converted to mm at
 the defect's distance (``Z^2 / (f * B)`` mm per px). The median and p90 of |error| such an estimator
-would show are the quantiles of the mixture of the defects' normal errors.
+would show are the quantiles of the mixture of the defects' normal errors. The distance's floor is the
+region's alone: the defect's distance is its own disparity's, whatever the surface around it.
 """
 from __future__ import annotations
 
@@ -70,6 +71,7 @@ class DefectRow:
     plain: str = ""  # the value against the limit, no guard band (as a decision without uncertainty would go)
     reference_plain: str = ""
     clear_cut: bool = False
+    distance_floor_mm: float | None = None  # the floor of the distance (the region's alone)
 
     @property
     def width_px(self) -> float:
@@ -90,6 +92,7 @@ class Summary:
     # each defect's |error| over its own floor, their median over the floor's own (HALF_NORMAL_MEDIAN): 1 at
     # the floor whatever the set's mix of floors, where a set's median error follows its few largest floors
     error_over_floor_per_defect: float | None = None
+    distance_over_floor_per_defect: float | None = None  # likewise for the distance, against its own floor
     within_2_sigma: float | None = None
     distance_within_2_sigma: float | None = None  # the distance's errors within 2 of its reported sigma
     sigma_over_floor_median: float | None = None
@@ -109,15 +112,17 @@ def floor_px(grey: np.ndarray, mask: np.ndarray, noise_sigma: float) -> float:
     return noise_sigma * math.sqrt(2.0) / math.sqrt(energy) if energy > 0 else math.inf
 
 
-def defect_floor_mm(grey: np.ndarray, box, calib, rule: DepthRule, noise_sigma: float, distance_mm: float) -> float:
-    """The floor of one defect's deviation, in mm (module docstring)."""
+def defect_floors_mm(grey: np.ndarray, box, calib, rule: DepthRule, noise_sigma: float, distance_mm: float
+                     ) -> tuple[float, float]:
+    """The floors of one defect's deviation and of its distance, in mm (module docstring)."""
     shape = grey.shape
     region = np.zeros(shape, bool)
     x0, y0, x1, y1 = _clip_box(roi_box(box, rule), shape)
     region[y0:y1, x0:x1] = True
     ring = ring_mask(shape, box, rule.ring_gap_px, rule.ring_width_px)
-    sigma_px = math.hypot(floor_px(grey, region, noise_sigma), floor_px(grey, ring, noise_sigma))
-    return sigma_px * distance_mm**2 / (calib.focal_px * calib.baseline_mm)
+    on_region = floor_px(grey, region, noise_sigma)
+    mm_per_px = distance_mm**2 / (calib.focal_px * calib.baseline_mm)
+    return math.hypot(on_region, floor_px(grey, ring, noise_sigma)) * mm_per_px, on_region * mm_per_px
 
 
 def true_measurement(detection: Detection, truth: dict) -> DefectMeasurement:
@@ -201,7 +206,8 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
         # a set rendered without noise (``--noise-sigma 0``) has no noise floor to measure against; the floor's
         # pixels become millimetres at the true distance, or where the labels give none, at the measured one
         at = _first_known(truth.get("distance_mm"), m.distance_mm, ref.distance_mm)
-        floor = None if not noise or at is None else defect_floor_mm(grey, box, frame.calib, rule, noise, at)
+        floor, distance_floor = ((None, None) if not noise or at is None else
+                                 defect_floors_mm(grey, box, frame.calib, rule, noise, at))
         rows.append(DefectRow(
             sequence, frame.frame_id, truth["class"], box, truth.get("distance_mm"), truth["deviation_mm"], floor,
             m.method, m.distance_mm, m.deviation_mm, m.distance_sigma_mm, m.deviation_sigma_mm,
@@ -212,7 +218,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             proven=_proven(judge_defect(m, undecided_as_flag)[0]),
             reference_proven=_proven(judge_defect(ref, undecided_as_flag)[0]),
             plain=judge_defect(m, no_band)[0].value, reference_plain=judge_defect(ref, no_band)[0].value,
-            clear_cut=clear_cut(truth, recipe),
+            clear_cut=clear_cut(truth, recipe), distance_floor_mm=distance_floor,
         ))
     return rows
 
@@ -306,6 +312,10 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
     standardised = [abs(getattr(r, dev) - r.true_deviation_mm) / r.floor_mm for r in ok if r.floor_mm]
     if standardised:
         s.error_over_floor_per_defect = float(np.median(standardised)) / HALF_NORMAL_MEDIAN
+    standardised = [abs(getattr(r, dist) - r.true_distance_mm) / r.distance_floor_mm for r in with_distance
+                    if r.distance_floor_mm]
+    if standardised:
+        s.distance_over_floor_per_defect = float(np.median(standardised)) / HALF_NORMAL_MEDIAN
     if not reference:
         sig = [r for r in ok if r.deviation_sigma_mm]
         if sig:
@@ -381,9 +391,9 @@ def markdown(body: dict[str, Any]) -> str:
         "",
         "| sequence | method | defects (measured) | deviation error mm, median / p90 / max | floor mm, median / p90 "
         "| error ÷ floor, median / p90 | error ÷ floor per defect | measured ÷ true (narrow) | within ±2σ | σ ÷ floor "
-        "| distance error, median % of Z (within ±2σ) | clear-cut on the wrong side (silent PASS) "
-        "| clear-cut on the wrong side without the guard band |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| distance error, median % of Z (within ±2σ) | distance error ÷ floor per defect "
+        "| clear-cut on the wrong side (silent PASS) | clear-cut on the wrong side without the guard band |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     items = [*body["sequences"].items(), ("all", body["all"])]
     for name, entry in items:
@@ -396,7 +406,7 @@ def markdown(body: dict[str, Any]) -> str:
                 f"{_opt(s['ratio_median'])} ({_opt(s['narrow_ratio_median'])}) | "
                 f"{_percent(s['within_2_sigma'])} | "
                 f"{_opt(s['sigma_over_floor_median'])} | {_opt(s['distance_error_percent'].get('median'), 3)}"
-                f"{_distance_calibration(s)} | "
+                f"{_distance_calibration(s)} | {_opt(s['distance_over_floor_per_defect'])} | "
                 f"{s['clear_cut_wrong']} ({s['clear_cut_silent_pass']}) | {s['clear_cut_wrong_plain']} |")
     lines += ["", "Decisions at the recipe's rules, all sequences: the true outcome against what the measurement proved "
               f"(undecided: within the guard band, resolved by the recipe's uncertain: {body['uncertain']}):", ""]

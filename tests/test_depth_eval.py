@@ -11,6 +11,8 @@ import pytest
 from conftest import ROOT, cli, cli_here
 
 from core import depth_eval as ev
+from core.depth import DepthRule, ring_mask, roi_box
+from core.types import Calibration
 
 TEXTURED = ROOT / "sim_fixtures" / "plates_textured"
 LOW_TEXTURE = ROOT / "sim_fixtures" / "plates_low_texture"
@@ -55,6 +57,9 @@ def test_the_surface_fit_beats_the_backend_alone_and_states_its_uncertainty(eval
     assert surface["clear_cut_wrong"] == 0
     rows = body["rows"]
     assert all(r["floor_mm"] > 0 and r["deviation_sigma_mm"] > 0 for r in rows)
+    # the distance's floor is the region's alone, below the deviation's, which holds the ring's too
+    assert all(0 < r["distance_floor_mm"] < r["floor_mm"] for r in rows)
+    assert surface["distance_over_floor_per_defect"] > 0 and reference["distance_over_floor_per_defect"] > 0
     assert sum(sum(by.values()) for by in surface["confusion"].values()) == len(rows)
 
 
@@ -239,6 +244,20 @@ class TestFloor:
         assert ev.floor_px(2 * grey, mask, 2.0) == pytest.approx(expected / 2, rel=1e-5)
         assert ev.floor_px(np.full((40, 60), 5.0, np.float32), mask, 2.0) == math.inf
 
+    def test_the_distance_s_floor_is_the_region_s_and_the_deviation_s_adds_the_ring_s(self):
+        rng = np.random.default_rng(1)
+        grey = rng.normal(100, 10, (120, 160)).astype(np.float32)
+        calib = Calibration(focal_px=350.0, baseline_mm=120.0, cx=80.0, cy=60.0, width=160, height=120)
+        box, rule = (60.0, 40.0, 100.0, 80.0), DepthRule()
+        deviation, distance = ev.defect_floors_mm(grey, box, calib, rule, 2.0, 400.0)
+        region = np.zeros(grey.shape, bool)
+        x0, y0, x1, y1 = (int(round(c)) for c in roi_box(box, rule))
+        region[y0:y1, x0:x1] = True
+        mm_per_px = 400.0**2 / (350.0 * 120.0)
+        assert distance == pytest.approx(ev.floor_px(grey, region, 2.0) * mm_per_px, rel=1e-9)
+        ring = ring_mask(grey.shape, box, rule.ring_gap_px, rule.ring_width_px)
+        assert deviation == pytest.approx(math.hypot(distance, ev.floor_px(grey, ring, 2.0) * mm_per_px), rel=1e-9)
+
 
 class TestMixtureQuantile:
     def test_one_sigma_gives_the_half_normal_quantiles(self):
@@ -290,6 +309,15 @@ class TestSummarise:
                               for r in rows])
         assert twice.error_over_floor_per_defect == pytest.approx(2.0, abs=0.1)
 
+    def test_the_distance_per_defect_against_its_own_floor(self):
+        rng = np.random.default_rng(2)
+        rows = [self._row(1.5, 1.5, 0.1, "REJECT", "REJECT") for _ in range(2000)]
+        for row, floor, e in zip(rows, np.repeat([0.05, 1.0], 1000), rng.standard_normal(2000)):
+            row.distance_floor_mm, row.distance_mm = floor, 400.0 + 1.5 * floor * e
+        assert ev.summarise(rows).distance_over_floor_per_defect == pytest.approx(1.5, abs=0.1)
+        rows[0].distance_floor_mm = None  # a set without noise has none: that row does not count
+        assert ev.summarise(rows[:1]).distance_over_floor_per_defect is None
+
 
 def test_a_plate_outside_the_working_distance_gets_no_deviation(tmp_path):
     """The demo recipe searches 350-500 mm; the first frame's plate lies at 634-645 mm. Whatever the matcher
@@ -332,5 +360,5 @@ def test_a_set_rendered_without_noise_has_no_floor_to_compare_with(tmp_path):
     assert all(r["floor_mm"] is None for r in body["rows"])
     measured = body["all"]["measurement"]
     assert measured["deviation_error_mm"]["median"] > 0 and measured["floor_mm"] == {}
-    assert measured["sigma_over_floor_median"] is None
+    assert measured["sigma_over_floor_median"] is None and measured["distance_over_floor_per_defect"] is None
     assert "nan" not in (tmp_path / "out" / "depth_eval.md").read_text()

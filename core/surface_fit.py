@@ -312,7 +312,7 @@ class _Problem:
 def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.ndarray],
                 defect: tuple[np.ndarray, np.ndarray], plane: tuple[float, float, float],
                 delta0: float = 0.0, defect_weights: np.ndarray | None = None,
-                search_px: float = SEARCH_PX) -> SurfaceFit | None:
+                search_px: float = SEARCH_PX, rows_from_ring: bool = False) -> SurfaceFit | None:
     """Fit the ring's disparity plane and the defect's offset to the grey levels of a rectified pair.
 
     left, right: HxW float32 grey images of the same shape. ring, defect: (u, v) integer pixel
@@ -320,7 +320,11 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     (len(defect[0]),) each defect pixel's share of the region (its area inside a region whose border
     cuts pixels), 1 if not given. plane: the starting plane ``d = a * u + b * v + c`` of the ring in
     image coordinates (disparity px, without doffs). delta0: the defect's starting offset, searched
-    ``search_px`` either side. None when too few usable pixels remain or the fit does not settle.
+    ``search_px`` either side. rows_from_ring: the eyes' vertical offset ``e`` fitted on the ring alone and
+    held there while the defect's offset is fitted, for a region that holds more than one surface (a groove
+    across its box), whose single offset is the wrong model: the misfit moved ``e`` by a quarter of a pixel
+    along a groove's slanted walls, and with it the groove's depth by a sixth. None when too few usable
+    pixels remain or the fit does not settle.
     """
     if left.shape != right.shape or left.ndim != 2:
         raise ValueError(f"fit_surface: left {left.shape} and right {right.shape} must be the same HxW")
@@ -356,13 +360,19 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     theta = _ring_consensus(p, theta)
     ring_prior = prior.copy()
     prior[on_ring] *= _ring_cell_weights(p, theta)
+    joint = ALL
+    if rows_from_ring:
+        theta, _ = p.gauss_newton(theta, RING, ITERATIONS[-1], on_ring, TOLERANCE_PX)
+        if theta is None:
+            return None
+        joint = [i for i in ALL if i != E]
     theta[3] = _search_offset(p, theta, delta0 - search_px, delta0 + search_px)
     searched = theta[3]
-    theta, converged = p.gauss_newton(theta, ALL, JOINT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
+    theta, converged = p.gauss_newton(theta, joint, JOINT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
     if theta is None or abs(theta[3] - searched) > LEFT_SEARCH_PX:  # left the searched minimum: not one surface
         return None
     prior[on_ring] = ring_prior[on_ring] * _ring_cell_weights(p, theta)
-    theta, converged = p.gauss_newton(theta, ALL, REFIT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
+    theta, converged = p.gauss_newton(theta, joint, REFIT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
     if theta is None or abs(theta[3] - searched) > LEFT_SEARCH_PX:  # the refit too (tests/test_surface_fit.py)
         return None
     r, J, ok = p.residuals(theta)

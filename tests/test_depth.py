@@ -18,7 +18,7 @@ from synthetic_pairs import Groove, Pit, calib_for, render
 from core import band_scan, depth, depth_numba, surface_fit
 from core.depth import DepthRule, fit_plane_robust, measure_defect, ring_mask
 from core.recipe import load_recipe
-from core.types import Detection
+from core.types import Calibration, Detection
 
 CALIB = calib_for(320, 192)
 BOX = (135.0, 71.0, 185.0, 121.0)
@@ -338,6 +338,31 @@ class TestPartsVariance:
     def test_of_several_parts_the_one_further_off(self):
         assert depth._parts_variance(-0.1, _band(-0.3, 0.0, depth.BAND_Z), _band(-0.4, 0.0, 0.1),
                                      _patch(-0.6, 0.0001)) == pytest.approx(0.25 - 0.0001)
+
+
+def test_a_groove_s_region_takes_the_eyes_rows_offset_from_the_ring_alone(monkeypatch):
+    """A groove across its box at HD720 (tests/fixtures/surface_fit/README.md): fitted to the whole region, which
+    holds the groove and the plate beside it, the eyes' rows offset came out a quarter of a pixel, and along the
+    groove's slanted walls that read the 2.344 mm groove 0.29 mm short, six of its sigma."""
+    data = np.load(ROOT / "tests" / "fixtures" / "surface_fit" / "groove_hd.npz")
+    left, right = data["left"].astype(np.float32), data["right"].astype(np.float32)
+    disparity = data["disparity"].astype(np.float32) / 256
+    disparity[disparity == 0] = np.nan
+    x0, y0 = (float(v) for v in data["origin"])
+    calib = Calibration(666.7809523809524, 120.0, 639.5 - x0, 359.5 - y0, left.shape[1], left.shape[0],
+                        float(data["doffs"]))
+    box = tuple(float(v) for v in data["box"])
+
+    def measured():
+        return measure_defect(disparity, Detection("inclusion", 1.0, box), calib, DepthRule(), (left, right))
+
+    m = measured()
+    assert "along a groove" in m.note
+    assert abs(m.deviation_mm - 2.344) <= 2 * m.deviation_sigma_mm
+    fit = surface_fit.fit_surface
+    monkeypatch.setattr(surface_fit, "fit_surface", lambda *args, rows_from_ring=False, **kw: fit(*args, **kw))
+    whole = measured()
+    assert 2.344 - whole.deviation_mm > 4 * whole.deviation_sigma_mm
 
 
 def test_surface_method_without_the_pair_is_the_reference():

@@ -289,7 +289,8 @@ class TestFitSurface:
         assert abs(fit.delta) < 0.03  # and the region inside is on the plane
 
     @pytest.mark.parametrize("dy", [0.4, -1.0])
-    def test_a_vertical_offset_left_by_rectification_is_fitted_not_read_as_disparity(self, dy):
+    @pytest.mark.parametrize("rows_from_ring", [False, True])
+    def test_a_vertical_offset_left_by_rectification_is_fitted_not_read_as_disparity(self, dy, rows_from_ring):
         import cv2
 
         left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=6)
@@ -297,7 +298,8 @@ class TestFitSurface:
         shifted = cv2.warpAffine(right, np.float32([[1, 0, 0], [0, 1, dy]]), right.shape[::-1],
                                  flags=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REFLECT)
         ring, defect = _regions()
-        fit = sf.fit_surface(left, shifted, ring, defect, PLANE, 0.0)
+        # from the ring alone (a region holding more than one surface) or from the whole
+        fit = sf.fit_surface(left, shifted, ring, defect, PLANE, 0.0, rows_from_ring=rows_from_ring)
         u0, v0 = fit.centre
         assert fit.params[sf.E] == pytest.approx(dy, abs=0.02)
         assert abs(fit.c - _plane_at(u0, v0)) <= 3 * math.sqrt(fit.covariance[0, 0]) + 0.005

@@ -432,12 +432,14 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         refit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights,
                                         rows_from_ring=True)
         if refit is not None and refit.matches:
-            again = surface_fit.cell_offsets(left, right, refit, (uu, vv), weights, images=refit.images)
-            on_band = surface_fit.robust_offset(again[0][band.cells], again[1][band.cells], refit.delta)
-            if abs(on_band.delta) > abs(surface_fit.robust_offset(again[0], again[1], refit.delta).delta):
-                fit, images, (offsets_px, sds, centres, _), along = refit, refit.images, again, on_band
+            # the same cells (their centres and the band's are the pixels'), read again at the refit
+            refit_offsets, refit_sds, _, _ = surface_fit.cell_offsets(left, right, refit, (uu, vv), weights,
+                                                                      images=refit.images)
+            on_band = surface_fit.robust_offset(refit_offsets[band.cells], refit_sds[band.cells], refit.delta)
+            if abs(on_band.delta) > abs(surface_fit.robust_offset(refit_offsets, refit_sds, refit.delta).delta):
+                fit, offsets_px, sds, along = refit, refit_offsets, refit_sds, on_band
                 interior = surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner,
-                                                         INTERIOR_MARGIN_PX, images)
+                                                         INTERIOR_MARGIN_PX, fit.images)
     if groove:
         offsets_px, sds, centres, areas = offsets_px[band.cells], sds[band.cells], centres[band.cells], areas[band.cells]
         width = min(width, 2 * band.half_width_px)

@@ -28,13 +28,14 @@ import numpy as np
 
 from core.boxes import match_boxes
 from core.decision import judge_defect, rule_applies
-from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
+from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, ring_pixels, roi_box
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
 from core.plate_view import plate_elsewhere
 from core.recipe import LoadedRecipe
 from core.surface_fit import gradient_x, to_grey
 from core.types import Detection, DefectMeasurement, Status, StereoFrame
 from drivers.file_writes import write_text
+from drivers.sequence_folder import read_disparity_png
 
 CLEAR_CUT_MM = 0.3  # a defect whose true value is at least this far from every limit is clear-cut
 NARROW_PX = 30.0  # boxes narrower than this count as narrow defects
@@ -131,6 +132,28 @@ def true_measurement(detection: Detection, truth: dict) -> DefectMeasurement:
                              distance_sigma_mm=0.0, deviation_sigma_mm=0.0, method="truth")
 
 
+def distance_at_box(distance_mm: float, true_disparity: np.ndarray, calib, true_box, box, rule: DepthRule
+                    ) -> float | None:
+    """The true distance where ``box`` looks, a box off its defect's ``true_box``: the labels give the defect's
+    distance at the true box's centre, and on a tilted plate another centre looks at the surface elsewhere. The
+    plane of ``true_disparity`` (HxW px, NaN unknown) over the true box's ring moves it there; None where that
+    ring has too few known pixels, or the moved disparity lies behind the camera."""
+    u, v = ring_pixels(true_disparity.shape, true_box, rule.ring_gap_px, rule.ring_width_px)
+    d = true_disparity[v, u].astype(np.float64)
+    known = np.isfinite(d) & (d > 0)
+    for _ in range(2):  # the ring may cross another defect: its pixels leave the plane on the second pass
+        if known.sum() < 3:
+            return None
+        design = np.column_stack([u[known], v[known], np.ones(int(known.sum()))]).astype(np.float64)
+        plane = np.linalg.lstsq(design, d[known], rcond=None)[0]
+        misfit = np.abs(np.column_stack([u, v, np.ones(u.size)]) @ plane - d)
+        known &= misfit <= max(3.0 * float(np.median(misfit[known])), 0.01)
+    du = (box[0] + box[2] - true_box[0] - true_box[2]) / 2
+    dv = (box[1] + box[3] - true_box[1] - true_box[3]) / 2
+    moved = float(calib.disparity_px(distance_mm)) + plane[0] * du + plane[1] * dv
+    return float(calib.distance_mm(moved)) if moved + calib.doffs > 0 else None
+
+
 def clear_cut(truth: dict, recipe) -> bool:
     """True when the defect's true value is at least CLEAR_CUT_MM from every depth limit that applies to it."""
     for rule in recipe.decision.rules:
@@ -169,7 +192,8 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
                    timings: list[float], box_error: BoxError = BoxError(), detector=None) -> list[DefectRow]:
     """Every labelled defect of one frame (defects whose truth has no deviation are skipped), measured in
     the true boxes as ``box_error`` moves them, or with a ``detector`` in the box of its that matches the
-    defect (``MATCH_IOU``; a defect without one is ``MISSED``); the floor is always the true box's."""
+    defect (``MATCH_IOU``; a defect without one is ``MISSED``); the floor is always the true box's, the true
+    distance that where the box looks (``distance_at_box``; unscored without the frame's true disparity)."""
     recipe = loaded.recipe
     rule = DepthRule.from_recipe(recipe)
     reference_rule = DepthRule.from_recipe(recipe, method="disparity")
@@ -202,12 +226,18 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     # judged with uncertain: flag, a FLAG is a measurement that proved neither side of a limit
     undecided_as_flag = recipe.decision.model_copy(update={"uncertain": "flag"})
     no_band = recipe.decision.model_copy(update={"coverage_factor": 0.0})
+    true_disparity = _true_disparity(frame) if any(_moved(d.box, b) for d, b in zip(boxed, true_boxes)) else None
     for det, box, truth, m, ref in zip(boxed, true_boxes, truths, measured, reference):
         # a set rendered without noise (``--noise-sigma 0``) has no noise floor to measure against; the floor's
         # pixels become millimetres at the true distance, or where the labels give none, at the measured one
         at = _first_known(truth.get("distance_mm"), m.distance_mm, ref.distance_mm)
         floor, distance_floor = ((None, None) if not noise or at is None else
                                  defect_floors_mm(grey, box, frame.calib, rule, noise, at))
+        if truth.get("distance_mm") is not None and _moved(det.box, box):
+            # a box off its defect's centre measures the distance where it looks; without the true disparity
+            # there is no truth for that point
+            truth = {**truth, "distance_mm": None if true_disparity is None else distance_at_box(
+                truth["distance_mm"], true_disparity, frame.calib, box, det.box, rule)}
         rows.append(DefectRow(
             sequence, frame.frame_id, truth["class"], box, truth.get("distance_mm"), truth["deviation_mm"], floor,
             m.method, m.distance_mm, m.deviation_mm, m.distance_sigma_mm, m.deviation_sigma_mm,
@@ -221,6 +251,19 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             clear_cut=clear_cut(truth, recipe), distance_floor_mm=distance_floor,
         ))
     return rows
+
+
+def _moved(box, true_box) -> bool:
+    """Whether ``box``'s centre lies off ``true_box``'s (by more than rounding)."""
+    return max(abs(float(box[i]) + float(box[i + 2]) - float(true_box[i]) - float(true_box[i + 2]))
+               for i in (0, 1)) > 0.02
+
+
+def _true_disparity(frame: StereoFrame) -> np.ndarray | None:
+    """The frame's true disparity (HxW px, NaN unknown) where its sequence has one, else None; SequenceError
+    naming the file where it is not a disparity PNG."""
+    path = frame.meta.get("gt_disparity")
+    return None if path is None or Path(path).suffix != ".png" else read_disparity_png(Path(path))
 
 
 def plate_check(frame: StereoFrame, recipe) -> dict[str, Any] | None:

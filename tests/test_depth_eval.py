@@ -185,6 +185,67 @@ def test_boxes_that_are_off_are_measured_there_with_the_true_boxs_floor(evaluate
     assert cli("eval", "depth", str(TEXTURED), "--box-scale", "nan").returncode == 2
 
 
+def test_a_moved_box_s_distance_is_scored_where_it_looks_and_unscored_without_the_true_disparity(evaluated, tmp_path):
+    # the plates are tilted: a box moved off its defect measures the surface's distance at another place
+    _, out = evaluated
+    true = {(r["frame_id"], tuple(r["box"])): r for r in json.loads((out / "depth_eval.json").read_text())["rows"]
+            if r["sequence"] == TEXTURED.name}
+    assert cli("eval", "depth", str(TEXTURED), "--set", RANGE, "--out", str(tmp_path / "moved"), "--threads", "1",
+               "--box-shift", "0.15", "--no-figure", "--quiet").returncode == 0
+    moved = json.loads((tmp_path / "moved" / "depth_eval.json").read_text())["rows"]
+    moves = [abs(r["true_distance_mm"] - true[(r["frame_id"], tuple(r["box"]))]["true_distance_mm"]) for r in moved]
+    assert 0 < max(moves) < 10
+    # without the true disparity the moved point has no truth: the distance goes unscored, the deviation not
+    bare = tmp_path / "bare"
+    shutil.copytree(TEXTURED, bare)
+    shutil.rmtree(bare / "gt")
+    assert cli("eval", "depth", str(bare), "--set", RANGE, "--out", str(tmp_path / "bare_out"), "--threads", "1",
+               "--box-shift", "0.15", "--no-figure", "--quiet").returncode == 0
+    body = json.loads((tmp_path / "bare_out" / "depth_eval.json").read_text())
+    assert all(r["true_distance_mm"] is None for r in body["rows"])
+    assert body["all"]["measurement"]["deviation_error_mm"] and not body["all"]["measurement"]["distance_error_mm"]
+    # a true disparity that cannot be read is a one-line error naming it, not a distance quietly unscored
+    (bare / "gt").mkdir()
+    broken = bare / "gt" / sorted(p.name for p in (TEXTURED / "gt").glob("*.png"))[0]
+    broken.write_bytes(b"not a png")
+    result = cli_here("eval", "depth", str(bare), "--set", RANGE, "--out", str(tmp_path / "broken"), "--threads", "1",
+                      "--box-shift", "0.15", "--no-figure", "--quiet")
+    assert result.returncode == 2 and str(broken) in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
+class TestDistanceAtBox:
+    CALIB = Calibration(700.0, 120.0, 159.5, 119.5, 320, 240)
+
+    @staticmethod
+    def plate(u, v):
+        return 60.0 + 0.05 * u - 0.02 * v
+
+    def disparity(self):
+        v, u = np.mgrid[0:240, 0:320].astype(np.float64)
+        d = self.plate(u, v)
+        d[100:130, 100:140] -= 0.4  # the defect itself, inside its box
+        d[80:95, 150:170] += 2.0  # another defect across the ring
+        d[:, :20] = np.nan  # unknown where the left eye alone looks
+        return d
+
+    def test_the_distance_moves_along_the_plate_s_plane_to_the_box_s_centre(self):
+        true_box, box = (100.0, 100.0, 140.0, 130.0), (106.0, 96.0, 146.0, 126.0)
+        true_distance = float(self.CALIB.distance_mm(self.plate(120.0, 115.0) - 0.4))
+        moved = ev.distance_at_box(true_distance, self.disparity(), self.CALIB, true_box, box, DepthRule())
+        expected = float(self.CALIB.distance_mm(self.plate(126.0, 111.0) - 0.4))
+        assert moved == pytest.approx(expected, abs=1e-6)
+        assert abs(moved - true_distance) > 0.5  # the plate's tilt moves it by millimetres
+
+    def test_a_box_that_stays_keeps_the_distance(self):
+        box = (100.0, 100.0, 140.0, 130.0)
+        assert ev.distance_at_box(500.0, self.disparity(), self.CALIB, box, box, DepthRule()) == pytest.approx(500.0)
+
+    def test_no_truth_where_the_ring_is_unknown(self):
+        unknown = np.full((240, 320), np.nan)
+        box = (100.0, 100.0, 140.0, 130.0)
+        assert ev.distance_at_box(500.0, unknown, self.CALIB, box, box, DepthRule()) is None
+
+
 DEMO = ROOT / "sim_fixtures" / "steel_plate"
 
 

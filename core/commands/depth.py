@@ -113,6 +113,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
                 new = ev.evaluate_frame(frame, labels, loaded, stereo, folder.name, timings, box_error, detector)
             except StageFailed as exc:
                 fail(f"{folder}: {exc}")
+            except SequenceError as exc:  # a true disparity that cannot be read
+                fail(str(exc))
             rows += new
             if not quiet:
                 for r in new:

@@ -35,7 +35,7 @@ from core.recipe import LoadedRecipe
 from core.surface_fit import gradient_x, to_grey
 from core.types import Detection, DefectMeasurement, Status, StereoFrame
 from drivers.file_writes import write_text
-from drivers.sequence_folder import read_disparity_png
+from drivers.sequence_folder import SequenceError, read_disparity_png
 
 CLEAR_CUT_MM = 0.3  # a defect whose true value is at least this far from every limit is clear-cut
 NARROW_PX = 30.0  # boxes narrower than this count as narrow defects
@@ -263,7 +263,13 @@ def _true_disparity(frame: StereoFrame) -> np.ndarray | None:
     """The frame's true disparity (HxW px, NaN unknown) where its sequence has one, else None; SequenceError
     naming the file where it is not a disparity PNG."""
     path = frame.meta.get("gt_disparity")
-    return None if path is None or Path(path).suffix != ".png" else read_disparity_png(Path(path))
+    if path is None or Path(path).suffix != ".png":
+        return None
+    truth = read_disparity_png(Path(path))
+    if truth.shape != frame.left.shape[:2]:
+        raise SequenceError(f"{path}: a true disparity of {truth.shape[1]}x{truth.shape[0]} px for images of "
+                            f"{frame.left.shape[1]}x{frame.left.shape[0]}")
+    return truth
 
 
 def plate_check(frame: StereoFrame, recipe) -> dict[str, Any] | None:

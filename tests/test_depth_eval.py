@@ -6,6 +6,7 @@ import math
 import re
 import shutil
 
+import cv2
 import numpy as np
 import pytest
 from conftest import ROOT, cli, cli_here
@@ -211,6 +212,11 @@ def test_a_moved_box_s_distance_is_scored_where_it_looks_and_unscored_without_th
     result = cli_here("eval", "depth", str(bare), "--set", RANGE, "--out", str(tmp_path / "broken"), "--threads", "1",
                       "--box-shift", "0.15", "--no-figure", "--quiet")
     assert result.returncode == 2 and str(broken) in result.stderr and "Traceback" not in result.stderr, result.stderr
+    # nor is one of another size than the images, whose pixels would be another place's
+    cv2.imwrite(str(broken), np.full((20, 30), 256 * 60, np.uint16))
+    result = cli_here("eval", "depth", str(bare), "--set", RANGE, "--out", str(tmp_path / "small"), "--threads", "1",
+                      "--box-shift", "0.15", "--no-figure", "--quiet")
+    assert result.returncode == 2 and str(broken) in result.stderr and "30x20" in result.stderr, result.stderr
 
 
 class TestDistanceAtBox:

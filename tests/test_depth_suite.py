@@ -1,0 +1,126 @@
+"""``inspect eval depth-suite`` and the suite file it reads (``core/depth_suite.py``)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+from conftest import cli, cli_here
+
+from core import depth_suite as ds
+
+TINY = ("generate --frames 2 --seed 5 --synthetic-defects --width 320 --height 200 --distance-range-mm 350 450 "
+        "--defect-size-px 20 40 --depth-range-mm 0.3 2.5")
+
+
+def write_suite(path, sets: dict[str, str], groups: str) -> None:
+    path.write_text("sets:\n" + "".join(f"  {name}: {command}\n" for name, command in sets.items())
+                    + "groups:\n" + groups)
+
+
+class TestLoadSuite:
+    def test_the_shipped_suite_holds_every_set_in_a_group_and_renders_each_with_a_renderer(self):
+        suite = ds.load_suite()
+        assert len(suite.sets) > 50 and "nine" in suite.groups
+        assert {s for g in suite.groups.values() for s in g.sets} == set(suite.sets)  # no set left unscored
+        assert all(words[0] in ds.RENDERERS for words in suite.sets.values())
+        assert suite.groups["nine"].sets == tuple(s for s in suite.sets if s.startswith("eval/"))
+        assert suite.groups["boxes_2x"].options[-2:] == ("--box-scale", "2.0")
+
+    def test_render_args_put_the_set_in_its_folder_under_the_root(self, tmp_path):
+        suite = ds.load_suite()
+        assert suite.render_args("raycast/tex", tmp_path) == ["sim", "raycast", str(tmp_path / "raycast/tex"),
+                                                              "--kind", "textured", "--seed", "1"]
+
+    @pytest.mark.parametrize("sets, groups, said", [
+        ({"a/x": TINY}, "  g:\n    sets: [a/y]\n", "groups.g.sets: 'a/y' is none of the file's sets; did you mean 'a/x'?"),
+        ({"a/x": TINY}, "  g:\n    sets: [b/*]\n", "groups.g.sets: 'b/*' is none of the file's sets"),
+        ({"a/x": "render --seed 1"}, "  g:\n    sets: [a/x]\n", "sets.a/x: expected an `inspect sim` command"),
+        ({"../x": TINY}, "  g:\n    sets: [../x]\n", "sets.../x: a set's name is a folder under the suite's root"),
+        ({"a/x": TINY + " --seed 'unclosed"}, "  g:\n    sets: [a/x]\n", "sets.a/x: No closing quotation"),
+        ({"a/x": TINY}, "  g:\n    sets: [a/x]\n    options: 5\n", "groups.g.options: expected a command line"),
+        ({"a/x": TINY}, "  g:\n    sets: [a/x]\n    option: --threads 1\n", "groups.g: expected {sets: [...], options"),
+    ])
+    def test_a_bad_suite_is_an_error_naming_the_file_and_the_key(self, tmp_path, sets, groups, said):
+        path = tmp_path / "suite.yaml"
+        write_suite(path, sets, groups)
+        with pytest.raises(ds.SuiteError) as caught:
+            ds.load_suite(path)
+        assert str(caught.value).startswith(f"{path}: ") and said in str(caught.value), str(caught.value)
+
+    def test_a_file_that_is_not_the_suite_s_two_mappings_is_an_error(self, tmp_path):
+        path = tmp_path / "suite.yaml"
+        path.write_text("sets: {}\n")
+        with pytest.raises(ds.SuiteError, match="expected the two mappings"):
+            ds.load_suite(path)
+        path.write_text("sets: [a\n")
+        with pytest.raises(ds.SuiteError, match=r"line \d+: not YAML"):
+            ds.load_suite(path)
+        with pytest.raises(ds.SuiteError, match="cannot be read"):
+            ds.load_suite(tmp_path / "missing.yaml")
+
+    def test_an_unknown_group_is_named_with_the_nearest(self):
+        with pytest.raises(ds.SuiteError, match="no group 'nien'; did you mean 'nine'"):
+            ds.load_suite().chosen(["nien"])
+        assert [g.name for g in ds.load_suite().chosen(["raycast", "nine"])] == ["nine", "raycast"]  # the file's order
+
+
+def row(sequence, frame, truth, proven, clear_cut=True, box=(0, 0, 10, 10)):
+    return {"sequence": sequence, "frame_id": frame, "box": list(box), "true_status": truth, "proven": proven,
+            "clear_cut": clear_cut}
+
+
+class TestDecisionChanges:
+    def test_counts_each_side_lost_and_gained_and_the_silent_passes(self):
+        before = [row("s", "0", "PASS", "PASS"), row("s", "1", "PASS", "undecided"),
+                  row("s", "2", "REJECT", "REJECT"), row("s", "3", "REJECT", "undecided"), row("s", "4", "REJECT", "PASS")]
+        after = [row("s", "0", "PASS", "undecided"), row("s", "1", "PASS", "PASS"),
+                 row("s", "2", "REJECT", "REJECT"), row("s", "3", "REJECT", "PASS"), row("s", "4", "REJECT", "undecided")]
+        # the same defects in another order compare alike
+        assert ds.decision_changes(before, after[::-1]) == {
+            "good_lost": 1, "good_gained": 1, "beyond_lost": 0, "beyond_gained": 0, "silent_before": 1,
+            "silent_after": 1}
+
+    def test_a_part_beyond_the_limit_no_longer_proven_and_one_not_clear_cut_is_no_silent_pass(self):
+        before = [row("s", "0", "REJECT", "REJECT"), row("s", "1", "REJECT", "PASS", clear_cut=False)]
+        after = [row("s", "0", "REJECT", "undecided"), row("s", "1", "REJECT", "PASS", clear_cut=False)]
+        c = ds.decision_changes(before, after)
+        assert c["beyond_lost"] == 1 and c["silent_before"] == c["silent_after"] == 0
+
+    def test_other_defects_cannot_be_compared(self):
+        with pytest.raises(ValueError, match="not measure the same defects"):
+            ds.decision_changes([row("s", "0", "PASS", "PASS")], [row("t", "0", "PASS", "PASS")])
+
+
+def test_renders_the_missing_sets_scores_each_group_and_compares_with_an_earlier_run(tmp_path):
+    suite = tmp_path / "suite.yaml"
+    write_suite(suite, {"plates/tiny": TINY},
+                "  true_boxes:\n    sets: [plates/*]\n"
+                "  larger:\n    sets: [plates/tiny]\n    options: --box-scale 1.3\n")
+    root, out = tmp_path / "runs", tmp_path / "first"
+    result = cli("eval", "depth-suite", str(root), "--suite", str(suite), "--out", str(out), "--threads", "1")
+    assert result.returncode == 0, result.stderr
+    assert "rendering plates/tiny" in result.stdout and ds.is_rendered(root / "plates" / "tiny")
+    body = json.loads((out / "suite.json").read_text())
+    assert [r["group"] for r in body["rows"]] == ["true_boxes", "larger"]
+    for r in body["rows"]:  # each row is its group's own report
+        report = json.loads((out / r["group"] / "depth_eval.json").read_text())["all"]["measurement"]
+        assert r["defects"] == report["defects"] > 0 and r["per_defect"] == report["error_over_floor_per_defect"]
+    assert json.loads((out / "larger" / "depth_eval.json").read_text())["box_scale"] == 1.3
+    assert "| true_boxes |" in (out / "suite.md").read_text() and "--box-scale 1.3" in (out / "suite.md").read_text()
+    # a second run renders nothing, and decides every defect as the first did
+    again = cli("eval", "depth-suite", str(root), "--suite", str(suite), "--out", str(tmp_path / "second"),
+                "--threads", "1", "--group", "true_boxes", "--against", str(out))
+    assert again.returncode == 0, again.stderr
+    assert "rendering" not in again.stdout
+    changes = json.loads((tmp_path / "second" / "suite.json").read_text())["changes"]
+    assert changes == {"true_boxes": dict.fromkeys(("good_lost", "good_gained", "beyond_lost", "beyond_gained",
+                                                    "silent_before", "silent_after"), 0)}
+
+
+def test_a_set_that_cannot_be_rendered_is_a_one_line_error_naming_it(tmp_path):
+    suite = tmp_path / "suite.yaml"
+    write_suite(suite, {"plates/bad": "generate --frames 1 --width 10"}, "  g:\n    sets: [plates/bad]\n")
+    result = cli_here("eval", "depth-suite", str(tmp_path / "runs"), "--suite", str(suite), "--out", str(tmp_path / "o"))
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: set plates/bad"), result.stderr
+    assert "--width" in lines[0]

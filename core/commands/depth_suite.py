@@ -37,7 +37,7 @@ def _without_prefix(line: str) -> str:
               help="override a recipe value in every group, e.g. depth.method=disparity (repeatable)")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("runs/depth_suite"), show_default=True,
               callback=out_folder)
-@click.option("--against", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--against", type=click.Path(exists=True, file_okay=False, path_type=Path), default=None,
               help="an earlier --out: the defects each group now decides differently")
 @click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=None, help="torch and OpenCV CPU threads")
 def eval_depth_suite_command(root, suite_path, groups, overrides, out, against, threads):

@@ -65,7 +65,8 @@ def eval_depth_suite_command(root, suite_path, groups, overrides, out, against, 
             fail(f"set {name} ({suite.path}): {_without_prefix(said)}")
         click.echo(f"  {time.perf_counter() - start:.0f} s")
     extra = [word for o in overrides for word in ("--set", o)] + ([] if threads is None else ["--threads", str(threads)])
-    rows, changes, commands = [], {}, {}
+    rows, changes, commands, machine = [], {}, {}, ""
+    began = time.perf_counter()
     for group in chosen:
         args = ["eval", "depth", *[str(root / s) for s in group.sets], *group.options, *extra,
                 "--out", str(out / group.name), "--quiet", "--no-figure"]
@@ -75,6 +76,7 @@ def eval_depth_suite_command(root, suite_path, groups, overrides, out, against, 
         if code != 0:
             fail(f"group {group.name} ({suite.path}): {_without_prefix(said)}")
         body = json.loads((out / group.name / "depth_eval.json").read_text())
+        machine = machine or body.get("machine", "")
         rows.append(ds.group_row(group.name, body))
         r = rows[-1]
         click.echo(f"{group.name}: {r['defects']} defects, error ÷ floor per defect {ds.number(r['per_defect'])}, "
@@ -87,7 +89,8 @@ def eval_depth_suite_command(root, suite_path, groups, overrides, out, against, 
                     changes[group.name] = ds.decision_changes(json.loads(earlier.read_text())["rows"], body["rows"])
                 except (ValueError, KeyError) as exc:
                     fail(f"{earlier}: cannot be compared with this run's {group.name} ({exc})")
-    text = ds.rows_table(rows)
+    text = (f"Machine: {machine}; the groups took "
+            f"{time.perf_counter() - began:.0f} s.\n\n" + ds.rows_table(rows))
     if against is not None:
         missing = [g.name for g in chosen if g.name not in changes]
         text += (f"\nDecided differently from {against}:\n\n" + ds.changes_table(changes)
@@ -95,9 +98,9 @@ def eval_depth_suite_command(root, suite_path, groups, overrides, out, against, 
     click.echo("\n" + text)
     commands_md = "\n".join(f"- {name}: `{command}`" for name, command in commands.items())
     write_text(out / "suite.md", text + "\nThe commands:\n\n" + commands_md + "\n")
-    write_text(out / "suite.json", json.dumps({"suite": str(suite.path), "root": str(root), "rows": rows,
-                                                "against": None if against is None else str(against),
-                                                "changes": changes, "commands": commands}, indent=1))
+    write_text(out / "suite.json", json.dumps({"suite": str(suite.path), "root": str(root), "machine": machine,
+                                               "rows": rows, "against": None if against is None else str(against),
+                                               "changes": changes, "commands": commands}, indent=1))
     click.echo(f"wrote {out / 'suite.md'}, {out / 'suite.json'}")
 
 

@@ -30,8 +30,8 @@ def _without_prefix(line: str) -> str:
 
 @click.command("depth-suite")
 @click.argument("root", default=Path("runs"), type=click.Path(file_okay=False, path_type=Path))
-@click.option("--suite", "suite_path", default=SUITE, show_default="sim/eval_sets.yaml", type=click.Path(dir_okay=False, path_type=Path),
-              help="the sets and groups")
+@click.option("--suite", "suite_path", default=SUITE, show_default="sim/eval_sets.yaml",
+              type=click.Path(dir_okay=False, path_type=Path), help="the sets and groups")
 @click.option("--group", "groups", multiple=True, metavar="NAME", help="score only this group (repeatable)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE",
               help="override a recipe value in every group, e.g. depth.method=disparity (repeatable)")

@@ -366,8 +366,10 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
         if theta is None:
             return None
         joint = [i for i in ALL if i != E]
-    theta[3] = _search_offset(p, theta, delta0 - search_px, delta0 + search_px)
-    searched = theta[3]
+    searched = _search_offset(p, theta, delta0 - search_px, delta0 + search_px)
+    if searched is None:
+        return None
+    theta[3] = searched
     theta, converged = p.gauss_newton(theta, joint, JOINT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
     if theta is None or abs(theta[3] - searched) > LEFT_SEARCH_PX:  # left the searched minimum: not one surface
         return None
@@ -510,9 +512,11 @@ def _exposure(p: _Problem, theta: np.ndarray) -> tuple[float, float]:
     return float(g), float(o)
 
 
-def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> float:
+def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> float | None:
     """The defect's offset in [lo, hi] with the least Huber cost over its pixels, the ring's parameters held
-    (steps of SEARCH_STEP_PX, refined by the parabola through the least cost and its neighbours)."""
+    (steps of SEARCH_STEP_PX, refined by the parabola through the least cost and its neighbours); None where the
+    least cost lies beyond an end of the range: no minimum within it is one the images vouch for (a box across a
+    pit's edge, its ring fitted tilted, read a 2.04 mm pit as an 8.2 mm bump from just beyond its range's end)."""
     scale = p.normal_equations(theta, np.flatnonzero(p.m == 0))[2]  # the ring's residuals' robust scale
     sel = p.usable & (p.m == 1)
     if not sel.any():
@@ -533,12 +537,14 @@ def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> floa
     candidates = np.arange(centre - COARSE_STEP_PX, centre + COARSE_STEP_PX + SEARCH_STEP_PX / 2, SEARCH_STEP_PX)
     cost = costs(candidates)
     best = int(np.argmin(cost))
+    found = float(candidates[best])
     if 0 < best < len(candidates) - 1:
         c0, c1, c2 = cost[best - 1: best + 2]
         curvature = c0 - 2 * c1 + c2
         if curvature > 0:
-            return float(candidates[best] + 0.5 * SEARCH_STEP_PX * (c0 - c2) / curvature)
-    return float(candidates[best])
+            found += 0.5 * SEARCH_STEP_PX * (c0 - c2) / curvature
+    # the fine steps reach a coarse step past the range's ends: a least cost there lies outside what was searched
+    return found if lo <= found <= hi else None
 
 
 def _covariance(J: np.ndarray, r: np.ndarray, h: np.ndarray, p: np.ndarray, u: np.ndarray, v: np.ndarray,

@@ -317,6 +317,19 @@ class TestFitSurface:
                              float(z["delta0"]), z["weights"], float(z["search_px"]))
         assert fit is None
 
+    @pytest.mark.parametrize("start, found", [(1.1, True), (1.6, False), (-1.9, False)])
+    def test_an_offset_beyond_the_searched_range_is_not_found_at_its_end(self, start, found):
+        # the step lies at -0.3 px: 1.4 px from a start at 1.1, within the 1.5 px searched either way; 1.9 and 1.6 px
+        # from the others, whose least cost lies past the range's end (a detector's box across a pit's edge, its
+        # ring fitted tilted, read a 2.04 mm pit as an 8.2 mm bump from just past the end)
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=1)
+        ring, defect = _regions()
+        fit = sf.fit_surface(left, right, ring, defect, PLANE, start)
+        if found:
+            assert fit.delta == pytest.approx(-0.3, abs=0.03)
+        else:
+            assert fit is None
+
     def test_shape_checks(self):
         left, right, _ = step_pair()
         ring, defect = _regions()

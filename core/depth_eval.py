@@ -28,7 +28,7 @@ import numpy as np
 
 from core.boxes import match_boxes
 from core.decision import judge_defect, rule_applies
-from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, ring_pixels, roi_box
+from core.depth import DepthRule, _clip_box, fit_plane_robust, measure_frame, ring_mask, ring_pixels, roi_box
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
 from core.plate_view import plate_elsewhere
 from core.recipe import LoadedRecipe
@@ -42,6 +42,7 @@ NARROW_PX = 30.0  # boxes narrower than this count as narrow defects
 MIN_RATIO_MM = 0.3  # measured / true only for defects at least this deep
 MATCH_IOU = 0.3  # a detector's box finds a labelled defect from this overlap on
 MISSED = "missed"  # the outcome of a labelled defect the detector did not box
+TRUE_PLANE_TOLERANCE_PX = 0.01  # a true disparity's pixels on its plane: KITTI PNGs round to 1/256 px
 HALF_NORMAL_MEDIAN = 0.6745  # the median of |e| for a normal e of unit standard deviation
 
 
@@ -141,16 +142,14 @@ def distance_at_box(distance_mm: float, true_disparity: np.ndarray, calib, true_
     u, v = ring_pixels(true_disparity.shape, true_box, rule.ring_gap_px, rule.ring_width_px)
     d = true_disparity[v, u].astype(np.float64)
     known = np.isfinite(d) & (d > 0)
-    for _ in range(2):  # the ring may cross another defect: its pixels leave the plane on the second pass
-        if known.sum() < 3:
-            return None
-        design = np.column_stack([u[known], v[known], np.ones(int(known.sum()))]).astype(np.float64)
-        plane = np.linalg.lstsq(design, d[known], rcond=None)[0]
-        misfit = np.abs(np.column_stack([u, v, np.ones(u.size)]) @ plane - d)
-        known &= misfit <= max(3.0 * float(np.median(misfit[known])), 0.01)
+    # the ring may cross another defect: the plane is its consensus, within the truth's 1/256 px rounding
+    plane = fit_plane_robust(u[known].astype(np.float64), v[known].astype(np.float64), d[known],
+                             tolerance=TRUE_PLANE_TOLERANCE_PX)
+    if plane is None:
+        return None
     du = (box[0] + box[2] - true_box[0] - true_box[2]) / 2
     dv = (box[1] + box[3] - true_box[1] - true_box[3]) / 2
-    moved = float(calib.disparity_px(distance_mm)) + plane[0] * du + plane[1] * dv
+    moved = float(calib.disparity_px(distance_mm)) + plane.a * du + plane.b * dv
     return float(calib.distance_mm(moved)) if moved + calib.doffs > 0 else None
 
 

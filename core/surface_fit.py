@@ -237,7 +237,10 @@ class _Problem:
         """Read the images blurred by ``sigma`` from now on (0: as they are)."""
         if sigma not in self._levels:
             L, R = _blurred(self.left, sigma), _blurred(self.right, sigma)
-            R, Rx, Ry = spline(R), spline(gradient_x(R)), spline(gradient_y(R))
+            # the spline's coefficients are a shift-invariant filter of the image, which commutes with the
+            # central differences: the gradients' splines from R's own, the same numbers where samples fall
+            R = spline(R)
+            Rx, Ry = gradient_x(R), gradient_y(R)
             self._levels[sigma] = (L, R, Rx, Ry, L[self.vi, self.ui])
         self.L, self.R, self.Rx, self.Ry, self.lvals = self._levels[sigma]
 
@@ -588,8 +591,8 @@ def defect_images(left: np.ndarray, right: np.ndarray, fit: SurfaceFit,
     ``defect`` (u, v) read at the fitted surface (``fit.images`` holds them already for the images the fit
     was given: its window holds the defect's and more)."""
     origin, left, right = _window(left, right, defect, defect, fit.params, 1.0)
-    R = high_pass(right)
-    return DefectImages(origin, high_pass(left), spline(R), spline(gradient_x(R)))
+    R = spline(high_pass(right))
+    return DefectImages(origin, high_pass(left), R, gradient_x(R))
 
 
 def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],

@@ -85,6 +85,19 @@ class TestSpline:
         out = sf.samples((sf.spline(ramp), sf.spline(2 * ramp)), np.array([9.5, 12.0]), np.array([10, 12]), -0.25)
         np.testing.assert_allclose(out, [[107.0, 129.5], [214.0, 259.0]], atol=1e-3)
 
+    def test_a_gradients_spline_is_the_gradient_of_the_images_spline_away_from_the_border(self):
+        # the fit reads the gradients' splines as the central differences of the image's own coefficients
+        image = np.random.default_rng(4).uniform(0, 255, (80, 90)).astype(np.float32)
+        c = sf.spline(image)
+        for gradient, border in ((sf.gradient_x, np.s_[:, :2]), (sf.gradient_y, np.s_[:2])):
+            of_image, of_spline = sf.spline(gradient(image)), gradient(c)
+            np.testing.assert_allclose(of_spline[25:-25, 25:-25], of_image[25:-25, 25:-25], atol=1e-3)
+            assert np.abs(of_spline[border] - of_image[border]).max() > 0.1  # not alike at the border itself
+        v, u = np.mgrid[30:50, 30:60]
+        x = u.ravel() + 0.37
+        np.testing.assert_allclose(sf.sample(sf.gradient_x(c), x, v.ravel(), 0.25),
+                                   sf.sample(sf.spline(sf.gradient_x(image)), x, v.ravel(), 0.25), atol=1e-3)
+
     def test_shapes_and_rows_are_checked(self):
         c = sf.spline(np.zeros((10, 10), np.float32))
         with pytest.raises(ValueError, match="whole numbers"):

@@ -13,6 +13,11 @@ noise the generator added, from the labels), the two combined in quadrature and 
 the defect's distance (``Z^2 / (f * B)`` mm per px). The median and p90 of |error| such an estimator
 would show are the quantiles of the mixture of the defects' normal errors. The distance's floor is the
 region's alone: the defect's distance is its own disparity's, whatever the surface around it.
+
+That floor takes ``sum I_x^2`` from the noisy image, so it counts the noise's own gradient energy
+(``sigma_noise^2 / 2`` a pixel for the central difference) as texture. Where the texture is faint that is a
+good part of the sum, and no estimator reaches that floor: the report also gives the texture's floor, the
+same with the noise's expected share taken out of the sum.
 """
 from __future__ import annotations
 
@@ -74,6 +79,8 @@ class DefectRow:
     reference_plain: str = ""
     clear_cut: bool = False
     distance_floor_mm: float | None = None  # the floor of the distance (the region's alone)
+    texture_floor_mm: float | None = None  # both floors from the texture's gradient energy alone
+    texture_distance_floor_mm: float | None = None
 
     @property
     def width_px(self) -> float:
@@ -98,6 +105,11 @@ class Summary:
     within_2_sigma: float | None = None
     distance_within_2_sigma: float | None = None  # the distance's errors within 2 of its reported sigma
     sigma_over_floor_median: float | None = None
+    # the same three against the texture's floor, and how much higher than the floor that lies (median)
+    error_over_texture_floor_per_defect: float | None = None
+    distance_over_texture_floor_per_defect: float | None = None
+    sigma_over_texture_floor_median: float | None = None
+    texture_floor_over_floor_median: float | None = None
     # true outcome -> what the measurement proved (PASS, REJECT, undecided, ERROR) -> count
     confusion: dict[str, dict[str, int]] = field(default_factory=dict)
     clear_cut_wrong: int = 0
@@ -108,23 +120,28 @@ class Summary:
     missed_beyond_a_limit: int = 0  # ... of them, those whose truth rejects
 
 
-def floor_px(grey: np.ndarray, mask: np.ndarray, noise_sigma: float) -> float:
-    """The disparity standard deviation of a region at the noise floor: sigma * sqrt(2) / sqrt(sum I_x^2)."""
+def floor_px(grey: np.ndarray, mask: np.ndarray, noise_sigma: float, texture_only: bool = False) -> float:
+    """The disparity standard deviation of a region at the noise floor: sigma * sqrt(2) / sqrt(sum I_x^2) over the
+    HxW bool ``mask``; ``texture_only``: the sum less the noise's expected share, sigma^2 / 2 a pixel (inf where
+    nothing is left: a texture the noise hides)."""
     energy = float(np.sum(gradient_x(grey)[mask] ** 2))
+    if texture_only:
+        energy -= np.count_nonzero(mask) * noise_sigma**2 / 2
     return noise_sigma * math.sqrt(2.0) / math.sqrt(energy) if energy > 0 else math.inf
 
 
-def defect_floors_mm(grey: np.ndarray, box, calib, rule: DepthRule, noise_sigma: float, distance_mm: float
-                     ) -> tuple[float, float]:
-    """The floors of one defect's deviation and of its distance, in mm (module docstring)."""
+def defect_floors_mm(grey: np.ndarray, box, calib, rule: DepthRule, noise_sigma: float, distance_mm: float,
+                     texture_only: bool = False) -> tuple[float, float]:
+    """The floors of one defect's deviation and of its distance, in mm (module docstring; ``floor_px``)."""
     shape = grey.shape
     region = np.zeros(shape, bool)
     x0, y0, x1, y1 = _clip_box(roi_box(box, rule), shape)
     region[y0:y1, x0:x1] = True
     ring = ring_mask(shape, box, rule.ring_gap_px, rule.ring_width_px)
-    on_region = floor_px(grey, region, noise_sigma)
+    on_region = floor_px(grey, region, noise_sigma, texture_only)
     mm_per_px = distance_mm**2 / (calib.focal_px * calib.baseline_mm)
-    return math.hypot(on_region, floor_px(grey, ring, noise_sigma)) * mm_per_px, on_region * mm_per_px
+    return (math.hypot(on_region, floor_px(grey, ring, noise_sigma, texture_only)) * mm_per_px,
+            on_region * mm_per_px)
 
 
 def true_measurement(detection: Detection, truth: dict) -> DefectMeasurement:
@@ -230,8 +247,10 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
         # a set rendered without noise (``--noise-sigma 0``) has no noise floor to measure against; the floor's
         # pixels become millimetres at the true distance, or where the labels give none, at the measured one
         at = _first_known(truth.get("distance_mm"), m.distance_mm, ref.distance_mm)
-        floor, distance_floor = ((None, None) if not noise or at is None else
-                                 defect_floors_mm(grey, box, frame.calib, rule, noise, at))
+        floor, distance_floor, texture_floor, texture_distance_floor = (
+            (None,) * 4 if not noise or at is None else
+            (*defect_floors_mm(grey, box, frame.calib, rule, noise, at),
+             *(_finite(f) for f in defect_floors_mm(grey, box, frame.calib, rule, noise, at, texture_only=True))))
         if truth.get("distance_mm") is not None and _moved(det.box, box):
             # a box off its defect's centre measures the distance where it looks; without the true disparity
             # there is no truth for that point
@@ -248,8 +267,14 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             reference_proven=_proven(judge_defect(ref, undecided_as_flag)[0]),
             plain=judge_defect(m, no_band)[0].value, reference_plain=judge_defect(ref, no_band)[0].value,
             clear_cut=clear_cut(truth, recipe), distance_floor_mm=distance_floor,
+            texture_floor_mm=texture_floor, texture_distance_floor_mm=texture_distance_floor,
         ))
     return rows
+
+
+def _finite(value: float) -> float | None:
+    """None for a floor that no texture bounds (JSON has no infinity)."""
+    return value if math.isfinite(value) else None
 
 
 def _moved(box, true_box) -> bool:
@@ -357,13 +382,16 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
         if s.deviation_error_mm:
             s.error_over_floor = {k: s.deviation_error_mm[k] / s.floor_mm[k] for k in ("median", "p90")
                                   if s.floor_mm.get(k)}
-    standardised = [abs(getattr(r, dev) - r.true_deviation_mm) / r.floor_mm for r in ok if r.floor_mm]
-    if standardised:
-        s.error_over_floor_per_defect = float(np.median(standardised)) / HALF_NORMAL_MEDIAN
-    standardised = [abs(getattr(r, dist) - r.true_distance_mm) / r.distance_floor_mm for r in with_distance
-                    if r.distance_floor_mm]
-    if standardised:
-        s.distance_over_floor_per_defect = float(np.median(standardised)) / HALF_NORMAL_MEDIAN
+    s.error_over_floor_per_defect = _per_defect([(abs(getattr(r, dev) - r.true_deviation_mm), r.floor_mm) for r in ok])
+    s.distance_over_floor_per_defect = _per_defect([(abs(getattr(r, dist) - r.true_distance_mm), r.distance_floor_mm)
+                                                    for r in with_distance])
+    s.error_over_texture_floor_per_defect = _per_defect([(abs(getattr(r, dev) - r.true_deviation_mm),
+                                                          r.texture_floor_mm) for r in ok])
+    s.distance_over_texture_floor_per_defect = _per_defect([(abs(getattr(r, dist) - r.true_distance_mm),
+                                                             r.texture_distance_floor_mm) for r in with_distance])
+    both = [r.texture_floor_mm / r.floor_mm for r in rows if r.floor_mm and r.texture_floor_mm]
+    if both:
+        s.texture_floor_over_floor_median = float(np.median(both))
     if not reference:
         sig = [r for r in ok if r.deviation_sigma_mm]
         if sig:
@@ -376,6 +404,10 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
             with_floor = [r for r in sig if r.floor_mm]
             if with_floor:
                 s.sigma_over_floor_median = float(np.median([r.deviation_sigma_mm / r.floor_mm for r in with_floor]))
+            with_floor = [r for r in sig if r.texture_floor_mm]
+            if with_floor:
+                s.sigma_over_texture_floor_median = float(np.median([r.deviation_sigma_mm / r.texture_floor_mm
+                                                                     for r in with_floor]))
     missed = [r for r in rows if r.proven == MISSED]
     s.missed = len(missed)
     s.missed_beyond_a_limit = sum(r.true_status == Status.REJECT.value for r in missed)
@@ -397,6 +429,13 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
         if value is not None and (sigma is None or abs(value - r.true_deviation_mm) > 2 * sigma):
             s.clear_cut_wrong_beyond_2_sigma += 1
     return s
+
+
+def _per_defect(pairs: list[tuple[float, float | None]]) -> float | None:
+    """The median of each |error| over its own floor (pairs without a floor left out), over the floor's own
+    median (HALF_NORMAL_MEDIAN): 1 at the floor."""
+    standardised = [error / floor for error, floor in pairs if floor]
+    return float(np.median(standardised)) / HALF_NORMAL_MEDIAN if standardised else None
 
 
 def report(rows: list[DefectRow], meta: dict[str, Any], seconds_per_defect: float | None) -> dict[str, Any]:
@@ -456,6 +495,14 @@ def markdown(body: dict[str, Any]) -> str:
                 f"{_opt(s['sigma_over_floor_median'])} | {_opt(s['distance_error_percent'].get('median'), 3)}"
                 f"{_distance_calibration(s)} | {_opt(s['distance_over_floor_per_defect'])} | "
                 f"{s['clear_cut_wrong']} ({s['clear_cut_silent_pass']}) | {s['clear_cut_wrong_plain']} |")
+    pooled = body["all"]["measurement"]
+    if pooled.get("texture_floor_over_floor_median") is not None:
+        lines += ["", "The floor counts the noise's own gradient energy as texture (σ²/2 a pixel of Σ I_x²); without it, "
+                  f"the texture's floor lies a median {pooled['texture_floor_over_floor_median']:.2f}x higher, and "
+                  "against it, all sequences: error per defect "
+                  f"{_opt(pooled['error_over_texture_floor_per_defect'])}, σ "
+                  f"{_opt(pooled['sigma_over_texture_floor_median'])}, distance error per defect "
+                  f"{_opt(pooled['distance_over_texture_floor_per_defect'])}."]
     lines += ["", "Decisions at the recipe's rules, all sequences: the true outcome against what the measurement proved "
               f"(undecided: within the guard band, resolved by the recipe's uncertain: {body['uncertain']}):", ""]
     confusion = body["all"]["measurement"]["confusion"]

@@ -136,6 +136,8 @@ def group_row(name: str, body: dict) -> dict[str, Any]:
         "ratio": s.get("ratio_median"),
         "within_2_sigma": s.get("within_2_sigma"),
         "sigma_over_floor": s.get("sigma_over_floor_median"),
+        "texture_per_defect": s.get("error_over_texture_floor_per_defect"),
+        "texture_sigma": s.get("sigma_over_texture_floor_median"),
         "distance_percent": s.get("distance_error_percent", {}).get("median"),
         "distance_within_2_sigma": s.get("distance_within_2_sigma"),
         "distance_per_defect": s.get("distance_over_floor_per_defect"),
@@ -158,16 +160,18 @@ def percent(value) -> str:
 def rows_table(rows: list[dict[str, Any]]) -> str:
     """The groups' rows as a Markdown table."""
     lines = ["| group | defects (measured) | deviation error mm, median / p90 | error ÷ floor, median / p90 | "
-             "per defect | measured ÷ true | within ±2σ | σ ÷ floor | distance error, median % of Z (within ±2σ) | "
+             "per defect | measured ÷ true | within ±2σ | σ ÷ floor | texture's floor: per defect, σ | "
+             "distance error, median % of Z (within ±2σ) | "
              "distance ÷ floor per defect | clear-cut silent PASS | good parts proven / undecided | "
              "beyond the limit proven / undecided |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         e, q = r["error_mm"], r["error_over_floor"]
         lines.append(
             f"| {r['group']} | {r['defects']} ({r['measured']}) | {number(e.get('median'), 3)} / {number(e.get('p90'), 3)} | "
             f"{number(q.get('median'))} / {number(q.get('p90'))} | {number(r['per_defect'])} | {number(r['ratio'])} | "
-            f"{percent(r['within_2_sigma'])} | {number(r['sigma_over_floor'])} | {number(r['distance_percent'], 3)} "
+            f"{percent(r['within_2_sigma'])} | {number(r['sigma_over_floor'])} | "
+            f"{number(r['texture_per_defect'])}, {number(r['texture_sigma'])} | {number(r['distance_percent'], 3)} "
             f"({percent(r['distance_within_2_sigma'])}) | {number(r['distance_per_defect'])} | {r['silent_pass']} | "
             f"{r['proven_pass']} / {r['undecided_pass']} | {r['proven_reject']} / {r['undecided_reject']} |")
     return "\n".join(lines) + "\n"

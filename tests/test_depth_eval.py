@@ -36,6 +36,7 @@ def test_writes_json_markdown_and_figure(evaluated):
     assert (out / "depth_eval.png").stat().st_size > 10_000
     table = (out / "depth_eval.md").read_text()
     assert "| all | surface |" in table and "| all | disparity (reference) |" in table and "true \\ measured" in table
+    assert re.search(r"the texture's floor lies a median \d\.\d\dx higher", table)
     assert table in result.stdout
     # one line per defect: truth, measurement with its uncertainty, both decisions
     lines = [line for line in result.stdout.splitlines() if re.match(r"plates_\w+ \d{6} ", line)]
@@ -61,6 +62,12 @@ def test_the_surface_fit_beats_the_backend_alone_and_states_its_uncertainty(eval
     # the distance's floor is the region's alone, below the deviation's, which holds the ring's too
     assert all(0 < r["distance_floor_mm"] < r["floor_mm"] for r in rows)
     assert surface["distance_over_floor_per_defect"] > 0 and reference["distance_over_floor_per_defect"] > 0
+    # the texture's floor lies above the floor, so the error is nearer it
+    assert all(r["texture_floor_mm"] > r["floor_mm"] and r["texture_distance_floor_mm"] > r["distance_floor_mm"]
+               for r in rows)
+    assert surface["texture_floor_over_floor_median"] > 1
+    assert surface["error_over_texture_floor_per_defect"] < surface["error_over_floor_per_defect"]
+    assert surface["sigma_over_texture_floor_median"] < surface["sigma_over_floor_median"]
     assert sum(sum(by.values()) for by in surface["confusion"].values()) == len(rows)
 
 
@@ -311,6 +318,21 @@ class TestFloor:
         assert ev.floor_px(2 * grey, mask, 2.0) == pytest.approx(expected / 2, rel=1e-5)
         assert ev.floor_px(np.full((40, 60), 5.0, np.float32), mask, 2.0) == math.inf
 
+    def test_the_texture_s_floor_leaves_out_the_noise_s_own_gradient_energy(self):
+        # a faint texture under noise: the noisy image's sum of I_x^2 is the texture's and the noise's, and the
+        # texture's floor is the floor of the same texture drawn without noise
+        rng = np.random.default_rng(2)
+        texture = cv2.GaussianBlur(rng.normal(0, 6, (200, 300)).astype(np.float32), (0, 0), 1.0) + 100
+        noisy = texture + rng.normal(0, 2.0, texture.shape).astype(np.float32)
+        mask = np.zeros(texture.shape, bool)
+        mask[20:180, 20:280] = True
+        clean = ev.floor_px(texture, mask, 2.0)
+        assert ev.floor_px(noisy, mask, 2.0) < 0.9 * clean  # the noise counted as texture: too low a floor
+        assert ev.floor_px(noisy, mask, 2.0, texture_only=True) == pytest.approx(clean, rel=0.03)
+        # noise alone leaves (about) nothing to match on: no floor, or one far above any texture's
+        flat = np.full(texture.shape, 100, np.float32) + rng.normal(0, 2.0, texture.shape).astype(np.float32)
+        assert ev.floor_px(flat, mask, 2.0, texture_only=True) > 5 * ev.floor_px(flat, mask, 2.0)
+
     def test_the_distance_s_floor_is_the_region_s_and_the_deviation_s_adds_the_ring_s(self):
         rng = np.random.default_rng(1)
         grey = rng.normal(100, 10, (120, 160)).astype(np.float32)
@@ -324,6 +346,9 @@ class TestFloor:
         assert distance == pytest.approx(ev.floor_px(grey, region, 2.0) * mm_per_px, rel=1e-9)
         ring = ring_mask(grey.shape, box, rule.ring_gap_px, rule.ring_width_px)
         assert deviation == pytest.approx(math.hypot(distance, ev.floor_px(grey, ring, 2.0) * mm_per_px), rel=1e-9)
+        texture = ev.defect_floors_mm(grey, box, calib, rule, 2.0, 400.0, texture_only=True)
+        assert texture[1] == pytest.approx(ev.floor_px(grey, region, 2.0, texture_only=True) * mm_per_px, rel=1e-9)
+        assert texture[0] > deviation and texture[1] > distance
 
 
 class TestMixtureQuantile:

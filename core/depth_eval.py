@@ -37,6 +37,7 @@ from core.depth import DepthRule, _clip_box, fit_plane_robust, measure_frame, ri
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
 from core.plate_view import plate_elsewhere
 from core.recipe import LoadedRecipe
+from core.report_text import number, percent
 from core.surface_fit import gradient_x, to_grey
 from core.types import Detection, DefectMeasurement, Status, StereoFrame
 from drivers.file_writes import write_text
@@ -454,17 +455,9 @@ def _fmt3(d: dict, keys=("median", "p90", "max"), digits: int = 3) -> str:
     return " / ".join(f"{d[k]:.{digits}f}" for k in keys if k in d) if d else "n/a"
 
 
-def _opt(v: float | None, digits: int = 2) -> str:
-    return "n/a" if v is None else f"{v:.{digits}f}"
-
-
-def _percent(v: float | None) -> str:
-    return "n/a" if v is None else f"{100 * v:.0f} %"
-
-
 def _distance_calibration(s: dict[str, Any]) -> str:
     share = s.get("distance_within_2_sigma")
-    return "" if share is None else f" ({_percent(share)})"
+    return "" if share is None else f" ({percent(share)})"
 
 
 def markdown(body: dict[str, Any]) -> str:
@@ -489,20 +482,20 @@ def markdown(body: dict[str, Any]) -> str:
             lines.append(
                 f"| {name} | {label} | {s['defects']} ({s['measured']}) | {_fmt3(s['deviation_error_mm'])} | "
                 f"{_fmt3(s['floor_mm'], ('median', 'p90'))} | {_fmt3(s['error_over_floor'], ('median', 'p90'), 2)} | "
-                f"{_opt(s['error_over_floor_per_defect'])} | "
-                f"{_opt(s['ratio_median'])} ({_opt(s['narrow_ratio_median'])}) | "
-                f"{_percent(s['within_2_sigma'])} | "
-                f"{_opt(s['sigma_over_floor_median'])} | {_opt(s['distance_error_percent'].get('median'), 3)}"
-                f"{_distance_calibration(s)} | {_opt(s['distance_over_floor_per_defect'])} | "
+                f"{number(s['error_over_floor_per_defect'])} | "
+                f"{number(s['ratio_median'])} ({number(s['narrow_ratio_median'])}) | "
+                f"{percent(s['within_2_sigma'])} | "
+                f"{number(s['sigma_over_floor_median'])} | {number(s['distance_error_percent'].get('median'), 3)}"
+                f"{_distance_calibration(s)} | {number(s['distance_over_floor_per_defect'])} | "
                 f"{s['clear_cut_wrong']} ({s['clear_cut_silent_pass']}) | {s['clear_cut_wrong_plain']} |")
     pooled = body["all"]["measurement"]
     if pooled.get("texture_floor_over_floor_median") is not None:
         lines += ["", "The floor counts the noise's own gradient energy as texture (σ²/2 a pixel of Σ I_x²); without it, "
                   f"the texture's floor lies a median {pooled['texture_floor_over_floor_median']:.2f}x higher, and "
                   "against it, all sequences: error per defect "
-                  f"{_opt(pooled['error_over_texture_floor_per_defect'])}, σ "
-                  f"{_opt(pooled['sigma_over_texture_floor_median'])}, distance error per defect "
-                  f"{_opt(pooled['distance_over_texture_floor_per_defect'])}."]
+                  f"{number(pooled['error_over_texture_floor_per_defect'])}, σ "
+                  f"{number(pooled['sigma_over_texture_floor_median'])}, distance error per defect "
+                  f"{number(pooled['distance_over_texture_floor_per_defect'])}."]
     lines += ["", "Decisions at the recipe's rules, all sequences: the true outcome against what the measurement proved "
               f"(undecided: within the guard band, resolved by the recipe's uncertain: {body['uncertain']}):", ""]
     confusion = body["all"]["measurement"]["confusion"]

@@ -16,6 +16,7 @@ from typing import Any
 
 import yaml
 
+from core.report_text import number, percent
 from drivers.text_files import NotUtf8, decode
 from drivers.yaml_reader import safe_load
 
@@ -147,14 +148,6 @@ def group_row(name: str, body: dict) -> dict[str, Any]:
         "proven_reject": confusion.get("REJECT", {}).get("REJECT", 0),
         "undecided_reject": confusion.get("REJECT", {}).get("undecided", 0),
     }
-
-
-def number(value, digits: int = 2, suffix: str = "") -> str:
-    return "n/a" if value is None else f"{value:.{digits}f}{suffix}"
-
-
-def percent(value) -> str:
-    return "n/a" if value is None else f"{100 * value:.0f} %"
 
 
 def rows_table(rows: list[dict[str, Any]]) -> str:

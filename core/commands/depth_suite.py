@@ -12,6 +12,7 @@ import click
 from core.commands.params import out_folder
 from core.depth_suite import SUITE
 from core.recipe.schema import MAX_THREADS
+from core.report_text import number, percent
 from drivers.file_writes import write_text
 
 RUN_INSPECT = (sys.executable, "-c", "from core.cli import main; main()")  # the same Python, as a user types it
@@ -79,8 +80,8 @@ def eval_depth_suite_command(root, suite_path, groups, overrides, out, against, 
         machine = machine or body.get("machine", "")
         rows.append(ds.group_row(group.name, body))
         r = rows[-1]
-        click.echo(f"{group.name}: {r['defects']} defects, error ÷ floor per defect {ds.number(r['per_defect'])}, "
-                   f"within ±2σ {ds.percent(r['within_2_sigma'])}, σ ÷ floor {ds.number(r['sigma_over_floor'])}, "
+        click.echo(f"{group.name}: {r['defects']} defects, error ÷ floor per defect {number(r['per_defect'])}, "
+                   f"within ±2σ {percent(r['within_2_sigma'])}, σ ÷ floor {number(r['sigma_over_floor'])}, "
                    f"clear-cut silent PASS {r['silent_pass']} ({time.perf_counter() - start:.0f} s)")
         if against is not None:
             earlier = against / group.name / "depth_eval.json"

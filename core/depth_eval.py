@@ -121,27 +121,29 @@ class Summary:
     missed_beyond_a_limit: int = 0  # ... of them, those whose truth rejects
 
 
-def floor_px(grey: np.ndarray, mask: np.ndarray, noise_sigma: float, texture_only: bool = False) -> float:
+def floor_px(grey: np.ndarray, mask: np.ndarray, noise_sigma: float, texture_only: bool = False,
+             gradient: np.ndarray | None = None) -> float:
     """The disparity standard deviation of a region at the noise floor: sigma * sqrt(2) / sqrt(sum I_x^2) over the
     HxW bool ``mask``; ``texture_only``: the sum less the noise's expected share, sigma^2 / 2 a pixel (inf where
-    nothing is left: a texture the noise hides)."""
-    energy = float(np.sum(gradient_x(grey)[mask] ** 2))
+    nothing is left: a texture the noise hides). ``gradient``: ``gradient_x(grey)``, where the caller has it."""
+    energy = float(np.sum((gradient_x(grey) if gradient is None else gradient)[mask] ** 2))
     if texture_only:
         energy -= np.count_nonzero(mask) * noise_sigma**2 / 2
     return noise_sigma * math.sqrt(2.0) / math.sqrt(energy) if energy > 0 else math.inf
 
 
 def defect_floors_mm(grey: np.ndarray, box, calib, rule: DepthRule, noise_sigma: float, distance_mm: float,
-                     texture_only: bool = False) -> tuple[float, float]:
+                     texture_only: bool = False, gradient: np.ndarray | None = None) -> tuple[float, float]:
     """The floors of one defect's deviation and of its distance, in mm (module docstring; ``floor_px``)."""
+    gradient = gradient_x(grey) if gradient is None else gradient
     shape = grey.shape
     region = np.zeros(shape, bool)
     x0, y0, x1, y1 = _clip_box(roi_box(box, rule), shape)
     region[y0:y1, x0:x1] = True
     ring = ring_mask(shape, box, rule.ring_gap_px, rule.ring_width_px)
-    on_region = floor_px(grey, region, noise_sigma, texture_only)
+    on_region = floor_px(grey, region, noise_sigma, texture_only, gradient)
     mm_per_px = distance_mm**2 / (calib.focal_px * calib.baseline_mm)
-    return (math.hypot(on_region, floor_px(grey, ring, noise_sigma, texture_only)) * mm_per_px,
+    return (math.hypot(on_region, floor_px(grey, ring, noise_sigma, texture_only, gradient)) * mm_per_px,
             on_region * mm_per_px)
 
 
@@ -239,6 +241,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     timings.append((time.perf_counter() - start) / len(boxed))
     reference = measure_frame(disparity, boxed, frame, reference_rule)
     grey = to_grey(frame.left)
+    gradient = gradient_x(grey)  # every floor of the frame sums it
     noise = (labels.get("sensor") or {}).get("noise_sigma")
     # judged with uncertain: flag, a FLAG is a measurement that proved neither side of a limit
     undecided_as_flag = recipe.decision.model_copy(update={"uncertain": "flag"})
@@ -250,8 +253,9 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
         at = _first_known(truth.get("distance_mm"), m.distance_mm, ref.distance_mm)
         floor, distance_floor, texture_floor, texture_distance_floor = (
             (None,) * 4 if not noise or at is None else
-            (*defect_floors_mm(grey, box, frame.calib, rule, noise, at),
-             *(_finite(f) for f in defect_floors_mm(grey, box, frame.calib, rule, noise, at, texture_only=True))))
+            (*defect_floors_mm(grey, box, frame.calib, rule, noise, at, gradient=gradient),
+             *(_finite(f) for f in defect_floors_mm(grey, box, frame.calib, rule, noise, at, texture_only=True,
+                                                    gradient=gradient))))
         if truth.get("distance_mm") is not None and _moved(det.box, box):
             # a box off its defect's centre measures the distance where it looks; without the true disparity
             # there is no truth for that point

@@ -9,7 +9,8 @@ own: ``deviation_mm`` the pit's depth along the plate's normal, ``distance_mm`` 
 floor where the centre of its box looks. ZED WVGA geometry, as the goals' independently rendered plates.
 
 ``render_sequence(out, kind, frames, seed)`` writes the sequence-folder layout (``left/``, ``right/``,
-``labels/``, ``calib.yaml``); ``kind`` is ``textured`` (pits 30-80 px at 350-650 mm) or ``low``
+``labels/``, ``gt/``, ``calib.yaml``; ``true_disparity``: the left eye's ray through each pixel's centre, unknown
+on a wall); ``kind`` is ``textured`` (pits 30-80 px at 350-650 mm) or ``low``
 (faint texture, pits 10-25 px at 380-460 mm).
 """
 from __future__ import annotations
@@ -117,6 +118,31 @@ def render_eye(eye_x: float, z0: float, axes: np.ndarray, pits: list[Pit], textu
     return cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
 
 
+def true_disparity(z0: float, axes: np.ndarray, pits: list[Pit]) -> np.ndarray:
+    """HxW float32: the disparity where the left eye's ray through each pixel's centre meets the plate (through
+    (0, 0, z0), ``axes`` as ``rotation``) or a pit's floor; NaN where it meets a wall, whose depth varies across the
+    pixel."""
+    c = CALIB
+    f = c["focal_px"]
+    x, y = np.meshgrid(np.arange(c["width"], dtype=np.float64), np.arange(c["height"], dtype=np.float64))
+    rays = np.stack([(x - c["cx"]) / f, (y - c["cy"]) / f, np.ones_like(x)], -1)
+    p0 = np.array([0.0, 0.0, z0])
+    e1, e2, n = axes[:, 0], axes[:, 1], axes[:, 2]
+
+    def landing(depth: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        z = ((p0 + depth * n) @ n) / (rays @ n)  # the ray's parameter is the hit's z, its third component being 1
+        rel = z[..., None] * rays - p0
+        return rel @ e1, rel @ e2, z
+
+    s, t, z = landing(0.0)
+    for pit in pits:
+        mouth = pit.holds(s, t)
+        sf, tf, zf = landing(pit.depth)
+        floor = mouth & pit.holds(sf, tf)
+        z = np.where(floor, zf, np.where(mouth, np.nan, z))
+    return (f * c["baseline_mm"] / z).astype(np.float32)
+
+
 def plan_pits(rng: np.random.Generator, z0: float, axes: np.ndarray, kind: Kind) -> tuple[list[Pit], list[dict]]:
     """2-4 pits that do not crowd each other, wholly in the right eye's view, and their labels."""
     c = CALIB
@@ -181,5 +207,5 @@ def render_sequence(out: Path, kind: str = "textured", frames: int = 8, seed: in
                 for img in (left, right)]
         frame_id = f"{i:06d}"
         write_frame(out, frame_id, *(cv2.cvtColor(e, cv2.COLOR_GRAY2BGR) for e in eyes),
-                    labels={"frame_id": frame_id, "distance_mm": round(z0, 3), "sensor": {"noise_sigma": NOISE_SIGMA},
+                    gt_disparity=true_disparity(z0, axes, pits), labels={"frame_id": frame_id, "distance_mm": round(z0, 3), "sensor": {"noise_sigma": NOISE_SIGMA},
                             "defects": labels})

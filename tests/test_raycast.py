@@ -64,6 +64,43 @@ class TestRenderEye:
         assert abs(left[floor].mean() - plain[floor].mean()) < 10
 
 
+class TestTrueDisparity:
+    def test_the_plate_and_a_pits_floor_lie_at_their_disparities_and_its_walls_are_unknown(self):
+        z0, depth = 400.0, 2.0
+        scale = z0 / raycast.CALIB["focal_px"]
+        pit = raycast.Pit(0.0, 0.0, 110 * scale, 70 * scale, depth, False)  # at the image centre, 220 x 140 px
+        d = raycast.true_disparity(z0, raycast.rotation(0, 0), [pit])
+        assert d.shape == (raycast.CALIB["height"], raycast.CALIB["width"]) and d.dtype == np.float32
+        fb = raycast.CALIB["focal_px"] * raycast.CALIB["baseline_mm"]
+        cx, cy = int(raycast.CALIB["cx"]), int(raycast.CALIB["cy"])
+        assert d[10, 10] == pytest.approx(fb / z0, rel=1e-6)  # the plate
+        assert d[cy, cx] == pytest.approx(fb / (z0 + depth), rel=1e-6)  # the floor
+        # the mouth's pixels whose ray meets a wall on its way down: a pixel or two inside each side
+        row = d[cy, cx - 115:cx + 115]
+        walls = np.isnan(row)
+        assert 0 < walls.sum() <= 6 and not np.isnan(d[:, :cx - 115]).any()
+        assert np.isfinite(row[~walls]).all()
+
+    def test_on_a_tilted_plate_the_labels_distance_is_the_truths_at_the_boxs_centre(self):
+        rng = np.random.default_rng(6)
+        axes = raycast.rotation(8, -8)
+        z0 = 500.0
+        pits, labels = raycast.plan_pits(rng, z0, axes, raycast.KINDS["textured"])
+        d = raycast.true_disparity(z0, axes, pits)
+        fb = raycast.CALIB["focal_px"] * raycast.CALIB["baseline_mm"]
+        for label in labels:
+            x0, y0, x1, y1 = label["box"]
+            # a box counts pixel edges: its centre (x0 + x1) / 2 is pixel (x0 + x1) / 2 - 0.5's centre
+            u, v = (x0 + x1) / 2 - 0.5, (y0 + y1) / 2 - 0.5
+            iu, iv = int(np.floor(u)), int(np.floor(v))
+            fu, fv = u - iu, v - iv
+            # a plane's disparity is linear in the pixel's position: between four floor pixels, exact
+            at = ((1 - fv) * ((1 - fu) * d[iv, iu] + fu * d[iv, iu + 1])
+                  + fv * ((1 - fu) * d[iv + 1, iu] + fu * d[iv + 1, iu + 1]))
+            assert fb / at == pytest.approx(label["distance_mm"], abs=2e-3)
+        assert labels
+
+
 class TestPlanPits:
     def test_pits_lie_in_the_right_eyes_view_apart_and_their_labels_are_their_geometry(self):
         rng = np.random.default_rng(3)
@@ -128,6 +165,9 @@ def test_inspect_sim_raycast_writes_a_sequence_that_inspect_eval_depth_measures_
     labels = read_labels(out / "labels" / "000000.json", (calib["height"], calib["width"]))
     assert labels["sensor"]["noise_sigma"] == raycast.NOISE_SIGMA and labels["defects"]
 
+    truth = cv2.imread(str(out / "gt" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    assert truth.dtype == np.uint16 and truth.shape == (calib["height"], calib["width"])
+
     again = CliRunner().invoke(_build(), ["sim", "raycast", str(out), "--frames", "1"])
     assert again.exit_code == 2 and "--overwrite" in again.output
 
@@ -140,3 +180,6 @@ def test_inspect_sim_raycast_writes_a_sequence_that_inspect_eval_depth_measures_
     for row in rows:
         assert row["deviation_mm"] is not None, row["note"]
         assert abs(row["deviation_mm"] - row["true_deviation_mm"]) < 3 * row["deviation_sigma_mm"]
+        # with the true disparity its error splits into parts; a pit's walls are vertical, so the region inside
+        # the box holds its floor alone
+        assert row["error_ring_mm"] is not None and abs(row["error_extent_mm"]) < 0.05

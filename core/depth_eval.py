@@ -33,8 +33,9 @@ import numpy as np
 
 from core.boxes import match_boxes
 from core.decision import judge_defect, rule_applies
-from core.depth import DepthRule, _clip_box, fit_plane_robust, measure_frame, ring_mask, ring_pixels, roi_box
+from core.depth import GROOVE_NOTE, DepthRule, _clip_box, fit_plane_robust, measure_frame, ring_mask, ring_pixels, roi_box
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
+from core.error_parts import error_parts
 from core.plate_view import plate_elsewhere
 from core.recipe import LoadedRecipe
 from core.report_text import number, percent
@@ -82,6 +83,10 @@ class DefectRow:
     distance_floor_mm: float | None = None  # the floor of the distance (the region's alone)
     texture_floor_mm: float | None = None  # both floors from the texture's gradient energy alone
     texture_distance_floor_mm: float | None = None
+    # the deviation's error in its three parts (``core.error_parts``), where the sequence has a true disparity
+    error_ring_mm: float | None = None
+    error_region_mm: float | None = None
+    error_extent_mm: float | None = None
 
     @property
     def width_px(self) -> float:
@@ -119,6 +124,9 @@ class Summary:
     clear_cut_wrong_plain: int = 0  # decided on the value alone, without the guard band
     missed: int = 0  # labelled defects the detector did not box (``--boxes detector``)
     missed_beyond_a_limit: int = 0  # ... of them, those whose truth rejects
+    # the error's parts (``core.error_parts``): over how many defects; each part's median and p90 of |part| (mm)
+    # and its share of the parts' summed squares
+    error_parts: dict[str, Any] = field(default_factory=dict)
 
 
 def floor_px(grey: np.ndarray, mask: np.ndarray, noise_sigma: float, texture_only: bool = False,
@@ -246,7 +254,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
     # judged with uncertain: flag, a FLAG is a measurement that proved neither side of a limit
     undecided_as_flag = recipe.decision.model_copy(update={"uncertain": "flag"})
     no_band = recipe.decision.model_copy(update={"coverage_factor": 0.0})
-    true_disparity = _true_disparity(frame) if any(_moved(d.box, b) for d, b in zip(boxed, true_boxes)) else None
+    true_disparity = _true_disparity(frame)
     for det, box, truth, m, ref in zip(boxed, true_boxes, truths, measured, reference):
         # a set rendered without noise (``--noise-sigma 0``) has no noise floor to measure against; the floor's
         # pixels become millimetres at the true distance, or where the labels give none, at the measured one
@@ -256,6 +264,11 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             (*defect_floors_mm(grey, box, frame.calib, rule, noise, at, gradient=gradient),
              *(_finite(f) for f in defect_floors_mm(grey, box, frame.calib, rule, noise, at, texture_only=True,
                                                     gradient=gradient))))
+        # a groove's deviation is read on its band, not on the region the parts are of
+        parts = (None if true_disparity is None or m.deviation_mm is None or m.distance_mm is None
+                 or m.note.startswith(GROOVE_NOTE) else
+                 error_parts(m.deviation_mm, m.distance_mm, truth["deviation_mm"], true_disparity, frame.calib, det.box,
+                             rule, TRUE_PLANE_TOLERANCE_PX))
         if truth.get("distance_mm") is not None and _moved(det.box, box):
             # a box off its defect's centre measures the distance where it looks; without the true disparity
             # there is no truth for that point
@@ -273,6 +286,8 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             plain=judge_defect(m, no_band)[0].value, reference_plain=judge_defect(ref, no_band)[0].value,
             clear_cut=clear_cut(truth, recipe), distance_floor_mm=distance_floor,
             texture_floor_mm=texture_floor, texture_distance_floor_mm=texture_distance_floor,
+            **({} if parts is None else {"error_ring_mm": parts.ring_mm, "error_region_mm": parts.region_mm,
+                                         "error_extent_mm": parts.extent_mm}),
         ))
     return rows
 
@@ -413,6 +428,8 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
             if with_floor:
                 s.sigma_over_texture_floor_median = float(np.median([r.deviation_sigma_mm / r.texture_floor_mm
                                                                      for r in with_floor]))
+    if not reference:
+        s.error_parts = parts_summary(ok)
     missed = [r for r in rows if r.proven == MISSED]
     s.missed = len(missed)
     s.missed_beyond_a_limit = sum(r.true_status == Status.REJECT.value for r in missed)
@@ -434,6 +451,23 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
         if value is not None and (sigma is None or abs(value - r.true_deviation_mm) > 2 * sigma):
             s.clear_cut_wrong_beyond_2_sigma += 1
     return s
+
+
+PARTS = (("ring", "error_ring_mm"), ("region", "error_region_mm"), ("extent", "error_extent_mm"))
+
+
+def parts_summary(rows: list[DefectRow]) -> dict[str, Any]:
+    """The error's parts over the rows that have them: ``defects``, and per part (``PARTS``) the median and p90
+    of its magnitude (mm) and its ``share`` of the parts' summed squares; empty without such rows."""
+    with_parts = [r for r in rows if r.error_ring_mm is not None]
+    if not with_parts:
+        return {}
+    values = {name: np.array([getattr(r, key) for r in with_parts]) for name, key in PARTS}
+    total = sum(float(np.sum(x * x)) for x in values.values())
+    return {"defects": len(with_parts),
+            **{name: {"median": float(np.median(np.abs(x))), "p90": float(np.percentile(np.abs(x), 90)),
+                      "share": float(np.sum(x * x)) / total if total > 0 else None}
+               for name, x in values.items()}}
 
 
 def _per_defect(pairs: list[tuple[float, float | None]]) -> float | None:
@@ -500,6 +534,15 @@ def markdown(body: dict[str, Any]) -> str:
                   f"{number(pooled['error_over_texture_floor_per_defect'])}, σ "
                   f"{number(pooled['sigma_over_texture_floor_median'])}, distance error per defect "
                   f"{number(pooled['distance_over_texture_floor_per_defect'])}."]
+    parts = pooled.get("error_parts")
+    if parts:
+        lines += ["", f"Where the error comes from (the frames' true disparity, {parts['defects']} of the "
+                  f"{pooled['measured']} measured defects; median / p90 of each part, mm, and its share of their "
+                  "squares): " + ", ".join(
+                      f"{label} {_fmt3(parts[name], ('median', 'p90'))} ({percent(parts[name]['share'])})"
+                      for name, label in (("ring", "the ring's plane"), ("region", "the region's estimate"),
+                                          ("extent", "the region's extent (its true mean against the labels)")))
+                  + "; a defect read along a groove across its box has none (core/error_parts.py)."]
     lines += ["", "Decisions at the recipe's rules, all sequences: the true outcome against what the measurement proved "
               f"(undecided: within the guard band, resolved by the recipe's uncertain: {body['uncertain']}):", ""]
     confusion = body["all"]["measurement"]["confusion"]

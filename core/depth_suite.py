@@ -139,6 +139,8 @@ def group_row(name: str, body: dict) -> dict[str, Any]:
         "sigma_over_floor": s.get("sigma_over_floor_median"),
         "texture_per_defect": s.get("error_over_texture_floor_per_defect"),
         "texture_sigma": s.get("sigma_over_texture_floor_median"),
+        # each part's share of the error's squares (core/error_parts.py), where the sets have a true disparity
+        "parts": {name: part["share"] for name, part in s.get("error_parts", {}).items() if isinstance(part, dict)},
         "distance_percent": s.get("distance_error_percent", {}).get("median"),
         "distance_within_2_sigma": s.get("distance_within_2_sigma"),
         "distance_per_defect": s.get("distance_over_floor_per_defect"),
@@ -150,21 +152,30 @@ def group_row(name: str, body: dict) -> dict[str, Any]:
     }
 
 
+def _parts(shares: dict[str, float] | None) -> str:
+    """The error's parts' shares as "9 / 90 / 1 %", or n/a without a true disparity."""
+    if not shares:
+        return "n/a"
+    return " / ".join(f"{100 * shares[name]:.0f}" for name in ("ring", "region", "extent")) + " %"
+
+
 def rows_table(rows: list[dict[str, Any]]) -> str:
     """The groups' rows as a Markdown table."""
     lines = ["| group | defects (measured) | deviation error mm, median / p90 | error ÷ floor, median / p90 | "
              "per defect | measured ÷ true | within ±2σ | σ ÷ floor | texture's floor: per defect, σ | "
+             "the error's parts: ring / region's estimate / region's extent | "
              "distance error, median % of Z (within ±2σ) | "
              "distance ÷ floor per defect | clear-cut silent PASS | good parts proven / undecided | "
              "beyond the limit proven / undecided |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         e, q = r["error_mm"], r["error_over_floor"]
         lines.append(
             f"| {r['group']} | {r['defects']} ({r['measured']}) | {number(e.get('median'), 3)} / {number(e.get('p90'), 3)} | "
             f"{number(q.get('median'))} / {number(q.get('p90'))} | {number(r['per_defect'])} | {number(r['ratio'])} | "
             f"{percent(r['within_2_sigma'])} | {number(r['sigma_over_floor'])} | "
-            f"{number(r['texture_per_defect'])}, {number(r['texture_sigma'])} | {number(r['distance_percent'], 3)} "
+            f"{number(r['texture_per_defect'])}, {number(r['texture_sigma'])} | {_parts(r.get('parts'))} | "
+            f"{number(r['distance_percent'], 3)} "
             f"({percent(r['distance_within_2_sigma'])}) | {number(r['distance_per_defect'])} | {r['silent_pass']} | "
             f"{r['proven_pass']} / {r['undecided_pass']} | {r['proven_reject']} / {r['undecided_reject']} |")
     return "\n".join(lines) + "\n"

@@ -71,6 +71,24 @@ def test_the_surface_fit_beats_the_backend_alone_and_states_its_uncertainty(eval
     assert sum(sum(by.values()) for by in surface["confusion"].values()) == len(rows)
 
 
+def test_with_the_true_disparity_each_error_splits_into_the_rings_the_regions_and_its_extents(evaluated):
+    _, out = evaluated
+    body = json.loads((out / "depth_eval.json").read_text())
+    rows = body["rows"]
+    for r in rows:
+        parts = r["error_ring_mm"] + r["error_region_mm"] + r["error_extent_mm"]
+        assert parts == pytest.approx(r["deviation_mm"] - r["true_deviation_mm"], abs=1e-6)
+    # sloped walls over the outer 45 % of each half-size (sim.scene): the box's central 60 % holds a little of them
+    assert all(abs(r["error_extent_mm"]) < 0.1 * abs(r["true_deviation_mm"]) + 0.02 for r in rows)
+    summary = body["all"]["measurement"]["error_parts"]
+    assert summary["defects"] == len(rows)
+    assert sum(summary[name]["share"] for name in ("ring", "region", "extent")) == pytest.approx(1.0)
+    assert "error_parts" not in body["all"]["reference"] or not body["all"]["reference"]["error_parts"]
+    table = (out / "depth_eval.md").read_text()
+    assert re.search(r"Where the error comes from \(the frames' true disparity, 11 of the 11 measured defects.*"
+                     r"the ring's plane [\d.]+ / [\d.]+ \(\d+ %\)", table)
+
+
 def test_a_sequence_without_labels_is_a_one_line_error(tmp_path):
     copy = tmp_path / "seq"
     shutil.copytree(TEXTURED, copy)

@@ -69,6 +69,18 @@ def row(sequence, frame, truth, proven, clear_cut=True, box=(0, 0, 10, 10)):
             "clear_cut": clear_cut}
 
 
+class TestRowsTable:
+    def test_the_errors_parts_are_shares_of_its_squares_or_not_available_without_a_truth(self):
+        row = {"group": "g", "defects": 3, "measured": 3, "error_mm": {}, "error_over_floor": {}, "per_defect": None,
+               "ratio": None, "within_2_sigma": None, "sigma_over_floor": None, "texture_per_defect": None,
+               "texture_sigma": None, "distance_percent": None, "distance_within_2_sigma": None,
+               "distance_per_defect": None, "silent_pass": 0, "proven_pass": 0, "undecided_pass": 0,
+               "proven_reject": 0, "undecided_reject": 0}
+        with_parts = ds.rows_table([{**row, "parts": {"ring": 0.094, "region": 0.896, "extent": 0.01}}])
+        assert "| 9 / 90 / 1 % |" in with_parts and "ring / region's estimate / region's extent" in with_parts
+        assert "| n/a |" in ds.rows_table([{**row, "parts": {}}])
+
+
 class TestDecisionChanges:
     def test_counts_each_side_lost_and_gained_and_the_silent_passes(self):
         before = [row("s", "0", "PASS", "PASS"), row("s", "1", "PASS", "undecided"),
@@ -105,6 +117,9 @@ def test_renders_the_missing_sets_scores_each_group_and_compares_with_an_earlier
     for r in body["rows"]:  # each row is its group's own report
         report = json.loads((out / r["group"] / "depth_eval.json").read_text())["all"]["measurement"]
         assert r["defects"] == report["defects"] > 0 and r["per_defect"] == report["error_over_floor_per_defect"]
+        # the rendered sets hold their true disparity: the error's parts, shares of its squares
+        assert r["parts"] == {name: report["error_parts"][name]["share"] for name in ("ring", "region", "extent")}
+        assert sum(r["parts"].values()) == pytest.approx(1.0)
     assert json.loads((out / "larger" / "depth_eval.json").read_text())["box_scale"] == 1.3
     assert "| true_boxes |" in (out / "suite.md").read_text() and "--box-scale 1.3" in (out / "suite.md").read_text()
     # a second run renders nothing, and decides every defect as the first did

@@ -34,7 +34,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
                        box_shift, quiet):
     """The engine's stereo and depth on labelled SEQUENCES (folders of `inspect sim generate`) with the
     true boxes: distance and deviation errors (median, p90, max), measured ÷ true, the physical floor,
-    the calibration of the reported uncertainty and the decisions at the recipe's rules, for the
+    where the error lies (the ring, the region's estimate, the region's extent; from the sequence's true
+    disparity), the calibration of the reported uncertainty and the decisions at the recipe's rules, for the
     recipe's depth method and for the backend's disparity alone; and how many frames the check of a part
     without defects would say show the plate outside the working distance. Saves JSON, Markdown and a figure.
 

@@ -8,8 +8,8 @@ the reference.
 
 The physical floor of a defect is what any estimator fitting the two surfaces to that pair could
 reach: the disparity standard deviation ``sigma_noise * sqrt(2) / sqrt(sum I_x^2)`` over the
-defect's region and over its ring (I_x the left image's horizontal gradient, sigma_noise the sensor
-noise the generator added, from the labels), the two combined in quadrature and converted to mm at
+defect's region and over its ring, each of their pixels the right camera sees (I_x the left image's
+horizontal gradient, sigma_noise the sensor noise the generator added, from the labels), the two combined in quadrature and converted to mm at
 the defect's distance (``Z^2 / (f * B)`` mm per px). The median and p90 of |error| such an estimator
 would show are the quantiles of the mixture of the defects' normal errors. The distance's floor is the
 region's alone: the defect's distance is its own disparity's, whatever the surface around it.
@@ -149,6 +149,10 @@ def defect_floors_mm(grey: np.ndarray, box, calib, rule: DepthRule, noise_sigma:
     x0, y0, x1, y1 = _clip_box(roi_box(box, rule), shape)
     region[y0:y1, x0:x1] = True
     ring = ring_mask(shape, box, rule.ring_gap_px, rule.ring_width_px)
+    # a pixel the right camera does not see (left of the disparity) is one no estimator can match
+    seen = np.arange(shape[1]) >= float(calib.disparity_px(distance_mm))
+    region &= seen
+    ring &= seen
     on_region = floor_px(grey, region, noise_sigma, texture_only, gradient)
     mm_per_px = distance_mm**2 / (calib.focal_px * calib.baseline_mm)
     return (math.hypot(on_region, floor_px(grey, ring, noise_sigma, texture_only, gradient)) * mm_per_px,
@@ -261,7 +265,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
         at = _first_known(truth.get("distance_mm"), m.distance_mm, ref.distance_mm)
         floor, distance_floor, texture_floor, texture_distance_floor = (
             (None,) * 4 if not noise or at is None else
-            (*defect_floors_mm(grey, box, frame.calib, rule, noise, at, gradient=gradient),
+            (*(_finite(f) for f in defect_floors_mm(grey, box, frame.calib, rule, noise, at, gradient=gradient)),
              *(_finite(f) for f in defect_floors_mm(grey, box, frame.calib, rule, noise, at, texture_only=True,
                                                     gradient=gradient))))
         # a groove's deviation is read on its band, not on the region the parts are of
@@ -293,7 +297,8 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
 
 
 def _finite(value: float) -> float | None:
-    """None for a floor that no texture bounds (JSON has no infinity)."""
+    """None for a floor that no texture bounds, or of pixels the right camera does not see (JSON has no
+    infinity)."""
     return value if math.isfinite(value) else None
 
 

@@ -356,17 +356,37 @@ class TestFloor:
         grey = rng.normal(100, 10, (120, 160)).astype(np.float32)
         calib = Calibration(focal_px=350.0, baseline_mm=120.0, cx=80.0, cy=60.0, width=160, height=120)
         box, rule = (60.0, 40.0, 100.0, 80.0), DepthRule()
-        deviation, distance = ev.defect_floors_mm(grey, box, calib, rule, 2.0, 400.0)
+        deviation, distance = ev.defect_floors_mm(grey, box, calib, rule, 2.0, 1400.0)  # 30 px: all of it seen
         region = np.zeros(grey.shape, bool)
         x0, y0, x1, y1 = (int(round(c)) for c in roi_box(box, rule))
         region[y0:y1, x0:x1] = True
-        mm_per_px = 400.0**2 / (350.0 * 120.0)
+        mm_per_px = 1400.0**2 / (350.0 * 120.0)
         assert distance == pytest.approx(ev.floor_px(grey, region, 2.0) * mm_per_px, rel=1e-9)
         ring = ring_mask(grey.shape, box, rule.ring_gap_px, rule.ring_width_px)
         assert deviation == pytest.approx(math.hypot(distance, ev.floor_px(grey, ring, 2.0) * mm_per_px), rel=1e-9)
-        texture = ev.defect_floors_mm(grey, box, calib, rule, 2.0, 400.0, texture_only=True)
+        texture = ev.defect_floors_mm(grey, box, calib, rule, 2.0, 1400.0, texture_only=True)
         assert texture[1] == pytest.approx(ev.floor_px(grey, region, 2.0, texture_only=True) * mm_per_px, rel=1e-9)
         assert texture[0] > deviation and texture[1] > distance
+
+    def test_pixels_the_right_camera_does_not_see_are_left_out_of_the_floor(self):
+        rng = np.random.default_rng(1)
+        grey = rng.normal(100, 10, (120, 160)).astype(np.float32)
+        calib = Calibration(focal_px=350.0, baseline_mm=120.0, cx=80.0, cy=60.0, width=160, height=120)
+        box, rule = (60.0, 40.0, 100.0, 80.0), DepthRule()
+        # at 700 mm the disparity is 60 px: the ring's left side (45-57) lies where the right camera does not look
+        deviation, distance = ev.defect_floors_mm(grey, box, calib, rule, 2.0, 700.0)
+        mm_per_px = 700.0**2 / (350.0 * 120.0)
+        seen = np.arange(160) >= 60
+        ring = ring_mask(grey.shape, box, rule.ring_gap_px, rule.ring_width_px)
+        region = np.zeros(grey.shape, bool)
+        x0, y0, x1, y1 = (int(round(c)) for c in roi_box(box, rule))
+        region[y0:y1, x0:x1] = True
+        assert distance == pytest.approx(ev.floor_px(grey, region, 2.0) * mm_per_px, rel=1e-9)  # all of it seen
+        assert deviation == pytest.approx(math.hypot(distance, ev.floor_px(grey, ring & seen, 2.0) * mm_per_px),
+                                          rel=1e-9)
+        assert deviation > math.hypot(distance, ev.floor_px(grey, ring, 2.0) * mm_per_px)
+        # at 350 mm (120 px) none of it: no floor (the report's None)
+        assert ev.defect_floors_mm(grey, box, calib, rule, 2.0, 350.0) == (math.inf, math.inf)
 
 
 class TestMixtureQuantile:

@@ -9,10 +9,11 @@ the reference.
 The physical floor of a defect is what any estimator fitting the two surfaces to that pair could
 reach: the disparity standard deviation ``sigma_noise * sqrt(2) / sqrt(sum I_x^2)`` over the
 defect's region and over its ring, each of their pixels the right camera sees (I_x the left image's
-horizontal gradient, sigma_noise the sensor noise the generator added, from the labels), the two combined in quadrature and converted to mm at
-the defect's distance (``Z^2 / (f * B)`` mm per px). The median and p90 of |error| such an estimator
-would show are the quantiles of the mixture of the defects' normal errors. The distance's floor is the
-region's alone: the defect's distance is its own disparity's, whatever the surface around it.
+horizontal gradient, sigma_noise the sensor noise the generator added, from the labels), the two
+combined in quadrature and converted to mm at the defect's distance (``Z^2 / (f * B)`` mm per px). The
+median and p90 of |error| such an estimator would show are the quantiles of the mixture of the defects'
+normal errors. The distance's floor is the region's alone: the defect's distance is its own disparity's,
+whatever the surface around it.
 
 That floor takes ``sum I_x^2`` from the noisy image, so it counts the noise's own gradient energy
 (``sigma_noise^2 / 2`` a pixel for the central difference) as texture. Where the texture is faint that is a
@@ -33,7 +34,8 @@ import numpy as np
 
 from core.boxes import match_boxes
 from core.decision import judge_defect, rule_applies
-from core.depth import GROOVE_NOTE, DepthRule, _clip_box, fit_plane_robust, measure_frame, ring_mask, ring_pixels, roi_box
+from core.depth import (GROOVE_NOTE, DepthRule, _clip_box, fit_plane_robust, measure_frame, ring_mask, ring_pixels,
+                        roi_box)
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
 from core.error_parts import error_parts
 from core.plate_view import plate_elsewhere

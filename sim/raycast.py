@@ -207,5 +207,6 @@ def render_sequence(out: Path, kind: str = "textured", frames: int = 8, seed: in
                 for img in (left, right)]
         frame_id = f"{i:06d}"
         write_frame(out, frame_id, *(cv2.cvtColor(e, cv2.COLOR_GRAY2BGR) for e in eyes),
-                    gt_disparity=true_disparity(z0, axes, pits), labels={"frame_id": frame_id, "distance_mm": round(z0, 3), "sensor": {"noise_sigma": NOISE_SIGMA},
+                    gt_disparity=true_disparity(z0, axes, pits),
+                    labels={"frame_id": frame_id, "distance_mm": round(z0, 3), "sensor": {"noise_sigma": NOISE_SIGMA},
                             "defects": labels})

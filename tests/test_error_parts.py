@@ -1,4 +1,4 @@
-"""``core.error_parts``: a deviation's error split into the ring's, the region's estimate's and the region's extent's."""
+"""``core.error_parts``: a deviation's error split into the ring's, the region's estimate's and its extent's."""
 from __future__ import annotations
 
 import numpy as np

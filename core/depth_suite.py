@@ -153,8 +153,8 @@ def group_row(name: str, body: dict) -> dict[str, Any]:
 
 
 def _parts(shares: dict[str, float] | None) -> str:
-    """The error's parts' shares as "9 / 90 / 1 %", or n/a without a true disparity."""
-    if not shares:
+    """The error's parts' shares as "9 / 90 / 1 %", or n/a without a true disparity (or without an error)."""
+    if not shares or any(shares.get(name) is None for name in ("ring", "region", "extent")):
         return "n/a"
     return " / ".join(f"{100 * shares[name]:.0f}" for name in ("ring", "region", "extent")) + " %"
 

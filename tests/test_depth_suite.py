@@ -79,6 +79,8 @@ class TestRowsTable:
         with_parts = ds.rows_table([{**row, "parts": {"ring": 0.094, "region": 0.896, "extent": 0.01}}])
         assert "| 9 / 90 / 1 % |" in with_parts and "ring / region's estimate / region's extent" in with_parts
         assert "| n/a |" in ds.rows_table([{**row, "parts": {}}])
+        exact = {"ring": None, "region": None, "extent": None}  # every part zero: no shares to give
+        assert "| n/a |" in ds.rows_table([{**row, "parts": exact}])
 
 
 class TestDecisionChanges:

@@ -82,24 +82,37 @@ def rotation(tilt_deg: float, yaw_deg: float) -> np.ndarray:
     return ry @ rx
 
 
+def _rays(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """(H, W, 3) directions of the rays through the columns ``xs`` and rows ``ys`` (pixel centres at whole
+    numbers), their third component 1."""
+    x, y = np.meshgrid(xs, ys)
+    f = CALIB["focal_px"]
+    return np.stack([(x - CALIB["cx"]) / f, (y - CALIB["cy"]) / f, np.ones_like(x)], -1)
+
+
+def _landing(rays: np.ndarray, eye: np.ndarray, z0: float, axes: np.ndarray, depth: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where ``rays`` from ``eye`` meet the plane ``depth`` mm below the plate (through (0, 0, z0), ``axes`` as
+    ``rotation``): (s, t) along the plate's axes, and each ray's parameter there."""
+    p0 = np.array([0.0, 0.0, z0])
+    e1, e2, n = axes[:, 0], axes[:, 1], axes[:, 2]
+    k = ((p0 + depth * n - eye) @ n) / (rays @ n)
+    rel = eye + k[..., None] * rays - p0
+    return rel @ e1, rel @ e2, k
+
+
 def render_eye(eye_x: float, z0: float, axes: np.ndarray, pits: list[Pit], texture: np.ndarray,
                supersample: int = SUPERSAMPLE) -> np.ndarray:
     """HxW float32 grey image of the plate (through (0, 0, z0), ``axes`` as ``rotation``) seen by a
     rectified eye at (eye_x, 0, 0) mm."""
-    c = CALIB
-    f, w, h = c["focal_px"], c["width"], c["height"]
-    xs = (np.arange(w * supersample) + 0.5) / supersample - 0.5
-    ys = (np.arange(h * supersample) + 0.5) / supersample - 0.5
-    x, y = np.meshgrid(xs, ys)
-    rays = np.stack([(x - c["cx"]) / f, (y - c["cy"]) / f, np.ones_like(x)], -1)
-    eye, p0 = np.array([eye_x, 0.0, 0.0]), np.array([0.0, 0.0, z0])
-    e1, e2, n = axes[:, 0], axes[:, 1], axes[:, 2]
+    w, h = CALIB["width"], CALIB["height"]
+    rays = _rays((np.arange(w * supersample) + 0.5) / supersample - 0.5,
+                 (np.arange(h * supersample) + 0.5) / supersample - 0.5)
+    eye = np.array([eye_x, 0.0, 0.0])
     origin = -texture.shape[0] * TEXEL_MM / 2
 
     def landing(depth: float) -> tuple[np.ndarray, np.ndarray]:
-        t = ((p0 + depth * n - eye) @ n) / (rays @ n)
-        rel = eye + t[..., None] * rays - p0
-        return rel @ e1, rel @ e2
+        return _landing(rays, eye, z0, axes, depth)[:2]
 
     def grey(s: np.ndarray, t: np.ndarray) -> np.ndarray:
         return cv2.remap(texture, ((s - origin) / TEXEL_MM).astype(np.float32),
@@ -122,25 +135,16 @@ def true_disparity(z0: float, axes: np.ndarray, pits: list[Pit]) -> np.ndarray:
     """HxW float32: the disparity where the left eye's ray through each pixel's centre meets the plate (through
     (0, 0, z0), ``axes`` as ``rotation``) or a pit's floor; NaN where it meets a wall, whose depth varies across the
     pixel."""
-    c = CALIB
-    f = c["focal_px"]
-    x, y = np.meshgrid(np.arange(c["width"], dtype=np.float64), np.arange(c["height"], dtype=np.float64))
-    rays = np.stack([(x - c["cx"]) / f, (y - c["cy"]) / f, np.ones_like(x)], -1)
-    p0 = np.array([0.0, 0.0, z0])
-    e1, e2, n = axes[:, 0], axes[:, 1], axes[:, 2]
-
-    def landing(depth: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        z = ((p0 + depth * n) @ n) / (rays @ n)  # the ray's parameter is the hit's z, its third component being 1
-        rel = z[..., None] * rays - p0
-        return rel @ e1, rel @ e2, z
-
-    s, t, z = landing(0.0)
+    rays = _rays(np.arange(CALIB["width"], dtype=np.float64), np.arange(CALIB["height"], dtype=np.float64))
+    eye = np.zeros(3)
+    # from the left eye, a ray's parameter where it lands is the hit's z: the rays' third component is 1
+    s, t, z = _landing(rays, eye, z0, axes, 0.0)
     for pit in pits:
         mouth = pit.holds(s, t)
-        sf, tf, zf = landing(pit.depth)
+        sf, tf, zf = _landing(rays, eye, z0, axes, pit.depth)
         floor = mouth & pit.holds(sf, tf)
         z = np.where(floor, zf, np.where(mouth, np.nan, z))
-    return (f * c["baseline_mm"] / z).astype(np.float32)
+    return (CALIB["focal_px"] * CALIB["baseline_mm"] / z).astype(np.float32)
 
 
 def plan_pits(rng: np.random.Generator, z0: float, axes: np.ndarray, kind: Kind) -> tuple[list[Pit], list[dict]]:

@@ -34,10 +34,9 @@ import numpy as np
 
 from core.boxes import match_boxes
 from core.decision import judge_defect, rule_applies
-from core.depth import (GROOVE_NOTE, DepthRule, _clip_box, fit_plane_robust, measure_frame, ring_mask, ring_pixels,
-                        roi_box)
+from core.depth import GROOVE_NOTE, DepthRule, _clip_box, measure_frame, ring_mask, roi_box
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
-from core.error_parts import error_parts
+from core.error_parts import error_parts, true_ring_plane
 from core.plate_view import plate_elsewhere
 from core.recipe import LoadedRecipe
 from core.report_text import number, percent
@@ -173,12 +172,7 @@ def distance_at_box(distance_mm: float, true_disparity: np.ndarray, calib, true_
     distance at the true box's centre, and on a tilted plate another centre looks at the surface elsewhere. The
     plane of ``true_disparity`` (HxW px, NaN unknown) over the true box's ring moves it there; None where that
     ring has too few known pixels, or the moved disparity lies behind the camera."""
-    u, v = ring_pixels(true_disparity.shape, true_box, rule.ring_gap_px, rule.ring_width_px)
-    d = true_disparity[v, u].astype(np.float64)
-    known = np.isfinite(d) & (d > 0)
-    # the ring may cross another defect: the plane is its consensus, within the truth's 1/256 px rounding
-    plane = fit_plane_robust(u[known].astype(np.float64), v[known].astype(np.float64), d[known],
-                             tolerance=TRUE_PLANE_TOLERANCE_PX)
+    plane = true_ring_plane(true_disparity, true_box, rule, TRUE_PLANE_TOLERANCE_PX)
     if plane is None:
         return None
     du = (box[0] + box[2] - true_box[0] - true_box[2]) / 2

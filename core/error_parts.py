@@ -35,6 +35,16 @@ class ErrorParts:
     extent_mm: float
 
 
+def true_ring_plane(true_disparity: np.ndarray, box: tuple[float, float, float, float], rule: DepthRule,
+                    tolerance: float) -> Plane | None:
+    """The plane of ``true_disparity`` (HxW px, NaN unknown) over the ``rule``'s ring around ``box``: the consensus
+    of its known pixels within ``tolerance`` px, as the ring may cross another defect; None where they define none."""
+    u, v = ring_pixels(true_disparity.shape, box, rule.ring_gap_px, rule.ring_width_px)
+    d = true_disparity[v, u].astype(np.float64)
+    known = np.isfinite(d) & (d > 0)
+    return fit_plane_robust(u[known].astype(np.float64), v[known].astype(np.float64), d[known], tolerance=tolerance)
+
+
 def error_parts(deviation_mm: float, distance_mm: float, true_deviation_mm: float, true_disparity: np.ndarray,
                 calib: Calibration, box: tuple[float, float, float, float], rule: DepthRule,
                 plane_tolerance_px: float) -> ErrorParts | None:
@@ -46,11 +56,7 @@ def error_parts(deviation_mm: float, distance_mm: float, true_deviation_mm: floa
     if true_disparity.ndim != 2:
         raise ValueError(f"error_parts: true_disparity {true_disparity.shape} must be HxW")
     shape = true_disparity.shape
-    u, v = ring_pixels(shape, box, rule.ring_gap_px, rule.ring_width_px)
-    d = true_disparity[v, u].astype(np.float64)
-    known = np.isfinite(d)
-    plane = fit_plane_robust(u[known].astype(np.float64), v[known].astype(np.float64), d[known],
-                             tolerance=plane_tolerance_px)
+    plane = true_ring_plane(true_disparity, box, rule, plane_tolerance_px)
     if plane is None:
         return None
     inner = roi_box(box, rule)

@@ -414,6 +414,7 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
     if both:
         s.texture_floor_over_floor_median = float(np.median(both))
     if not reference:
+        s.error_parts = parts_summary(ok)
         sig = [r for r in ok if r.deviation_sigma_mm]
         if sig:
             s.within_2_sigma = float(np.mean([abs(r.deviation_mm - r.true_deviation_mm) <= 2 * r.deviation_sigma_mm
@@ -429,8 +430,6 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
             if with_floor:
                 s.sigma_over_texture_floor_median = float(np.median([r.deviation_sigma_mm / r.texture_floor_mm
                                                                      for r in with_floor]))
-    if not reference:
-        s.error_parts = parts_summary(ok)
     missed = [r for r in rows if r.proven == MISSED]
     s.missed = len(missed)
     s.missed_beyond_a_limit = sum(r.true_status == Status.REJECT.value for r in missed)

@@ -491,6 +491,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         reference.area_mm2 * (distance / reference.distance_mm) ** 2,
         distance_sigma_mm=float(fb / d**2 * np.sqrt(var_d)), deviation_sigma_mm=deviation_sigma, method="surface",
         note=f"{GROOVE_NOTE}, {band.angle_deg:.0f} degrees from its rows" if groove else "",
+        groove_angle_deg=float(band.angle_deg) if groove else None,
     )
 
 

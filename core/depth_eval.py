@@ -34,7 +34,7 @@ import numpy as np
 
 from core.boxes import match_boxes
 from core.decision import judge_defect, rule_applies
-from core.depth import GROOVE_NOTE, DepthRule, _clip_box, measure_frame, ring_mask, roi_box
+from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
 from core.error_parts import error_parts, true_ring_plane
 from core.plate_view import plate_elsewhere
@@ -266,7 +266,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
                                                     gradient=gradient))))
         # a groove's deviation is read on its band, not on the region the parts are of
         parts = (None if true_disparity is None or m.deviation_mm is None or m.distance_mm is None
-                 or m.note.startswith(GROOVE_NOTE) else
+                 or m.groove_angle_deg is not None else
                  error_parts(m.deviation_mm, m.distance_mm, truth["deviation_mm"], true_disparity, frame.calib, det.box,
                              rule, TRUE_PLANE_TOLERANCE_PX))
         if truth.get("distance_mm") is not None and _moved(det.box, box):

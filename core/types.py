@@ -125,6 +125,9 @@ class DefectMeasurement:
     # apart than a rectified camera leaves them (its calibration is not this camera's); the engine alarms when
     # that persists
     rows_apart_px: float | None = None
+    # the deviation was read along a groove that crosses the box at this angle (degrees from the image's rows), on
+    # the band of the region it runs through rather than on the whole region (``core.band_scan``)
+    groove_angle_deg: float | None = None
 
     def quantity(self, name: str) -> float | None:
         if name == "confidence":

@@ -264,6 +264,8 @@ def test_a_groove_across_its_box_is_measured_along_it(angle, width):
     left, right, disparity, box, truth = _groove_and_box(angle, width)
     m = _surface(left, right, disparity, box)
     assert "along a groove" in m.note
+    # the band found runs the groove's way (angles from the rows, modulo a half turn)
+    assert abs((m.groove_angle_deg - angle + 90.0) % 180.0 - 90.0) <= 15.0
     assert abs(m.deviation_mm - truth) <= 3 * m.deviation_sigma_mm + 0.05
     assert m.deviation_mm + 2 * m.deviation_sigma_mm > 1.0  # never proven inside a 1 mm limit
 
@@ -555,7 +557,7 @@ def test_a_band_that_reads_nearer_the_surface_than_the_region_is_not_taken(monke
 
     monkeypatch.setattr(depth.band_scan, "central_band", shallow)
     region = _surface(left, right, disparity, box)
-    assert region.note == "" and abs(region.deviation_mm) < abs(along.deviation_mm)
+    assert region.note == "" and region.groove_angle_deg is None and abs(region.deviation_mm) < abs(along.deviation_mm)
     monkeypatch.setattr(depth, "GROOVE_Z", np.inf)
     monkeypatch.setattr(depth, "BAND_Z", np.inf)
     assert _surface(left, right, disparity, box).deviation_mm == region.deviation_mm

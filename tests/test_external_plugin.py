@@ -2,10 +2,13 @@
 found through the entry-point group, selected by name in a recipe, run by `inspect run`."""
 from __future__ import annotations
 
+import json
+import shutil
 import sqlite3
 
 import pytest
-from conftest import cli, write_recipe
+import yaml
+from conftest import ROOT, cli, write_recipe
 
 from core.contracts import PluginSpec
 from core.hookspecs import hookimpl
@@ -60,6 +63,40 @@ def test_selected_by_name_and_run(tmp_path, plane_sequence, external_plugin_site
     assert [r[0] for r in db.execute("SELECT class FROM defects")] == ["weld_seam", "weld_seam"]
     log = (tmp_path / "rejects.log").read_text().splitlines()
     assert len(log) == 1 and log[0].endswith("REJECT R1-000001 REJECT")
+
+
+def test_the_demo_recipe_in_a_third_party_detectors_boxes_measures_as_the_evaluation_does(tmp_path, external_plugin_site):
+    """A user who checks depth by handing the true boxes to ``inspect run`` through a detector of their own gets
+    the figures ``inspect eval depth`` reports for the same frame: one engine, not a second path for evaluation."""
+    source = ROOT / "sim_fixtures" / "plates_textured"
+    seq = tmp_path / "seq"
+    for folder, name in (("left", "000001.jpg"), ("right", "000001.jpg"), ("labels", "000001.json"), ("gt", "000001.png")):
+        (seq / folder).mkdir(parents=True)
+        shutil.copy(source / folder / name, seq / folder / name)
+    shutil.copy(source / "calib.yaml", seq / "calib.yaml")
+    truth = json.loads((seq / "labels" / "000001.json").read_text())["defects"]
+    recipe = yaml.safe_load((ROOT / "recipes" / "steel_plate.yaml").read_text())
+    recipe["camera"]["settings"] = {"path": str(seq), "rate_fps": 0, "loop": False}
+    recipe["stereo"]["working_distance_mm"] = [300, 700]
+    recipe["detector"] = {"plugin": "fixed_roi", "confidence": 0.3,
+                          "settings": {"regions": [{"name": d["class"], "box": d["box"]} for d in truth]}}
+    recipe["outputs"] = [{"plugin": "log", "settings": {"file": str(tmp_path / "rejects.log")}}]
+    recipe["results"] = {"path": str(tmp_path / "results")}
+    path = write_recipe(tmp_path / "r.yaml", yaml.safe_dump(recipe))
+    ran = cli("run", str(path), env_extra={"PYTHONPATH": str(external_plugin_site)})
+    assert ran.returncode == 0, ran.stdout + ran.stderr
+    evaluated = cli("eval", "depth", str(seq), "--set", "stereo.working_distance_mm=[300,700]", "--out",
+                    str(tmp_path / "eval"), "--quiet", "--no-figure")
+    assert evaluated.returncode == 0, evaluated.stderr
+    rows = {tuple(r["box"]): r for r in json.loads((tmp_path / "eval" / "depth_eval.json").read_text())["rows"]}
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    stored = db.execute("SELECT x0, y0, x1, y1, distance_mm, deviation_mm, deviation_sigma_mm FROM defects").fetchall()
+    assert len(stored) == len(truth) == len(rows)
+    for *box, distance, deviation, sigma in stored:
+        row = rows[tuple(box)]
+        assert row["method"] == "surface" and deviation is not None
+        assert (distance, deviation, sigma) == pytest.approx(
+            (row["distance_mm"], row["deviation_mm"], row["deviation_sigma_mm"]), abs=1e-6)
 
 
 def _broken_package(site):

@@ -164,7 +164,6 @@ BAND_Z = 3.0
 # from this many of its standard deviations off, a region's central part that reads more than twice its offset may
 # be the defect in a box larger than it, and the uncertainty widens to take it in (``_parts_variance``)
 PATCH_Z = 2.0
-GROOVE_NOTE = "measured along a groove across the box"  # the note of a deviation read on a groove's band alone
 
 
 def fit_plane_robust(
@@ -490,7 +489,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         detection, float(distance), float(deviation), reference.valid_fraction, reference.depth_resolution_mm,
         reference.area_mm2 * (distance / reference.distance_mm) ** 2,
         distance_sigma_mm=float(fb / d**2 * np.sqrt(var_d)), deviation_sigma_mm=deviation_sigma, method="surface",
-        note=f"{GROOVE_NOTE}, {band.angle_deg:.0f} degrees from its rows" if groove else "",
+        note=f"measured along a groove across the box, {band.angle_deg:.0f} degrees from its rows" if groove else "",
         groove_angle_deg=float(band.angle_deg) if groove else None,
     )
 

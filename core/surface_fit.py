@@ -677,6 +677,32 @@ def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defe
     return fit.residual_sigma ** 2 * fit.inflation * share / information if information > 0 else float("inf")
 
 
+def contrast_ratio(fit: SurfaceFit, ring: tuple[np.ndarray, np.ndarray], defect: tuple[np.ndarray, np.ndarray],
+                   defect_weights: np.ndarray | None = None) -> float:
+    """How much stronger the left eye sees the defect's texture than the right eye does, against the ring's:
+    (std L / std R over the region) / (std L / std R over the ring), each eye's high-passed image read at the
+    fitted surface (the right eye's where the fit maps the pixel). 1 where the region is a shifted copy in the
+    two eyes, as a plane is; beyond that where one eye sees what the other does not (a wall's sheen, a wall
+    seen broad by one eye and edge-on by the other). ring, defect: (u, v) image pixels as given to
+    ``fit_surface``, whose window (``fit.images``) holds them; the ring's pixels its cells left out
+    (``fit.ring_weights``) and the region's of weight 0 are not read. nan where either has no texture."""
+    (x0, y0), L, R = fit.images.origin, fit.images.L, fit.images.R
+    th = fit.params
+
+    def ratio(u, v, on_defect, keep):
+        u, v = u[keep], v[keep]
+        du, dv = u - fit.centre[0], v - fit.centre[1]
+        x = (u - x0) - (th[0] + th[1] * du + th[2] * dv + th[3] * on_defect)
+        right = sample(R, x.astype(np.float64), (v - y0).astype(np.float64), th[E])
+        ok = np.isfinite(right)
+        left, right = L[v - y0, u - x0][ok].astype(np.float64), right[ok]
+        return np.std(left) / np.std(right) if len(right) > 1 and np.std(right) > 0 else float("nan")
+
+    ring_keep = np.ones(len(ring[0]), bool) if fit.ring_weights is None else fit.ring_weights > 0.5
+    region_keep = np.ones(len(defect[0]), bool) if defect_weights is None else np.asarray(defect_weights) > 0
+    return float(ratio(*defect, 1.0, region_keep) / ratio(*ring, 0.0, ring_keep))
+
+
 def cell_areas(defect: tuple[np.ndarray, np.ndarray], weights: np.ndarray | None = None,
                cell_px: int = CELL_PX) -> np.ndarray:
     """(K,) each ``cell_px`` cell's share of the region (the sum of its pixels' weights, 1 each if not

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import pathlib
 import subprocess
@@ -340,6 +341,39 @@ class TestPartsVariance:
     def test_of_several_parts_the_one_further_off(self):
         assert depth._parts_variance(-0.1, _band(-0.3, 0.0, depth.BAND_Z), _band(-0.4, 0.0, 0.1),
                                      _patch(-0.6, 0.0001)) == pytest.approx(0.25 - 0.0001)
+
+
+class TestUnsharedVariance:
+    def test_below_the_noise_s_share_it_adds_nothing(self):
+        ratio = math.exp(0.9 * depth.UNSHARED_MIN_LOG)
+        assert depth.unshared_variance(-0.4, ratio) == depth.unshared_variance(-0.4, 1 / ratio) == 0.0
+
+    def test_beyond_it_twice_the_log_ratio_of_the_offset_either_way(self):
+        assert depth.unshared_variance(-0.4, math.exp(0.2)) == pytest.approx((0.4 * 0.4) ** 2)
+        assert depth.unshared_variance(0.4, math.exp(-0.2)) == pytest.approx((0.4 * 0.4) ** 2)
+        assert depth.unshared_variance(0.0, math.exp(0.5)) == 0.0
+
+    def test_a_ratio_that_is_no_number_adds_nothing(self):
+        assert depth.unshared_variance(-0.4, float("nan")) == depth.unshared_variance(-0.4, 0.0) == 0.0
+
+
+def test_a_region_one_eye_sees_otherwise_than_the_other_is_known_less_well(monkeypatch):
+    """A pit whose region the right eye sees with 0.7 of the left's contrast (as a wall's sheen does): its
+    uncertainty takes in the share of the offset that may be pulled; a pit both eyes see alike keeps its own."""
+    left, right, disparity = render(CALIB, 420.0, 6.0, [Pit(160, 96, 25.0, 1.5, floor=0.8)])
+    blurred = cv2.blur(np.round(disparity * 4) / 4, (9, 9))
+    x0, y0, x1, y1 = (int(round(c)) for c in depth.roi_box(BOX, DepthRule()))
+    d = int(np.median(disparity[y0:y1, x0:x1]))
+    sheen = right.astype(np.float32)
+    read = sheen[y0:y1, x0 - d - 2:x1 - d + 2]
+    read[:] = read.mean() + 0.7 * (read - read.mean())
+    sheen = np.clip(sheen, 0, 255).astype(np.uint8)
+    alike, otherwise = _surface(left, right, blurred), _surface(left, sheen, blurred)
+    monkeypatch.setattr(depth, "UNSHARED_MIN_LOG", math.inf)
+    assert _surface(left, right, blurred) == alike
+    without = _surface(left, sheen, blurred)
+    assert without.deviation_mm == otherwise.deviation_mm
+    assert otherwise.deviation_sigma_mm > without.deviation_sigma_mm + 0.5 * abs(otherwise.deviation_mm) * 2 * math.log(1.3)
 
 
 def test_a_groove_s_region_takes_the_eyes_rows_offset_from_the_ring_alone(monkeypatch):

@@ -460,6 +460,40 @@ class TestInteriorVariance:
         assert sf.interior_variance(left, right, fit, defect, zero, self.INNER, 1.0) == math.inf
 
 
+class TestContrastRatio:
+    INNER = (68, 51, 92, 69)
+
+    def _pair(self, right_contrast=1.0, seed=8):
+        """A step pair whose right eye sees the region's texture ``right_contrast`` times as strong as the left's
+        relative to the ring's, as a wall's sheen seen by one eye makes it."""
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=seed)
+        x0, y0, x1, y1 = self.INNER
+        d = _plane_at(80, 60) - 0.3  # where the region's pixels are read in the right image
+        read = right[y0:y1, int(x0 - d - 3):int(x1 - d + 3)]
+        read[:] = read.mean() + right_contrast * (read - read.mean())
+        ring, defect = _regions()
+        return ring, defect, sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
+
+    def test_a_region_both_eyes_see_alike_is_one(self):
+        for seed in (8, 9, 10):
+            ring, defect, fit = self._pair(seed=seed)
+            assert abs(math.log(sf.contrast_ratio(fit, ring, defect))) < 0.05
+
+    def test_a_region_one_eye_sees_fainter_reads_how_much(self):
+        ring, defect, fit = self._pair(0.7)
+        # the sensor's noise, the same in both eyes, pulls the ratio a little towards one
+        assert 1.3 < sf.contrast_ratio(fit, ring, defect) < 1 / 0.7 + 0.02
+        ring, defect, fit = self._pair(1.3)
+        assert 1 / 1.3 - 0.02 < sf.contrast_ratio(fit, ring, defect) < 0.8
+
+    def test_pixels_of_no_weight_are_not_read(self):
+        ring, defect, fit = self._pair(0.7)
+        # the region's left half alone: the changed contrast lies under all of it
+        half = (defect[0] < 80).astype(float)
+        assert 1.25 < sf.contrast_ratio(fit, ring, defect, half) < 1 / 0.7 + 0.02
+        assert math.isnan(sf.contrast_ratio(fit, ring, defect, np.zeros(len(defect[0]))))
+
+
 class TestRobustOffset:
     def test_cells_off_by_much_more_than_their_noise_do_not_pull(self):
         offsets = np.r_[np.full(30, -0.30), np.full(8, 0.20)]  # a quarter of the cells on a wall

@@ -18,8 +18,9 @@ from synthetic_pairs import Groove, Pit, calib_for, render
 
 from core import band_scan, depth, depth_numba, surface_fit
 from core.depth import DepthRule, fit_plane_robust, measure_defect, ring_mask
+from core.decision import judge_defect
 from core.recipe import load_recipe
-from core.types import Calibration, Detection
+from core.types import Calibration, Detection, Status
 
 CALIB = calib_for(320, 192)
 BOX = (135.0, 71.0, 185.0, 121.0)
@@ -399,6 +400,33 @@ def test_a_groove_s_region_takes_the_eyes_rows_offset_from_the_ring_alone(monkey
     monkeypatch.setattr(surface_fit, "fit_surface", lambda *args, rows_from_ring=False, **kw: fit(*args, **kw))
     whole = measured()
     assert 2.344 - whole.deviation_mm > 4 * whole.deviation_sigma_mm
+
+
+def test_a_narrow_pit_whose_walls_each_eye_sees_otherwise_is_not_proven_inside_its_limit(monkeypatch):
+    """A 2.18 mm depression 12 x 20 px on a polished plate (tests/fixtures/surface_fit/README.md): its walls'
+    sheen, which one eye sees broad and the other narrow, pulls the offset to under a third of the depth. The
+    region's contrast differs between the eyes, and the uncertainty that takes that in leaves the pit undecided
+    at the demo's 1 mm limit, where the fit's own proved it inside (0.67 +- 0.16 mm)."""
+    data = np.load(ROOT / "tests" / "fixtures" / "surface_fit" / "sheen_walls.npz")
+    left, right = data["left"].astype(np.float32), data["right"].astype(np.float32)
+    disparity = data["disparity"].astype(np.float32) / 256
+    disparity[disparity == 0] = np.nan
+    x0, y0 = (float(v) for v in data["origin"])
+    calib = Calibration(350.06, 120.0, 335.5 - x0, 187.5 - y0, left.shape[1], left.shape[0])
+    box = tuple(float(v) for v in data["box"])
+    decision = load_recipe(ROOT / "recipes" / "steel_plate.yaml").recipe.decision
+
+    def measured():
+        return measure_defect(disparity, Detection("crazing", 1.0, box), calib, DepthRule(), (left, right))
+
+    m = measured()
+    assert m.deviation_mm < 0.4 * 2.183
+    status, reasons = judge_defect(m, decision)
+    assert status == Status.REJECT and "straddles" in reasons[0]
+    monkeypatch.setattr(depth, "UNSHARED_MIN_LOG", math.inf)
+    own = measured()
+    assert own.deviation_mm == m.deviation_mm and own.deviation_sigma_mm < 0.65 * m.deviation_sigma_mm
+    assert 2.183 - own.deviation_mm > 8 * own.deviation_sigma_mm  # a precision the pit's walls do not allow
 
 
 def test_surface_method_without_the_pair_is_the_reference():

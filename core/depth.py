@@ -148,6 +148,7 @@ WALL_PX = 0.5  # px of the defect's wall a region may hold unseen: what the eval
 # |ln| of a region's contrast ratio between the eyes (``surface_fit.contrast_ratio``) below which it is the noise's:
 # 0.03-0.1 at the 90th percentile of the evaluation groups
 UNSHARED_MIN_LOG = 0.1
+UNSHARED_MAX_LOG = 1.0  # and beyond which the region is one eye's alone (0.74 at most on the evaluation groups)
 # the eyes' rows at WVGA (672 columns): a ZED's factory calibration leaves a few tenths of a pixel. An error of the
 # calibration is an angle, so a wider image of the same camera has its rows proportionally further apart
 RECTIFIED_WITHIN_PX = 1.5
@@ -506,8 +507,12 @@ def unshared_variance(offset: float, ratio: float) -> float:
     """The variance (px^2) to add to a region's ``offset`` (px) whose contrast in the left eye over the right's is
     ``ratio`` times the ring's (``surface_fit.contrast_ratio``): ``(2 |ln ratio| * offset)^2``, the share of the
     region's gradient energy that one eye sees and the other does not, as a share of the offset it may pull;
-    0 where ``|ln ratio|`` is below UNSHARED_MIN_LOG (the noise's) or the ratio is not a number."""
-    share = abs(math.log(ratio)) if math.isfinite(ratio) and ratio > 0 else 0.0
+    0 where ``|ln ratio|`` is below UNSHARED_MIN_LOG (the noise's) or the ratio is not a number (neither eye sees
+    texture there); ``|ln ratio|`` no more than UNSHARED_MAX_LOG, which a ratio of 0 or infinity (texture in one
+    eye alone) counts as."""
+    if math.isnan(ratio):
+        return 0.0
+    share = min(abs(math.log(ratio)), UNSHARED_MAX_LOG) if 0 < ratio < math.inf else UNSHARED_MAX_LOG
     return (2.0 * share * offset) ** 2 if share >= UNSHARED_MIN_LOG else 0.0
 
 

@@ -685,7 +685,8 @@ def contrast_ratio(fit: SurfaceFit, ring: tuple[np.ndarray, np.ndarray], defect:
     two eyes, as a plane is; beyond that where one eye sees what the other does not (a wall's sheen, a wall
     seen broad by one eye and edge-on by the other). ring, defect: (u, v) image pixels as given to
     ``fit_surface``, whose window (``fit.images``) holds them; the ring's pixels its cells left out
-    (``fit.ring_weights``) and the region's of weight 0 are not read. nan where either has no texture."""
+    (``fit.ring_weights``) and the region's of weight 0 are not read. 0 or inf where one eye sees texture in the
+    region (or the ring) and the other none; nan where neither does, or no pixel is read."""
     (x0, y0), L, R = fit.images.origin, fit.images.L, fit.images.R
     th = fit.params
 
@@ -696,11 +697,14 @@ def contrast_ratio(fit: SurfaceFit, ring: tuple[np.ndarray, np.ndarray], defect:
         right = sample(R, x.astype(np.float64), (v - y0).astype(np.float64), th[E])
         ok = np.isfinite(right)
         left, right = L[v - y0, u - x0][ok].astype(np.float64), right[ok]
-        return np.std(left) / np.std(right) if len(right) > 1 and np.std(right) > 0 else float("nan")
+        if len(right) < 2 or np.std(right) == 0:
+            return float("nan") if len(right) < 2 or np.std(left) == 0 else float("inf")
+        return np.std(left) / np.std(right)
 
     ring_keep = np.ones(len(ring[0]), bool) if fit.ring_weights is None else fit.ring_weights > 0.5
     region_keep = np.ones(len(defect[0]), bool) if defect_weights is None else np.asarray(defect_weights) > 0
-    return float(ratio(*defect, 1.0, region_keep) / ratio(*ring, 0.0, ring_keep))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return float(np.float64(ratio(*defect, 1.0, region_keep)) / np.float64(ratio(*ring, 0.0, ring_keep)))
 
 
 def cell_areas(defect: tuple[np.ndarray, np.ndarray], weights: np.ndarray | None = None,

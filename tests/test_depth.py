@@ -355,7 +355,12 @@ class TestUnsharedVariance:
         assert depth.unshared_variance(0.0, math.exp(0.5)) == 0.0
 
     def test_a_ratio_that_is_no_number_adds_nothing(self):
-        assert depth.unshared_variance(-0.4, float("nan")) == depth.unshared_variance(-0.4, 0.0) == 0.0
+        assert depth.unshared_variance(-0.4, float("nan")) == 0.0
+
+    def test_texture_in_one_eye_alone_counts_as_the_largest_share(self):
+        largest = (2 * depth.UNSHARED_MAX_LOG * 0.4) ** 2
+        assert depth.unshared_variance(-0.4, 0.0) == depth.unshared_variance(-0.4, math.inf) == largest
+        assert depth.unshared_variance(-0.4, math.exp(5 * depth.UNSHARED_MAX_LOG)) == largest
 
 
 def test_a_region_one_eye_sees_otherwise_than_the_other_is_known_less_well(monkeypatch):

@@ -493,6 +493,20 @@ class TestContrastRatio:
         assert 1.25 < sf.contrast_ratio(fit, ring, defect, half) < 1 / 0.7 + 0.02
         assert math.isnan(sf.contrast_ratio(fit, ring, defect, np.zeros(len(defect[0]))))
 
+    def test_texture_in_one_eye_alone_is_zero_or_infinity(self):
+        ring, defect, fit = self._pair()
+        (x0, y0), images = fit.images.origin, fit.images
+        x, y = self.INNER[0] - x0, self.INNER[1] - y0
+        d = int(_plane_at(80, 60) - 0.3)
+        flat = images.R.copy()  # the right eye's spline: constant where the region is read, a plain patch
+        flat[y - 3:y + 22, x - d - 4:x - d + 28] = 7.0
+        assert sf.contrast_ratio(dataclasses.replace(fit, images=dataclasses.replace(images, R=flat)), ring,
+                                 defect) == math.inf
+        blank = images.L.copy()
+        blank[y:y + 18, x:x + 24] = 0.0
+        assert sf.contrast_ratio(dataclasses.replace(fit, images=dataclasses.replace(images, L=blank)), ring,
+                                 defect) == 0.0
+
 
 class TestRobustOffset:
     def test_cells_off_by_much_more_than_their_noise_do_not_pull(self):

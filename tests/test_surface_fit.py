@@ -218,6 +218,69 @@ class TestRobustScale:
         assert sfn.robust_scale(x) == pytest.approx(3.0, rel=0.05)
 
 
+class TestSandwich:
+    """``sandwich`` against the spread of Huber's estimates themselves over many noise draws."""
+
+    N, P = 1600, len(sf.PARAMS)
+
+    def _huber_fit(self, J, y, w):
+        theta = np.linalg.lstsq(J, y, rcond=None)[0]
+        for _ in range(30):
+            r = y - J @ theta
+            h = sf._huber_weights(r, sf._robust_scale(r)) * w
+            theta = np.linalg.solve((J.T * h) @ J, (J.T * h) @ y)
+        return theta, y - J @ theta
+
+    def _draws(self, noise, draws=400, seed=7):
+        rng = np.random.default_rng(seed)
+        J = rng.normal(size=(self.N, self.P))
+        u, v = rng.permutation(np.arange(self.N)) % 40, rng.permutation(np.arange(self.N)) // 40
+        w = rng.uniform(0.5, 1.0, self.N)  # pixels' shares, as a region's border cuts them
+        estimates, variances = [], []
+        for _ in range(draws):
+            theta, r = self._huber_fit(J, noise(rng), w)
+            cov, _ = sf.sandwich(J, r, sf._robust_scale(r), w, u, v)
+            estimates.append(theta[0])
+            variances.append(cov[0, 0])
+        return np.var(estimates), np.mean(variances)
+
+    def test_gaussian_noise_is_covered_as_it_spreads_the_estimates(self):
+        spread, reported = self._draws(lambda rng: rng.normal(0.0, 2.0, self.N))
+        # the iterations' weights as the bread reported 0.71 of the spread
+        assert reported / spread == pytest.approx(1.0, abs=0.15)
+
+    def test_noise_with_outliers_is_covered_too(self):
+        def noise(rng):
+            n = rng.normal(0.0, 2.0, self.N)
+            wild = rng.random(self.N) < 0.05
+            n[wild] = rng.normal(0.0, 30.0, wild.sum())
+            return n
+        spread, reported = self._draws(noise)
+        assert reported / spread == pytest.approx(1.0, abs=0.2)
+
+    def test_residuals_shared_by_neighbours_inflate_it(self):
+        rng = np.random.default_rng(3)
+        J = rng.normal(size=(self.N, self.P))
+        J[:, 0] = np.repeat(rng.normal(size=self.N // 16), 16)  # c's column and the noise alike in blocks of 4 x 4
+        u = (np.arange(self.N) // 16 % 10) * 4 + np.arange(self.N) % 4
+        v = (np.arange(self.N) // 160) * 4 + np.arange(self.N) // 4 % 4
+        w = np.ones(self.N)
+        shared = np.repeat(rng.normal(0.0, 2.0, self.N // 16), 16)
+        _, r = self._huber_fit(J, shared + rng.normal(0.0, 0.5, self.N), w)
+        _, inflation = sf.sandwich(J, r, sf._robust_scale(r), w, u, v)
+        assert inflation > 3.0
+        _, r = self._huber_fit(J, rng.normal(0.0, 2.0, self.N), w)
+        assert sf.sandwich(J, r, sf._robust_scale(r), w, u, v)[1] < 1.5
+
+    def test_a_parameter_the_pixels_do_not_inform_has_no_covariance(self):
+        rng = np.random.default_rng(2)
+        J = rng.normal(size=(self.N, self.P))
+        J[:, 3] = 0.0  # no defect pixel
+        r = rng.normal(0.0, 2.0, self.N)
+        assert sf.sandwich(J, r, sf._robust_scale(r), np.ones(self.N), np.arange(self.N) % 40,
+                           np.arange(self.N) // 40) is None
+
+
 class TestOffsetCosts:
     def _numpy(self, lv, image, u, v, base, gain, offset, w, e, delta, scale):
         """The offset search's cost as NumPy sums it, from the spline's samples."""

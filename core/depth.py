@@ -466,7 +466,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # w pixels across, and so of the offset (docs/research-log.md).
     var_d += (WALL_PX * (d - c) / max(width, 1.0)) ** 2
     # and what one eye sees of the region and the other does not (the walls' sheen, a wall one eye sees broad and the
-    # other edge-on) may pull the offset by that share of it: a narrow pit's walls read 0.63 +- 0.15 mm for 2.18 mm
+    # other edge-on) may pull the offset by that share of it: a narrow pit's walls read 0.63 +- 0.17 mm for 2.18 mm
     if not groove:
         var_d += unshared_variance(d - c, surface_fit.contrast_ratio(fit, (ring_u, ring_v), (uu, vv), weights))
     # and a floor that is not flat over the region (the box cut through a wall) widens it by how much

@@ -412,7 +412,7 @@ def test_a_narrow_pit_whose_walls_each_eye_sees_otherwise_is_not_proven_inside_i
     """A 2.18 mm depression 12 x 20 px on a polished plate (tests/fixtures/surface_fit/README.md): its walls'
     sheen, which one eye sees broad and the other narrow, pulls the offset to under a third of the depth. The
     region's contrast differs between the eyes, and the uncertainty that takes that in leaves the pit undecided
-    at the demo's 1 mm limit, where the fit's own proved it inside (0.67 +- 0.16 mm)."""
+    at the demo's 1 mm limit by a margin, where the fit's own (0.67 +- 0.18 mm) only just failed to prove it inside."""
     data = np.load(ROOT / "tests" / "fixtures" / "surface_fit" / "sheen_walls.npz")
     left, right = data["left"].astype(np.float32), data["right"].astype(np.float32)
     disparity = data["disparity"].astype(np.float32) / 256

@@ -650,6 +650,16 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     return offsets, sd, centres, np.abs(step) <= CELL_SETTLED_PX
 
 
+def _right_columns(fit: SurfaceFit, u: np.ndarray, v: np.ndarray, x0: float, on_defect: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the fit maps image pixels (u, v) (1-D) in the right image: (columns of a window whose left edge is
+    image column ``x0``, float64; the pixels' offsets du, dv from the region's centre). on_defect: 1 for the
+    defect's region, which lies the fitted offset off the ring's plane, 0 for the ring."""
+    th = fit.params
+    du, dv = u - fit.centre[0], v - fit.centre[1]
+    return (u - x0) - (th[0] + th[1] * du + th[2] * dv + th[3] * on_defect), du, dv
+
+
 def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],
                       weights: np.ndarray | None, box: tuple[float, float, float, float], margin: float,
                       images: DefectImages | None = None) -> float:
@@ -673,10 +683,8 @@ def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defe
     th = fit.params
     images = images or defect_images(left, right, fit, defect)
     (wx, wy), Rx = images.origin, images.Rx
-    uu, vv = (u[keep] - wx).astype(np.float64), (v[keep] - wy).astype(np.float64)
-    du, dv = u[keep] - fit.centre[0], v[keep] - fit.centre[1]
-    x = uu - (th[0] + th[1] * du + th[2] * dv + th[3])
-    gx = sample(Rx, x, vv, th[E])
+    x, du, dv = _right_columns(fit, u[keep], v[keep], wx, 1.0)
+    gx = sample(Rx, x, (v[keep] - wy).astype(np.float64), th[E])
     gain = th[4] + th[5] * du + th[6] * dv + th[8]
     j = np.where(np.isfinite(gx), gain * gx, 0.0)
     information = float(np.sum(p[keep] * j * j))
@@ -699,9 +707,7 @@ def contrast_ratio(fit: SurfaceFit, ring: tuple[np.ndarray, np.ndarray], defect:
 
     def ratio(u, v, on_defect, keep):
         u, v = u[keep], v[keep]
-        du, dv = u - fit.centre[0], v - fit.centre[1]
-        x = (u - x0) - (th[0] + th[1] * du + th[2] * dv + th[3] * on_defect)
-        right = sample(R, x.astype(np.float64), (v - y0).astype(np.float64), th[E])
+        right = sample(R, _right_columns(fit, u, v, x0, on_defect)[0], (v - y0).astype(np.float64), th[E])
         ok = np.isfinite(right)
         left, right = L[v - y0, u - x0][ok].astype(np.float64), right[ok]
         if len(right) < 2 or np.std(right) == 0:

@@ -22,7 +22,6 @@ from drivers.yaml_reader import safe_load
 
 SUITE = Path(__file__).resolve().parent.parent / "sim" / "eval_sets.yaml"
 RENDERERS = ("generate", "raycast")  # the ``inspect sim`` commands that render an evaluation set
-PART_NAMES = ("ring", "region", "extent")  # the error's parts in ``inspect eval depth``'s summary (core/error_parts.py)
 
 
 class SuiteError(ValueError):
@@ -141,7 +140,7 @@ def group_row(name: str, body: dict) -> dict[str, Any]:
         "texture_per_defect": s.get("error_over_texture_floor_per_defect"),
         "texture_sigma": s.get("sigma_over_texture_floor_median"),
         # each part's share of the error's squares (core/error_parts.py), where the sets have a true disparity
-        "parts": {name: s["error_parts"][name]["share"] for name in PART_NAMES} if s.get("error_parts") else {},
+        "parts": {name: part["share"] for name, part in s.get("error_parts", {}).items() if isinstance(part, dict)},
         "distance_percent": s.get("distance_error_percent", {}).get("median"),
         "distance_within_2_sigma": s.get("distance_within_2_sigma"),
         "distance_per_defect": s.get("distance_over_floor_per_defect"),
@@ -154,10 +153,11 @@ def group_row(name: str, body: dict) -> dict[str, Any]:
 
 
 def _parts(shares: dict[str, float] | None) -> str:
-    """The error's parts' shares as "9 / 90 / 1 %", or n/a without a true disparity (or without an error)."""
-    if not shares or any(shares.get(name) is None for name in PART_NAMES):
+    """The error's parts' shares as "9 / 90 / 1 %" in the summary's order (ring, region, extent: the column's header),
+    or n/a without a true disparity (or without an error)."""
+    if not shares or any(share is None for share in shares.values()):
         return "n/a"
-    return " / ".join(f"{100 * shares[name]:.0f}" for name in PART_NAMES) + " %"
+    return " / ".join(f"{100 * share:.0f}" for share in shares.values()) + " %"
 
 
 def rows_table(rows: list[dict[str, Any]]) -> str:

@@ -140,7 +140,8 @@ def group_row(name: str, body: dict) -> dict[str, Any]:
         "texture_per_defect": s.get("error_over_texture_floor_per_defect"),
         "texture_sigma": s.get("sigma_over_texture_floor_median"),
         # each part's share of the error's squares (core/error_parts.py), where the sets have a true disparity
-        "parts": {name: part["share"] for name, part in s.get("error_parts", {}).items() if isinstance(part, dict)},
+        "parts": {name: part["share"] for name, part in (s.get("error_parts") or {}).items()
+                  if isinstance(part, dict)},
         "distance_percent": s.get("distance_error_percent", {}).get("median"),
         "distance_within_2_sigma": s.get("distance_within_2_sigma"),
         "distance_per_defect": s.get("distance_over_floor_per_defect"),

@@ -355,14 +355,13 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     """``method: surface``: the ring's plane and the defect's offset fitted to the images, from the backend's
     plane and median offset. No deviation where the fit does not settle or the images do not match at it.
     ring_all: the ring's pixels (u, v); matched: (ring pixels,) bool, those the backend matched."""
-    # the ring less the pixels the backend puts on another surface (the belt, a neighbouring defect);
-    # pixels it left unmatched stay: the fit does not need their disparity
-    u_all, v_all = ring_all
+    # the whole ring goes to the fit, whose cells leave out what lies on another surface (the belt, a
+    # neighbouring defect) from the images themselves. Left out where the backend put it off its plane, the ring
+    # was the matcher's noise's to choose on faint texture: a crop's map and the full frame's chose otherwise
+    ring_u, ring_v = ring_all
     with np.errstate(invalid="ignore"):
-        off_plane = matched & (np.abs(plane(u_all.astype(np.float64), v_all.astype(np.float64))
-                                      - (disparity[v_all, u_all] + calib.doffs)) > rule.plane_tolerance_px)
-    keep = ~off_plane
-    ring_u, ring_v = u_all[keep], v_all[keep]
+        off_plane = matched & (np.abs(plane(ring_u.astype(np.float64), ring_v.astype(np.float64))
+                                      - (disparity[ring_v, ring_u] + calib.doffs)) > rule.plane_tolerance_px)
     uu, vv, weights = region_weights(inner, clipped)
     shift = (plane.a, plane.b, plane.c - calib.doffs)  # the plane of disparities without doffs
     seen = uu - (shift[0] * uu + shift[1] * vv + shift[2]) >= 2  # the right image holds the point
@@ -398,11 +397,10 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
                                     f"the camera's calibration file is not this camera's, or the camera has changed "
                                     f"since it was calibrated"), rows_apart_px=rows)
     # another surface is one that both the backend (beyond its tolerance) and the fit's cells reject: a
-    # sheen upsets only the cells, the crop's edge only the backend's map there. The ring kept above holds
-    # only the backend's pixels within tolerance, so a matched pixel of it is one the backend agrees with.
+    # sheen upsets only the cells, the crop's edge only the backend's map there.
     # A side the right camera does not see (left of its view) is out of view, not off the plane: the
     # images can say nothing of it, as of a side beyond the image's border.
-    backend_agrees = matched[keep]
+    backend_agrees = matched & ~off_plane
     in_view = ring_u - (shift[0] * ring_u + shift[1] * ring_v + shift[2]) >= 2
     how, share = worst_side_of((backend_agrees | (fit.ring_weights > 0.5))[in_view], ring_u[in_view],
                                ring_v[in_view], _clip_box(detection.box, disparity.shape))

@@ -215,7 +215,7 @@ class _Problem:
     """The pixels of one fit and the images they are read from (high-passed), with the model's residuals.
     ``R``, ``Rx``, ``Ry``: the right image and its gradients as the coefficients of their splines (``spline``)."""
 
-    def __init__(self, left, right, ring, defect, prior, raw_left, raw_right, centre):
+    def __init__(self, left, right, ring, defect, prior, raw_left, raw_right, centre, origin=(0, 0)):
         self.u = np.concatenate([ring[0], defect[0]]).astype(np.float64)
         self.v = np.concatenate([ring[1], defect[1]]).astype(np.float64)
         self.m = np.concatenate([np.zeros(len(ring[0])), np.ones(len(defect[0]))])
@@ -228,8 +228,11 @@ class _Problem:
         # the right image's saturated pixels: a sample that reads one is not usable
         self.right_saturated = (raw_right <= SATURATED[0]) | (raw_right >= SATURATED[1])
         ring = self.m == 0
+        # the window's ``origin`` in the image: cells lie on the image's grid, not the window's, whose corner
+        # follows the starting disparity (cut where the matcher's start moved it, they weighed the ring otherwise)
+        self.origin = origin
         # the ring's cells never change; their numbering is a sort, wanted at every reweighting
-        self.ring_cell = _cell_index(self.ui[ring], self.vi[ring], RING_CELL_PX)
+        self.ring_cell = _cell_index(self.ui[ring] + origin[0], self.vi[ring] + origin[1], RING_CELL_PX)
         self._levels = {}
         self.level(0.0)
 
@@ -348,9 +351,9 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     ring = (ring[0] - x0, ring[1] - y0)
     defect = (defect[0] - x0, defect[1] - y0)
     local = (centre[0] - x0, centre[1] - y0)
-    p = _Problem(high_pass(left), high_pass(right), ring, defect, prior, left, right, local)
+    p = _Problem(high_pass(left), high_pass(right), ring, defect, prior, left, right, local, (x0, y0))
     on_ring = p.m == 0
-    checker = ((p.ui + p.vi) % 2) == 0
+    checker = ((p.ui + x0 + p.vi + y0) % 2) == 0
     for level, (sigma, iterations) in enumerate(zip(BLUR_SIGMAS, ITERATIONS)):
         p.level(sigma)
         if level == 0:
@@ -384,7 +387,7 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     kept = np.flatnonzero(ok)
     r, J = r[kept], J.T.take(kept, axis=1).T
     scale = _robust_scale(r)
-    found = sandwich(J, r, scale, prior[kept], p.ui[ok], p.vi[ok])
+    found = sandwich(J, r, scale, prior[kept], p.ui[ok] + x0, p.vi[ok] + y0)
     if found is None:
         return None
     covariance, inflation = found

@@ -213,7 +213,8 @@ def _robust_scale(r: np.ndarray) -> float:
 
 class _Problem:
     """The pixels of one fit and the images they are read from (high-passed), with the model's residuals.
-    ``R``, ``Rx``, ``Ry``: the right image and its gradients as the coefficients of their splines (``spline``)."""
+    ``R``, ``Rx``, ``Ry``: the right image and its gradients as the coefficients of their splines (``spline``);
+    ``origin``: the images' top-left corner in the camera's image, where they are a window of it."""
 
     def __init__(self, left, right, ring, defect, prior, raw_left, raw_right, centre, origin=(0, 0)):
         self.u = np.concatenate([ring[0], defect[0]]).astype(np.float64)
@@ -228,9 +229,8 @@ class _Problem:
         # the right image's saturated pixels: a sample that reads one is not usable
         self.right_saturated = (raw_right <= SATURATED[0]) | (raw_right >= SATURATED[1])
         ring = self.m == 0
-        # the window's ``origin`` in the image: cells lie on the image's grid, not the window's, whose corner
-        # follows the starting disparity (cut where the matcher's start moved it, they weighed the ring otherwise)
-        self.origin = origin
+        # cells on the image's grid, not the window's: its corner follows the starting disparity, and cells cut
+        # where each start put it weighed the ring otherwise for each (faint pairs settled 0.006 px apart)
         # the ring's cells never change; their numbering is a sort, wanted at every reweighting
         self.ring_cell = _cell_index(self.ui[ring] + origin[0], self.vi[ring] + origin[1], RING_CELL_PX)
         self._levels = {}

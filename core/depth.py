@@ -66,8 +66,9 @@ class DepthRule:
     def from_recipe(cls, recipe: Any, **changes: Any) -> DepthRule:
         """The rule of a recipe: its ``depth`` section, with ``plane_tolerance_px`` counted in the matcher's
         pixels (``stereo.scale``): a matcher working at a quarter of the resolution knows its disparity to
-        about a pixel of its own, 4 of the frame's, and a tolerance finer than that sorts its noise, so
-        that the crops and the whole frame kept different ring pixels (0.05 mm apart at HD720)."""
+        about a pixel of its own, 4 of the frame's, and a tolerance finer than that sorts its noise: the
+        crops and the whole frame judged other ring pixels off the plane (0.05 mm apart at HD720 while the
+        surface fit still left such pixels out)."""
         scale = min(1.0, float(recipe.stereo.scale))
         return cls.from_section(recipe.depth, **{"plane_tolerance_px": recipe.depth.plane_tolerance_px / scale,
                                                  **changes})

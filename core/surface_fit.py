@@ -214,13 +214,17 @@ def _robust_scale(r: np.ndarray) -> float:
 class _Problem:
     """The pixels of one fit and the images they are read from (high-passed), with the model's residuals.
     ``R``, ``Rx``, ``Ry``: the right image and its gradients as the coefficients of their splines (``spline``);
-    ``origin``: the images' top-left corner in the camera's image, where they are a window of it."""
+    ``origin``: the images' top-left corner in the camera's image, where they are a window of it; ``at_u``,
+    ``at_v``: the pixels' positions there, on whose grid the ring's cells, the coarse levels' pixels and the
+    residuals' clusters lie (the window's corner follows the starting disparity, and cells cut where each start
+    put it weighed the ring otherwise for each: faint pairs settled 0.006 px apart)."""
 
     def __init__(self, left, right, ring, defect, prior, raw_left, raw_right, centre, origin=(0, 0)):
         self.u = np.concatenate([ring[0], defect[0]]).astype(np.float64)
         self.v = np.concatenate([ring[1], defect[1]]).astype(np.float64)
         self.m = np.concatenate([np.zeros(len(ring[0])), np.ones(len(defect[0]))])
         self.ui, self.vi = self.u.astype(np.intp), self.v.astype(np.intp)
+        self.at_u, self.at_v = self.ui + origin[0], self.vi + origin[1]
         self.du, self.dv = self.u - centre[0], self.v - centre[1]
         self.prior = prior
         self.left, self.right, self.raw_left, self.raw_right = left, right, raw_left, raw_right
@@ -229,10 +233,8 @@ class _Problem:
         # the right image's saturated pixels: a sample that reads one is not usable
         self.right_saturated = (raw_right <= SATURATED[0]) | (raw_right >= SATURATED[1])
         ring = self.m == 0
-        # cells on the image's grid, not the window's: its corner follows the starting disparity, and cells cut
-        # where each start put it weighed the ring otherwise for each (faint pairs settled 0.006 px apart)
         # the ring's cells never change; their numbering is a sort, wanted at every reweighting
-        self.ring_cell = _cell_index(self.ui[ring] + origin[0], self.vi[ring] + origin[1], RING_CELL_PX)
+        self.ring_cell = _cell_index(self.at_u[ring], self.at_v[ring], RING_CELL_PX)
         self._levels = {}
         self.level(0.0)
 
@@ -353,7 +355,7 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     local = (centre[0] - x0, centre[1] - y0)
     p = _Problem(high_pass(left), high_pass(right), ring, defect, prior, left, right, local, (x0, y0))
     on_ring = p.m == 0
-    checker = ((p.ui + x0 + p.vi + y0) % 2) == 0
+    checker = ((p.at_u + p.at_v) % 2) == 0
     for level, (sigma, iterations) in enumerate(zip(BLUR_SIGMAS, ITERATIONS)):
         p.level(sigma)
         if level == 0:
@@ -387,7 +389,7 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     kept = np.flatnonzero(ok)
     r, J = r[kept], J.T.take(kept, axis=1).T
     scale = _robust_scale(r)
-    found = sandwich(J, r, scale, prior[kept], p.ui[ok] + x0, p.vi[ok] + y0)
+    found = sandwich(J, r, scale, prior[kept], p.at_u[ok], p.at_v[ok])
     if found is None:
         return None
     covariance, inflation = found

@@ -214,13 +214,16 @@ def _robust_scale(r: np.ndarray) -> float:
 class _Problem:
     """The pixels of one fit and the images they are read from (high-passed), with the model's residuals.
     ``R``, ``Rx``, ``Ry``: the right image and its gradients as the coefficients of their splines (``spline``);
-    ``origin``: the images' top-left corner in the camera's image, where they are a window of it; ``at_u``,
+    ``origin``: the left image's top-left corner in the camera's image, where it is a window of it, and
+    ``right_shift`` how many columns further left the right image's window starts (``ur``, the pixels' columns
+    in it, is where the right image is read before the disparity is taken off); ``at_u``,
     ``at_v``: the pixels' positions there, on whose grid the ring's cells, the coarse levels' pixels and the
     residuals' clusters lie (the window's corner follows the starting disparity, and cells cut where each start
     put it weighed the ring otherwise for each: faint pairs settled 0.006 px apart)."""
 
-    def __init__(self, left, right, ring, defect, prior, raw_left, raw_right, centre, origin=(0, 0)):
+    def __init__(self, left, right, ring, defect, prior, raw_left, raw_right, centre, origin=(0, 0), right_shift=0):
         self.u = np.concatenate([ring[0], defect[0]]).astype(np.float64)
+        self.ur = self.u + right_shift
         self.v = np.concatenate([ring[1], defect[1]]).astype(np.float64)
         self.m = np.concatenate([np.zeros(len(ring[0])), np.ones(len(defect[0]))])
         self.ui, self.vi = self.u.astype(np.intp), self.v.astype(np.intp)
@@ -253,7 +256,7 @@ class _Problem:
         """(residuals, Jacobian rows (n, 11), usable) at ``theta`` on the current level's images, for the
         pixels ``idx`` (indices; all if None)."""
         idx = slice(None) if idx is None else idx
-        du, dv, m, u, v = self.du[idx], self.dv[idx], self.m[idx], self.u[idx], self.v[idx]
+        du, dv, m, u, v = self.du[idx], self.dv[idx], self.m[idx], self.ur[idx], self.v[idx]
         x = u - (theta[0] + theta[1] * du + theta[2] * dv + theta[3] * m)
         y = v + theta[E]
         rv, gx, gy = samples((self.R, self.Rx, self.Ry), x, v, theta[E])
@@ -313,7 +316,7 @@ class _Problem:
         ``-sum w J r`` of ``residuals`` over the usable pixels of ``idx`` (indices), each weighted by its
         share, at the residuals' robust scale (compiled: ``surface_fit_numba``)."""
         return surface_fit_numba.normal_equations(self.lvals, (self.R, self.Rx, self.Ry), self.right_saturated,
-                                                  self.usable, self.prior, self.u, self.v, self.du, self.dv, self.m,
+                                                  self.usable, self.prior, self.ur, self.v, self.du, self.dv, self.m,
                                                   theta, idx, HUBER_K, 1e-3)
 
 
@@ -349,11 +352,11 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     centre = (float(np.average(defect[0], weights=wd)), float(np.average(defect[1], weights=wd)))
     a0, b0, c_img = plane
     theta = np.array([a0 * centre[0] + b0 * centre[1] + c_img, a0, b0, delta0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-    (x0, y0), left, right = _window(left, right, ring, defect, theta, search_px)
+    (x0, y0), right_x0, left, right = _window(left, right, ring, defect, theta, search_px)
     ring = (ring[0] - x0, ring[1] - y0)
     defect = (defect[0] - x0, defect[1] - y0)
     local = (centre[0] - x0, centre[1] - y0)
-    p = _Problem(high_pass(left), high_pass(right), ring, defect, prior, left, right, local, (x0, y0))
+    p = _Problem(high_pass(left), high_pass(right), ring, defect, prior, left, right, local, (x0, y0), x0 - right_x0)
     on_ring = p.m == 0
     checker = ((p.at_u + p.at_v) % 2) == 0
     for level, (sigma, iterations) in enumerate(zip(BLUR_SIGMAS, ITERATIONS)):
@@ -397,7 +400,7 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     signal = _robust_scale(p.lvals[on_ring & p.usable])
     return SurfaceFit(theta, covariance, centre, int((ok & on_ring).sum()), int((ok & ~on_ring).sum()),
                       _robust_scale(r), inflation, converged, ring_weights, signal,
-                      DefectImages((x0, y0), p.L, p.R, p.Rx))
+                      DefectImages((x0, y0), right_x0, p.L, p.R, p.Rx))
 
 
 def warm_up() -> SurfaceFit | None:
@@ -419,18 +422,22 @@ WINDOW_MARGIN_PX = int(3 * HIGH_PASS_SIGMA) + 8  # the filters' reach, the blur'
 
 
 def _window(left, right, ring, defect, theta, search_px):
-    """The rows and columns a fit reads, cut from both images: (top-left corner, left crop, right crop).
-    The right image is read up to the largest disparity to the left of the pixels."""
+    """The rows and columns a fit reads, cut from each image: (the left window's top-left corner, the right
+    window's first column, left crop, right crop). The right image is read where the pixels lie less any
+    disparity the fit may reach, and only there: the columns between would be filtered for nothing (a third
+    of the window at WVGA, half at 2K)."""
     u = np.concatenate([ring[0], defect[0]])
     v = np.concatenate([ring[1], defect[1]])
     h, w = left.shape
-    reach = abs(theta[0]) + abs(theta[1]) * (u.max() - u.min()) + abs(theta[2]) * (v.max() - v.min()) \
-        + abs(theta[3]) + search_px + 2
-    x0 = max(0, int(u.min() - reach) - WINDOW_MARGIN_PX)
-    x1 = min(w, int(u.max()) + 1 + WINDOW_MARGIN_PX)
+    spread = abs(theta[1]) * (u.max() - u.min()) + abs(theta[2]) * (v.max() - v.min()) + abs(theta[3]) \
+        + search_px + 2
     y0 = max(0, int(v.min()) - WINDOW_MARGIN_PX)
     y1 = min(h, int(v.max()) + 1 + WINDOW_MARGIN_PX)
-    return (x0, y0), left[y0:y1, x0:x1], right[y0:y1, x0:x1]
+    x0 = max(0, int(u.min()) - WINDOW_MARGIN_PX)
+    x1 = min(w, int(u.max()) + 1 + WINDOW_MARGIN_PX)
+    right_x0 = min(max(0, int(u.min() - abs(theta[0]) - spread) - WINDOW_MARGIN_PX), w - 1)
+    right_x1 = max(min(w, int(u.max() - theta[0] + spread) + 1 + WINDOW_MARGIN_PX), right_x0 + 1)
+    return (x0, y0), right_x0, left[y0:y1, x0:x1], right[y0:y1, right_x0:right_x1]
 
 
 CONSENSUS_SAMPLES = 64
@@ -505,7 +512,7 @@ def _exposure(p: _Problem, theta: np.ndarray) -> tuple[float, float]:
     """Gain and offset of the ring by least squares at the starting disparities."""
     ring = p.m == 0
     d = theta[0] + theta[1] * p.du[ring] + theta[2] * p.dv[ring]
-    rv = sample(p.R, p.u[ring] - d, p.v[ring], theta[E])
+    rv = sample(p.R, p.ur[ring] - d, p.v[ring], theta[E])
     lv = p.lvals[ring]
     ok = np.isfinite(rv)
     if ok.sum() < 3 or np.std(rv[ok]) < 1e-6:
@@ -523,7 +530,7 @@ def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> floa
     sel = p.usable & (p.m == 1)
     if not sel.any():
         return float(theta[3])
-    u, v, w = p.u[sel], p.v[sel], p.prior[sel]
+    u, v, w = p.ur[sel], p.v[sel], p.prior[sel]
     base = theta[0] + theta[1] * p.du[sel] + theta[2] * p.dv[sel]
     gain = theta[4] + theta[5] * p.du[sel] + theta[6] * p.dv[sel] + theta[8]
     lv = p.lvals[sel]
@@ -587,11 +594,13 @@ def sandwich(J: np.ndarray, r: np.ndarray, scale: float, p: np.ndarray, u: np.nd
 
 @dataclass(frozen=True)
 class DefectImages:
-    """The high-passed window around a defect's region (``origin`` its top-left corner in the image): what
-    ``cell_offsets`` and ``interior_variance`` read: the fit's own (``SurfaceFit.images``), or
-    ``defect_images``'s for other images. ``R`` and ``Rx`` as their splines' coefficients (``spline``)."""
+    """The high-passed windows around a defect's region (``origin`` the left one's top-left corner in the image,
+    ``right_x0`` the right one's first column; they share their rows): what ``cell_offsets`` and
+    ``interior_variance`` read: the fit's own (``SurfaceFit.images``), or ``defect_images``'s for other images.
+    ``R`` and ``Rx`` as their splines' coefficients (``spline``)."""
 
     origin: tuple[int, int]
+    right_x0: int
     L: np.ndarray
     R: np.ndarray
     Rx: np.ndarray  # of R's horizontal gradient
@@ -602,9 +611,9 @@ def defect_images(left: np.ndarray, right: np.ndarray, fit: SurfaceFit,
     """HxW float32 grey images (as given to ``fit_surface``) -> the high-passed window the defect's pixels
     ``defect`` (u, v) read at the fitted surface (``fit.images`` holds them already for the images the fit
     was given: its window holds the defect's and more)."""
-    origin, left, right = _window(left, right, defect, defect, fit.params, 1.0)
+    origin, right_x0, left, right = _window(left, right, defect, defect, fit.params, 1.0)
     R = spline(high_pass(right))
-    return DefectImages(origin, high_pass(left), R, gradient_x(R))
+    return DefectImages(origin, right_x0, high_pass(left), R, gradient_x(R))
 
 
 def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: tuple[np.ndarray, np.ndarray],
@@ -620,12 +629,12 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     th = fit.params
     images = images or defect_images(left, right, fit, defect)
     (x0, y0), L, R, Rx = images.origin, images.L, images.R, images.Rx
-    u, v = (defect[0] - x0).astype(np.float64), (defect[1] - y0).astype(np.float64)
+    u, v = (defect[0] - images.right_x0).astype(np.float64), (defect[1] - y0).astype(np.float64)
     rows, cols = defect[1] - y0, defect[0] - x0
     p = np.ones(len(u)) if weights is None else np.asarray(weights, dtype=np.float64)
     cell = _cell_index(defect[0], defect[1], cell_px)
     k = cell.max() + 1
-    du, dv = u - (fit.centre[0] - x0), v - (fit.centre[1] - y0)
+    du, dv = defect[0] - fit.centre[0], defect[1] - fit.centre[1]
     plane = th[0] + th[1] * du + th[2] * dv
     gain = th[4] + th[5] * du + th[6] * dv + th[8]
     lv = L[rows, cols].astype(np.float64)
@@ -687,8 +696,8 @@ def interior_variance(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defe
         return float("inf")
     th = fit.params
     images = images or defect_images(left, right, fit, defect)
-    (wx, wy), Rx = images.origin, images.Rx
-    x, du, dv = _right_columns(fit, u[keep], v[keep], wx, 1.0)
+    wy, Rx = images.origin[1], images.Rx
+    x, du, dv = _right_columns(fit, u[keep], v[keep], images.right_x0, 1.0)
     gx = sample(Rx, x, (v[keep] - wy).astype(np.float64), th[E])
     gain = th[4] + th[5] * du + th[6] * dv + th[8]
     j = np.where(np.isfinite(gx), gain * gx, 0.0)
@@ -708,11 +717,11 @@ def contrast_ratio(fit: SurfaceFit, ring: tuple[np.ndarray, np.ndarray], defect:
     (``fit.ring_weights``) and the region's of weight 0 are not read. 0 or inf where one eye sees texture in the
     region (or the ring) and the other none; nan where neither does, or no pixel is read."""
     (x0, y0), L, R = fit.images.origin, fit.images.L, fit.images.R
-    th = fit.params
+    right_x0, th = fit.images.right_x0, fit.params
 
     def ratio(u, v, on_defect, keep):
         u, v = u[keep], v[keep]
-        right = sample(R, _right_columns(fit, u, v, x0, on_defect)[0], (v - y0).astype(np.float64), th[E])
+        right = sample(R, _right_columns(fit, u, v, right_x0, on_defect)[0], (v - y0).astype(np.float64), th[E])
         ok = np.isfinite(right)
         left, right = L[v - y0, u - x0][ok].astype(np.float64), right[ok]
         if len(right) < 2 or np.std(right) == 0:

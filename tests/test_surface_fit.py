@@ -579,8 +579,9 @@ class TestContrastRatio:
         (x0, y0), images = fit.images.origin, fit.images
         x, y = self.INNER[0] - x0, self.INNER[1] - y0
         d = int(_plane_at(80, 60) - 0.3)
+        xr = self.INNER[0] - images.right_x0  # the right eye's window starts further left
         flat = images.R.copy()  # the right eye's spline: constant where the region is read, a plain patch
-        flat[y - 3:y + 22, x - d - 4:x - d + 28] = 7.0
+        flat[y - 3:y + 22, xr - d - 4:xr - d + 28] = 7.0
         assert sf.contrast_ratio(dataclasses.replace(fit, images=dataclasses.replace(images, R=flat)), ring,
                                  defect) == math.inf
         blank = images.L.copy()

@@ -236,10 +236,11 @@ class _Problem:
         # the right image's saturated pixels: a sample that reads one is not usable
         self.right_saturated = (raw_right <= SATURATED[0]) | (raw_right >= SATURATED[1])
         ring = self.m == 0
-        # the ring's cells never change; their numbering is a sort, wanted at every reweighting
+        # the ring's cells never change; their numbering (a sort) and centres are wanted at every reweighting
         self.ring_cell = _cell_index(self.at_u[ring], self.at_v[ring], RING_CELL_PX)
         self.ring_cells = int(self.ring_cell.max()) + 1 if self.ring_cell.size else 0
-        self.ring_cell_du, self.ring_cell_dv = _cell_means(self.ring_cell, self.ring_cells, self.du[ring], self.dv[ring])
+        self.ring_cell_du, self.ring_cell_dv = _cell_means(self.ring_cell, self.ring_cells, self.du[ring],
+                                                           self.dv[ring])
         self._levels = {}
         self.level(0.0)
 

@@ -286,6 +286,113 @@ def robust_scale(r):
     return 1.4826 * _median(np.abs(r - _median(r)))
 
 
+@njit(cache=True, nogil=True)
+def _cell_steps(splines, u, rows, e, plane, gain, lv, o_surface, o_defect, p, cell, k, start, scale, huber_k,
+                iterations, max_step, tolerance):
+    n = u.size
+    offsets = np.full(k, start)
+    step = np.zeros(k)
+    j = np.zeros(n)
+    x = np.empty(n)
+    sampled = np.empty((2, n))
+    cut = huber_k * scale
+    for _ in range(iterations):
+        for i in range(n):
+            x[i] = u[i] - plane[i] - offsets[cell[i]]
+        _sample_rows(splines, x, rows, e, sampled)
+        num, den = np.zeros(k), np.zeros(k)
+        for i in range(n):
+            # the samples at float32, as ``sample_rows`` gives them
+            rv, gx = np.float64(np.float32(sampled[0, i])), np.float64(np.float32(sampled[1, i]))
+            if np.isfinite(rv) and np.isfinite(gx) and p[i] > 0:
+                r = lv[i] - gain[i] * rv - o_surface - o_defect
+                j[i] = gain[i] * gx
+            else:
+                r, j[i] = 0.0, 0.0
+            a = abs(r)
+            h = (1.0 if a <= cut else cut / max(a, 1e-12)) * p[i]
+            num[cell[i]] += h * j[i] * r
+            den[cell[i]] += h * j[i] * j[i]
+        settled = True
+        for c in range(k):
+            step[c] = -num[c] / max(den[c], 1e-12) if den[c] > 0 else 0.0
+            offsets[c] += min(max(step[c], -max_step), max_step)
+            settled &= abs(step[c]) < tolerance
+        if settled:
+            break
+    return offsets, step, j
+
+
+def cell_steps(splines: tuple[np.ndarray, np.ndarray], u: np.ndarray, rows: np.ndarray, e: float, plane: np.ndarray,
+               gain: np.ndarray, lv: np.ndarray, exposure_offsets: tuple[float, float], p: np.ndarray, cell: np.ndarray,
+               k: int,
+               start: float, scale: float, huber_k: float, iterations: int, max_step: float,
+               tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each of ``k`` cells' own disparity offset by Gauss-Newton on its pixels, the plane and exposure held:
+    pixel i (of N) reads the right image's spline and its gradient's (``splines``, HxW float32) at column
+    ``u - plane - offset`` of row ``rows + e``; residual ``lv - gain * R - o - o_m`` (``exposure_offsets``: the
+    surface's exposure offset and the defect's own), Huber-weighted at
+    ``huber_k * scale`` times its share ``p``; each step clipped to ``max_step``, until every cell's step is
+    below ``tolerance`` or after ``iterations``. u, plane, gain, lv, p: (N,) float64; rows, cell: (N,) int.
+    Returns (offsets (k,), the last steps (k,), each pixel's derivative by the disparity at the last
+    iteration's offsets (N,), 0 where its sample is no number)."""
+    if len(splines) != 2 or any(c.ndim != 2 or c.dtype != np.float32 or c.shape != splines[0].shape for c in splines):
+        raise ValueError(f"cell_steps: splines {[(np.shape(c), str(np.asarray(c).dtype)) for c in splines]} must be two "
+                         "HxW float32 of one shape")
+    n = len(u)
+    for name, array in (("rows", rows), ("plane", plane), ("gain", gain), ("lv", lv), ("p", p), ("cell", cell)):
+        if np.shape(array) != (n,):
+            raise ValueError(f"cell_steps: {name} {np.shape(array)} must be ({n},) as u")
+    f64 = np.float64
+    return _cell_steps(tuple(np.ascontiguousarray(c) for c in splines), np.asarray(u, f64), np.asarray(rows, np.int64),
+                       float(e), np.asarray(plane, f64), np.asarray(gain, f64), np.asarray(lv, f64),
+                       float(exposure_offsets[0]), float(exposure_offsets[1]), np.asarray(p, f64), np.asarray(cell, np.int64), int(k), float(start),
+                       float(scale), float(huber_k), int(iterations), float(max_step), float(tolerance))
+
+
+@njit(cache=True, nogil=True)
+def _tukey_mean(x, s, prior, start, iterations, cut_k):
+    mu = start
+    n = x.size
+    w = np.ones(n)
+    scaled = np.empty(n)
+    for _ in range(iterations):
+        for i in range(n):
+            scaled[i] = abs(x[i] - mu) / s[i]
+        spread = max(1.0, 1.4826 * _median(scaled))
+        total = 0.0
+        for i in range(n):
+            z = (x[i] - mu) / (cut_k * s[i] * spread)
+            w[i] = (1 - z * z) ** 2 if abs(z) < 1 else 0.0
+            total += w[i]
+        if total <= 0:
+            w[:] = 1.0
+        num, den = 0.0, 0.0
+        for i in range(n):
+            num += w[i] * prior[i] * x[i]
+            den += w[i] * prior[i]
+        new = num / den
+        done = abs(new - mu) < 1e-6
+        mu = new
+        if done:
+            break
+    return mu, w
+
+
+def tukey_mean(x: np.ndarray, s: np.ndarray, prior: np.ndarray, start: float, iterations: int,
+               cut_k: float) -> tuple[float, np.ndarray]:
+    """Tukey's M-estimate of the common value of ``x`` (K,) with standard deviations ``s`` (K,, finite, above 0),
+    weighed by ``prior`` (K,), from ``start``: the cut at ``cut_k`` times each standard deviation times the values'
+    robust spread in those units (at least 1), re-weighted until the estimate moves less than 1e-6 or after
+    ``iterations``. Returns (the estimate, the final Tukey weights (K,))."""
+    if not (x.shape == s.shape == np.shape(prior)) or x.ndim != 1 or x.size == 0:
+        raise ValueError(f"tukey_mean: x {x.shape}, s {s.shape} and prior {np.shape(prior)} must be the same (K,), "
+                         "K at least 1")
+    f64 = np.float64
+    return _tukey_mean(x.astype(f64), s.astype(f64), np.asarray(prior, f64), float(start), int(iterations),
+                       float(cut_k))
+
+
 @njit(cache=True, nogil=True, fastmath=True)
 def _dot(x, y):
     # reassociated so that LLVM vectorises it: a chain of dependent additions was most of the system's time

@@ -508,6 +508,62 @@ class TestCellOffsets:
         assert settled.all() and np.median(np.abs(offsets + 0.3) / sds) < 1.5
 
 
+class TestCellSteps:
+    """``surface_fit_numba.cell_steps`` against the cells' Gauss-Newton steps as NumPy takes them."""
+
+    @staticmethod
+    def _numpy(splines, u, rows, e, plane, gain, lv, o, p, cell, k, start, scale, iterations):
+        offsets, j, step = np.full(k, start), np.zeros(len(u)), np.zeros(k)
+        for _ in range(iterations):
+            rv, gx = sf.samples(splines, u - plane - offsets[cell], rows.astype(np.float64), e)
+            ok = np.isfinite(rv) & np.isfinite(gx) & (p > 0)
+            r = np.where(ok, lv - gain * rv - o[0] - o[1], 0.0)
+            j = np.where(ok, gain * gx, 0.0)
+            h = sf._huber_weights(r, scale) * p
+            num = np.bincount(cell, h * j * r, minlength=k)
+            den = np.bincount(cell, h * j * j, minlength=k)
+            step = np.where(den > 0, -num / np.maximum(den, 1e-12), 0.0)
+            offsets = offsets + np.clip(step, -0.5, 0.5)
+            if np.all(np.abs(step) < 1e-4):
+                break
+        return offsets, step, j
+
+    def _inputs(self, e=0.0, shift=0.0):
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=6)
+        R = sf.spline(sf.high_pass(right))
+        splines = (R, sf.gradient_x(R))
+        vv, uu = np.mgrid[51:69, 68:92]
+        u, rows = uu.ravel().astype(np.float64) + shift, vv.ravel()
+        plane = _plane_at(uu.ravel(), vv.ravel())
+        rng = np.random.default_rng(0)
+        gain = rng.uniform(0.95, 1.05, u.size)
+        lv = sf.high_pass(left)[rows, uu.ravel()].astype(np.float64)
+        p = np.where(rng.random(u.size) < 0.1, 0.0, 1.0)  # a tenth of the pixels carry no share
+        cell = sf._cell_index(uu.ravel(), vv.ravel(), sf.CELL_PX)
+        return splines, u, rows, e, plane, gain, lv, (0.5, -0.25), p, cell, int(cell.max()) + 1
+
+    @pytest.mark.parametrize("e,shift,iterations", [(0.0, 0.0, 8), (0.4, 0.0, 8), (0.0, 0.0, 1), (0.0, 110.0, 8)])
+    def test_equals_the_numpy_steps(self, e, shift, iterations):
+        # a shift of 110 px sends some samples out of the image; one iteration stops the cells mid-way
+        args = self._inputs(e, shift)
+        got = sfn.cell_steps(*args, -0.1, 3.0, sf.HUBER_K, iterations, 0.5, 1e-4)
+        want = self._numpy(*args, -0.1, 3.0, iterations)
+        for a, b in zip(got, want):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+        offsets, step, j = got
+        assert np.all(np.isfinite(offsets)) and np.all(np.abs(offsets - -0.1) <= 0.5 * iterations + 1e-12)
+        assert np.all(j[args[8] == 0] == 0)  # pixels of no share carry no gradient
+        if shift:
+            assert np.any(j[args[8] > 0] == 0)  # nor those whose samples leave the image
+
+    def test_shape_checks(self):
+        splines, u, rows, e, plane, gain, lv, o, p, cell, k = self._inputs()
+        with pytest.raises(ValueError, match="gain"):
+            sfn.cell_steps(splines, u, rows, e, plane, gain[:-1], lv, o, p, cell, k, 0.0, 1.0, 1.0, 8, 0.5, 1e-4)
+        with pytest.raises(ValueError, match="splines"):
+            sfn.cell_steps(splines[:1], u, rows, e, plane, gain, lv, o, p, cell, k, 0.0, 1.0, 1.0, 8, 0.5, 1e-4)
+
+
 class TestInteriorVariance:
     INNER = (68, 51, 92, 69)
 
@@ -641,6 +697,48 @@ class TestRobustOffset:
             sf.robust_offset(np.zeros(3), np.ones(4), 0.0)
         with pytest.raises(ValueError, match="areas"):
             sf.robust_offset(np.zeros(3), np.ones(3), 0.0, areas=np.ones(2))
+
+
+class TestTukeyMean:
+    """``surface_fit_numba.tukey_mean`` against the reweighting as NumPy does it."""
+
+    @staticmethod
+    def _numpy(x, s, prior, start, iterations, cut_k):
+        mu, w = start, np.ones_like(x)
+        for _ in range(iterations):
+            spread = max(1.0, float(1.4826 * np.median(np.abs(x - mu) / s)))
+            w = sf._tukey_weights((x - mu) / (cut_k * s * spread))
+            if w.sum() <= 0:
+                w = np.ones_like(x)
+            new = float(np.sum(w * prior * x) / np.sum(w * prior))
+            done = abs(new - mu) < 1e-6
+            mu = new
+            if done:
+                break
+        return mu, w
+
+    @pytest.mark.parametrize("n,iterations", [(40, 20), (41, 20), (7, 2), (1, 20)])
+    def test_equals_the_numpy_reweighting(self, n, iterations):
+        rng = np.random.default_rng(n)
+        x = np.r_[rng.normal(-0.3, 0.03, n - n // 4), rng.normal(0.2, 0.03, n // 4)]  # a quarter on a wall
+        s, prior = rng.uniform(0.01, 0.05, n), rng.uniform(0.5, 2.0, n)
+        mu, w = sfn.tukey_mean(x, s, prior, -0.2, iterations, sf.TUKEY_K)
+        mu_ref, w_ref = self._numpy(x, s, prior, -0.2, iterations, sf.TUKEY_K)
+        assert mu == pytest.approx(mu_ref, rel=1e-12, abs=1e-15)
+        np.testing.assert_allclose(w, w_ref, rtol=1e-9, atol=1e-12)
+        if n >= 40:
+            assert np.sum(w == 0) >= n // 4 - 1  # the wall's cells cut
+
+    def test_a_cut_that_keeps_no_value_weighs_them_all_alike(self):
+        x, s, prior = np.array([0.0, 1.0, 3.0]), np.full(3, 0.01), np.array([1.0, 1.0, 2.0])
+        mu, w = sfn.tukey_mean(x, s, prior, 10.0, 20, 1e-9)
+        assert w.tolist() == [1.0, 1.0, 1.0] and mu == pytest.approx(7.0 / 4.0)
+
+    def test_shape_checks(self):
+        with pytest.raises(ValueError, match="prior"):
+            sfn.tukey_mean(np.zeros(3), np.ones(3), np.ones(2), 0.0, 20, 1.0)
+        with pytest.raises(ValueError, match="at least 1"):
+            sfn.tukey_mean(np.zeros(0), np.ones(0), np.ones(0), 0.0, 20, 1.0)
 
 
 class TestCellAreas:

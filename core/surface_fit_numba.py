@@ -287,6 +287,80 @@ def robust_scale(r):
 
 
 @njit(cache=True, nogil=True)
+def _ring_cell_offsets(splines, right_saturated, lvals, usable, prior, u, v, du, dv, m, theta, idx, cell, k, huber_k,
+                       scale_floor):
+    h, w = splines[0].shape
+    n = idx.size
+    xs, rows = np.empty(n), np.empty(n, np.int64)
+    for t in range(n):
+        i = idx[t]
+        xs[t] = u[i] - (theta[0] + theta[1] * du[i] + theta[2] * dv[i] + theta[3] * m[i])
+        rows[t] = int(v[i])
+    sampled = np.empty((2, n))
+    _sample_rows(splines, xs, rows, theta[E], sampled)
+    r, j = np.empty(n), np.empty(n)
+    ok = np.zeros(n, np.bool_)
+    kept = np.empty(n)
+    count = 0
+    for t in range(n):
+        i = idx[t]
+        # the samples at float32, as ``sample_rows`` gives them
+        rv, gx = np.float64(np.float32(sampled[0, t])), np.float64(np.float32(sampled[1, t]))
+        column = min(max(int(np.rint(xs[t])), 0), w - 1)
+        row = min(max(int(np.rint(v[i] + theta[E])), 0), h - 1)
+        ok[t] = usable[i] and np.isfinite(rv) and not right_saturated[row, column] and prior[i] > 0
+        gain = theta[4] + theta[5] * du[i] + theta[6] * dv[i] + theta[8] * m[i]
+        r[t] = lvals[i] - gain * rv - theta[7] - theta[9] * m[i]
+        j[t] = gain * gx
+        if ok[t]:
+            kept[count] = r[t]
+            count += 1
+    scale = robust_scale(kept[:count])
+    if scale == 0.0:
+        scale = scale_floor
+    cut = huber_k * scale
+    info, num = np.zeros(k), np.zeros(k)
+    for t in range(n):
+        a = abs(r[t])
+        weight = (1.0 if a <= cut else cut / max(a, 1e-12)) if ok[t] else 0.0
+        # a pixel whose sample is no number leaves its cell none (0 x NaN), as NumPy's sums do
+        info[cell[t]] += weight * j[t] * j[t]
+        num[cell[t]] += weight * j[t] * r[t]
+    offset, sd = np.empty(k), np.empty(k)
+    for c in range(k):
+        offset[c] = -num[c] / max(info[c], 1e-12)
+        sd[c] = scale / np.sqrt(max(info[c], 1e-12)) if info[c] > 0 else np.inf
+    return offset, sd, ok
+
+
+def ring_cell_offsets(lvals: np.ndarray, splines: tuple[np.ndarray, np.ndarray], right_saturated: np.ndarray,
+                      usable: np.ndarray, prior: np.ndarray, u: np.ndarray, v: np.ndarray, du: np.ndarray,
+                      dv: np.ndarray, m: np.ndarray, theta: np.ndarray, idx: np.ndarray, cell: np.ndarray, k: int,
+                      huber_k: float, scale_floor: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each of ``k`` cells' disparity offset from the surface model at ``theta``, by one Gauss-Newton step on its
+    pixels ``idx`` (``cell``: each one's cell), Huber-weighted at the pixels' robust scale (``scale_floor`` where
+    it is 0), and its standard deviation (inf for a cell with no gradient). A cell one of whose samples leaves the
+    image has no number. Arguments as ``normal_equations``' (the splines of the right image and of its horizontal
+    gradient alone). Returns (offsets (k,), sds (k,), usable (n,): the pixels that entered)."""
+    n = len(lvals)
+    for name, array in (("usable", usable), ("prior", prior), ("u", u), ("v", v), ("du", du), ("dv", dv), ("m", m)):
+        if array.shape != (n,):
+            raise ValueError(f"ring_cell_offsets: {name} {array.shape} must be ({n},) as lvals")
+    if (len(splines) != 2 or any(c.ndim != 2 or c.dtype != np.float32 or not c.flags.c_contiguous
+                                 or c.shape != right_saturated.shape for c in splines)):
+        raise ValueError(f"ring_cell_offsets: splines {[(np.shape(c), str(c.dtype)) for c in splines]} must be two "
+                         f"C-contiguous HxW float32 and right_saturated {right_saturated.shape} HxW of their size")
+    if np.shape(cell) != np.shape(idx) or theta.shape != (N_PARAMS,):
+        raise ValueError(f"ring_cell_offsets: cell {np.shape(cell)} must be as idx {np.shape(idx)}, theta "
+                         f"{theta.shape} ({N_PARAMS},)")
+    f64 = np.float64
+    return _ring_cell_offsets(tuple(splines), right_saturated, lvals.astype(f64, copy=False), usable,
+                              prior.astype(f64, copy=False), u, v, du, dv, m.astype(f64, copy=False),
+                              theta.astype(f64, copy=False), np.asarray(idx, np.int64), np.asarray(cell, np.int64),
+                              int(k), float(huber_k), float(scale_floor))
+
+
+@njit(cache=True, nogil=True)
 def _cell_steps(splines, u, rows, e, plane, gain, lv, o_surface, o_defect, p, cell, k, start, scale, huber_k,
                 iterations, max_step, tolerance):
     n = u.size

@@ -178,6 +178,50 @@ class TestNormalEquations:
                                  p.dv, p.m, theta[:4], idx, 1.0, 1e-3)
 
 
+class TestRingCellOffsets:
+    """``surface_fit_numba.ring_cell_offsets`` against the ring's cells as NumPy reads them from
+    ``_Problem.residuals``."""
+
+    @staticmethod
+    def _numpy(p, theta, idx, cell, k):
+        r, J, ok = p.residuals(theta, idx)
+        j, ok = J[:, 0], ok & (p.prior[idx] > 0)
+        scale = sf._robust_scale(r[ok])
+        h = np.where(ok, sf._huber_weights(r, scale), 0.0)
+        with np.errstate(invalid="ignore"):
+            info = np.bincount(cell, h * j * j, minlength=k)
+            offset = -np.bincount(cell, h * j * r, minlength=k) / np.maximum(info, 1e-12)
+            sd = np.where(info > 0, scale / np.sqrt(np.maximum(info, 1e-12)), np.inf)
+        return offset, sd, ok
+
+    @pytest.mark.parametrize("shift,saturate", [(0.0, False), (0.4, False), (60.0, False), (0.0, True)])
+    def test_equals_the_numpy_cells(self, shift, saturate):
+        # 60 px sends a third of the samples out of the image (their cells have no number); the band saturates some
+        p, theta = _problem(shift, saturate)
+        p.prior[::7] = 0.0  # pixels of no share
+        got = sfn.ring_cell_offsets(p.lvals, (p.R, p.Rx), p.right_saturated, p.usable, p.prior, p.ur, p.v, p.du, p.dv,
+                                    p.m, theta, p.ring_idx, p.ring_cell, p.ring_cells, sf.HUBER_K, 1e-3)
+        want = self._numpy(p, theta, p.ring_idx, p.ring_cell, p.ring_cells)
+        for a, b in zip(got, want):
+            np.testing.assert_array_equal(a, b)
+        offset, sd, ok = got
+        assert not ok[::7].any()
+        assert np.isnan(offset).any() == (shift > 1)
+        if shift == 0.4:  # the ring's cells see the plane 0.4 px away
+            assert np.median(offset[np.isfinite(sd)]) == pytest.approx(-0.4, abs=0.05)
+
+    def test_shape_checks(self):
+        p, theta = _problem()
+        args = [p.lvals, (p.R, p.Rx), p.right_saturated, p.usable, p.prior, p.ur, p.v, p.du, p.dv, p.m, theta,
+                p.ring_idx, p.ring_cell, p.ring_cells, 1.0, 1e-3]
+        with pytest.raises(ValueError, match="prior"):
+            sfn.ring_cell_offsets(*args[:4], p.prior[:-1], *args[5:])
+        with pytest.raises(ValueError, match="splines"):
+            sfn.ring_cell_offsets(args[0], (p.R, p.Rx, p.Ry), *args[2:])
+        with pytest.raises(ValueError, match="cell"):
+            sfn.ring_cell_offsets(*args[:12], p.ring_cell[:-1], *args[13:])
+
+
 class TestCellIndex:
     def test_numbers_the_cells_present_in_reading_order(self):
         u, v = np.array([7, 0, 8, 30, 2, 31]), np.array([0, 9, 1, 0, 8, 5])

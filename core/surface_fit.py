@@ -408,9 +408,9 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
 
 
 def warm_up() -> SurfaceFit | None:
-    """Fit a small synthetic pair (a plane 4 px of disparity away) once and measure its region's cells, so
-    that the compiled kernels are loaded (0.1 s from numba's cache, 2-3 s to compile without it) before the
-    first part rather than during it. Returns that fit."""
+    """Fit a small synthetic pair (a plane 4 px of disparity away) once and measure its region's cells and
+    their robust offset, so that the compiled kernels are loaded (0.1 s from numba's cache, 2-3 s to compile
+    without it) before the first part rather than during it. Returns that fit."""
     rng = np.random.default_rng(0)
     texture = cv2.GaussianBlur(rng.uniform(0, 255, (80, 120)).astype(np.float32), (0, 0), 1.5)
     left, right = texture[:, :100].copy(), texture[:, 4:104].copy()  # 4 px of disparity everywhere
@@ -418,7 +418,8 @@ def warm_up() -> SurfaceFit | None:
     inside = (u >= 45) & (u < 65) & (v >= 32) & (v < 48)
     fit = fit_surface(left, right, (u[~inside], v[~inside]), (u[inside], v[inside]), (0.0, 0.0, 3.5))
     if fit is not None:
-        cell_offsets(left, right, fit, (u[inside], v[inside]))  # its samples read two splines at once
+        offsets, sds, _, _ = cell_offsets(left, right, fit, (u[inside], v[inside]))
+        robust_offset(offsets, sds, fit.delta)
     return fit
 
 

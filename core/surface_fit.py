@@ -663,8 +663,8 @@ def cell_offsets(left: np.ndarray, right: np.ndarray, fit: SurfaceFit, defect: t
     gain = th[4] + th[5] * du + th[6] * dv + th[8]
     lv = L[rows, cols].astype(np.float64)
     # compiled: eight Gauss-Newton steps of a few dozen NumPy calls each were a millisecond a defect
-    offsets, step, j = surface_fit_numba.cell_steps((R, Rx), u, rows, th[E], plane, gain, lv, (th[7], th[9]), p, cell, k,
-                                                    fit.delta, fit.residual_sigma, HUBER_K, iterations, 0.5, 1e-4)
+    offsets, step, j = surface_fit_numba.cell_steps((R, Rx), u, rows, th[E], plane, gain, lv, (th[7], th[9]), p, cell,
+                                                    k, fit.delta, fit.residual_sigma, HUBER_K, iterations, 0.5, 1e-4)
     info = np.bincount(cell, p * j * j, minlength=k)
     sd = np.full(k, np.inf)
     has = info > 0

@@ -342,17 +342,9 @@ def ring_cell_offsets(lvals: np.ndarray, splines: tuple[np.ndarray, np.ndarray],
     it is 0), and its standard deviation (inf for a cell with no gradient). A cell one of whose samples leaves the
     image has no number. Arguments as ``normal_equations``' (the splines of the right image and of its horizontal
     gradient alone). Returns (offsets (k,), sds (k,), usable (n,): the pixels that entered)."""
-    n = len(lvals)
-    for name, array in (("usable", usable), ("prior", prior), ("u", u), ("v", v), ("du", du), ("dv", dv), ("m", m)):
-        if array.shape != (n,):
-            raise ValueError(f"ring_cell_offsets: {name} {array.shape} must be ({n},) as lvals")
-    if (len(splines) != 2 or any(c.ndim != 2 or c.dtype != np.float32 or not c.flags.c_contiguous
-                                 or c.shape != right_saturated.shape for c in splines)):
-        raise ValueError(f"ring_cell_offsets: splines {[(np.shape(c), str(c.dtype)) for c in splines]} must be two "
-                         f"C-contiguous HxW float32 and right_saturated {right_saturated.shape} HxW of their size")
-    if np.shape(cell) != np.shape(idx) or theta.shape != (N_PARAMS,):
-        raise ValueError(f"ring_cell_offsets: cell {np.shape(cell)} must be as idx {np.shape(idx)}, theta "
-                         f"{theta.shape} ({N_PARAMS},)")
+    _check_fit_arrays("ring_cell_offsets", 2, lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta)
+    if np.shape(cell) != np.shape(idx):
+        raise ValueError(f"ring_cell_offsets: cell {np.shape(cell)} must be as idx {np.shape(idx)}")
     f64 = np.float64
     return _ring_cell_offsets(tuple(splines), right_saturated, lvals.astype(f64, copy=False), usable,
                               prior.astype(f64, copy=False), u, v, du, dv, m.astype(f64, copy=False),
@@ -405,23 +397,24 @@ def cell_steps(splines: tuple[np.ndarray, np.ndarray], u: np.ndarray, rows: np.n
     """Each of ``k`` cells' own disparity offset by Gauss-Newton on its pixels, the plane and exposure held:
     pixel i (of N) reads the right image's spline and its gradient's (``splines``, HxW float32) at column
     ``u - plane - offset`` of row ``rows + e``; residual ``lv - gain * R - o - o_m`` (``exposure_offsets``: the
-    surface's exposure offset and the defect's own), Huber-weighted at
-    ``huber_k * scale`` times its share ``p``; each step clipped to ``max_step``, until every cell's step is
-    below ``tolerance`` or after ``iterations``. u, plane, gain, lv, p: (N,) float64; rows, cell: (N,) int.
+    surface's exposure offset and the defect's own), Huber-weighted at ``huber_k * scale`` times its share ``p``;
+    each step clipped to ``max_step``, until every cell's step is below ``tolerance`` or after ``iterations``.
+    u, plane, gain, lv, p: (N,) float64; rows, cell: (N,) int.
     Returns (offsets (k,), the last steps (k,), each pixel's derivative by the disparity at the last
     iteration's offsets (N,), 0 where its sample is no number)."""
     if len(splines) != 2 or any(c.ndim != 2 or c.dtype != np.float32 or c.shape != splines[0].shape for c in splines):
-        raise ValueError(f"cell_steps: splines {[(np.shape(c), str(np.asarray(c).dtype)) for c in splines]} must be two "
-                         "HxW float32 of one shape")
+        raise ValueError(f"cell_steps: splines {[(np.shape(c), str(np.asarray(c).dtype)) for c in splines]} must be "
+                         "two HxW float32 of one shape")
     n = len(u)
     for name, array in (("rows", rows), ("plane", plane), ("gain", gain), ("lv", lv), ("p", p), ("cell", cell)):
         if np.shape(array) != (n,):
             raise ValueError(f"cell_steps: {name} {np.shape(array)} must be ({n},) as u")
     f64 = np.float64
-    return _cell_steps(tuple(np.ascontiguousarray(c) for c in splines), np.asarray(u, f64), np.asarray(rows, np.int64),
-                       float(e), np.asarray(plane, f64), np.asarray(gain, f64), np.asarray(lv, f64),
-                       float(exposure_offsets[0]), float(exposure_offsets[1]), np.asarray(p, f64), np.asarray(cell, np.int64), int(k), float(start),
-                       float(scale), float(huber_k), int(iterations), float(max_step), float(tolerance))
+    return _cell_steps(tuple(np.ascontiguousarray(c) for c in splines), np.asarray(u, f64),
+                       np.asarray(rows, np.int64), float(e), np.asarray(plane, f64), np.asarray(gain, f64),
+                       np.asarray(lv, f64), float(exposure_offsets[0]), float(exposure_offsets[1]), np.asarray(p, f64),
+                       np.asarray(cell, np.int64), int(k), float(start), float(scale), float(huber_k), int(iterations),
+                       float(max_step), float(tolerance))
 
 
 @njit(cache=True, nogil=True)
@@ -541,6 +534,22 @@ def _system(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, the
     return a, b, scale, count
 
 
+def _check_fit_arrays(who: str, n_splines: int, lvals, splines, right_saturated, usable, prior, u, v, du, dv, m,
+                      theta) -> None:
+    """ValueError naming ``who`` and the argument, unless the per-pixel arrays are (N,) as ``lvals``, ``splines``
+    ``n_splines`` C-contiguous HxW float32 of ``right_saturated``'s shape and ``theta`` (11,)."""
+    n = len(lvals)
+    for name, array in (("usable", usable), ("prior", prior), ("u", u), ("v", v), ("du", du), ("dv", dv), ("m", m)):
+        if array.shape != (n,):
+            raise ValueError(f"{who}: {name} {array.shape} must be ({n},) as lvals")
+    if (len(splines) != n_splines or any(c.ndim != 2 or c.dtype != np.float32 or not c.flags.c_contiguous
+                                         or c.shape != right_saturated.shape for c in splines)):
+        raise ValueError(f"{who}: splines {[(np.shape(c), str(c.dtype)) for c in splines]} must be {n_splines} "
+                         f"C-contiguous HxW float32 and right_saturated {right_saturated.shape} HxW of their size")
+    if theta.shape != (N_PARAMS,):
+        raise ValueError(f"{who}: theta {theta.shape} must be ({N_PARAMS},)")
+
+
 def normal_equations(lvals: np.ndarray, splines: tuple[np.ndarray, np.ndarray, np.ndarray],
                      right_saturated: np.ndarray, usable: np.ndarray, prior: np.ndarray, u: np.ndarray,
                      v: np.ndarray, du: np.ndarray,
@@ -555,16 +564,7 @@ def normal_equations(lvals: np.ndarray, splines: tuple[np.ndarray, np.ndarray, n
     Returns (A (11, 11), b (11,), the residuals' robust scale, the pixels used), ``A = sum w J J^T``,
     ``b = -sum w J r`` with ``w`` each pixel's share times its Huber weight at that scale
     (``scale_floor`` where the residuals' MAD is 0)."""
-    n = len(lvals)
-    for name, array in (("usable", usable), ("prior", prior), ("u", u), ("v", v), ("du", du), ("dv", dv), ("m", m)):
-        if array.shape != (n,):
-            raise ValueError(f"normal_equations: {name} {array.shape} must be ({n},) as lvals")
-    if (len(splines) != 3 or any(c.ndim != 2 or c.dtype != np.float32 or not c.flags.c_contiguous
-                                 or c.shape != right_saturated.shape for c in splines)):
-        raise ValueError(f"normal_equations: splines {[(np.shape(c), str(c.dtype)) for c in splines]} must be three "
-                         f"C-contiguous HxW float32 and right_saturated {right_saturated.shape} HxW of their size")
-    if theta.shape != (N_PARAMS,):
-        raise ValueError(f"normal_equations: theta {theta.shape} must be ({N_PARAMS},)")
+    _check_fit_arrays("normal_equations", 3, lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta)
     return _system(lvals.astype(np.float64, copy=False), tuple(splines), right_saturated, usable,
                    prior.astype(np.float64, copy=False), u, v, du, dv, m.astype(np.float64, copy=False),
                    theta.astype(np.float64, copy=False), np.asarray(idx, dtype=np.int64), float(huber_k),

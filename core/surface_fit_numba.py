@@ -286,18 +286,27 @@ def robust_scale(r):
     return 1.4826 * _median(np.abs(r - _median(r)))
 
 
-@njit(cache=True, nogil=True)
-def _ring_cell_offsets(splines, right_saturated, lvals, usable, prior, u, v, du, dv, m, theta, idx, cell, k, huber_k,
-                       scale_floor):
-    h, w = splines[0].shape
+@njit(cache=True, inline="always")
+def _model_samples(splines, u, v, du, dv, m, theta, idx):
+    """Where the surface model at ``theta`` reads the right image for the pixels ``idx`` (columns (n,)), and each
+    spline's samples there ((K, n), NaN where a sample is no number)."""
     n = idx.size
     xs, rows = np.empty(n), np.empty(n, np.int64)
     for t in range(n):
         i = idx[t]
         xs[t] = u[i] - (theta[0] + theta[1] * du[i] + theta[2] * dv[i] + theta[3] * m[i])
         rows[t] = int(v[i])
-    sampled = np.empty((2, n))
+    sampled = np.empty((len(splines), n))
     _sample_rows(splines, xs, rows, theta[E], sampled)
+    return xs, sampled
+
+
+@njit(cache=True, nogil=True)
+def _ring_cell_offsets(splines, right_saturated, lvals, usable, prior, u, v, du, dv, m, theta, idx, cell, k, huber_k,
+                       scale_floor):
+    h, w = splines[0].shape
+    n = idx.size
+    xs, sampled = _model_samples(splines, u, v, du, dv, m, theta, idx)
     r, j = np.empty(n), np.empty(n)
     ok = np.zeros(n, np.bool_)
     kept = np.empty(n)
@@ -477,13 +486,7 @@ def _system(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, the
     jac = np.empty((N_PARAMS, n))
     weight = np.empty(n)
     count = 0
-    xs, rows = np.empty(n), np.empty(n, np.int64)
-    for k in range(n):
-        i = idx[k]
-        xs[k] = u[i] - (theta[0] + theta[1] * du[i] + theta[2] * dv[i] + theta[3] * m[i])
-        rows[k] = int(v[i])
-    sampled = np.empty((3, n))
-    _sample_rows(splines, xs, rows, theta[E], sampled)  # NaN where a sample is no number
+    xs, sampled = _model_samples(splines, u, v, du, dv, m, theta, idx)  # NaN where a sample is no number
     for k in range(n):
         i = idx[k]
         if not usable[i]:

@@ -44,6 +44,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     floor stays the true box's."""
     from core import depth_eval as ev
     from core.commands.inspection import _load, fail
+    from core.depth import warm_up
     from core.engine import SetupError, StageFailed, command_threads, make_plugin, plugin_context
     from core.registry import default_registry
     from drivers.sequence_folder import SequenceError, labelled_sequence_problem, read_labels
@@ -76,8 +77,6 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     except SetupError as exc:
         fail(str(exc))
     replay = registry.get("camera", "replay")
-    from core.depth import warm_up
-
     warm_up()  # the compiled kernels loaded before the first defect: its time would count them
     rows, timings = [], []
     unscored = 0  # labelled defects whose truth has no distance or deviation

@@ -14,7 +14,7 @@ Two methods (the recipe's ``depth.method``):
   deviation, a difference of two surfaces).
 
 Both methods share the checks that make a deviation meaningful: enough valid disparities in the
-region, a ring around the box on one surface (``worst_side``).
+region, a ring around the box on one surface (``worst_side_of``).
 
 Why fit in disparity space: a 3D plane seen by a rectified pinhole pair is exactly a plane in
 (u, v, d), so the fit is linear. From ``a*u + b*v + c = d + doffs = f*B/Z`` it follows that
@@ -237,17 +237,10 @@ def _least_squares_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndar
     return np.array([a, b, md - a * mu - b * mv])
 
 
-def worst_side(
-    plane: Plane, u: np.ndarray, v: np.ndarray, d: np.ndarray, box: tuple[int, int, int, int], tolerance: float
-) -> tuple[str, float]:
-    """How the worst side of the box's ring fits the plane (a phrase for the note) and the share
-    of it that fits. Fewer than two sides in view count as not fitting."""
-    on_plane = np.abs(plane(u.astype(np.float64), v.astype(np.float64)) - d) <= tolerance
-    return worst_side_of(on_plane, u, v, box)
-
-
 def worst_side_of(on_plane: np.ndarray, u: np.ndarray, v: np.ndarray, box: tuple[int, int, int, int]) -> tuple[str, float]:
-    """``worst_side`` from each ring pixel's verdict (``on_plane``, bool) whatever decided it."""
+    """How the worst side of the box's ring fits one surface (a phrase for the note) and the share of it that
+    fits, from each ring pixel's verdict (``on_plane``, bool) whatever decided it. Fewer than two sides in view
+    count as not fitting."""
     x0, y0, x1, y1 = box
     top, bottom = v < y0, v >= y1
     sides = {"top": top, "bottom": bottom, "left": ~top & ~bottom & (u < x0), "right": ~top & ~bottom & (u >= x1)}
@@ -327,7 +320,9 @@ def measure_defect(
             distance_sigma_mm=resolution,
         )
         return _outside_search(m, pair, ring_all, calib, searched)
-    how, share = worst_side(plane, ru, rv, d_ring + calib.doffs, _clip_box(detection.box, shape), rule.plane_tolerance_px)
+    on_plane = np.abs(plane(ru.astype(np.float64), rv.astype(np.float64)) - (d_ring + calib.doffs)) \
+        <= rule.plane_tolerance_px
+    how, share = worst_side_of(on_plane, ru, rv, _clip_box(detection.box, shape))
     # the surface fit judges the ring from the images itself (below); the backend's judgement only where
     # the ring is not in view, or for the reference
     if share < rule.min_plane_inliers and (not surface or "outside the image" in how):
@@ -347,22 +342,23 @@ def measure_defect(
         # the map alone: nothing in it tells a plate outside the searched range, which it keeps at the range's
         # end (flat: any defect proven inside a wide enough limit), from one within it; the images do
         return _outside_search(reference, pair, ring_all, calib, searched)
-    return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, matched, inner,
+    backend_agrees = np.zeros_like(matched)
+    backend_agrees[matched] = on_plane
+    return _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, backend_agrees, inner,
                                 (x0, y0, x1, y1), d_plane - d_defect, reference, searched)
 
 
-def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, matched, inner, clipped, offsets,
-                         reference: DefectMeasurement, searched: tuple[float, float] | None) -> DefectMeasurement:
+def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, backend_agrees, inner, clipped,
+                         offsets, reference: DefectMeasurement, searched: tuple[float, float] | None
+                         ) -> DefectMeasurement:
     """``method: surface``: the ring's plane and the defect's offset fitted to the images, from the backend's
     plane and median offset. No deviation where the fit does not settle or the images do not match at it.
-    ring_all: the ring's pixels (u, v); matched: (ring pixels,) bool, those the backend matched."""
+    ring_all: the ring's pixels (u, v); backend_agrees: (ring pixels,) bool, those the backend matched within
+    its tolerance of its plane."""
     # the whole ring goes to the fit, whose cells leave out what lies on another surface (the belt, a
     # neighbouring defect) from the images themselves. Left out where the backend put it off its plane, the ring
     # was the matcher's noise's to choose on faint texture: a crop's map and the full frame's chose otherwise
     ring_u, ring_v = ring_all
-    with np.errstate(invalid="ignore"):
-        off_plane = matched & (np.abs(plane(ring_u.astype(np.float64), ring_v.astype(np.float64))
-                                      - (disparity[ring_v, ring_u] + calib.doffs)) > rule.plane_tolerance_px)
     uu, vv, weights = region_weights(inner, clipped)
     shift = (plane.a, plane.b, plane.c - calib.doffs)  # the plane of disparities without doffs
     seen = uu - (shift[0] * uu + shift[1] * vv + shift[2]) >= 2  # the right image holds the point
@@ -401,7 +397,6 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # sheen upsets only the cells, the crop's edge only the backend's map there.
     # A side the right camera does not see (left of its view) is out of view, not off the plane: the
     # images can say nothing of it, as of a side beyond the image's border.
-    backend_agrees = matched & ~off_plane
     in_view = ring_u - (shift[0] * ring_u + shift[1] * ring_v + shift[2]) >= 2
     how, share = worst_side_of((backend_agrees | (fit.ring_weights > 0.5))[in_view], ring_u[in_view],
                                ring_v[in_view], _clip_box(detection.box, disparity.shape))

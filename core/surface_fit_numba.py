@@ -287,6 +287,12 @@ def robust_scale(r):
 
 
 @njit(cache=True, inline="always")
+def _huber_weight(size, cut):
+    """Huber's weight of a residual of absolute ``size`` cut at ``cut``."""
+    return 1.0 if size <= cut else cut / max(size, 1e-12)
+
+
+@njit(cache=True, inline="always")
 def _model_samples(splines, u, v, du, dv, m, theta, idx):
     """Where the surface model at ``theta`` reads the right image for the pixels ``idx`` (columns (n,)), and each
     spline's samples there ((K, n), NaN where a sample is no number)."""
@@ -331,7 +337,7 @@ def _ring_cell_offsets(splines, right_saturated, lvals, usable, prior, u, v, du,
     info, num = np.zeros(k), np.zeros(k)
     for t in range(n):
         a = abs(r[t])
-        weight = (1.0 if a <= cut else cut / max(a, 1e-12)) if ok[t] else 0.0
+        weight = _huber_weight(a, cut) if ok[t] else 0.0
         # a pixel whose sample is no number leaves its cell none (0 x NaN), as NumPy's sums do
         info[cell[t]] += weight * j[t] * j[t]
         num[cell[t]] += weight * j[t] * r[t]
@@ -385,7 +391,7 @@ def _cell_steps(splines, u, rows, e, plane, gain, lv, o_surface, o_defect, p, ce
             else:
                 r, j[i] = 0.0, 0.0
             a = abs(r)
-            h = (1.0 if a <= cut else cut / max(a, 1e-12)) * p[i]
+            h = _huber_weight(a, cut) * p[i]
             num[cell[i]] += h * j[i] * r
             den[cell[i]] += h * j[i] * j[i]
         settled = True
@@ -522,7 +528,7 @@ def _system(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, the
     cut = huber_k * scale
     for k in range(count):
         size = abs(res[k])
-        weight[k] *= 1.0 if size <= cut else cut / max(size, 1e-12)
+        weight[k] *= _huber_weight(size, cut)
     # one parameter's weighted row at a time, dotted with the others while it is in the cache: the whole
     # weighted Jacobian (a megabyte for 10,000 pixels) was half the system's time
     a = np.zeros((N_PARAMS, N_PARAMS))

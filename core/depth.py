@@ -30,7 +30,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from core import band_scan, depth_numba, surface_fit
+from core import band_scan, box_reach, depth_numba, surface_fit
 from core.surface_scan import scan_surface
 from core.types import Calibration, DefectMeasurement, Detection, StereoFrame
 
@@ -170,6 +170,9 @@ BAND_Z = 3.0
 # from this many of its standard deviations off, a region's central part that reads more than twice its offset may
 # be the defect in a box larger than it, and the uncertainty widens to take it in (``_parts_variance``)
 PATCH_Z = 2.0
+# from this many standard deviations of their difference beyond the region's offset, the region moved towards where a
+# box's surroundings read farther from the surface may be the defect, the box off it (``box_reach``)
+MOVED_Z = 2.0
 
 
 def fit_plane_robust(
@@ -473,7 +476,8 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     if not groove and np.isfinite(cells.variance):
         patch = band_scan.central_patch(offsets_px, settled_sds, areas, centres, middle,
                                         ((inner[2] - inner[0]) / 2, (inner[3] - inner[1]) / 2))
-        var_d += _parts_variance(cells.delta, band, along_edges, patch)
+        moved = _farthest_moved(left, right, fit, inner, (detection.width, detection.height), shift, cells.delta)
+        var_d += _parts_variance(cells.delta, band, along_edges, patch, moved, cells.variance)
     # and it is known no better than the region would be at its interior's information per pixel (the border
     # may be the walls' edges, strong gradients that each eye sees at another place)
     # (the interior's variance comes from the same residuals as the cells': their scatter scales it alike)
@@ -511,7 +515,8 @@ def unshared_variance(offset: float, ratio: float) -> float:
 
 
 def _parts_variance(region: float, band: band_scan.Band | None, along_edges: band_scan.Band | None,
-                    patch: surface_fit.RobustOffset | None) -> float:
+                    patch: surface_fit.RobustOffset | None, moved: box_reach.MovedRegion | None = None,
+                    region_variance: float = 0.0) -> float:
     """The variance (px^2) to add to a region's offset ``region`` (px) for a part of it that may be the defect while
     the region reads mostly the surface beside it: the square of how far that part's offset stands from the
     region's, less what the part's own noise puts in it (what is left is the defect's, unbiased); of several, the
@@ -524,13 +529,44 @@ def _parts_variance(region: float, band: band_scan.Band | None, along_edges: ban
     where the region reads less than half its offset, as a region that is mostly the surface around the defect
     does, and it stands PATCH_Z of its standard deviations or more further off (a box twice a narrow pit's size on
     a polished plate read 0.04 +- 0.36 mm for 2.06 mm and passed; a round pit's centre in a box that fits it is
-    deeper than the region, but not twice as deep). docs/research-log.md has what each threshold cost and caught."""
+    deeper than the region, but not twice as deep); and ``moved``, the region moved about within its box's size
+    (``box_reach``), where it reads farther from the surface than the region by MOVED_Z or more standard deviations
+    of their difference, ``region_variance`` (px^2) the region's own (a box half a pit's size off it read 0.03 +-
+    0.48 mm for 1.40 mm and passed). docs/research-log.md has what each threshold cost and caught."""
     parts = [(b.offset, b.variance) for b in (band if band is not None and abs(band.z) >= BAND_Z else None,
                                               along_edges) if b is not None]
     if patch is not None and abs(patch.delta) > 2 * abs(region) \
             and abs(patch.delta - region) >= PATCH_Z * np.sqrt(patch.variance):
         parts.append((patch.delta, patch.variance))
+    if moved is not None and moved.z(region, region_variance) >= MOVED_Z:
+        parts.append((moved.offset, moved.variance))
     return max([max(0.0, (offset - region) ** 2 - variance) for offset, variance in parts], default=0.0)
+
+
+def _farthest_moved(left: np.ndarray, right: np.ndarray, fit: surface_fit.SurfaceFit,
+                    inner: tuple[float, float, float, float], size: tuple[float, float],
+                    shift: tuple[float, float, float], region: float) -> box_reach.MovedRegion | None:
+    """``box_reach.farthest`` of the region ``inner`` moved about within the box's size ``size`` (w, h), its cells
+    read at the fit over the pixels in the image and in the right camera's view (``shift``: the ring plane's
+    disparities, as (a, b, c) without doffs); region: the region's own offset (px)."""
+    h, w = left.shape
+    x0, y0, x1, y1 = _clip_box(box_reach.reach(inner, size), (h, w))
+    vv, uu = np.mgrid[y0:y1, x0:x1]
+    uu, vv = uu.ravel(), vv.ravel()
+    seen = uu - (shift[0] * uu + shift[1] * vv + shift[2]) >= 2
+    uu, vv = uu[seen], vv[seen]
+    if uu.size == 0:
+        return None
+    # the fit's own high-passed window where it holds the reach with the high-pass's own margin: a window of its own
+    # was a third of this step's time
+    (wx, wy), (wh, ww) = fit.images.origin, fit.images.L.shape
+    inset = surface_fit.WINDOW_MARGIN_PX - 3 * surface_fit.HIGH_PASS_SIGMA
+    within = wx + inset <= x0 and x1 <= wx + ww - inset and wy + inset <= y0 and y1 <= wy + wh - inset
+    offsets, sds, centres, settled = surface_fit.cell_offsets(left, right, fit, (uu, vv),
+                                                              images=fit.images if within else None)
+    areas = surface_fit.cell_areas((uu, vv))
+    return box_reach.farthest(box_reach.moved_regions(offsets, np.where(settled, sds, np.inf), areas, centres,
+                                                      inner, size, region), region)
 
 
 def _band_along_edges(images: surface_fit.DefectImages, region: tuple[np.ndarray, np.ndarray],

@@ -16,7 +16,7 @@ import pytest
 from conftest import ROOT
 from synthetic_pairs import Groove, Pit, calib_for, render
 
-from core import band_scan, depth, depth_numba, surface_fit
+from core import band_scan, box_reach, depth, depth_numba, surface_fit
 from core.depth import DepthRule, fit_plane_robust, measure_defect, ring_mask
 from core.decision import judge_defect
 from core.recipe import load_recipe
@@ -324,6 +324,25 @@ def test_a_round_pit_s_edges_run_every_way_and_add_nothing(monkeypatch):
     assert _surface(left, right, disparity) == looked
 
 
+@pytest.mark.parametrize("angle_deg", [120.0, 330.0])
+def test_a_box_half_its_size_off_its_pit_is_not_proven_shallow(monkeypatch, angle_deg):
+    # a flat-bottomed pit 14 px across; its box moved by half its size reads the plate beside it and little of
+    # the pit, which the uncertainty must cover: the region moved back onto the pit reads it
+    left, right, disparity = render(CALIB, 400.0, 0.0, [Pit(160, 96, 8.0, 2.0, floor=0.8)])
+    r = CALIB.focal_px * 8.0 / 400.0
+    true_box = (160 - r, 96 - r, 160 + r, 96 + r)
+    truth = _surface(left, right, disparity, box=true_box).deviation_mm
+    assert truth == pytest.approx(2.0, abs=0.15)
+    a = math.radians(angle_deg)
+    dx, dy = r * math.cos(a), r * math.sin(a)
+    off = (true_box[0] + dx, true_box[1] + dy, true_box[2] + dx, true_box[3] + dy)
+    m = _surface(left, right, disparity, box=off)
+    assert m.deviation_mm < 0.5 * truth and abs(m.deviation_mm - truth) <= 2 * m.deviation_sigma_mm
+    monkeypatch.setattr(depth, "_farthest_moved", lambda *args: None)
+    alone = _surface(left, right, disparity, box=off)
+    assert alone.deviation_mm == m.deviation_mm and abs(alone.deviation_mm - truth) > 2 * alone.deviation_sigma_mm
+
+
 def _band(offset: float, variance: float, z: float) -> band_scan.Band:
     return band_scan.Band(45.0, 4.0, 0.0, np.ones(8, dtype=bool), offset, 0.0, variance, z)
 
@@ -357,6 +376,17 @@ class TestPartsVariance:
         assert depth._parts_variance(-0.2, None, None, _patch(-0.5, 0.0001)) == pytest.approx(0.09 - 0.0001)
         # a raised defect is further from the surface too
         assert depth._parts_variance(0.01, None, None, _patch(0.5, 0.0081)) > 0.2
+
+    def test_the_region_moved_counts_from_moved_z_and_only_farther_from_the_surface(self):
+        # a box a third off its pit: the region reads -0.1, the region moved back onto the pit -0.4
+        moved = box_reach.MovedRegion(0.35, 180.0, -0.4, 0.01)
+        assert depth._parts_variance(-0.1, None, None, None, moved) == pytest.approx(0.09 - 0.01)
+        sd = 0.3 / (0.95 * depth.MOVED_Z)
+        assert depth._parts_variance(-0.1, None, None, None, box_reach.MovedRegion(0.35, 180.0, -0.4, sd * sd)) == 0.0
+        # the region's own noise counts in the difference
+        assert depth._parts_variance(-0.1, None, None, None, moved, 0.03) == 0.0
+        # nearer the surface than the region: a box on its defect reads it deepest
+        assert depth._parts_variance(-0.4, None, None, None, box_reach.MovedRegion(0.35, 0.0, -0.1, 0.0001)) == 0.0
 
     def test_of_several_parts_the_one_further_off(self):
         assert depth._parts_variance(-0.1, _band(-0.3, 0.0, depth.BAND_Z), _band(-0.4, 0.0, 0.1),

@@ -1,0 +1,117 @@
+"""A box off its defect: the region moved about within the box's size (core/box_reach.py)."""
+import numpy as np
+import pytest
+
+from core import box_reach
+from core.box_reach import MovedRegion, farthest, moved_box, moved_regions, reach
+
+SIZE = (40.0, 30.0)  # the detection's width and height
+
+
+def region_of(box: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    """The central 60 % of ``box``, as the depth's region is."""
+    x0, y0, x1, y1 = box
+    return (x0 + 0.2 * (x1 - x0), y0 + 0.2 * (y1 - y0), x1 - 0.2 * (x1 - x0), y1 - 0.2 * (y1 - y0))
+
+
+def cells_over(area: tuple[float, float, float, float], defect: tuple[float, float, float, float], depth_px: float,
+               noise_px: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """4 px cells over ``area`` (x0, y0, x1, y1) on the surface (0), those inside ``defect`` at ``-depth_px``, each
+    read with noise: offsets, sds, areas (16 px each), centres."""
+    x0, y0, x1, y1 = area
+    u, v = np.meshgrid(np.arange(x0 + 2, x1 - 1, 4.0), np.arange(y0 + 2, y1 - 1, 4.0))
+    centres = np.stack([u.ravel(), v.ravel()], axis=1)
+    on = (centres[:, 0] >= defect[0]) & (centres[:, 0] < defect[2]) & (centres[:, 1] >= defect[1]) \
+        & (centres[:, 1] < defect[3])
+    offsets = np.where(on, -depth_px, 0.0) + np.random.default_rng(seed).normal(0.0, noise_px, len(centres))
+    return offsets, np.full(len(centres), noise_px), np.full(len(centres), 16.0), centres
+
+
+TRUE_BOX = (100.0, 100.0, 140.0, 130.0)
+
+
+class TestMovedBox:
+    def test_moves_by_the_share_of_the_size_towards_the_angle(self):
+        assert moved_box((0.0, 0.0, 10.0, 10.0), SIZE, 0.5, 0.0) == pytest.approx((20.0, 0.0, 30.0, 10.0))
+        assert moved_box((0.0, 0.0, 10.0, 10.0), SIZE, 0.5, 90.0) == pytest.approx((0.0, 15.0, 10.0, 25.0))
+        assert moved_box((0.0, 0.0, 10.0, 10.0), SIZE, 0.2, 180.0) == pytest.approx((-8.0, 0.0, 2.0, 10.0))
+
+
+class TestReach:
+    def test_covers_every_moved_region(self):
+        region = region_of(TRUE_BOX)
+        grown = reach(region, SIZE)
+        for share in box_reach.SHARES:
+            for angle in box_reach.ANGLES_DEG:
+                x0, y0, x1, y1 = moved_box(region, SIZE, share, angle)
+                assert grown[0] <= x0 + 1e-9 and grown[1] <= y0 + 1e-9 and x1 <= grown[2] + 1e-9 \
+                    and y1 <= grown[3] + 1e-9
+
+
+class TestMovedRegions:
+    def test_a_box_a_third_off_its_pit_finds_it_where_the_region_reads_it_short(self):
+        # the box moved by a third of its size to the right of its pit, whose floor is the box's central 80 %
+        off = moved_box(TRUE_BOX, SIZE, 0.35, 0.0)
+        region = region_of(off)
+        floor = (104.0, 103.0, 136.0, 127.0)
+        offsets, sds, areas, centres = cells_over(reach(region, SIZE), floor, 0.4, 0.05, seed=0)
+        in_region = (centres[:, 0] >= region[0]) & (centres[:, 0] < region[2]) & (centres[:, 1] >= region[1]) \
+            & (centres[:, 1] < region[3])
+        reading = float(np.mean(offsets[in_region]))
+        assert -0.3 < reading < -0.1  # the region holds the plate beside the pit
+        best = farthest(moved_regions(offsets, sds, areas, centres, region, SIZE), reading)
+        assert best is not None
+        x0, y0, x1, y1 = moved_box(region, SIZE, best.share, best.angle_deg)
+        assert x0 >= floor[0] - 4 and y0 >= floor[1] - 4 and x1 <= floor[2] + 4 and y1 <= floor[3] + 4  # back on it
+        assert best.offset == pytest.approx(-0.4, abs=0.05)
+        assert best.z(reading) > 5
+
+    def test_a_box_on_its_pit_reads_it_deepest(self):
+        region = region_of(TRUE_BOX)
+        floor = (104.0, 103.0, 136.0, 127.0)
+        offsets, sds, areas, centres = cells_over(reach(region, SIZE), floor, 0.4, 0.05, seed=1)
+        reading = -0.4
+        best = farthest(moved_regions(offsets, sds, areas, centres, region, SIZE), reading)
+        assert best is not None and best.z(reading) < 1.0
+
+    def test_the_candidates_standing_farthest_out_with_enough_cells(self):
+        region = region_of(TRUE_BOX)
+        offsets, sds, areas, centres = cells_over(reach(region, SIZE), TRUE_BOX, 0.0, 0.05, seed=2)
+        found = moved_regions(offsets, sds, areas, centres, region, SIZE)
+        assert len(found) == box_reach.CANDIDATES
+        # a pit beyond the box's bottom edge: the copies moved down stand out
+        offsets[centres[:, 1] > 128] -= 0.3
+        found = moved_regions(offsets, sds, areas, centres, region, SIZE)
+        assert all(0.0 < m.angle_deg < 180.0 and m.share >= 0.35 for m in found)
+        assert farthest(found, 0.0).angle_deg in (67.5, 90.0, 112.5)
+        # cells without a reading do not count: a region left with fewer than MIN_CELLS is left out
+        sds[:] = np.inf
+        assert moved_regions(offsets, sds, areas, centres, region, SIZE) == []
+
+    def test_a_glint_s_cell_is_cut(self):
+        off = moved_box(TRUE_BOX, SIZE, 0.35, 0.0)
+        region = region_of(off)
+        offsets, sds, areas, centres = cells_over(reach(region, SIZE), (0, 0, 0, 0), 0.0, 0.05, seed=3)
+        # a glint matches sharply at a shift of its own: one cell does not make a moved region a defect
+        glint = int(np.argmin(np.linalg.norm(centres - np.array([110.0, 115.0]), axis=1)))
+        offsets[glint], sds[glint] = -1.5, 0.005
+        best = farthest(moved_regions(offsets, sds, areas, centres, region, SIZE), 0.0)
+        assert abs(best.offset) < 0.05
+
+    def test_shape_checks(self):
+        offsets, sds, areas, centres = cells_over((0, 0, 32, 32), (0, 0, 0, 0), 0.0, 0.05, seed=4)
+        with pytest.raises(ValueError, match="moved_regions"):
+            moved_regions(offsets, sds[:-1], areas, centres, (8, 8, 24, 24), SIZE)
+        with pytest.raises(ValueError, match="moved_regions"):
+            moved_regions(offsets, sds, areas, centres[:, :1], (8, 8, 24, 24), SIZE)
+
+
+class TestFarthest:
+    def test_the_one_farthest_from_the_surface_in_its_own_standard_deviations(self):
+        near = MovedRegion(0.2, 0.0, -0.3, 0.01)  # 2 sd beyond a region reading -0.1
+        far_but_noisy = MovedRegion(0.5, 90.0, -0.6, 0.25)  # 1 sd
+        raised = MovedRegion(0.35, 45.0, 0.45, 0.01)  # a bump: farther from the surface too, 3.5 sd
+        assert farthest([near, far_but_noisy], -0.1) is near
+        assert farthest([near, far_but_noisy, raised], -0.1) is raised
+        assert near.z(-0.1) == pytest.approx(2.0)
+        assert farthest([], -0.1) is None

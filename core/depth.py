@@ -558,7 +558,7 @@ def _farthest_moved(left: np.ndarray, right: np.ndarray, fit: surface_fit.Surfac
     if uu.size == 0:
         return None
     # the fit's own high-passed window where it holds the reach with the high-pass's own margin: a window of its own
-    # was a third of this step's time
+    # costs a high-pass of it
     (wx, wy), (wh, ww) = fit.images.origin, fit.images.L.shape
     inset = surface_fit.WINDOW_MARGIN_PX - 3 * surface_fit.HIGH_PASS_SIGMA
     within = wx + inset <= x0 and x1 <= wx + ww - inset and wy + inset <= y0 and y1 <= wy + wh - inset

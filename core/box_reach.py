@@ -3,10 +3,10 @@
 A detector's box may lie a third of its size off its defect and still overlap it by half (IoU 0.5, a hit in a
 detector's own evaluation). Its region, the box's central part, then holds the plate beside the defect and
 its wall, and reads the defect short; its ring lies on the defect on one side, which the ring's fit leaves
-out as another surface. Moved towards the defect by that share of the box, the region reads it. So the
-region is moved every way by a few shares of the box, each copy read from the cells over the box grown by
-as much (``surface_fit.cell_offsets``), and the copy that reads farthest from the surface beyond the region's
-own reading is the candidate: the part of the surroundings that may be the defect
+out as another surface where it stands out of its noise. Moved towards the defect by that share of the box,
+the region reads it. So the region is moved every way by a few shares of the box, each copy read from the
+cells over the box grown by as much (``surface_fit.cell_offsets``), and the copy that reads farthest from the
+surface beyond the region's own reading is the candidate: the part of the surroundings that may be the defect
 (``core.depth._parts_variance`` widens the uncertainty to take it in). Where the box holds its defect, every
 copy holds more of its walls and of the plate than the region does and reads nearer the surface.
 """
@@ -80,7 +80,7 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
     u, v = centres[:, 0], centres[:, 1]
     inside = usable & (u >= edges[:, :1]) & (u < edges[:, 2:3]) & (v >= edges[:, 1:2]) & (v < edges[:, 3:])  # (M, K)
     counts = inside.sum(axis=1)
-    a = np.where(inside, np.where(usable, areas, 0.0), 0.0)
+    a = np.where(inside, areas, 0.0)  # inside holds the usable cells alone
     total = np.maximum(a.sum(axis=1), 1e-12)
     x, s = np.where(usable, offsets, 0.0), np.where(usable, sds, 0.0)
     mean = (a * x).sum(axis=1) / total

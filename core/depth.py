@@ -351,6 +351,12 @@ def measure_defect(
                                 (x0, y0, x1, y1), d_plane - d_defect, reference, searched)
 
 
+def _in_right_view(u: np.ndarray, v: np.ndarray, plane: tuple[float, float, float]) -> np.ndarray:
+    """Whether the right image holds each pixel (u, v) (1-D) on the disparity plane ``plane`` ((a, b, c), px without
+    doffs): its match two columns or more inside the image's left edge."""
+    return u - (plane[0] * u + plane[1] * v + plane[2]) >= 2
+
+
 def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_all, backend_agrees, inner, clipped,
                          offsets, reference: DefectMeasurement, searched: tuple[float, float] | None
                          ) -> DefectMeasurement:
@@ -364,7 +370,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     ring_u, ring_v = ring_all
     uu, vv, weights = region_weights(inner, clipped)
     shift = (plane.a, plane.b, plane.c - calib.doffs)  # the plane of disparities without doffs
-    seen = uu - (shift[0] * uu + shift[1] * vv + shift[2]) >= 2  # the right image holds the point
+    seen = _in_right_view(uu, vv, shift)
     if np.sum(weights * seen) < 0.5 * np.sum(weights):
         # the backend's disparities there are its hole filling: no measurement of either kind, nor a distance
         # (its filling put such regions 0.6-0.9 % of Z off, 2-4 times the uncertainty it would carry); or its
@@ -400,7 +406,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # sheen upsets only the cells, the crop's edge only the backend's map there.
     # A side the right camera does not see (left of its view) is out of view, not off the plane: the
     # images can say nothing of it, as of a side beyond the image's border.
-    in_view = ring_u - (shift[0] * ring_u + shift[1] * ring_v + shift[2]) >= 2
+    in_view = _in_right_view(ring_u, ring_v, shift)
     how, share = worst_side_of((backend_agrees | (fit.ring_weights > 0.5))[in_view], ring_u[in_view],
                                ring_v[in_view], _clip_box(detection.box, disparity.shape))
     if share < rule.min_plane_inliers:
@@ -553,7 +559,7 @@ def _farthest_moved(left: np.ndarray, right: np.ndarray, fit: surface_fit.Surfac
     x0, y0, x1, y1 = _clip_box(box_reach.reach(inner, size), (h, w))
     vv, uu = np.mgrid[y0:y1, x0:x1]
     uu, vv = uu.ravel(), vv.ravel()
-    seen = uu - (shift[0] * uu + shift[1] * vv + shift[2]) >= 2
+    seen = _in_right_view(uu, vv, shift)
     uu, vv = uu[seen], vv[seen]
     if uu.size == 0:
         return None

@@ -406,8 +406,7 @@ def _cell_steps(splines, u, rows, e, plane, gain, lv, o_surface, o_defect, p, ce
 
 def cell_steps(splines: tuple[np.ndarray, np.ndarray], u: np.ndarray, rows: np.ndarray, e: float, plane: np.ndarray,
                gain: np.ndarray, lv: np.ndarray, exposure_offsets: tuple[float, float], p: np.ndarray, cell: np.ndarray,
-               k: int,
-               start: float, scale: float, huber_k: float, iterations: int, max_step: float,
+               k: int, start: float, scale: float, huber_k: float, iterations: int, max_step: float,
                tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each of ``k`` cells' own disparity offset by Gauss-Newton on its pixels, the plane and exposure held:
     pixel i (of N) reads the right image's spline and its gradient's (``splines``, HxW float32) at column

@@ -173,6 +173,8 @@ PATCH_Z = 2.0
 # from this many standard deviations of their difference beyond the region's offset, the region moved towards where a
 # box's surroundings read farther from the surface may be the defect, the box off it (``box_reach``)
 MOVED_Z = 2.0
+# the pixels whose cells the moved regions read, at most: a WVGA box 80 px wide reaches 128 x 128
+MOVED_MAX_PIXELS = 128 * 128
 
 
 def fit_plane_robust(
@@ -557,7 +559,11 @@ def _farthest_moved(left: np.ndarray, right: np.ndarray, fit: surface_fit.Surfac
     disparities, as (a, b, c) without doffs); region: the region's own offset (px)."""
     h, w = left.shape
     x0, y0, x1, y1 = _clip_box(box_reach.reach(inner, size), (h, w))
-    vv, uu = np.mgrid[y0:y1, x0:x1]
+    # every pixel up to MOVED_MAX_PIXELS, beyond that every stride-th one each way in cells as many times wider: the
+    # same cells' count and noise as a WVGA box's, where every pixel of a 2K box's reach halved the loop's rate
+    stride = max(1, math.ceil(math.sqrt((x1 - x0) * (y1 - y0) / MOVED_MAX_PIXELS)))
+    cell_px = surface_fit.CELL_PX * stride
+    vv, uu = np.mgrid[y0:y1:stride, x0:x1:stride]
     uu, vv = uu.ravel(), vv.ravel()
     seen = _in_right_view(uu, vv, shift)
     uu, vv = uu[seen], vv[seen]
@@ -568,9 +574,9 @@ def _farthest_moved(left: np.ndarray, right: np.ndarray, fit: surface_fit.Surfac
     (wx, wy), (wh, ww) = fit.images.origin, fit.images.L.shape
     inset = surface_fit.WINDOW_MARGIN_PX - 3 * surface_fit.HIGH_PASS_SIGMA
     within = wx + inset <= x0 and x1 <= wx + ww - inset and wy + inset <= y0 and y1 <= wy + wh - inset
-    offsets, sds, centres, settled = surface_fit.cell_offsets(left, right, fit, (uu, vv),
+    offsets, sds, centres, settled = surface_fit.cell_offsets(left, right, fit, (uu, vv), cell_px=cell_px,
                                                               images=fit.images if within else None)
-    areas = surface_fit.cell_areas((uu, vv))
+    areas = surface_fit.cell_areas((uu, vv), cell_px=cell_px)
     return box_reach.farthest(box_reach.moved_regions(offsets, np.where(settled, sds, np.inf), areas, centres,
                                                       inner, size, region), region)
 

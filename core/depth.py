@@ -560,7 +560,8 @@ def _farthest_moved(left: np.ndarray, right: np.ndarray, fit: surface_fit.Surfac
     h, w = left.shape
     x0, y0, x1, y1 = _clip_box(box_reach.reach(inner, size), (h, w))
     # every pixel up to MOVED_MAX_PIXELS, beyond that every stride-th one each way in cells as many times wider: the
-    # same cells' count and noise as a WVGA box's, where every pixel of a 2K box's reach halved the loop's rate
+    # same cells' count and noise as a WVGA box's, where every pixel of a 2K box's reach added a third to the frame's
+    # depth time (docs/research-log.md)
     stride = max(1, math.ceil(math.sqrt((x1 - x0) * (y1 - y0) / MOVED_MAX_PIXELS)))
     cell_px = surface_fit.CELL_PX * stride
     vv, uu = np.mgrid[y0:y1:stride, x0:x1:stride]

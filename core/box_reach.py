@@ -97,8 +97,9 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
     return found
 
 
-def farthest(moved: list[MovedRegion], region: float) -> MovedRegion | None:
+def farthest(moved: list[MovedRegion], region: float, region_variance: float = 0.0) -> MovedRegion | None:
     """Of ``moved``, the one that stands farthest beyond the region's offset ``region`` (px) from the surface, in
-    its own standard deviations; None where there is none."""
-    return max(moved, key=lambda m: m.z(region), default=None)
+    standard deviations of their difference (``MovedRegion.z``, ``region_variance`` the region's, px^2); None where
+    there is none."""
+    return max(moved, key=lambda m: m.z(region, region_variance), default=None)
 

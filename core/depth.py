@@ -484,7 +484,8 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     if not groove and np.isfinite(cells.variance):
         patch = band_scan.central_patch(offsets_px, settled_sds, areas, centres, middle,
                                         ((inner[2] - inner[0]) / 2, (inner[3] - inner[1]) / 2))
-        moved = _farthest_moved(left, right, fit, inner, (detection.width, detection.height), shift, cells.delta)
+        moved = _farthest_moved(left, right, fit, inner, (detection.width, detection.height), shift, cells.delta,
+                                cells.variance)
         var_d += _parts_variance(cells.delta, band, along_edges, patch, moved, cells.variance)
     # and it is known no better than the region would be at its interior's information per pixel (the border
     # may be the walls' edges, strong gradients that each eye sees at another place)
@@ -553,10 +554,12 @@ def _parts_variance(region: float, band: band_scan.Band | None, along_edges: ban
 
 def _farthest_moved(left: np.ndarray, right: np.ndarray, fit: surface_fit.SurfaceFit,
                     inner: tuple[float, float, float, float], size: tuple[float, float],
-                    shift: tuple[float, float, float], region: float) -> box_reach.MovedRegion | None:
+                    shift: tuple[float, float, float], region: float, region_variance: float
+                    ) -> box_reach.MovedRegion | None:
     """``box_reach.farthest`` of the region ``inner`` moved about within the box's size ``size`` (w, h), its cells
     read at the fit over the pixels in the image and in the right camera's view (``shift``: the ring plane's
-    disparities, as (a, b, c) without doffs); region: the region's own offset (px)."""
+    disparities, as (a, b, c) without doffs); region, region_variance: the region's own offset (px) and its
+    variance (px^2)."""
     h, w = left.shape
     x0, y0, x1, y1 = _clip_box(box_reach.reach(inner, size), (h, w))
     # every pixel up to MOVED_MAX_PIXELS, beyond that every stride-th one each way in cells as many times wider: the
@@ -579,7 +582,7 @@ def _farthest_moved(left: np.ndarray, right: np.ndarray, fit: surface_fit.Surfac
                                                               images=fit.images if within else None)
     areas = surface_fit.cell_areas((uu, vv), cell_px=cell_px)
     return box_reach.farthest(box_reach.moved_regions(offsets, np.where(settled, sds, np.inf), areas, centres,
-                                                      inner, size, region), region)
+                                                      inner, size, region), region, region_variance)
 
 
 def _band_along_edges(images: surface_fit.DefectImages, region: tuple[np.ndarray, np.ndarray],

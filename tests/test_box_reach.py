@@ -115,3 +115,12 @@ class TestFarthest:
         assert farthest([near, far_but_noisy, raised], -0.1) is raised
         assert near.z(-0.1) == pytest.approx(2.0)
         assert farthest([], -0.1) is None
+
+    def test_ranked_by_the_difference_with_the_region_whose_variance_is_given(self):
+        # alone, the precise copy stands further out (3 sd against 2.6); with the region's variance of 0.04 in the
+        # difference, the far one (2.25 against 1.3)
+        precise = MovedRegion(0.2, 0.0, -0.4, 0.01)
+        far = MovedRegion(0.5, 90.0, -1.0, 0.12)
+        assert farthest([precise, far], -0.1) is precise
+        assert farthest([precise, far], -0.1, 0.04) is far
+        assert far.z(-0.1, 0.04) == pytest.approx(0.9 / 0.4)

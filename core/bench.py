@@ -301,35 +301,55 @@ def run_soak(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
             "machine": machine(), "when": time.strftime("%Y-%m-%d %H:%M")}
 
 
-def run_live(loaded: LoadedRecipe, registry: Registry, frames: int, device: str) -> dict[str, Any]:
+LIVE_LOOPS = ("detection alone", "with depth")
+
+
+def run_live(loaded: LoadedRecipe, registry: Registry, frames: int, device: str, rounds: int = 3) -> dict[str, Any]:
     """The real loop as the recipe runs it (detection a frame ahead where ``stereo.concurrent``), ``frames``
-    frames of its looped camera, once with detection alone (no detection passes the confidence, so no
-    stereo or depth) and once with depth for every defect: the frame rates and their ratio, one run.
-    The stage table times the stages one after another and cannot show what running them side by side
-    gains."""
+    frames of its looped camera with detection alone (no detection passes the confidence, so no stereo or
+    depth) and with depth for every defect, in ``rounds`` rounds of both, the first loop of each round alternating:
+    each loop's median frame rate and each round's ratio, the ratio their median. A shared machine's speed
+    drifts within minutes; a ratio of two loops run side by side in time follows the loops, not the drift. The
+    stage table times the stages one after another and cannot show what running them side by side gains."""
     from core import engine
 
     alone = {"detector": loaded.recipe.detector.model_copy(update={"confidence": 1.0})}
-    rows = {}
-    for name, changes in (("detection alone", alone), ("with depth", {})):
+    changes = dict(zip(LIVE_LOOPS, (alone, {})))
+    runs: dict[str, list] = {name: [] for name in LIVE_LOOPS}
+    order = [name for r in range(rounds) for name in (LIVE_LOOPS if r % 2 == 0 else LIVE_LOOPS[::-1])]
+    for name in order:
         with tempfile.TemporaryDirectory() as tmp:
-            summary = engine.run(_looped(loaded, Path(tmp), **changes), registry=registry, device=device,
-                                 max_frames=frames)
-        seconds = {k: v / max(summary.frames, 1) * 1000.0 for k, v in summary.stage_seconds.items()}
-        rows[name] = {"frames": summary.frames, "fps": summary.fps, "mean_ms": seconds,
-                      "counts": {k.value: v for k, v in summary.counts.items()}}
-    ratio = rows["with depth"]["fps"] / rows["detection alone"]["fps"] if rows["detection alone"]["fps"] else None
-    return {"concurrent": loaded.recipe.stereo.concurrent, "threads": loaded.recipe.threads, "rows": rows,
-            "ratio": ratio}
+            runs[name].append(engine.run(_looped(loaded, Path(tmp), **changes[name]), registry=registry,
+                                         device=device, max_frames=frames))
+    rows = {}
+    for name, summaries in runs.items():
+        parts = sum(s.frames for s in summaries)
+        stages = dict.fromkeys(k for s in summaries for k in s.stage_seconds)  # in the order they first ran
+        counts: dict[str, int] = {}
+        for s in summaries:
+            for k, v in s.counts.items():
+                counts[k.value] = counts.get(k.value, 0) + v
+        rows[name] = {"frames": summaries[0].frames, "fps": statistics.median(s.fps for s in summaries),
+                      "fps_rounds": [s.fps for s in summaries],
+                      "mean_ms": {k: sum(s.stage_seconds.get(k, 0.0) for s in summaries) / max(parts, 1) * 1000.0
+                                  for k in stages},
+                      "counts": counts}
+    ratios = [d / a for a, d in zip(rows["detection alone"]["fps_rounds"], rows["with depth"]["fps_rounds"]) if a]
+    return {"concurrent": loaded.recipe.stereo.concurrent, "threads": loaded.recipe.threads, "rounds": rounds,
+            "order": order, "rows": rows, "ratios": ratios, "ratio": statistics.median(ratios) if ratios else None}
 
 
 def live_markdown(live: dict[str, Any]) -> str:
     mode = "detection a frame ahead" if live["concurrent"] else "one frame at a time"
-    lines = [f"The real loop ({mode}, threads {live['threads']}), looped replay, as fast as it runs:", "",
-             "| loop | frames | fps | mean ms per part |", "|---|---|---|---|"]
+    rounds = live["rounds"]
+    lines = [f"The real loop ({mode}, threads {live['threads']}), looped replay, as fast as it runs, {rounds} "
+             f"round{'s' if rounds > 1 else ''} of both loops:", "",
+             "| loop | frames a round | fps, median (each round) | mean ms per part |", "|---|---|---|---|"]
     for name, row in live["rows"].items():
         stages = ", ".join(f"{k} {v:.0f}" for k, v in row["mean_ms"].items())
-        lines.append(f"| {name} | {row['frames']} | {row['fps']:.2f} | {stages} |")
+        each = ", ".join(f"{f:.2f}" for f in row["fps_rounds"])
+        lines.append(f"| {name} | {row['frames']} | {row['fps']:.2f} ({each}) | {stages} |")
     if live["ratio"] is not None:
-        lines += ["", f"with depth ÷ detection alone: {live['ratio']:.2f}"]
+        each = ", ".join(f"{r:.2f}" for r in live["ratios"])
+        lines += ["", f"with depth ÷ detection alone: {live['ratio']:.2f} (round by round {each})"]
     return "\n".join(lines) + "\n"

@@ -121,18 +121,24 @@ def test_soak_reports_rss_at_start_and_end(tmp_path):
     assert "RSS" in out.stdout and not (ROOT / "results" / "steel_plate" / "soak").exists()
 
 
-def test_live_runs_the_real_loop_with_and_without_depth(tmp_path):
+def test_live_runs_the_real_loop_with_and_without_depth_in_alternating_rounds(tmp_path):
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "none", "--repeats", "1",
-              "--frames", "1", "--live", "6", "--threads", "1", "--out", str(tmp_path))
+              "--frames", "1", "--live", "6", "--live-rounds", "2", "--threads", "1", "--out", str(tmp_path))
     assert out.returncode == 0, out.stderr
     live = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())["live"]
     alone, depth = live["rows"]["detection alone"], live["rows"]["with depth"]
     assert live["concurrent"] is True and alone["frames"] == depth["frames"] == 6
+    # the second round starts with the loop the first ended with, so that a steady drift falls on both alike
+    assert live["order"] == ["detection alone", "with depth", "with depth", "detection alone"]
     # nothing measured; the images of each part without defects are checked to show the plate in range
-    assert set(alone["mean_ms"]) == {"detection", "plate check"} and alone["counts"] == {"PASS": 6}
+    assert set(alone["mean_ms"]) == {"detection", "plate check"} and alone["counts"] == {"PASS": 12}
     assert {"detection", "stereo", "depth"} <= set(depth["mean_ms"]) and depth["counts"].get("REJECT", 0) > 0
-    assert live["ratio"] == depth["fps"] / alone["fps"] > 0
-    assert "with depth ÷ detection alone" in out.stdout and not (ROOT / "results" / "steel_plate" / "live").exists()
+    assert len(alone["fps_rounds"]) == len(depth["fps_rounds"]) == 2
+    assert alone["fps"] == pytest.approx(sum(alone["fps_rounds"]) / 2)  # the median of two
+    assert live["ratios"] == [d / a for a, d in zip(alone["fps_rounds"], depth["fps_rounds"])]
+    assert live["ratio"] == pytest.approx(sum(live["ratios"]) / 2) and live["ratio"] > 0
+    assert "with depth ÷ detection alone" in out.stdout and "round by round" in out.stdout
+    assert not (ROOT / "results" / "steel_plate" / "live").exists()
 
 
 def test_a_frame_that_cannot_be_read_is_one_line_naming_it(tmp_path):

@@ -41,6 +41,8 @@ from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
 @click.option("--live", default=None, type=click.IntRange(1), metavar="FRAMES",
               help="after the table: the real loop as the recipe runs it (detection a frame ahead where "
                    "stereo.concurrent) for FRAMES frames, with detection alone and with depth, and their ratio")
+@click.option("--live-rounds", default=3, show_default=True, type=click.IntRange(1),
+              help="live: rounds of both loops, the first of each round alternating; the ratio is the rounds' median")
 @click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=None,
               help="torch and OpenCV CPU threads (1 is fastest when another job keeps a core busy)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE")
@@ -48,7 +50,7 @@ from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
               help="compare every defect's depth with the recipe's stereo backend run full-frame with this setting "
                    "changed (e.g. --versus search=full); repeatable")
 def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, device, repeats, frames, regions, out,
-                  soak, soak_every, quiet, live, threads, overrides, versus):
+                  soak, soak_every, quiet, live, live_rounds, threads, overrides, versus):
     """Time capture, detection, stereo, depth, decision, outputs and the whole loop; print and save
     a table (JSON + Markdown). Backend "none" times detection alone."""
     from core.bench import NO_STEREO, BenchInputError, live_markdown, markdown, run_bench, run_live, run_soak
@@ -117,7 +119,7 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         fail(str(exc))
     table = markdown(report)
     if live is not None:
-        report["live"] = run_live(loaded, registry, live, device)
+        report["live"] = run_live(loaded, registry, live, device, live_rounds)
         table += "\n" + live_markdown(report["live"])
     out.mkdir(parents=True, exist_ok=True)
     stem = f"bench-{resolution}-{report['device']}"

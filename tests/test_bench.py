@@ -141,6 +141,12 @@ def test_live_runs_the_real_loop_with_and_without_depth_in_alternating_rounds(tm
     assert not (ROOT / "results" / "steel_plate" / "live").exists()
 
 
+def test_live_rounds_without_live_is_refused(tmp_path):
+    out = cli("bench", "--backends", "none", "--live-rounds", "2", "--out", str(tmp_path))
+    assert out.returncode == 2 and out.stderr == "error: --live-rounds needs --live FRAMES\n"
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_frame_that_cannot_be_read_is_one_line_naming_it(tmp_path):
     """Timings of a loop that skipped it would be of other frames than the table says: refused, not a traceback."""
     import shutil

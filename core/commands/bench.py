@@ -62,6 +62,9 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         overrides.append(f"camera.settings.path={sequence.resolve()}")
     if (min_disp is None) != (max_disp is None):
         fail("give both --min-disp and --max-disp")
+    if live is None and click.get_current_context().get_parameter_source("live_rounds") \
+            is click.core.ParameterSource.COMMANDLINE:
+        fail("--live-rounds needs --live FRAMES")
     if max_disp is not None:
         overrides += ["stereo.working_distance_mm=null", f"stereo.min_disparity={min_disp}", f"stereo.max_disparity={max_disp}"]
     if threads:

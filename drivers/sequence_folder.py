@@ -189,10 +189,14 @@ def incomplete(data: bytes, suffix: str) -> str | None:
     so a cut file would otherwise give a picture of a plate with half of it missing."""
     suffix = suffix.lower()
     if suffix in (".jpg", ".jpeg"):
-        if not data.startswith(b"\xff\xd8") or not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+        if not data.startswith(b"\xff\xd8"):
+            return "not a JPEG (no start-of-image marker)"
+        if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
             return "truncated JPEG (no end-of-image marker)"
     elif suffix == ".png":
-        if not data.startswith(b"\x89PNG\r\n\x1a\n") or not data.endswith(PNG_END):
+        if not data.startswith(b"\x89PNG\r\n\x1a\n"):
+            return "not a PNG (no PNG signature)"
+        if not data.endswith(PNG_END):
             return "truncated PNG (no IEND chunk at its end)"
     return None
 

@@ -64,6 +64,20 @@ def test_corrupt_and_missing_frames_are_errors_not_skips(plane_sequence):
     assert "left image of frame 000002 missing" in frames[2].message
 
 
+@pytest.mark.parametrize("name, data, says", [
+    ("a.png", b"hello", "not a PNG (no PNG signature)"),
+    ("a.png", b"\x89PNG\r\n\x1a\n cut", "truncated PNG (no IEND chunk at its end)"),
+    ("a.jpg", b"GIF89a", "not a JPEG (no start-of-image marker)"),
+    ("a.JPEG", b"\xff\xd8 cut", "truncated JPEG (no end-of-image marker)"),
+    ("a.jpg", b"\xff\xd8 whole \xff\xd9\x00\x00", None),
+])
+def test_why_an_encoded_image_is_not_whole(name, data, says):
+    """``sequence_folder.incomplete``: a file that is no such image is told from one cut short."""
+    from drivers.sequence_folder import incomplete
+
+    assert incomplete(data, Path(name).suffix) == says
+
+
 def test_an_image_declaring_more_pixels_than_any_camera_is_refused_before_decoding(plane_sequence):
     # 10000 x 7000 in 70 KB: decoded, 210 MB before its size could be held against the calibration's
     info = plane_sequence([0.0])

@@ -67,10 +67,14 @@ def read_text(path: Path, what: str) -> str:
 def read_middlebury_calib(path: Path) -> dict:
     """Parse Middlebury's ``calib.txt`` (cam0=[f 0 cx; 0 f cy; 0 0 1], doffs, baseline, ndisp, ...)."""
     values: dict[str, str] = {}
-    for line in read_text(path, "calibration").splitlines():
+    first: dict[str, int] = {}
+    for number, line in enumerate(read_text(path, "calibration").splitlines(), 1):
         if "=" in line:
-            key, value = line.split("=", 1)
-            values[key.strip()] = value.strip()
+            key, value = (part.strip() for part in line.split("=", 1))
+            if key in first:
+                raise SequenceError(f"{path}:{number}: {key}: given twice (first at line {first[key]}); one of them "
+                                    f"would be ignored")
+            values[key], first[key] = value, number
     try:
         cam0 = [float(x) for x in re.split(r"[\s;\[\]]+", values["cam0"]) if x]
         calib = {
@@ -127,9 +131,13 @@ def read_calibration(folder: Path) -> dict:
     if not path.exists():
         raise SequenceError(f"{path}: calibration file missing")
     try:
-        data = yaml_reader.safe_load(read_text(path, "calibration"))
+        text = read_text(path, "calibration")
+        data = yaml_reader.safe_load(text)
+        yaml_reader.check_unique_keys(text)
     except yaml_reader.MisreadNumber as exc:
         raise SequenceError(f"{path}:{exc.line}: {'.'.join(map(str, exc.key))}: {exc.problem}") from None
+    except yaml_reader.DuplicateKey as exc:
+        raise SequenceError(f"{path}:{exc.line}: {exc.problem}") from None
     except yaml.YAMLError as exc:
         raise SequenceError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict):

@@ -43,6 +43,16 @@ class StructureError(yaml.MarkedYAMLError):
         self.line = mark.line + 1
 
 
+class DuplicateKey(yaml.MarkedYAMLError):
+    """A mapping that gives a key twice, which YAML reads as the last silently; ``line`` is the second one's
+    (1-based)."""
+
+    def __init__(self, mark: yaml.Mark, key: str, first: int):
+        super().__init__(problem=f"{key}: given twice (first at line {first}); one of them would be ignored",
+                         problem_mark=mark)
+        self.line = mark.line + 1
+
+
 class _Loader(yaml.SafeLoader):
     _depth = 0  # collections open while composing
 
@@ -146,6 +156,28 @@ def safe_load(text: str):
         raise
     finally:
         loader.dispose()
+
+
+def check_unique_keys(text: str) -> None:
+    """``DuplicateKey`` where a mapping of the YAML document ``text`` (one ``safe_load`` reads) gives a key twice:
+    of a calibration file's two focal lengths, YAML would keep the second without a word."""
+    node = yaml.compose(text, Loader=yaml.SafeLoader)
+    seen, stack = set(), [node] if node is not None else []
+    while stack:
+        item = stack.pop()
+        if id(item) in seen or isinstance(item, yaml.ScalarNode):
+            continue
+        seen.add(id(item))
+        if isinstance(item, yaml.MappingNode):
+            first: dict = {}
+            for key, value in item.value:
+                if isinstance(key, yaml.ScalarNode):
+                    if key.value in first:
+                        raise DuplicateKey(key.start_mark, key.value, first[key.value])
+                    first[key.value] = key.start_mark.line + 1
+                stack += [key, value]
+        else:
+            stack += item.value
 
 
 def option_value(raw: str):

@@ -143,6 +143,17 @@ class TestReadCalibration:
         with pytest.raises(SequenceError, match=re.escape(f"calib.yaml: {says}")):
             read_calibration(info["folder"])
 
+    def test_a_key_given_twice_is_named_with_both_lines(self, plane_sequence):
+        # YAML keeps the second focal length without a word: every depth of the sequence would follow it
+        info = plane_sequence([0.0])
+        path = info["folder"] / "calib.yaml"
+        path.write_text(path.read_text() + "focal_px: 700.0\n")
+        lines = path.read_text().splitlines()
+        first = next(n for n, text in enumerate(lines, 1) if text.startswith("focal_px:"))
+        with pytest.raises(SequenceError, match=re.escape(
+                f"calib.yaml:{len(lines)}: focal_px: given twice (first at line {first}); one of them would be ignored")):
+            read_calibration(info["folder"])
+
     def test_an_alias_that_holds_itself_is_named_not_followed(self, plane_sequence):
         info = plane_sequence([0.0])
         path = info["folder"] / "calib.yaml"
@@ -197,6 +208,14 @@ class TestReadCalibration:
             b"\xef\xbb\xbfcam0=[1000 0 300; 0 1000 200; 0 0 1]\r\ncam1=[1000 0 300; 0 1000 200; 0 0 1]\r\n"
             b"doffs=0\r\nbaseline=100\r\nwidth=640\r\nheight=400\r\nndisp=64\r\n")
         assert read_calibration(tmp_path)["focal_px"] == 1000.0
+
+    def test_a_middlebury_key_given_twice_is_named(self, tmp_path):
+        (tmp_path / "im0.png").write_bytes(b"")
+        (tmp_path / "calib.txt").write_text("cam0=[1000 0 300; 0 1000 200; 0 0 1]\ndoffs=0\nbaseline=100\n"
+                                            "width=640\nheight=400\nndisp=64\nbaseline=193\n")
+        with pytest.raises(SequenceError, match=re.escape(
+                "calib.txt:7: baseline: given twice (first at line 3); one of them would be ignored")):
+            read_calibration(tmp_path)
 
 
 class TestReadLabels:

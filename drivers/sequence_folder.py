@@ -192,8 +192,8 @@ PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
 
 
 def incomplete(data: bytes, suffix: str) -> str | None:
-    """Why an encoded image is not whole, or None: a JPEG must end with its end-of-image marker and a PNG
-    with its IEND chunk. A decoder fills what a truncated file lacks with grey and says so only on stderr,
+    """Why an encoded image is not whole, or None: a JPEG must start and end with its image markers and a PNG
+    with its signature and its IEND chunk. A decoder fills what a truncated file lacks with grey and says so only on stderr,
     so a cut file would otherwise give a picture of a plate with half of it missing."""
     suffix = suffix.lower()
     if suffix in (".jpg", ".jpeg"):

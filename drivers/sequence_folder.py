@@ -133,7 +133,7 @@ def read_calibration(folder: Path) -> dict:
     try:
         text = read_text(path, "calibration")
         data = yaml_reader.safe_load(text)
-        yaml_reader.check_unique_keys(text)
+        yaml_reader.key_lines(text)
     except yaml_reader.MisreadNumber as exc:
         raise SequenceError(f"{path}:{exc.line}: {'.'.join(map(str, exc.key))}: {exc.problem}") from None
     except yaml_reader.DuplicateKey as exc:

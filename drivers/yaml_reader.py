@@ -45,12 +45,13 @@ class StructureError(yaml.MarkedYAMLError):
 
 class DuplicateKey(yaml.MarkedYAMLError):
     """A mapping that gives a key twice, which YAML reads as the last silently; ``line`` is the second one's
-    (1-based)."""
+    (1-based), ``key`` the path of mapping keys and list indexes to it."""
 
-    def __init__(self, mark: yaml.Mark, key: str, first: int):
-        super().__init__(problem=f"{key}: given twice (first at line {first}); one of them would be ignored",
-                         problem_mark=mark)
+    def __init__(self, mark: yaml.Mark, key: tuple[str | int, ...], first: int):
+        super().__init__(problem=f"{'.'.join(map(str, key))}: given twice (first at line {first}); one of them "
+                         f"would be ignored", problem_mark=mark)
         self.line = mark.line + 1
+        self.key = key
 
 
 class _Loader(yaml.SafeLoader):
@@ -158,26 +159,31 @@ def safe_load(text: str):
         loader.dispose()
 
 
-def check_unique_keys(text: str) -> None:
-    """``DuplicateKey`` where a mapping of the YAML document ``text`` (one ``safe_load`` reads) gives a key twice:
-    of a calibration file's two focal lengths, YAML would keep the second without a word."""
-    node = yaml.compose(text, Loader=yaml.SafeLoader)
-    seen, stack = set(), [node] if node is not None else []
-    while stack:
-        item = stack.pop()
-        if id(item) in seen or isinstance(item, yaml.ScalarNode):
-            continue
-        seen.add(id(item))
-        if isinstance(item, yaml.MappingNode):
-            first: dict = {}
-            for key, value in item.value:
-                if isinstance(key, yaml.ScalarNode):
-                    if key.value in first:
-                        raise DuplicateKey(key.start_mark, key.value, first[key.value])
-                    first[key.value] = key.start_mark.line + 1
-                stack += [key, value]
-        else:
-            stack += item.value
+def key_lines(text: str) -> dict[tuple[str | int, ...], int]:
+    """The 1-based line of every key (and list item) of the YAML document ``text``, by its path of mapping keys and
+    list indexes; ``DuplicateKey`` where a mapping gives a key twice: YAML keeps the last without a word, and a
+    recipe's second threshold must not hide its first, nor a calibration file's second focal length its first.
+    Read it after ``safe_load``, which refuses the aliases this walk would follow without end."""
+    lines: dict[tuple[str | int, ...], int] = {}
+
+    def walk(node: yaml.Node, path: tuple[str | int, ...]) -> None:
+        if isinstance(node, yaml.MappingNode):
+            for key_node, value_node in node.value:
+                child = path + (key_node.value,)
+                line = key_node.start_mark.line + 1
+                if child in lines:
+                    raise DuplicateKey(key_node.start_mark, child, lines[child])
+                lines[child] = line
+                walk(value_node, child)
+        elif isinstance(node, yaml.SequenceNode):
+            for index, item in enumerate(node.value):
+                lines[path + (index,)] = item.start_mark.line + 1
+                walk(item, path + (index,))
+
+    root = yaml.compose(text, Loader=yaml.SafeLoader)
+    if root is not None:
+        walk(root, ())
+    return lines
 
 
 def option_value(raw: str):

@@ -30,39 +30,6 @@ class RecipeError(Exception):
 KeyPath = tuple[str | int, ...]
 
 
-class DuplicateKey(Exception):
-    """A key given twice in one mapping; ``str()`` is ``line: key: ...``, to follow the file's name."""
-
-    def __init__(self, key: KeyPath, line: int, first: int):
-        super().__init__(f"{line}: {_dotted(key)}: given twice (first at line {first}); one of them would be ignored")
-
-
-def _line_map(text: str) -> dict[KeyPath, int]:
-    """1-based line of every key (and list item) in the YAML document. A key given twice in one mapping
-    raises ``DuplicateKey``: YAML keeps the last silently, and a recipe's second threshold must not hide
-    its first."""
-    lines: dict[KeyPath, int] = {}
-
-    def walk(node: yaml.Node, path: KeyPath) -> None:
-        if isinstance(node, yaml.MappingNode):
-            for key_node, value_node in node.value:
-                child = path + (key_node.value,)
-                line = key_node.start_mark.line + 1
-                if child in lines:
-                    raise DuplicateKey(child, line, lines[child])
-                lines[child] = line
-                walk(value_node, child)
-        elif isinstance(node, yaml.SequenceNode):
-            for index, item in enumerate(node.value):
-                lines[path + (index,)] = item.start_mark.line + 1
-                walk(item, path + (index,))
-
-    root = yaml.compose(text, Loader=yaml.SafeLoader)
-    if root is not None:
-        walk(root, ())
-    return lines
-
-
 def _dotted(path: KeyPath) -> str:
     return ".".join(str(p) for p in path) or "(top level)"
 
@@ -264,10 +231,10 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     except OSError as exc:
         raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from None
     try:
-        data = yaml_reader.safe_load(text)  # first: it refuses the aliases that _line_map's walk would follow forever
-        lines = _line_map(text)
-    except DuplicateKey as exc:
-        raise RecipeError(f"{path}:{exc}") from None
+        data = yaml_reader.safe_load(text)  # first: it refuses the aliases that key_lines's walk would follow forever
+        lines = yaml_reader.key_lines(text)
+    except yaml_reader.DuplicateKey as exc:
+        raise RecipeError(f"{path}:{exc.line}: {exc.problem}") from None
     except yaml_reader.MisreadNumber as exc:
         raise RecipeError(f"{path}:{exc.line}: {_dotted(exc.key)}: {exc.problem}") from None
     except yaml_reader.StructureError as exc:

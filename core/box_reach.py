@@ -64,8 +64,8 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
     """The region ``box`` (x0, y0, x1, y1) moved by each share of SHARES of ``size`` (the detection's width,
     height) towards each angle of ANGLES_DEG, each with MIN_CELLS or more usable cells inside it: the CANDIDATES
     whose cells' area-weighted mean reads farthest beyond ``region`` (px) from the surface in its standard
-    deviations, each read as the robust offset of its cells by area (a Tukey mean for every copy was most of a
-    defect's depth time; a glint's cell, which pulls a mean, is cut there).
+    deviations, no two of them holding the same cells, each read as the robust offset of its cells by area (a Tukey
+    mean for every copy was most of a defect's depth time; a glint's cell, which pulls a mean, is cut there).
 
     offsets, sds: (K,) the cells' offsets and standard deviations (px, inf where a cell has no gradient), as
     ``surface_fit.cell_offsets`` gives them over ``reach(box, size)``; areas: (K,) their areas
@@ -86,11 +86,16 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
     mean = (a * x).sum(axis=1) / total
     sd = np.sqrt((a * a * s * s).sum(axis=1)) / total
     screen = np.where(counts >= MIN_CELLS, (np.abs(mean) - abs(region)) / np.maximum(sd, 1e-12), -np.inf)
-    found = []
-    for i in np.argsort(-screen)[:CANDIDATES]:
-        if not np.isfinite(screen[i]):
+    found, read_sets = [], []
+    for i in np.argsort(-screen):
+        if not np.isfinite(screen[i]) or len(read_sets) == CANDIDATES:
             break
         keep = inside[i]
+        # a small box's copies moved a few pixels often hold the same cells: read once, they would fill every
+        # candidate's place with one reading and leave the copy that lands on the defect unread
+        if any(np.array_equal(keep, other) for other in read_sets):
+            continue
+        read_sets.append(keep)
         read = surface_fit.robust_offset(offsets[keep], sds[keep], float(np.median(offsets[keep])), areas=areas[keep])
         if np.isfinite(read.variance) and read.variance > 0:
             found.append(MovedRegion(copies[i][0], copies[i][1], read.delta, read.variance))

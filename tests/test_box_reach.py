@@ -98,6 +98,24 @@ class TestMovedRegions:
         best = farthest(moved_regions(offsets, sds, areas, centres, region, SIZE), 0.0)
         assert abs(best.offset) < 0.05
 
+    def test_copies_holding_the_same_cells_are_read_once(self):
+        # a 12 px box: copies moved 2-4 px hold the same 4 px cells, six of them those of a glint beside the region
+        # whose mean it pulls out. Read once each, they leave a candidate's place to the copy on the pit
+        size = (12.0, 12.0)
+        region = region_of((100.0, 100.0, 112.0, 112.0))
+        pit = moved_box(region, size, 0.5, 180.0)
+        offsets, sds, areas, centres = cells_over(reach(region, size), pit, 0.6, 0.05, seed=5)
+        glint = int(np.argmin(np.linalg.norm(centres - np.array([110.4, 110.4]), axis=1)))
+        offsets[glint], sds[glint] = -10.0, 0.005
+        u, v = centres[:, 0], centres[:, 1]
+        reading = float(np.mean(offsets[(u >= region[0]) & (u < region[2]) & (v >= region[1]) & (v < region[3])]))
+        found = moved_regions(offsets, sds, areas, centres, region, size)
+        held = [tuple(np.flatnonzero((u >= b[0]) & (u < b[2]) & (v >= b[1]) & (v < b[3])))
+                for b in (moved_box(region, size, m.share, m.angle_deg) for m in found)]
+        assert len(set(held)) == len(found) == box_reach.CANDIDATES
+        best = farthest(found, reading)
+        assert best.angle_deg == 180.0 and best.offset == pytest.approx(-0.6, abs=0.05)
+
     def test_shape_checks(self):
         offsets, sds, areas, centres = cells_over((0, 0, 32, 32), (0, 0, 0, 0), 0.0, 0.05, seed=4)
         with pytest.raises(ValueError, match="moved_regions"):

@@ -64,8 +64,9 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
     """The region ``box`` (x0, y0, x1, y1) moved by each share of SHARES of ``size`` (the detection's width,
     height) towards each angle of ANGLES_DEG, each with MIN_CELLS or more usable cells inside it: the CANDIDATES
     whose cells' area-weighted mean reads farthest beyond ``region`` (px) from the surface in its standard
-    deviations, no two of them holding the same cells, each read as the robust offset of its cells by area (a Tukey
-    mean for every copy was most of a defect's depth time; a glint's cell, which pulls a mean, is cut there).
+    deviations and the CANDIDATES whose cells' area-weighted median does, no two of them holding the same cells, each
+    read as the robust offset of its cells by area (a Tukey mean for every copy was most of a defect's depth time; a
+    glint's cell, which pulls a mean, is cut there).
 
     offsets, sds: (K,) the cells' offsets and standard deviations (px, inf where a cell has no gradient), as
     ``surface_fit.cell_offsets`` gives them over ``reach(box, size)``; areas: (K,) their areas
@@ -84,22 +85,41 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
     total = np.maximum(a.sum(axis=1), 1e-12)
     x, s = np.where(usable, offsets, 0.0), np.where(usable, sds, 0.0)
     mean = (a * x).sum(axis=1) / total
-    sd = np.sqrt((a * a * s * s).sum(axis=1)) / total
-    screen = np.where(counts >= MIN_CELLS, (np.abs(mean) - abs(region)) / np.maximum(sd, 1e-12), -np.inf)
-    found, read_sets = [], []
-    for i in np.argsort(-screen):
-        if not np.isfinite(screen[i]) or len(read_sets) == CANDIDATES:
-            break
+    order = np.argsort(x)
+    below = np.cumsum(a[:, order], axis=1)  # (M, K) each copy's area up to each cell, the cells in offset order
+    half = 0.5 * total[:, None]
+    # the two middle cells' mean where the area divides evenly between them, so that pits and bumps rank alike
+    median = 0.5 * (x[order][np.argmax(below >= half, axis=1)] + x[order][np.argmax(below > half, axis=1)])
+    sd = np.sqrt((a * a * s * s).sum(axis=1)) / total  # the mean's: a scale to rank by, the reading is robust
+    enough = counts >= MIN_CELLS
+    # ranked by the mean and by the median: a cell over a pit that a wall's sheen reads as a bump takes the mean of
+    # the copy on the pit back to the surface (a pit half a box off read 0.60 mm for 2.13 mm and passed), and where
+    # half a copy's cells lie on the pit the median may stand nearer than the robust reading does
+    picks: list[int] = []
+    for centre in (mean, median):
+        screen = np.where(enough, (np.abs(centre) - abs(region)) / np.maximum(sd, 1e-12), -np.inf)
+        ranked = _distinct(np.argsort(-screen)[:int(np.sum(np.isfinite(screen)))], inside)
+        picks += [i for i in ranked if not any(np.array_equal(inside[i], inside[j]) for j in picks)]
+    found = []
+    for i in picks:
         keep = inside[i]
-        # a small box's copies moved a few pixels often hold the same cells: read once, they would fill every
-        # candidate's place with one reading and leave the copy that lands on the defect unread
-        if any(np.array_equal(keep, other) for other in read_sets):
-            continue
-        read_sets.append(keep)
         read = surface_fit.robust_offset(offsets[keep], sds[keep], float(np.median(offsets[keep])), areas=areas[keep])
         if np.isfinite(read.variance) and read.variance > 0:
             found.append(MovedRegion(copies[i][0], copies[i][1], read.delta, read.variance))
     return found
+
+
+def _distinct(ranked: np.ndarray, inside: np.ndarray) -> list[int]:
+    """The first CANDIDATES of the copies ``ranked`` (indices, best first) whose cells (``inside``, (M, K) bool) are not
+    those of a copy before them: a small box's copies moved a few pixels often hold the same cells, which read once
+    each would fill every candidate's place and leave the copy on the defect unread."""
+    chosen: list[int] = []
+    for i in ranked:
+        if len(chosen) == CANDIDATES:
+            break
+        if not any(np.array_equal(inside[i], inside[j]) for j in chosen):
+            chosen.append(int(i))
+    return chosen
 
 
 def farthest(moved: list[MovedRegion], region: float, region_variance: float = 0.0) -> MovedRegion | None:

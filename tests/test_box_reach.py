@@ -78,10 +78,12 @@ class TestMovedRegions:
         region = region_of(TRUE_BOX)
         offsets, sds, areas, centres = cells_over(reach(region, SIZE), TRUE_BOX, 0.0, 0.05, seed=2)
         found = moved_regions(offsets, sds, areas, centres, region, SIZE)
-        assert len(found) == box_reach.CANDIDATES
-        # a pit beyond the box's bottom edge: the copies moved down stand out
+        # the first CANDIDATES by their cells' mean and by their median: on a flat plate two rankings of noise
+        assert box_reach.CANDIDATES < len(found) <= 2 * box_reach.CANDIDATES
+        # a pit beyond the box's bottom edge: the copies moved down stand out, by either ranking
         offsets[centres[:, 1] > 128] -= 0.3
         found = moved_regions(offsets, sds, areas, centres, region, SIZE)
+        assert len(found) <= 2 * box_reach.CANDIDATES
         assert all(0.0 < m.angle_deg < 180.0 and m.share >= 0.35 for m in found)
         assert farthest(found, 0.0).angle_deg in (67.5, 90.0, 112.5)
         # cells without a reading do not count: a region left with fewer than MIN_CELLS is left out
@@ -99,22 +101,38 @@ class TestMovedRegions:
         assert abs(best.offset) < 0.05
 
     def test_copies_holding_the_same_cells_are_read_once(self):
-        # a 12 px box: copies moved 2-4 px hold the same 4 px cells, six of them those of a glint beside the region
-        # whose mean it pulls out. Read once each, they leave a candidate's place to the copy on the pit
+        # a 12 px box: copies moved 2-4 px hold the same 4 px cells (six copies those of the region's half on the
+        # pit). Read once each, the candidates are four parts of the plate, one the copy back on the pit
         size = (12.0, 12.0)
         region = region_of((100.0, 100.0, 112.0, 112.0))
         pit = moved_box(region, size, 0.5, 180.0)
         offsets, sds, areas, centres = cells_over(reach(region, size), pit, 0.6, 0.05, seed=5)
-        glint = int(np.argmin(np.linalg.norm(centres - np.array([110.4, 110.4]), axis=1)))
-        offsets[glint], sds[glint] = -10.0, 0.005
         u, v = centres[:, 0], centres[:, 1]
         reading = float(np.mean(offsets[(u >= region[0]) & (u < region[2]) & (v >= region[1]) & (v < region[3])]))
         found = moved_regions(offsets, sds, areas, centres, region, size)
         held = [tuple(np.flatnonzero((u >= b[0]) & (u < b[2]) & (v >= b[1]) & (v < b[3])))
                 for b in (moved_box(region, size, m.share, m.angle_deg) for m in found)]
-        assert len(set(held)) == len(found) == box_reach.CANDIDATES
+        assert len(set(held)) == len(found) >= box_reach.CANDIDATES
         best = farthest(found, reading)
         assert best.angle_deg == 180.0 and best.offset == pytest.approx(-0.6, abs=0.05)
+
+    def test_a_cell_read_the_other_way_does_not_hide_the_copy_on_the_pit(self):
+        # a 12 px box half its size right of a narrow pit, the plate to its right sloping away a little; one of the
+        # pit's cells a wall's sheen reads as a bump, which takes the mean of every copy over the pit back to the
+        # surface, below the copies on the slope, but not their median
+        size = (12.0, 12.0)
+        region = region_of((100.0, 100.0, 112.0, 112.0))
+        pit = moved_box(region, size, 0.5, 180.0)
+        offsets, sds, areas, centres = cells_over(reach(region, size), pit, 0.6, 0.05, seed=6)
+        u, v = centres[:, 0], centres[:, 1]
+        offsets[u > 110] -= 0.35
+        on_pit = np.flatnonzero((u >= pit[0]) & (u < pit[2]) & (v >= pit[1]) & (v < pit[3]))
+        offsets[on_pit[0]] = 1.1
+        in_region = (u >= region[0]) & (u < region[2]) & (v >= region[1]) & (v < region[3])
+        reading = float(np.mean(offsets[in_region]))
+        best = farthest(moved_regions(offsets, sds, areas, centres, region, size), reading)
+        assert best.angle_deg == 180.0 and best.offset == pytest.approx(-0.6, abs=0.05)
+        assert best.z(reading) > 5
 
     def test_shape_checks(self):
         offsets, sds, areas, centres = cells_over((0, 0, 32, 32), (0, 0, 0, 0), 0.0, 0.05, seed=4)

@@ -23,7 +23,7 @@ from core import surface_fit
 SHARES = (0.2, 0.35, 0.5)
 ANGLES_DEG = tuple(np.arange(0.0, 360.0, 22.5))
 MIN_CELLS = 3  # in a moved region: fewer read a glint as much as a floor
-CANDIDATES = 4  # the moved regions read robustly, those whose mean stands farthest out
+CANDIDATES = 4  # the moved regions read robustly by each ranking (their cells' mean, their median)
 
 
 @dataclass(frozen=True)

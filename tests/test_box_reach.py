@@ -28,6 +28,20 @@ def cells_over(area: tuple[float, float, float, float], defect: tuple[float, flo
 
 
 TRUE_BOX = (100.0, 100.0, 140.0, 130.0)
+SMALL = (12.0, 12.0)  # a narrow defect's box, whose copies moved 2-4 px hold the same 4 px cells
+
+
+def small_region_off_its_pit(seed: int):
+    """The region of a SMALL box half its size right of a 0.6 px pit, and ``cells_over`` its reach: region, offsets,
+    sds, areas, centres."""
+    region = region_of((100.0, 100.0, 112.0, 112.0))
+    return (region, *cells_over(reach(region, SMALL), moved_box(region, SMALL, 0.5, 180.0), 0.6, 0.05, seed=seed))
+
+
+def mean_within(offsets: np.ndarray, centres: np.ndarray, box: tuple[float, float, float, float]) -> float:
+    """The mean offset of the cells whose centres lie in ``box``."""
+    u, v = centres[:, 0], centres[:, 1]
+    return float(np.mean(offsets[(u >= box[0]) & (u < box[2]) & (v >= box[1]) & (v < box[3])]))
 
 
 class TestMovedBox:
@@ -101,36 +115,28 @@ class TestMovedRegions:
         assert abs(best.offset) < 0.05
 
     def test_copies_holding_the_same_cells_are_read_once(self):
-        # a 12 px box: copies moved 2-4 px hold the same 4 px cells (six copies those of the region's half on the
-        # pit). Read once each, the candidates are four parts of the plate, one the copy back on the pit
-        size = (12.0, 12.0)
-        region = region_of((100.0, 100.0, 112.0, 112.0))
-        pit = moved_box(region, size, 0.5, 180.0)
-        offsets, sds, areas, centres = cells_over(reach(region, size), pit, 0.6, 0.05, seed=5)
+        # six copies hold the cells of the region's half on the pit. Read once each, the candidates are other parts
+        # of the plate as well, one of them the copy back on the pit
+        region, offsets, sds, areas, centres = small_region_off_its_pit(seed=5)
+        found = moved_regions(offsets, sds, areas, centres, region, SMALL)
         u, v = centres[:, 0], centres[:, 1]
-        reading = float(np.mean(offsets[(u >= region[0]) & (u < region[2]) & (v >= region[1]) & (v < region[3])]))
-        found = moved_regions(offsets, sds, areas, centres, region, size)
         held = [tuple(np.flatnonzero((u >= b[0]) & (u < b[2]) & (v >= b[1]) & (v < b[3])))
-                for b in (moved_box(region, size, m.share, m.angle_deg) for m in found)]
+                for b in (moved_box(region, SMALL, m.share, m.angle_deg) for m in found)]
         assert len(set(held)) == len(found) >= box_reach.CANDIDATES
-        best = farthest(found, reading)
+        best = farthest(found, mean_within(offsets, centres, region))
         assert best.angle_deg == 180.0 and best.offset == pytest.approx(-0.6, abs=0.05)
 
     def test_a_cell_read_the_other_way_does_not_hide_the_copy_on_the_pit(self):
-        # a 12 px box half its size right of a narrow pit, the plate to its right sloping away a little; one of the
-        # pit's cells a wall's sheen reads as a bump, which takes the mean of every copy over the pit back to the
-        # surface, below the copies on the slope, but not their median
-        size = (12.0, 12.0)
-        region = region_of((100.0, 100.0, 112.0, 112.0))
-        pit = moved_box(region, size, 0.5, 180.0)
-        offsets, sds, areas, centres = cells_over(reach(region, size), pit, 0.6, 0.05, seed=6)
+        # the plate right of the box slopes away a little, and one of the pit's cells a wall's sheen reads as a bump:
+        # that takes the mean of every copy over the pit back to the surface, below the copies on the slope, but not
+        # their median
+        region, offsets, sds, areas, centres = small_region_off_its_pit(seed=6)
         u, v = centres[:, 0], centres[:, 1]
         offsets[u > 110] -= 0.35
-        on_pit = np.flatnonzero((u >= pit[0]) & (u < pit[2]) & (v >= pit[1]) & (v < pit[3]))
-        offsets[on_pit[0]] = 1.1
-        in_region = (u >= region[0]) & (u < region[2]) & (v >= region[1]) & (v < region[3])
-        reading = float(np.mean(offsets[in_region]))
-        best = farthest(moved_regions(offsets, sds, areas, centres, region, size), reading)
+        pit = moved_box(region, SMALL, 0.5, 180.0)
+        offsets[np.flatnonzero((u >= pit[0]) & (u < pit[2]) & (v >= pit[1]) & (v < pit[3]))[0]] = 1.1
+        reading = mean_within(offsets, centres, region)
+        best = farthest(moved_regions(offsets, sds, areas, centres, region, SMALL), reading)
         assert best.angle_deg == 180.0 and best.offset == pytest.approx(-0.6, abs=0.05)
         assert best.z(reading) > 5
 

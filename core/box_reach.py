@@ -95,11 +95,11 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
     # ranked by the mean and by the median: a cell over a pit that a wall's sheen reads as a bump takes the mean of
     # the copy on the pit back to the surface (a pit half a box off read 0.60 mm for 2.13 mm and passed), and where
     # half a copy's cells lie on the pit the median may stand nearer than the robust reading does
+    held = [np.packbits(row).tobytes() for row in inside]  # each copy's cells, to tell copies holding the same apart
     picks: list[int] = []
     for centre in (mean, median):
         screen = np.where(enough, (np.abs(centre) - abs(region)) / np.maximum(sd, 1e-12), -np.inf)
-        ranked = _distinct(np.argsort(-screen)[:int(np.sum(np.isfinite(screen)))], inside)
-        picks += [i for i in ranked if not any(np.array_equal(inside[i], inside[j]) for j in picks)]
+        picks += [i for i in _distinct(screen, held) if held[i] not in {held[j] for j in picks}]
     found = []
     for i in picks:
         keep = inside[i]
@@ -109,15 +109,15 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
     return found
 
 
-def _distinct(ranked: np.ndarray, inside: np.ndarray) -> list[int]:
-    """The first CANDIDATES of the copies ``ranked`` (indices, best first) whose cells (``inside``, (M, K) bool) are not
-    those of a copy before them: a small box's copies moved a few pixels often hold the same cells, which read once
-    each would fill every candidate's place and leave the copy on the defect unread."""
+def _distinct(screen: np.ndarray, held: list[bytes]) -> list[int]:
+    """The CANDIDATES copies of highest ``screen`` (M,), -inf for none, whose cells (``held``, one key per copy) are
+    not those of a copy ranked before them: a small box's copies moved a few pixels often hold the same cells, which
+    read once each would fill every candidate's place and leave the copy on the defect unread."""
     chosen: list[int] = []
-    for i in ranked:
-        if len(chosen) == CANDIDATES:
+    for i in np.argsort(-screen):
+        if len(chosen) == CANDIDATES or not np.isfinite(screen[i]):
             break
-        if not any(np.array_equal(inside[i], inside[j]) for j in chosen):
+        if held[i] not in {held[j] for j in chosen}:
             chosen.append(int(i))
     return chosen
 

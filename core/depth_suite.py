@@ -18,7 +18,7 @@ import yaml
 
 from core.report_text import number, percent
 from drivers.text_files import NotUtf8, decode
-from drivers.yaml_reader import safe_load
+from drivers.yaml_reader import Misread, safe_load
 
 SUITE = Path(__file__).resolve().parent.parent / "sim" / "eval_sets.yaml"
 RENDERERS = ("generate", "raycast")  # the ``inspect sim`` commands that render an evaluation set
@@ -68,6 +68,8 @@ def load_suite(path: Path = SUITE) -> Suite:
         raise SuiteError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     except NotUtf8 as exc:
         raise SuiteError(f"{path}: line {exc.line}: {exc}") from None
+    except Misread as exc:  # a key given twice (a second group of one name), a number YAML misreads
+        raise SuiteError(f"{path}: line {exc.line}: {exc.problem}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         at = f"line {mark.line + 1}: " if mark is not None else ""

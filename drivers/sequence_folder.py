@@ -17,6 +17,7 @@ import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -133,7 +134,6 @@ def read_calibration(folder: Path) -> dict:
     try:
         text = read_text(path, "calibration")
         data = yaml_reader.safe_load(text)
-        yaml_reader.key_lines(text)
     except yaml_reader.MisreadNumber as exc:
         raise SequenceError(f"{path}:{exc.line}: {'.'.join(map(str, exc.key))}: {exc.problem}") from None
     except yaml_reader.DuplicateKey as exc:
@@ -320,6 +320,18 @@ def write_frame(
         write_text(folder / "labels" / f"{frame_id}.json", json.dumps(labels, indent=2))
 
 
+class _KeyTwice(Exception):
+    """A JSON object that gives a key twice, which ``json`` reads as the last without a word."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    found = dict(pairs)
+    if len(found) < len(pairs):
+        seen: set[str] = set()
+        raise _KeyTwice(next(key for key, _ in pairs if key in seen or seen.add(key)))
+    return found
+
+
 def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
     """A frame's labels: ``{"frame_id": ..., "defects": [{"class", "box": [x0, y0, x1, y1], "distance_mm",
     "deviation_mm", ...}, ...], "sensor": {"noise_sigma": ...}, ...}``, checked (boxes as floats, each
@@ -327,7 +339,9 @@ def read_labels(path: Path, shape: tuple[int, int] | None = None) -> dict:
     when it is not one: the truth a result is compared with must be what it says."""
     path = Path(path)
     try:
-        labels = json.loads(read_text(path, "labels"))
+        labels = json.loads(read_text(path, "labels"), object_pairs_hook=_unique_keys)
+    except _KeyTwice as exc:
+        raise SequenceError(f"{path}: {exc.args[0]!r} given twice in one object; one of them would be ignored") from None
     except ValueError as exc:
         raise SequenceError(f"{path}: labels are not JSON ({exc})") from None
     except RecursionError:  # Python's JSON decoder recurses once per level

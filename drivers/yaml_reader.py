@@ -5,6 +5,10 @@ Modbus address or a time an integrator wrote in decimal: coil 8 pulsed instead o
 lost at the wrong gate; in a calibration file a baseline of ``0120`` mm read as 80. Such a scalar is an
 error naming its line; quoted, or written without the leading zero, it is whatever the key expects.
 
+A mapping that gives a key twice, which YAML reads as the last without a word, is an error naming the
+second one's line: a recipe's second threshold must not hide its first, nor a calibration file's second focal
+length its first, nor an evaluation suite's second group of one name its first.
+
 A document no reader could walk is an error naming its line too: an alias that refers to a node holding
 it (``a: &a [*a]``), aliases that expand the document to more than ``MAX_NODES`` values (a "billion laughs"),
 and nesting deeper than ``MAX_DEPTH`` levels (PyYAML's composer, and every reader of a recipe after it,
@@ -15,6 +19,7 @@ This module imports nothing from the rest of stereo-inspect.
 from __future__ import annotations
 
 import re
+from typing import Any
 
 import yaml
 
@@ -24,7 +29,14 @@ _OCTAL = re.compile(r"[-+]?0[0-7_]+")
 _BASE_60 = re.compile(r"[-+]?[0-9][0-9_]*(:[0-5]?[0-9])+(\.[0-9_]*)?")
 
 
-class MisreadNumber(yaml.MarkedYAMLError):
+class Misread(yaml.MarkedYAMLError):
+    """A document YAML would read otherwise than it is written: ``MisreadNumber`` or ``DuplicateKey``. ``line``
+    is 1-based, ``key`` the path of mapping keys and list indexes to the value."""
+    line: int
+    key: tuple[str | int, ...]
+
+
+class MisreadNumber(Misread):
     """A scalar YAML 1.1 reads as another number than its digits say; ``line`` is 1-based, ``key`` the path
     of the mapping keys and list indexes to it."""
 
@@ -43,7 +55,7 @@ class StructureError(yaml.MarkedYAMLError):
         self.line = mark.line + 1
 
 
-class DuplicateKey(yaml.MarkedYAMLError):
+class DuplicateKey(Misread):
     """A mapping that gives a key twice, which YAML reads as the last silently; ``line`` is the second one's
     (1-based), ``key`` the path of mapping keys and list indexes to it."""
 
@@ -142,16 +154,23 @@ def _check_expansion(node: yaml.Node) -> None:
 
 
 def safe_load(text: str):
-    """``yaml.safe_load`` that raises ``MisreadNumber`` where YAML 1.1 would misread a number, and
-    ``StructureError`` for a document no reader could walk (an alias that holds itself, aliases that expand it
-    without bound, nesting deeper than MAX_DEPTH)."""
+    """``safe_load_lines``'s document alone."""
+    return safe_load_lines(text)[0]
+
+
+def safe_load_lines(text: str) -> tuple[Any, dict[tuple[str | int, ...], int]]:
+    """``yaml.safe_load`` of ``text``, with the 1-based line of every key (and list item) by its path of mapping
+    keys and list indexes. Raises ``MisreadNumber`` where YAML 1.1 would misread a number, ``DuplicateKey`` where
+    a mapping gives a key twice, and ``StructureError`` for a document no reader could walk (an alias that holds
+    itself, aliases that expand it without bound, nesting deeper than MAX_DEPTH)."""
     loader = _Loader(text)
     try:
         node = loader.get_single_node()
         if node is None:
-            return None
+            return None, {}
         _check_expansion(node)
-        return loader.construct_document(node)
+        lines = _key_lines(node)  # DuplicateKey where a mapping gives a key twice
+        return loader.construct_document(node), lines
     except MisreadNumber as exc:
         exc.key = _path_to(yaml.compose(text, Loader=yaml.SafeLoader), exc.problem_mark.index) or ()
         raise
@@ -159,39 +178,36 @@ def safe_load(text: str):
         loader.dispose()
 
 
-def key_lines(text: str) -> dict[tuple[str | int, ...], int]:
-    """The 1-based line of every key (and list item) of the YAML document ``text``, by its path of mapping keys and
-    list indexes; ``DuplicateKey`` where a mapping gives a key twice: YAML keeps the last without a word, and a
-    recipe's second threshold must not hide its first, nor a calibration file's second focal length its first.
-    Read it after ``safe_load``, which refuses the aliases this walk would follow without end."""
+def _key_lines(root: yaml.Node) -> dict[tuple[str | int, ...], int]:
+    """Each key's line (``safe_load_lines``) of a composed document whose aliases ``_check_expansion`` has
+    bounded; ``DuplicateKey`` where a mapping gives a key twice."""
     lines: dict[tuple[str | int, ...], int] = {}
-
-    def walk(node: yaml.Node, path: tuple[str | int, ...]) -> None:
+    stack: list[tuple[yaml.Node, tuple[str | int, ...]]] = [(root, ())]
+    while stack:  # a stack of its own: a document nested MAX_DEPTH deep stays within Python's recursion limit
+        node, path = stack.pop()
         if isinstance(node, yaml.MappingNode):
             for key_node, value_node in node.value:
+                if not isinstance(key_node, yaml.ScalarNode):
+                    continue  # a list or mapping as a key: the constructor refuses it, naming its line
                 child = path + (key_node.value,)
-                line = key_node.start_mark.line + 1
                 if child in lines:
                     raise DuplicateKey(key_node.start_mark, child, lines[child])
-                lines[child] = line
-                walk(value_node, child)
+                lines[child] = key_node.start_mark.line + 1
+                stack.append((value_node, child))
         elif isinstance(node, yaml.SequenceNode):
             for index, item in enumerate(node.value):
                 lines[path + (index,)] = item.start_mark.line + 1
-                walk(item, path + (index,))
-
-    root = yaml.compose(text, Loader=yaml.SafeLoader)
-    if root is not None:
-        walk(root, ())
+                stack.append((item, path + (index,)))
     return lines
 
 
 def option_value(raw: str):
     """The VALUE of a command line's ``KEY=VALUE``: YAML, so that ``3``, ``true`` and ``[1, 2]`` are what they
-    look like, or the text itself where it is not YAML; ``MisreadNumber`` where YAML would misread a number."""
+    look like, or the text itself where it is not YAML; ``Misread`` where YAML would misread a number or a
+    mapping gives a key twice."""
     try:
         return safe_load(raw)
-    except MisreadNumber:
+    except Misread:
         raise
     except yaml.YAMLError:
         return raw

@@ -55,6 +55,10 @@ class TestLoadSuite:
         path.write_text("sets: [a\n")
         with pytest.raises(ds.SuiteError, match=r"line \d+: not YAML"):
             ds.load_suite(path)
+        # YAML keeps the second group of one name without a word: the first would never be scored
+        path.write_text(f"sets:\n  a/x: {TINY}\ngroups:\n  g: {{sets: [a/x]}}\n  g: {{sets: [a/x]}}\n")
+        with pytest.raises(ds.SuiteError, match=r"suite.yaml: line 5: groups.g: given twice \(first at line 4\)"):
+            ds.load_suite(path)
         with pytest.raises(ds.SuiteError, match="cannot be read"):
             ds.load_suite(tmp_path / "missing.yaml")
 

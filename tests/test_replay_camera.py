@@ -240,6 +240,9 @@ class TestReadLabels:
 
     @pytest.mark.parametrize("labels, message", [
         ("{not json", "000001.json: labels are not JSON"),
+        # json keeps the last without a word: the truth a result is scored against must be the one written
+        ('{"defects": [{"class": "pit", "box": [1, 2, 3, 4], "deviation_mm": 1, "deviation_mm": 2}]}',
+         "000001.json: 'deviation_mm' given twice in one object; one of them would be ignored"),
         ('{"defects": ' + "[" * 100_000 + "]" * 100_000 + "}", "000001.json: labels nest deeper than JSON can be read"),
         ([1, 2], "000001.json: expected a mapping with a list of defects"),
         ({"defects": [{"box": [1, 2, 3, 4]}]}, "defects[0]: expected a mapping with a class name"),

@@ -1,9 +1,13 @@
-"""drivers/yaml_reader.py: YAML 1.1's numbers that do not mean what their digits say are refused."""
+"""drivers/yaml_reader.py: YAML 1.1's numbers that do not mean what their digits say are refused, and so is a key
+given twice."""
 from __future__ import annotations
 
 import pytest
 
-from drivers.yaml_reader import MAX_DEPTH, MisreadNumber, StructureError, safe_load
+import yaml
+
+from drivers.yaml_reader import (MAX_DEPTH, DuplicateKey, Misread, MisreadNumber, StructureError, option_value,
+                                  safe_load, safe_load_lines)
 
 
 class TestSafeLoad:
@@ -32,6 +36,38 @@ class TestSafeLoad:
         with pytest.raises(MisreadNumber) as info:
             safe_load("a:\n  b: [1, {c: 2, d: 011}]\n")
         assert info.value.line == 2 and info.value.key == ("a", "b", 1, "d")
+
+
+class TestDuplicateKeys:
+    @pytest.mark.parametrize("text, line, key", [
+        ("a: 1\nb: 2\na: 3\n", 3, ("a",)),
+        ("a:\n  b: [1, {c: 2, 'c': 3}]\n", 2, ("a", "b", 1, "c")),
+        ("groups:\n  nine: {sets: [x]}\n  nine: {sets: [y]}\n", 3, ("groups", "nine")),
+    ])
+    def test_a_key_given_twice_is_refused_with_its_second_line_and_its_path(self, text, line, key):
+        # YAML keeps the last without a word: a second threshold would hide the first
+        with pytest.raises(DuplicateKey) as info:
+            safe_load(text)
+        assert (info.value.line, info.value.key) == (line, key)
+        assert info.value.problem.startswith(f"{'.'.join(map(str, key))}: given twice (first at line ")
+
+    def test_a_merge_may_still_override_what_it_merges(self):
+        assert safe_load("m: &m {x: 1}\nn: {<<: *m, x: 2}\n")["n"] == {"x": 2}
+
+    def test_a_list_as_a_key_is_yaml_s_own_error_not_a_traceback(self):
+        with pytest.raises(yaml.constructor.ConstructorError, match="unhashable"):
+            safe_load("? [1, 2]\n: 3\n")
+
+    def test_safe_load_lines_gives_each_key_s_line(self):
+        data, lines = safe_load_lines("a:\n  b: [1, {c: 2}]\nd: 3\n")
+        assert data == {"a": {"b": [1, {"c": 2}]}, "d": 3}
+        assert lines == {("a",): 1, ("a", "b"): 2, ("a", "b", 0): 2, ("a", "b", 1): 2, ("a", "b", 1, "c"): 2, ("d",): 3}
+        assert safe_load_lines("") == (None, {})
+
+    def test_a_command_line_value_with_a_key_twice_is_refused_not_taken_as_text(self):
+        with pytest.raises(Misread, match="a: given twice"):
+            option_value("{a: 1, a: 2}")
+        assert option_value("{a: 1") == "{a: 1"  # not YAML: the text itself
 
 
 class TestStructure:

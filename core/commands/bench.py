@@ -11,7 +11,7 @@ from core.commands.inspection import _load, fail
 from core.commands.params import FINITE, cuda_if_present, demo_recipe, out_folder
 from core.recipe.schema import MAX_THREADS
 from drivers.file_writes import write_text
-from drivers.yaml_reader import MisreadNumber, option_value
+from drivers.yaml_reader import Misread, option_value
 from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
 
 
@@ -104,7 +104,7 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
             fail(f"--versus: expected KEY=VALUE, got {item!r}")
         try:
             reference[key.strip()] = option_value(value)
-        except MisreadNumber as exc:
+        except Misread as exc:
             fail(f"--versus {item}: {exc.problem}")
     if reference and loaded.recipe.stereo.backend not in names:
         fail(f"--versus changes the recipe's stereo backend {loaded.recipe.stereo.backend}, which --backends leaves out")

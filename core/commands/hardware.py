@@ -148,12 +148,14 @@ def _camera_section(recipe: Path, overrides: tuple[str, ...]) -> tuple[str, dict
 def _camera_section_yaml(recipe: Path) -> tuple[str, dict, Path]:
     import yaml
 
-    from drivers.yaml_reader import safe_load
+    from drivers.yaml_reader import Misread, safe_load
 
     try:
         data = safe_load(recipe.read_text())
     except OSError as exc:
         _fail(f"{recipe}: cannot read recipe ({exc.strerror})")
+    except Misread as exc:
+        _fail(f"{recipe}:{exc.line}: {exc.problem}")
     except yaml.YAMLError as exc:
         _fail(f"{recipe}: YAML error: {str(exc).splitlines()[0]}")
     camera = (data or {}).get("camera") if isinstance(data, dict) else None

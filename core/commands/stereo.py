@@ -18,7 +18,7 @@ def _fail(message: str) -> None:
 
 
 def _parse_settings(pairs: tuple[str, ...], option: str = "--set") -> dict:
-    from drivers.yaml_reader import MisreadNumber, option_value
+    from drivers.yaml_reader import Misread, option_value
 
     settings = {}
     for pair in pairs:
@@ -27,7 +27,7 @@ def _parse_settings(pairs: tuple[str, ...], option: str = "--set") -> dict:
             _fail(f"{option} {pair!r}: expected KEY=VALUE")
         try:
             settings[key.strip()] = option_value(value) if value.strip() else ""
-        except MisreadNumber as exc:
+        except Misread as exc:
             _fail(f"{option} {pair}: {exc.problem}")
     return settings
 

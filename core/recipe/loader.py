@@ -170,7 +170,7 @@ def apply_override(data: dict, assignment: str) -> KeyPath:
         raise RecipeError(f"--set {assignment}: empty key in {dotted!r}")
     try:
         value = yaml_reader.option_value(raw)
-    except yaml_reader.MisreadNumber as exc:
+    except yaml_reader.Misread as exc:
         raise RecipeError(f"--set {assignment}: {exc.problem}") from None
     node: Any = data
     for i, part in enumerate(parts[:-1]):
@@ -231,8 +231,7 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     except OSError as exc:
         raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from None
     try:
-        data = yaml_reader.safe_load(text)  # first: it refuses the aliases that key_lines's walk would follow forever
-        lines = yaml_reader.key_lines(text)
+        data, lines = yaml_reader.safe_load_lines(text)
     except yaml_reader.DuplicateKey as exc:
         raise RecipeError(f"{path}:{exc.line}: {exc.problem}") from None
     except yaml_reader.MisreadNumber as exc:

@@ -198,8 +198,8 @@ def fill_from_planes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Te
 def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor, magnitude: torch.Tensor,
                       thresholds: list[float], min_pixels: int, inlier_share: float,
                       samples: int = 0, local: torch.Tensor | None = None,
-                      local_test: tuple[float, float, float] | None = None, seed: int = 0,
-                      fit=None) -> tuple[torch.Tensor, torch.Tensor]:
+                      local_test: tuple[float, float, float] | None = None,
+                      seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """``fill_from_planes`` from the image's (B, H, W) ``edge_magnitude`` (which a caller that also
     needs the regions for something else computes once) and, from the same fits, (B, H, W) float: the
     horizontal slope (disparity per pixel along the row) of the plane of every pixel's region, matched
@@ -209,9 +209,7 @@ def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.T
 
     With ``local`` (B, H, W), the winners of the cost before SGM (``select.local_winners``, NaN where
     not trusted), a region that its matched pixels give no plane may take ``local_planes``' plane
-    instead, ``local_test`` being its (inlier_share, density, max_matched). ``seed`` seeds RANSAC.
-    ``fit`` stands in for ``region_planes`` (its compiled twin, ``planes_numba.region_planes_numba``)."""
-    fit = fit or region_planes
+    instead, ``local_test`` being its (inlier_share, density, max_matched). ``seed`` seeds RANSAC."""
     if local is not None and local_test is None:
         raise ValueError("planes_and_slopes: local winners given without their local_test")
     todo = ~matched
@@ -220,11 +218,11 @@ def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.T
         if not todo.any():
             break
         labels = edge_regions(magnitude, threshold)
-        plane, supported = fit(disp, matched, labels, min_pixels, inlier_share, samples=samples, wanted=todo,
-                               seed=seed)
+        plane, supported = region_planes(disp, matched, labels, min_pixels, inlier_share, samples=samples,
+                                         wanted=todo, seed=seed)
         if local is not None:
             extra, backed = local_planes(local, matched, labels, min_pixels, *local_test, samples=samples,
-                                         wanted=todo & ~supported, seed=seed, fit=fit)
+                                         wanted=todo & ~supported, seed=seed)
             plane = torch.where(supported, plane, extra)
             supported = supported | backed
         found = supported & ~torch.isfinite(slope)
@@ -238,7 +236,7 @@ def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.T
 def local_planes(local: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor, min_pixels: int,
                  inlier_share: float, density: float, max_matched: float, samples: int = 0,
                  wanted: torch.Tensor | None = None, tolerance: float = 1.0,
-                 seed: int = 0, fit=None) -> tuple[torch.Tensor, torch.Tensor]:
+                 seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """``region_planes`` fitted to the winners of the cost before SGM (``select.local_winners``) of every
     pixel of a region, for a region where matching failed.
 
@@ -256,8 +254,8 @@ def local_planes(local: torch.Tensor, matched: torch.Tensor, labels: torch.Tenso
     unmatched = (torch.bincount(index[matched.flatten()], minlength=k) < max_matched * size)[index].view_as(matched)
     wanted = unmatched if wanted is None else wanted & unmatched
     finite = torch.isfinite(local)
-    plane, supported = (fit or region_planes)(local, finite, labels, min_pixels, inlier_share, tolerance, samples,
-                                              wanted, seed)
+    plane, supported = region_planes(local, finite, labels, min_pixels, inlier_share, tolerance, samples, wanted,
+                                     seed)
     # inliers by region_planes' own criterion, but counted against the whole region
     inliers = (finite & ((local - plane).abs() < tolerance)).flatten()
     dense = torch.bincount(index[inliers], minlength=k) >= density * size

@@ -1,9 +1,10 @@
-"""``planes.region_planes`` compiled for the CPU with numba: the same RANSAC start, Tukey IRLS and support
-test, one pixel at a time instead of a few dozen tensor operations per fit (on the line's small crops
-those operations' overhead, not their arithmetic, made the slanted-plane filling a third of the stereo
-time). ``planes.region_planes`` stays the reference the tests hold this one to; the triples are drawn
-from the same seeded CPU generator, so both choose among the same hypotheses. ``planes.edge_magnitude``
-on the CPU from OpenCV's filters (``edge_magnitude_opencv``), for the same reason.
+"""``planes.planes_and_slopes`` compiled for the CPU with numba: the same regions, RANSAC start, Tukey IRLS,
+support tests and filling, one pixel at a time instead of a few dozen tensor operations per fit (on the line's
+small crops those operations' overhead, not their arithmetic, made the slanted-plane filling a third of the
+stereo time), each region's plane kept as its coefficients and written only where a pixel takes it.
+``planes.planes_and_slopes`` stays the reference the tests hold this one to; the triples are drawn from the
+same seeded CPU generator, so both choose among the same hypotheses. ``planes.edge_magnitude`` on the CPU from
+OpenCV's filters (``edge_magnitude_opencv``), for the same reason.
 """
 from __future__ import annotations
 
@@ -18,42 +19,6 @@ from plugins.torch_sgm import planes, sgm_numba
 from plugins.torch_sgm.linalg_numba import solve3
 
 COORD_SCALE = planes._COORD_SCALE
-
-
-@njit(cache=True, nogil=True)
-def _fit_pixels(index, matched, wanted, use_wanted, k, min_pixels, fit_max):
-    """The regions to fit (``active``) and the matched pixels they are fitted to, as ``region_planes``
-    chooses them: (active (k,) bool, pixels of active regions (flat indices), fit pixels)."""
-    count = np.zeros(k, np.int64)
-    want = np.zeros(k, np.int64)
-    for i in range(index.size):
-        if matched[i]:
-            count[index[i]] += 1
-        if use_wanted and wanted[i]:
-            want[index[i]] += 1
-    active = count >= min_pixels
-    if use_wanted:
-        active &= want > 0
-    active[0] = False
-    n_at = 0
-    n_fit = 0
-    for i in range(index.size):
-        if active[index[i]]:
-            n_at += 1
-            if matched[i]:
-                n_fit += 1
-    at = np.empty(n_at, np.int64)
-    fit_all = np.empty(n_fit, np.int64)
-    a = f = 0
-    for i in range(index.size):
-        if active[index[i]]:
-            at[a] = i
-            a += 1
-            if matched[i]:
-                fit_all[f] = i
-                f += 1
-    step = max(1, -(-n_fit // fit_max))
-    return active, at, fit_all[::step].copy()
 
 
 @njit(cache=True, nogil=True)
@@ -184,8 +149,9 @@ def _start_weights(x, y, d, region, start, radius):
 
 
 @njit(cache=True, nogil=True)
-def _support_and_planes(x, y, d, region, coeffs, active, at, index, w, h, k, tolerance, inlier_share, plane, good):
-    """The support test and every pixel of an active region's plane value (``plane`` float32, flat)."""
+def _support(x, y, d, region, coeffs, active, k, tolerance, inlier_share):
+    """``region_planes``' support test: (k,) bool, an active region whose fit pixels lie within ``tolerance`` of
+    its plane for at least ``inlier_share`` of them."""
     inliers = np.zeros(k)
     total = np.zeros(k)
     for i in range(x.size):
@@ -194,39 +160,31 @@ def _support_and_planes(x, y, d, region, coeffs, active, at, index, w, h, k, tol
         total[region[i]] += 1.0
         if abs(residual) < tolerance:
             inliers[region[i]] += 1.0
+    good = np.zeros(k, np.bool_)
     for g in range(k):
         good[g] = active[g] and inliers[g] >= inlier_share * total[g]
-    for p in at:
-        c = coeffs[index[p]]
-        ax = (p % w) / COORD_SCALE
-        ay = ((p // w) % h) / COORD_SCALE
-        plane[p] = np.float32(c[0] * ax + c[1] * ay + c[2])
+    return good
 
 
-def region_planes_numba(disp: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor, min_pixels: int,
-                        inlier_share: float, tolerance: float = 1.0, samples: int = 0,
-                        wanted: torch.Tensor | None = None, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """``planes.region_planes`` on the CPU, with the same arguments and results: disp (B, H, W) float32,
-    matched (B, H, W) bool, labels (B, H, W) int64 -> (plane (B, H, W) float32, NaN where not fitted;
-    supported (B, H, W) bool). Up to float rounding: where two RANSAC hypotheses score within it, the
-    other may be chosen."""
-    if not sgm_numba.available(disp):
-        raise ValueError(f"region_planes_numba: needs a float32 CPU tensor, got {disp.dtype} on {disp.device}")
-    if disp.dim() != 3 or matched.shape != disp.shape or labels.shape != disp.shape:
-        raise ValueError(f"region_planes_numba: disp {tuple(disp.shape)}, matched {tuple(matched.shape)} and "
-                         f"labels {tuple(labels.shape)} must be the same (B, H, W)")
-    b, h, w = disp.shape
-    index = np.ascontiguousarray(labels.numpy().reshape(-1)).astype(np.int64, copy=False)
-    k = int(index.max()) + 1 if index.size else 1
-    use_wanted = wanted is not None
-    wanted_flat = (np.ascontiguousarray(wanted.numpy().reshape(-1)) if use_wanted
-                   else np.zeros(1, np.bool_))
-    matched_flat = np.ascontiguousarray(matched.numpy().reshape(-1))
-    active, at, fit = _fit_pixels(index, matched_flat, wanted_flat, use_wanted, k, min_pixels, planes._FIT_PIXELS)
+@njit(cache=True, inline="always")
+def _plane_at(c, p, w, h):
+    """The float32 value at flat pixel ``p`` of (B, H, W) rows of ``w`` of the plane ``c`` (3,) in
+    ``COORD_SCALE`` units, as ``region_planes`` writes it."""
+    return np.float32(c[0] * ((p % w) / COORD_SCALE) + c[1] * (((p // w) % h) / COORD_SCALE) + c[2])
+
+
+def _fit_values(fit: np.ndarray, values: np.ndarray, index: np.ndarray, w: int, h: int) -> tuple[np.ndarray, ...]:
+    """The fit pixels (flat indices) as ``region_planes`` fits them: x, y (float64, in ``COORD_SCALE`` units),
+    their values (float64) and their regions."""
     x = (fit % w).astype(np.float64) / COORD_SCALE
     y = ((fit // w) % h).astype(np.float64) / COORD_SCALE
-    d = disp.numpy().reshape(-1)[fit].astype(np.float64)
-    region = index[fit]
+    return x, y, values[fit].astype(np.float64), index[fit]
+
+
+def _robust_planes(x: np.ndarray, y: np.ndarray, d: np.ndarray, region: np.ndarray, k: int, samples: int,
+                   tolerance: float, seed: int) -> np.ndarray:
+    """``planes._robust_fit``: each of ``k`` regions' plane (k, 3) from its fit pixels, from RANSAC's best of
+    ``samples`` triples drawn by the CPU generator seeded with ``seed`` (plain least squares with none)."""
     if samples > 0:
         ids, count = _eligible(region, k)
         gen = torch.Generator().manual_seed(seed)
@@ -237,12 +195,7 @@ def region_planes_numba(disp: torch.Tensor, matched: torch.Tensor, labels: torch
     else:
         weight = np.ones(x.size)
         radii = np.array(planes._TUKEY_RADII)
-    coeffs = _irls(x, y, d, region, k, weight, radii)
-    plane = np.full(b * h * w, np.nan, np.float32)
-    good = np.zeros(k, np.bool_)
-    _support_and_planes(x, y, d, region, coeffs, active, at, index, w, h, k, float(tolerance), float(inlier_share),
-                        plane, good)
-    return torch.from_numpy(plane.reshape(b, h, w)), torch.from_numpy(good[index].reshape(b, h, w))
+    return _irls(x, y, d, region, k, weight, radii)
 
 
 def edge_magnitude_opencv(image: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -266,54 +219,102 @@ def edge_magnitude_opencv(image: torch.Tensor, sigma: float) -> torch.Tensor:
 
 
 @njit(cache=True, nogil=True)
-def _local_wanted(index, matched, wanted, size, max_matched):
-    """``planes.local_planes``' regions worth its fit: ``wanted`` where fewer than ``max_matched`` of the
-    region's pixels matched (``size``: each region's pixels)."""
-    hits = np.zeros(size.size)
+def _region_counts(index, k, matched, todo, finite, use_local):
+    """Per region of the flat labels ``index``: its pixels (float64), its matched ones, its pixels still to fill,
+    and its pixels with a finite winner (only ``use_local``)."""
+    size = np.zeros(k)
+    count_m, want, count_l = np.zeros(k, np.int64), np.zeros(k, np.int64), np.zeros(k, np.int64)
     for i in range(index.size):
+        g = index[i]
+        size[g] += 1.0
         if matched[i]:
-            hits[index[i]] += 1.0
-    out = np.empty(index.size, np.bool_)
+            count_m[g] += 1
+        if todo[i]:
+            want[g] += 1
+        if use_local and finite[i]:
+            count_l[g] += 1
+    return size, count_m, want, count_l
+
+
+@njit(cache=True, nogil=True)
+def _chosen_pixels(index, use, active, count, fit_max):
+    """The pixels a region's plane is fitted to, as ``planes.region_planes`` chooses them (``count``: each region's
+    pixels ``use``): the pixels ``use`` of ``active`` regions in raster order, every step-th so that at most
+    ``fit_max`` remain."""
+    n = 0
+    for g in range(active.size):
+        if active[g]:
+            n += count[g]
+    step = max(1, -(-n // fit_max))
+    out = np.empty(-(-n // step), np.int64)
+    taken = seen = 0
     for i in range(index.size):
-        out[i] = wanted[i] and hits[index[i]] < max_matched * max(size[index[i]], 1.0)
+        if use[i] and active[index[i]]:
+            if seen % step == 0:
+                out[taken] = i
+                taken += 1
+            seen += 1
     return out
 
 
 @njit(cache=True, nogil=True)
-def _take_local(index, plane, supported, extra, backed, local, tolerance, density, size):
-    """``planes.planes_and_slopes``' merge of ``local_planes``: where no region plane is supported, the
-    winners' plane ``extra``; supported where ``backed`` and its inliers cover ``density`` of the region
-    (``size``: each region's pixels)."""
-    inliers = np.zeros(size.size)
-    for i in range(index.size):
-        if np.isfinite(local[i]) and abs(local[i] - extra[i]) < tolerance:
-            inliers[index[i]] += 1.0
+def _dense(index, local, coeffs, active, w, h, tolerance, k):
+    """Per region, its pixels whose finite winner in ``local`` lies within ``tolerance`` of its plane's float32
+    value (``local_planes``' inliers counted against the whole region); 0 where the region is not ``active``."""
+    inliers = np.zeros(k)
     for i in range(index.size):
         g = index[i]
-        if not supported[i]:
-            plane[i] = extra[i]
-            supported[i] = backed[i] and inliers[g] >= density * max(size[g], 1.0)
+        if active[g] and np.isfinite(local[i]) and abs(local[i] - _plane_at(coeffs[g], i, w, h)) < tolerance:
+            inliers[g] += 1.0
+    return inliers
 
 
 @njit(cache=True, nogil=True)
-def _fill_level(index, plane, supported, w, slope, filled, todo):
-    """One threshold's result into ``slope`` (``planes.row_slope`` where first found), ``filled`` and
-    ``todo``, in place; all flat over (B, H, W) rows of ``w``."""
-    for i in range(index.size):
-        if supported[i] and not np.isfinite(slope[i]):
-            x = i % w
-            step = np.float32(np.nan)
-            if x < w - 1 and index[i + 1] == index[i]:
-                step = plane[i + 1] - plane[i]
-            if not np.isfinite(step):
+def _fill_level(index, w, h, coeffs, good, local_coeffs, by_local, slope, filled, todo):
+    """One threshold's result into ``slope`` (``planes.row_slope`` where first found), ``filled`` and ``todo``, in
+    place, all flat over (B, H, W) rows of ``w``: a region ``good`` takes its plane ``coeffs``, one ``by_local``
+    the winners' ``local_coeffs``, each pixel at its float32 value (``_plane_at``'s, without its divisions)."""
+    value = np.empty(w, np.float32)
+    taken = np.zeros(w, np.bool_)
+    for row in range(index.size // w):
+        first = row * w
+        ay = (row % h) / COORD_SCALE
+        for x in range(w):
+            g = index[first + x]
+            taken[x] = good[g] or by_local[g]
+            if taken[x]:
+                c = coeffs[g] if good[g] else local_coeffs[g]
+                value[x] = np.float32(c[0] * (x / COORD_SCALE) + c[1] * ay + c[2])
+        for x in range(w):
+            if not taken[x]:
+                continue
+            i = first + x
+            if not np.isfinite(slope[i]):
                 step = np.float32(np.nan)
-                if x > 0 and index[i - 1] == index[i]:
-                    step = plane[i] - plane[i - 1]
-            slope[i] = step
-    for i in range(index.size):
-        if todo[i] and supported[i]:
-            filled[i] = plane[i]
-            todo[i] = False
+                if x < w - 1 and index[i + 1] == index[i]:
+                    step = value[x + 1] - value[x]
+                if not np.isfinite(step):
+                    step = np.float32(np.nan)
+                    if x > 0 and index[i - 1] == index[i]:
+                        step = value[x] - value[x - 1]
+                slope[i] = step
+            if todo[i]:
+                filled[i] = value[x]
+                todo[i] = False
+
+
+def _edge_labels(magnitude: np.ndarray, threshold: float) -> tuple[np.ndarray, int]:
+    """``planes.edge_regions`` of the (B, H, W) float32 ``magnitude``: flat int32 labels and their count."""
+    inner = (magnitude <= np.float32(threshold)).astype(np.uint8)
+    labels = np.zeros(inner.shape, np.int32)
+    offset = 0
+    for b in range(inner.shape[0]):
+        count, lab = cv2.connectedComponents(inner[b], connectivity=4, ltype=cv2.CV_32S)
+        labels[b] = lab
+        if offset:
+            labels[b][lab > 0] += offset
+        offset += count - 1
+    return labels.reshape(-1), offset + 1
 
 
 def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor,
@@ -321,9 +322,10 @@ def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: t
                             samples: int = 0, local: torch.Tensor | None = None,
                             local_test: tuple[float, float, float] | None = None,
                             seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """``planes.planes_and_slopes`` with ``region_planes_numba`` fits, on the CPU, with the same arguments
-    and results; the bookkeeping between the fits (which regions to fit, the local winners' density test,
-    the row slopes, the filling) in one pass each instead of some twenty tensor operations per threshold."""
+    """``planes.planes_and_slopes`` on the CPU, with the same arguments and results up to float rounding (where two
+    RANSAC hypotheses score within it, the other may be chosen); each threshold in a few passes over the frame (the regions' counts, the fit pixels of each fit,
+    the filling) that keep each region's plane as its coefficients, where the reference writes whole-frame
+    planes and masks a dozen times."""
     if not (sgm_numba.available(disp) and sgm_numba.available(filled)):
         raise ValueError(f"planes_and_slopes_numba: needs float32 CPU tensors, got {filled.dtype} and "
                          f"{disp.dtype} on {disp.device}")
@@ -333,29 +335,41 @@ def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: t
                          "same (B, H, W)")
     if local is not None and local_test is None:
         raise ValueError("planes_and_slopes_numba: local winners given without their local_test")
-    shape, w = disp.shape, disp.shape[-1]
+    shape, (h, w) = disp.shape, disp.shape[-2:]
     out = filled.numpy().reshape(-1).copy()
+    values = np.ascontiguousarray(disp.numpy().reshape(-1))
     matched_flat = np.ascontiguousarray(matched.numpy().reshape(-1))
+    edges = np.ascontiguousarray(magnitude.numpy())
     todo = ~matched_flat
     slope = np.full(out.size, np.nan, np.float32)
-    if local is not None:
-        local_flat = np.ascontiguousarray(local.numpy().reshape(-1))
-        finite = torch.isfinite(local)
-        inlier_share_local, density, max_matched = local_test
+    use_local = local is not None
+    local_flat = np.ascontiguousarray(local.numpy().reshape(-1)) if use_local else values[:1]
+    finite = np.isfinite(local_flat) if use_local else matched_flat[:1]
+    none = np.zeros((1, 3))
     for threshold in thresholds:
         if not todo.any():
             break
-        labels = planes.edge_regions(magnitude, threshold)
-        index = labels.numpy().reshape(-1)
-        plane, supported = region_planes_numba(disp, matched, labels, min_pixels, inlier_share, samples=samples,
-                                               wanted=torch.from_numpy(todo.reshape(shape)), seed=seed)
-        plane, supported = plane.numpy().reshape(-1), supported.numpy().reshape(-1)
-        if local is not None:
-            size = np.bincount(index, minlength=1).astype(np.float64)  # each region's pixels, for both steps
-            wanted = _local_wanted(index, matched_flat, todo & ~supported, size, float(max_matched))
-            extra, backed = region_planes_numba(local, finite, labels, min_pixels, inlier_share_local, 1.0, samples,
-                                                torch.from_numpy(wanted.reshape(shape)), seed)
-            _take_local(index, plane, supported, extra.numpy().reshape(-1), backed.numpy().reshape(-1), local_flat,
-                        1.0, float(density), size)
-        _fill_level(index, plane, supported, w, slope, out, todo)
+        index, k = _edge_labels(edges, threshold)
+        size, count_m, want, count_l = _region_counts(index, k, matched_flat, todo, finite, use_local)
+        active = (count_m >= min_pixels) & (want > 0)
+        active[0] = False
+        x, y, d, region = _fit_values(_chosen_pixels(index, matched_flat, active, count_m, planes._FIT_PIXELS),
+                                      values, index, w, h)
+        coeffs = _robust_planes(x, y, d, region, k, samples, 1.0, seed)
+        good = _support(x, y, d, region, coeffs, active, k, 1.0, float(inlier_share))
+        by_local, local_coeffs = np.zeros(k, np.bool_), none
+        if use_local:
+            share, density, max_matched = local_test
+            # local_planes' regions: still to fill, without a plane of their own, and too few of them matched
+            # for their matches to have told (tested per region, so that no pixel of one tries a plane alone)
+            wanted = (want > 0) & ~good & (count_m < max_matched * np.maximum(size, 1.0))
+            active_l = (count_l >= min_pixels) & wanted
+            active_l[0] = False
+            x, y, d, region = _fit_values(_chosen_pixels(index, finite, active_l, count_l, planes._FIT_PIXELS),
+                                          local_flat, index, w, h)
+            local_coeffs = _robust_planes(x, y, d, region, k, samples, 1.0, seed)
+            backed = _support(x, y, d, region, local_coeffs, active_l, k, 1.0, float(share))
+            inliers = _dense(index, local_flat, local_coeffs, active_l, w, h, 1.0, k)
+            by_local = ~good & backed & (inliers >= density * np.maximum(size, 1.0))
+        _fill_level(index, w, h, coeffs, good, local_coeffs, by_local, slope, out, todo)
     return torch.from_numpy(out.reshape(shape)), torch.from_numpy(slope.reshape(shape))

@@ -28,12 +28,21 @@ def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
 def _box_1d(x: torch.Tensor, radius: int, dim: int) -> torch.Tensor:
     """Windowed mean along one axis from a running sum: cost independent of the radius."""
     n = x.shape[dim]
-    total = F.pad(torch.cumsum(x, dim), (1, 0) if dim == -1 else (0, 0, 1, 0))
+    total = F.pad(torch.cumsum(x, dim), (1, 0) if dim == -1 else (0, 0, 1, 0))  # total[j]: the sum of x[:j]
     pos = torch.arange(n, device=x.device)
     hi = (pos + radius).clamp(max=n - 1) + 1
     lo = (pos - radius).clamp(min=0)
     count = (hi - lo).to(x.dtype)
-    window = total.index_select(dim, hi) - total.index_select(dim, lo)
+    if n < 2 * radius + 1:  # every window cut by a border
+        window = total.index_select(dim, hi) - total.index_select(dim, lo)
+    else:
+        # the window of x[p] is total[hi[p]] - total[lo[p]], taken as slices (a gather of the entries was most of
+        # the time): inside, both step with p; by the left border lo is 0, by the right one hi is n
+        r, part = radius, lambda t, a, b: t.narrow(dim, a, b - a)  # noqa: E731
+        window = torch.empty_like(x)
+        torch.sub(part(total, r + 1, 2 * r + 1), part(total, 0, 1), out=part(window, 0, r))
+        torch.sub(part(total, 2 * r + 1, n + 1), part(total, 0, n - 2 * r), out=part(window, r, n - r))
+        torch.sub(part(total, n, n + 1), part(total, n - 2 * r, n - r), out=part(window, n - r, n))
     return window / (count if dim == -1 else count.view(-1, 1))
 
 

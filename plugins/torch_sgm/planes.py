@@ -39,17 +39,23 @@ def edge_regions(magnitude: torch.Tensor, threshold: float) -> torch.Tensor:
     """(B, H, W) ``edge_magnitude`` -> (B, H, W) int64 region labels, 0 on edge pixels (magnitude above
     ``threshold``). Regions are the 4-connected groups of the other pixels, numbered from 1 across the
     whole batch so that no two images share a label."""
+    labels, _ = connected_regions((magnitude <= threshold).cpu().numpy())
+    return torch.from_numpy(labels.astype(np.int64)).to(magnitude.device)
+
+
+def connected_regions(inner: np.ndarray) -> tuple[np.ndarray, int]:
+    """(B, H, W) bool -> (B, H, W) int32 labels of the 4-connected groups of True pixels, numbered from 1 across
+    the batch (0 elsewhere), and the number of labels with 0."""
     # connected-component labelling is a sequential union-find; OpenCV's does it in milliseconds
-    inner = (magnitude <= threshold).cpu().numpy().astype(np.uint8)
-    labels = np.zeros(inner.shape, np.int64)
+    labels = np.zeros(inner.shape, np.int32)
     offset = 0
     for b in range(inner.shape[0]):
-        count, lab = cv2.connectedComponents(inner[b], connectivity=4, ltype=cv2.CV_32S)
+        count, lab = cv2.connectedComponents(inner[b].astype(np.uint8), connectivity=4, ltype=cv2.CV_32S)
         labels[b] = lab
         if offset:
             labels[b][lab > 0] += offset
         offset += count - 1
-    return torch.from_numpy(labels).to(magnitude.device)
+    return labels, offset + 1
 
 
 def ransac_planes(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torch.Tensor, regions: int,

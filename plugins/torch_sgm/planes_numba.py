@@ -303,20 +303,6 @@ def _fill_level(index, w, h, coeffs, good, local_coeffs, by_local, slope, filled
                 todo[i] = False
 
 
-def _edge_labels(magnitude: np.ndarray, threshold: float) -> tuple[np.ndarray, int]:
-    """``planes.edge_regions`` of the (B, H, W) float32 ``magnitude``: flat int32 labels and their count."""
-    inner = (magnitude <= np.float32(threshold)).astype(np.uint8)
-    labels = np.zeros(inner.shape, np.int32)
-    offset = 0
-    for b in range(inner.shape[0]):
-        count, lab = cv2.connectedComponents(inner[b], connectivity=4, ltype=cv2.CV_32S)
-        labels[b] = lab
-        if offset:
-            labels[b][lab > 0] += offset
-        offset += count - 1
-    return labels.reshape(-1), offset + 1
-
-
 def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: torch.Tensor,
                             magnitude: torch.Tensor, thresholds: list[float], min_pixels: int, inlier_share: float,
                             samples: int = 0, local: torch.Tensor | None = None,
@@ -349,7 +335,8 @@ def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: t
     for threshold in thresholds:
         if not todo.any():
             break
-        index, k = _edge_labels(edges, threshold)
+        labels, k = planes.connected_regions(edges <= np.float32(threshold))
+        index = labels.reshape(-1)
         size, count_m, want, count_l = _region_counts(index, k, matched_flat, todo, finite, use_local)
         active = (count_m >= min_pixels) & (want > 0)
         active[0] = False

@@ -19,6 +19,7 @@ from plugins.torch_sgm import planes, sgm_numba
 from plugins.torch_sgm.linalg_numba import solve3
 
 COORD_SCALE = planes._COORD_SCALE
+TOLERANCE = 1.0  # disparity px within which a pixel supports its region's plane (``planes.region_planes``')
 
 
 @njit(cache=True, nogil=True)
@@ -309,9 +310,9 @@ def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: t
                             local_test: tuple[float, float, float] | None = None,
                             seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """``planes.planes_and_slopes`` on the CPU, with the same arguments and results up to float rounding (where two
-    RANSAC hypotheses score within it, the other may be chosen); each threshold in a few passes over the frame (the regions' counts, the fit pixels of each fit,
-    the filling) that keep each region's plane as its coefficients, where the reference writes whole-frame
-    planes and masks a dozen times."""
+    RANSAC hypotheses score within it, the other may be chosen); each threshold in a few passes over the frame
+    (the regions' counts, the fit pixels of each fit, the filling) that keep each region's plane as its
+    coefficients, where the reference writes whole-frame planes and masks a dozen times."""
     if not (sgm_numba.available(disp) and sgm_numba.available(filled)):
         raise ValueError(f"planes_and_slopes_numba: needs float32 CPU tensors, got {filled.dtype} and "
                          f"{disp.dtype} on {disp.device}")
@@ -342,21 +343,21 @@ def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: t
         active[0] = False
         x, y, d, region = _fit_values(_chosen_pixels(index, matched_flat, active, count_m, planes._FIT_PIXELS),
                                       values, index, w, h)
-        coeffs = _robust_planes(x, y, d, region, k, samples, 1.0, seed)
-        good = _support(x, y, d, region, coeffs, active, k, 1.0, float(inlier_share))
+        coeffs = _robust_planes(x, y, d, region, k, samples, TOLERANCE, seed)
+        good = _support(x, y, d, region, coeffs, active, k, TOLERANCE, float(inlier_share))
         by_local, local_coeffs = np.zeros(k, np.bool_), none
         if use_local:
             share, density, max_matched = local_test
-            # local_planes' regions: still to fill, without a plane of their own, and too few of them matched
-            # for their matches to have told (tested per region, so that no pixel of one tries a plane alone)
+            # local_planes' regions: a pixel still to fill, no plane of their own, and too few pixels matched for
+            # their matches to have said what they are
             wanted = (want > 0) & ~good & (count_m < max_matched * np.maximum(size, 1.0))
             active_l = (count_l >= min_pixels) & wanted
             active_l[0] = False
             x, y, d, region = _fit_values(_chosen_pixels(index, finite, active_l, count_l, planes._FIT_PIXELS),
                                           local_flat, index, w, h)
-            local_coeffs = _robust_planes(x, y, d, region, k, samples, 1.0, seed)
-            backed = _support(x, y, d, region, local_coeffs, active_l, k, 1.0, float(share))
-            inliers = _dense(index, local_flat, local_coeffs, active_l, w, h, 1.0, k)
+            local_coeffs = _robust_planes(x, y, d, region, k, samples, TOLERANCE, seed)
+            backed = _support(x, y, d, region, local_coeffs, active_l, k, TOLERANCE, float(share))
+            inliers = _dense(index, local_flat, local_coeffs, active_l, w, h, TOLERANCE, k)
             by_local = ~good & backed & (inliers >= density * np.maximum(size, 1.0))
         _fill_level(index, w, h, coeffs, good, local_coeffs, by_local, slope, out, todo)
     return torch.from_numpy(out.reshape(shape)), torch.from_numpy(slope.reshape(shape))

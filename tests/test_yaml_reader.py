@@ -3,7 +3,6 @@ given twice."""
 from __future__ import annotations
 
 import pytest
-
 import yaml
 
 from drivers.yaml_reader import (MAX_DEPTH, DuplicateKey, Misread, MisreadNumber, StructureError, option_value,

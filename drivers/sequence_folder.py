@@ -132,8 +132,7 @@ def read_calibration(folder: Path) -> dict:
     if not path.exists():
         raise SequenceError(f"{path}: calibration file missing")
     try:
-        text = read_text(path, "calibration")
-        data = yaml_reader.safe_load(text)
+        data = yaml_reader.safe_load(read_text(path, "calibration"))
     except yaml_reader.MisreadNumber as exc:
         raise SequenceError(f"{path}:{exc.line}: {'.'.join(map(str, exc.key))}: {exc.problem}") from None
     except yaml_reader.DuplicateKey as exc:

@@ -183,7 +183,7 @@ def _key_lines(root: yaml.Node) -> dict[tuple[str | int, ...], int]:
     bounded; ``DuplicateKey`` where a mapping gives a key twice."""
     lines: dict[tuple[str | int, ...], int] = {}
     stack: list[tuple[yaml.Node, tuple[str | int, ...]]] = [(root, ())]
-    while stack:  # a stack of its own: a document nested MAX_DEPTH deep stays within Python's recursion limit
+    while stack:
         node, path = stack.pop()
         if isinstance(node, yaml.MappingNode):
             for key_node, value_node in node.value:

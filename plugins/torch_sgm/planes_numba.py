@@ -168,10 +168,16 @@ def _support(x, y, d, region, coeffs, active, k, tolerance, inlier_share):
 
 
 @njit(cache=True, inline="always")
+def _plane_value(c, x, ay):
+    """The float32 value of the plane ``c`` (3,) at column ``x`` of the row ``ay`` (its index over COORD_SCALE), as
+    ``region_planes`` writes it."""
+    return np.float32(c[0] * (x / COORD_SCALE) + c[1] * ay + c[2])
+
+
+@njit(cache=True, inline="always")
 def _plane_at(c, p, w, h):
-    """The float32 value at flat pixel ``p`` of (B, H, W) rows of ``w`` of the plane ``c`` (3,) in
-    ``COORD_SCALE`` units, as ``region_planes`` writes it."""
-    return np.float32(c[0] * ((p % w) / COORD_SCALE) + c[1] * (((p // w) % h) / COORD_SCALE) + c[2])
+    """``_plane_value`` at flat pixel ``p`` of (B, H, W) rows of ``w``."""
+    return _plane_value(c, p % w, ((p // w) % h) / COORD_SCALE)
 
 
 def _fit_values(fit: np.ndarray, values: np.ndarray, index: np.ndarray, w: int, h: int) -> tuple[np.ndarray, ...]:
@@ -180,6 +186,16 @@ def _fit_values(fit: np.ndarray, values: np.ndarray, index: np.ndarray, w: int, 
     x = (fit % w).astype(np.float64) / COORD_SCALE
     y = ((fit // w) % h).astype(np.float64) / COORD_SCALE
     return x, y, values[fit].astype(np.float64), index[fit]
+
+
+def _region_fits(index: np.ndarray, use: np.ndarray, values: np.ndarray, active: np.ndarray, count: np.ndarray,
+                 w: int, h: int, samples: int, seed: int, inlier_share: float) -> tuple[np.ndarray, np.ndarray]:
+    """``planes.region_planes`` of the ``active`` regions of the flat labels ``index``, fitted to their pixels ``use``
+    (``count``: each region's) of ``values``: (the regions' planes (k, 3), which of them are supported (k,))."""
+    k = active.size
+    x, y, d, region = _fit_values(_chosen_pixels(index, use, active, count, planes._FIT_PIXELS), values, index, w, h)
+    coeffs = _robust_planes(x, y, d, region, k, samples, TOLERANCE, seed)
+    return coeffs, _support(x, y, d, region, coeffs, active, k, TOLERANCE, inlier_share)
 
 
 def _robust_planes(x: np.ndarray, y: np.ndarray, d: np.ndarray, region: np.ndarray, k: int, samples: int,
@@ -274,7 +290,7 @@ def _dense(index, local, coeffs, active, w, h, tolerance, k):
 def _fill_level(index, w, h, coeffs, good, local_coeffs, by_local, slope, filled, todo):
     """One threshold's result into ``slope`` (``planes.row_slope`` where first found), ``filled`` and ``todo``, in
     place, all flat over (B, H, W) rows of ``w``: a region ``good`` takes its plane ``coeffs``, one ``by_local``
-    the winners' ``local_coeffs``, each pixel at its float32 value (``_plane_at``'s, without its divisions)."""
+    the winners' ``local_coeffs``, each pixel at its float32 value (``_plane_value``, a row at a time)."""
     value = np.empty(w, np.float32)
     taken = np.zeros(w, np.bool_)
     for row in range(index.size // w):
@@ -284,8 +300,7 @@ def _fill_level(index, w, h, coeffs, good, local_coeffs, by_local, slope, filled
             g = index[first + x]
             taken[x] = good[g] or by_local[g]
             if taken[x]:
-                c = coeffs[g] if good[g] else local_coeffs[g]
-                value[x] = np.float32(c[0] * (x / COORD_SCALE) + c[1] * ay + c[2])
+                value[x] = _plane_value(coeffs[g] if good[g] else local_coeffs[g], x, ay)
         for x in range(w):
             if not taken[x]:
                 continue
@@ -341,10 +356,8 @@ def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: t
         size, count_m, want, count_l = _region_counts(index, k, matched_flat, todo, finite, use_local)
         active = (count_m >= min_pixels) & (want > 0)
         active[0] = False
-        x, y, d, region = _fit_values(_chosen_pixels(index, matched_flat, active, count_m, planes._FIT_PIXELS),
-                                      values, index, w, h)
-        coeffs = _robust_planes(x, y, d, region, k, samples, TOLERANCE, seed)
-        good = _support(x, y, d, region, coeffs, active, k, TOLERANCE, float(inlier_share))
+        coeffs, good = _region_fits(index, matched_flat, values, active, count_m, w, h, samples, seed,
+                                    float(inlier_share))
         by_local, local_coeffs = np.zeros(k, np.bool_), none
         if use_local:
             share, density, max_matched = local_test
@@ -353,10 +366,8 @@ def planes_and_slopes_numba(filled: torch.Tensor, disp: torch.Tensor, matched: t
             wanted = (want > 0) & ~good & (count_m < max_matched * np.maximum(size, 1.0))
             active_l = (count_l >= min_pixels) & wanted
             active_l[0] = False
-            x, y, d, region = _fit_values(_chosen_pixels(index, finite, active_l, count_l, planes._FIT_PIXELS),
-                                          local_flat, index, w, h)
-            local_coeffs = _robust_planes(x, y, d, region, k, samples, TOLERANCE, seed)
-            backed = _support(x, y, d, region, local_coeffs, active_l, k, TOLERANCE, float(share))
+            local_coeffs, backed = _region_fits(index, finite, local_flat, active_l, count_l, w, h, samples, seed,
+                                                float(share))
             inliers = _dense(index, local_flat, local_coeffs, active_l, w, h, TOLERANCE, k)
             by_local = ~good & backed & (inliers >= density * np.maximum(size, 1.0))
         _fill_level(index, w, h, coeffs, good, local_coeffs, by_local, slope, out, todo)

@@ -69,7 +69,7 @@ def load_suite(path: Path = SUITE) -> Suite:
     except NotUtf8 as exc:
         raise SuiteError(f"{path}: line {exc.line}: {exc}") from None
     except Misread as exc:  # a key given twice (a second group of one name), a number YAML misreads
-        raise SuiteError(f"{path}: line {exc.line}: {exc.problem}") from None
+        raise SuiteError(f"{path}: line {exc.line}: {exc.described}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         at = f"line {mark.line + 1}: " if mark is not None else ""

@@ -73,8 +73,7 @@ def read_middlebury_calib(path: Path) -> dict:
         if "=" in line:
             key, value = (part.strip() for part in line.split("=", 1))
             if key in first:
-                raise SequenceError(f"{path}:{number}: {key}: given twice (first at line {first[key]}); one of them "
-                                    f"would be ignored")
+                raise SequenceError(f"{path}:{number}: {key}: {yaml_reader.given_twice(first[key])}")
             values[key], first[key] = value, number
     try:
         cam0 = [float(x) for x in re.split(r"[\s;\[\]]+", values["cam0"]) if x]
@@ -133,10 +132,8 @@ def read_calibration(folder: Path) -> dict:
         raise SequenceError(f"{path}: calibration file missing")
     try:
         data = yaml_reader.safe_load(read_text(path, "calibration"))
-    except yaml_reader.MisreadNumber as exc:
-        raise SequenceError(f"{path}:{exc.line}: {'.'.join(map(str, exc.key))}: {exc.problem}") from None
-    except yaml_reader.DuplicateKey as exc:
-        raise SequenceError(f"{path}:{exc.line}: {exc.problem}") from None
+    except yaml_reader.Misread as exc:
+        raise SequenceError(f"{path}:{exc.line}: {exc.described}") from None
     except yaml.YAMLError as exc:
         raise SequenceError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict):

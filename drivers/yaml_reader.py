@@ -35,6 +35,11 @@ class Misread(yaml.MarkedYAMLError):
     line: int
     key: tuple[str | int, ...]
 
+    @property
+    def described(self) -> str:
+        """``dotted.key: problem``, or the problem alone for a value outside any mapping or list."""
+        return f"{'.'.join(map(str, self.key))}: {self.problem}" if self.key else str(self.problem)
+
 
 class MisreadNumber(Misread):
     """A scalar YAML 1.1 reads as another number than its digits say; ``line`` is 1-based, ``key`` the path
@@ -44,6 +49,11 @@ class MisreadNumber(Misread):
         super().__init__(problem=f"{text}: {why}", problem_mark=mark)
         self.line = mark.line + 1
         self.key: tuple[str | int, ...] = ()
+
+
+def given_twice(first: int) -> str:
+    """What a key given a second time is told, ``first`` the line (1-based) of its first."""
+    return f"given twice (first at line {first}); one of them would be ignored"
 
 
 class StructureError(yaml.MarkedYAMLError):
@@ -60,8 +70,7 @@ class DuplicateKey(Misread):
     (1-based), ``key`` the path of mapping keys and list indexes to it."""
 
     def __init__(self, mark: yaml.Mark, key: tuple[str | int, ...], first: int):
-        super().__init__(problem=f"{'.'.join(map(str, key))}: given twice (first at line {first}); one of them "
-                         f"would be ignored", problem_mark=mark)
+        super().__init__(problem=given_twice(first), problem_mark=mark)
         self.line = mark.line + 1
         self.key = key
 

@@ -59,6 +59,9 @@ class TestLoadSuite:
         path.write_text(f"sets:\n  a/x: {TINY}\ngroups:\n  g: {{sets: [a/x]}}\n  g: {{sets: [a/x]}}\n")
         with pytest.raises(ds.SuiteError, match=r"suite.yaml: line 5: groups.g: given twice \(first at line 4\)"):
             ds.load_suite(path)
+        path.write_text(f"sets:\n  a/x: {TINY}\ngroups:\n  g: {{sets: [a/x], seeds: 010}}\n")
+        with pytest.raises(ds.SuiteError, match=r"suite.yaml: line 4: groups.g.seeds: 010: YAML reads a leading zero"):
+            ds.load_suite(path)
         with pytest.raises(ds.SuiteError, match="cannot be read"):
             ds.load_suite(tmp_path / "missing.yaml")
 

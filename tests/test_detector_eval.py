@@ -60,6 +60,10 @@ def test_bad_input_is_one_line_naming_it(dataset, tmp_path):
     wrong = cli_here("eval", "detector", "--data", str(recipe), "--weights", str(WEIGHTS))
     assert wrong.returncode == 2 and "Traceback" not in wrong.stderr
     assert f"{recipe}: not a YOLO dataset description: no val, names" in wrong.stderr
+    twice = tmp_path / "twice.yaml"  # YAML keeps the second without a word: another split would be scored
+    twice.write_text("val: images/val\nnames: [a]\nval: images/train\n")
+    given = cli_here("eval", "detector", "--data", str(twice), "--weights", str(WEIGHTS))
+    assert given.returncode == 2 and f"{twice}:3: val: given twice (first at line 1)" in given.stderr
     iou = cli_here("eval", "detector", "--data", str(dataset), "--weights", str(WEIGHTS), "--iou", "0")
     assert iou.returncode == 2 and "--iou" in iou.stderr
 

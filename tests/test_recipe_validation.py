@@ -205,6 +205,8 @@ def test_a_number_yaml_would_read_as_octal_or_base_60_is_an_error_naming_its_key
         load_recipe(write_recipe(recipe_dir / "r.yaml", GOOD), ["stereo.max_disparity=064"])
     quoted = load_recipe(write_recipe(recipe_dir / "r.yaml", GOOD), ["stereo.max_disparity='064'"])
     assert quoted.recipe.stereo.max_disparity == 64
+    with pytest.raises(RecipeError, match=r"--set stereo.settings=\{p1: 010\}: p1: 010: YAML reads a leading zero"):
+        load_recipe(write_recipe(recipe_dir / "r.yaml", GOOD), ["stereo.settings={p1: 010}"])
     with pytest.raises(RecipeError, match=r"--set stereo.settings=\{p1: 1, p1: 2\}: p1: given twice"):
         load_recipe(write_recipe(recipe_dir / "r.yaml", GOOD), ["stereo.settings={p1: 1, p1: 2}"])
 

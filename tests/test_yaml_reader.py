@@ -35,6 +35,12 @@ class TestSafeLoad:
         with pytest.raises(MisreadNumber) as info:
             safe_load("a:\n  b: [1, {c: 2, d: 011}]\n")
         assert info.value.line == 2 and info.value.key == ("a", "b", 1, "d")
+        assert info.value.described.startswith("a.b.1.d: 011: YAML reads a leading zero as octal")
+
+    def test_a_value_outside_any_mapping_is_described_by_its_problem_alone(self):
+        with pytest.raises(MisreadNumber) as info:
+            option_value("010")
+        assert info.value.key == () and info.value.described == info.value.problem
 
 
 class TestDuplicateKeys:
@@ -48,7 +54,7 @@ class TestDuplicateKeys:
         with pytest.raises(DuplicateKey) as info:
             safe_load(text)
         assert (info.value.line, info.value.key) == (line, key)
-        assert info.value.problem.startswith(f"{'.'.join(map(str, key))}: given twice (first at line ")
+        assert info.value.described.startswith(f"{'.'.join(map(str, key))}: given twice (first at line ")
 
     def test_a_merge_may_still_override_what_it_merges(self):
         assert safe_load("m: &m {x: 1}\nn: {<<: *m, x: 2}\n")["n"] == {"x": 2}
@@ -64,8 +70,9 @@ class TestDuplicateKeys:
         assert safe_load_lines("") == (None, {})
 
     def test_a_command_line_value_with_a_key_twice_is_refused_not_taken_as_text(self):
-        with pytest.raises(Misread, match="a: given twice"):
+        with pytest.raises(Misread) as info:
             option_value("{a: 1, a: 2}")
+        assert info.value.described.startswith("a: given twice")
         assert option_value("{a: 1") == "{a: 1"  # not YAML: the text itself
 
 

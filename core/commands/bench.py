@@ -105,7 +105,7 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
         try:
             reference[key.strip()] = option_value(value)
         except Misread as exc:
-            fail(f"--versus {item}: {exc.problem}")
+            fail(f"--versus {item}: {exc.described}")
     if reference and loaded.recipe.stereo.backend not in names:
         fail(f"--versus changes the recipe's stereo backend {loaded.recipe.stereo.backend}, which --backends leaves out")
     if reference:

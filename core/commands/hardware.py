@@ -155,7 +155,7 @@ def _camera_section_yaml(recipe: Path) -> tuple[str, dict, Path]:
     except OSError as exc:
         _fail(f"{recipe}: cannot read recipe ({exc.strerror})")
     except Misread as exc:
-        _fail(f"{recipe}:{exc.line}: {exc.problem}")
+        _fail(f"{recipe}:{exc.line}: {exc.described}")
     except yaml.YAMLError as exc:
         _fail(f"{recipe}: YAML error: {str(exc).splitlines()[0]}")
     camera = (data or {}).get("camera") if isinstance(data, dict) else None

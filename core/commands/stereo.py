@@ -28,7 +28,7 @@ def _parse_settings(pairs: tuple[str, ...], option: str = "--set") -> dict:
         try:
             settings[key.strip()] = option_value(value) if value.strip() else ""
         except Misread as exc:
-            _fail(f"{option} {pair}: {exc.problem}")
+            _fail(f"{option} {pair}: {exc.described}")
     return settings
 
 

@@ -171,7 +171,7 @@ def apply_override(data: dict, assignment: str) -> KeyPath:
     try:
         value = yaml_reader.option_value(raw)
     except yaml_reader.Misread as exc:
-        raise RecipeError(f"--set {assignment}: {exc.problem}") from None
+        raise RecipeError(f"--set {assignment}: {exc.described}") from None
     node: Any = data
     for i, part in enumerate(parts[:-1]):
         if isinstance(node, list):
@@ -232,10 +232,8 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
         raise RecipeError(f"{path}: cannot read recipe ({exc.strerror})") from None
     try:
         data, lines = yaml_reader.safe_load_lines(text)
-    except yaml_reader.DuplicateKey as exc:
-        raise RecipeError(f"{path}:{exc.line}: {exc.problem}") from None
-    except yaml_reader.MisreadNumber as exc:
-        raise RecipeError(f"{path}:{exc.line}: {_dotted(exc.key)}: {exc.problem}") from None
+    except yaml_reader.Misread as exc:
+        raise RecipeError(f"{path}:{exc.line}: {exc.described}") from None
     except yaml_reader.StructureError as exc:
         raise RecipeError(f"{path}:{exc.line}: {exc.problem}") from None
     except yaml.MarkedYAMLError as exc:

@@ -46,13 +46,15 @@ def _dataset_yaml(data: Path, splits: tuple[str, ...], hint: str = "") -> Path:
     one line naming it (ultralytics would raise with a traceback)."""
     import yaml
 
-    from drivers.yaml_reader import safe_load
+    from drivers.yaml_reader import Misread, safe_load
 
     data_yaml = data / "data.yaml" if data.is_dir() else data
     if not data_yaml.is_file():
         _fail(f"{data_yaml}: dataset file not found{hint}")
     try:
         spec = safe_load(data_yaml.read_text(encoding="utf-8-sig"))
+    except Misread as exc:
+        _fail(f"{data_yaml}:{exc.line}: {exc.described}")
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         _fail(f"{data_yaml}: not a dataset description ({str(exc).splitlines()[0]})")
     missing = [k for k in (*splits, "names") if not isinstance(spec, dict) or k not in spec]

@@ -102,6 +102,29 @@ class TestAggregateNumba:
                                                                                          1e-3, None))
 
 
+class TestBoxMeanNumba:
+    @pytest.mark.parametrize("shape", [(1, 1, 23, 31), (2, 3, 9, 4), (1, 1, 1, 12), (1, 1, 12, 1), (5, 7)])
+    @pytest.mark.parametrize("radius", [1, 2, 5])
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_equals_the_reference_bit_for_bit(self, shape, radius, dtype):
+        # the same numbers, not nearly: the crops and the full frame must give the same maps as before
+        x = torch.rand(shape, generator=torch.Generator().manual_seed(5), dtype=dtype)
+        got = aggregate_numba.box_mean_numba(x, radius)
+        assert got.dtype == dtype and got.shape == x.shape and torch.equal(got, cost.box_mean(x, radius))
+
+    def test_a_view_reads_as_its_values(self):
+        x = torch.rand(1, 1, 20, 30)[..., ::2, 1:]
+        assert torch.equal(aggregate_numba.box_mean_numba(x, 2), cost.box_mean(x, 2))
+
+    def test_radius_zero_returns_the_input(self):
+        x = torch.rand(1, 1, 4, 4)
+        assert aggregate_numba.box_mean_numba(x, 0) is x
+
+    def test_refuses_what_it_cannot_compute(self):
+        with pytest.raises(ValueError, match="float32 or float64 CPU tensor"):
+            aggregate_numba.box_mean_numba(torch.ones(4, 4, dtype=torch.int32), 1)
+
+
 class TestDirectBoxSums:
     @pytest.mark.parametrize("shape", [(23, 31), (3, 2), (1, 12), (12, 1)])
     @pytest.mark.parametrize("radius", [1, 2])

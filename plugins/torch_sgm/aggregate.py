@@ -25,11 +25,12 @@ def guided_filter(guide: torch.Tensor, src: torch.Tensor, radius: int, eps: floa
     return box_mean(a, radius) * guide + box_mean(b, radius)
 
 
-def guide_statistics(guide: torch.Tensor, radius: int, eps: float) -> tuple:
+def guide_statistics(guide: torch.Tensor, radius: int, eps: float, mean=box_mean) -> tuple:
     """What ``guided_filter_fast`` needs of the guide (B, 1, H, W), computed once per image:
-    (guide, its local mean, 1 / (local variance + eps), each (B, 1, H, W); eps)."""
-    mean_i = box_mean(guide, radius)
-    var_i = box_mean(guide * guide, radius) - mean_i * mean_i
+    (guide, its local mean, 1 / (local variance + eps), each (B, 1, H, W); eps). ``mean``: the box mean to take
+    them with (``aggregate_numba.box_mean_numba``, the same numbers compiled)."""
+    mean_i = mean(guide, radius)
+    var_i = mean(guide * guide, radius) - mean_i * mean_i
     return guide, mean_i, 1.0 / (var_i + eps), eps
 
 
@@ -53,16 +54,16 @@ def guided_filter_fast(stats: tuple, src: torch.Tensor, radius: int) -> torch.Te
     return out.add_(box_mean_fast(b, radius, a, work, inv_count))
 
 
-def texture_weight(guide: torch.Tensor, radius: int, scale: float) -> torch.Tensor:
+def texture_weight(guide: torch.Tensor, radius: int, scale: float, mean=box_mean) -> torch.Tensor:
     """(B, 1, H, W) grey guide in [0, 1] -> (B, 1, H, W) exp(-std / ``scale``), std being the guide's
     standard deviation over a (2 ``radius`` + 1)^2 window: 1 on a flat area, towards 0 where textured.
 
     The weight of the wider of two aggregations in ``blend_by_texture``: a flat area needs a wide
     window to find any match at all, while on texture a narrow one keeps thin structures and depth
-    edges that a wide one blurs."""
+    edges that a wide one blurs. ``mean``: the box mean to take the variance with."""
     # in float32 the running sums leave a variance of ~1e-7 on a flat area, a std that is not small
     # against a scale of 0.02
-    _, var = local_mean_variance(guide.double(), radius)
+    _, var = local_mean_variance(guide.double(), radius, mean)
     return torch.exp(-var.sqrt() / scale).to(guide.dtype)
 
 

@@ -14,6 +14,65 @@ from plugins.torch_sgm.cost import box_counts
 
 
 @njit(cache=True, nogil=True)
+def _box_mean(x, radius, total, columns, acc, out):
+    """``cost.box_mean`` of (N, H, W) ``x`` into ``out`` (the same shape and dtype), the same numbers: each pass's
+    running sum accumulated in float64 and stored in x's dtype, as torch's ``cumsum`` does, and each window
+    the difference of two of its entries over the window's pixel count, in x's dtype. Scratch: ``total``
+    (W + 1,) and ``columns`` (H + 1, W) of x's dtype, ``acc`` (W,) float64."""
+    n_img, h, w = x.shape
+    r = radius
+    one = total[:1].dtype.type(1)
+    for i in range(n_img):
+        # along the rows, into out
+        for y in range(h):
+            row, dst = x[i, y], out[i, y]
+            s = 0.0
+            total[0] = 0.0
+            for j in range(w):
+                s += row[j]
+                total[j + 1] = s
+            middle_lo, middle_hi = min(r, w), max(w - r, min(r, w))
+            for p in range(w):
+                if p == middle_lo and middle_hi > middle_lo:
+                    count = one * (2 * r + 1)
+                    for q in range(middle_lo, middle_hi):  # windows inside the row: a pass LLVM vectorises
+                        dst[q] = (total[q + r + 1] - total[q - r]) / count
+                if middle_lo <= p < middle_hi:
+                    continue
+                lo, hi = max(p - r, 0), min(p + r, w - 1) + 1
+                dst[p] = (total[hi] - total[lo]) / (one * (hi - lo))
+        # down the columns of that, a row of running sums at a time
+        for j in range(w):
+            acc[j] = 0.0
+            columns[0, j] = 0.0
+        for y in range(h):
+            for j in range(w):
+                acc[j] += out[i, y, j]
+                columns[y + 1, j] = acc[j]
+        for y in range(h):
+            lo, hi = max(y - r, 0), min(y + r, h - 1) + 1
+            count = one * (hi - lo)
+            dst, top, bottom = out[i, y], columns[hi], columns[lo]
+            for j in range(w):
+                dst[j] = (top[j] - bottom[j]) / count
+
+
+def box_mean_numba(x: torch.Tensor, radius: int) -> torch.Tensor:
+    """``cost.box_mean`` (the reference) of a float32 or float64 CPU tensor (..., H, W), compiled: the same
+    numbers bit for bit, without the dozen torch calls a pass that were most of its time on a crop."""
+    if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64) or x.dim() < 2:
+        raise ValueError(f"box_mean_numba: needs a float32 or float64 CPU tensor (..., H, W), got {x.dtype} "
+                         f"{tuple(x.shape)} on {x.device}")
+    if radius <= 0:
+        return x
+    h, w = x.shape[-2:]
+    a = np.ascontiguousarray(x.reshape(-1, h, w).numpy())
+    out = np.empty_like(a)
+    _box_mean(a, int(radius), np.empty(w + 1, a.dtype), np.empty((h + 1, w), a.dtype), np.empty(w), out)
+    return torch.from_numpy(out).reshape(x.shape)
+
+
+@njit(cache=True, nogil=True)
 def box_sums(first, second, radius, rows, out_first, out_second):
     """Window sums of two (H, W) arrays over the (2r+1)^2 window cut to the image, into the two outputs;
     ``rows`` is (2, W) float64 scratch for the running column sums (in float64, so that adding and taking
@@ -160,7 +219,7 @@ def _aggregate(raw, guide, wide_stats, wide_radius, detail_stats, detail_radius,
 def _statistics(guide: torch.Tensor, radius: int, eps: float) -> np.ndarray:
     """(3, B, H, W) float32: the guide's local mean, 1 / (its local variance + eps), and 1 / the pixels in
     each window -- as ``aggregate.guide_statistics`` and ``cost.box_counts`` compute them."""
-    _, mean_i, inv_var, _ = aggregate.guide_statistics(guide, radius, eps)
+    _, mean_i, inv_var, _ = aggregate.guide_statistics(guide, radius, eps, box_mean_numba)
     counts = box_counts(*guide.shape[-2:], radius).expand(guide.shape[0], -1, -1)
     return np.ascontiguousarray(torch.stack([mean_i[:, 0], inv_var[:, 0], counts]).numpy())
 

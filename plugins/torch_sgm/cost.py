@@ -46,10 +46,11 @@ def _box_1d(x: torch.Tensor, radius: int, dim: int) -> torch.Tensor:
     return window / (count if dim == -1 else count.view(-1, 1))
 
 
-def local_mean_variance(x: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``box_mean`` of x and the variance over the same windows (never negative), each shaped as x."""
-    mean = box_mean(x, radius)
-    return mean, (box_mean(x * x, radius) - mean * mean).clamp_min(0)
+def local_mean_variance(x: torch.Tensor, radius: int, mean=box_mean) -> tuple[torch.Tensor, torch.Tensor]:
+    """``box_mean`` of x and the variance over the same windows (never negative), each shaped as x; ``mean``: the
+    box mean to take them with (``aggregate_numba.box_mean_numba``, the same numbers compiled)."""
+    m = mean(x, radius)
+    return m, (mean(x * x, radius) - m * m).clamp_min(0)
 
 
 def zero_normalise(image: torch.Tensor, radius: int, eps: float = 1e-3) -> torch.Tensor:

@@ -54,10 +54,12 @@ TEXTURE_RADIUS = 2  # 5x5 windows measure how textured a pixel's neighbourhood i
 
 
 def texture_weight(guide: torch.Tensor, p: TorchSGMParams) -> torch.Tensor | None:
-    """``aggregate.texture_weight`` of the (B, 1, H, W) grey guide, or None with one radius everywhere."""
+    """``aggregate.texture_weight`` of the (B, 1, H, W) grey guide, or None with one radius everywhere (its box
+    means compiled with the fast implementation on the CPU)."""
     if p.agg_detail_radius < 0:
         return None
-    return aggregate.texture_weight(guide, TEXTURE_RADIUS, p.agg_texture)
+    mean = aggregate_numba.box_mean_numba if compiled(p, guide) else cost.box_mean
+    return aggregate.texture_weight(guide, TEXTURE_RADIUS, p.agg_texture, mean)
 
 
 FAST_CHUNK = 8  # disparity slices per step of the fast path: its buffers stay small enough to be reused

@@ -35,6 +35,20 @@ class TestSgmNumba:
         assert torch.allclose(sgm_numba.sgm_numba(volume, 0.08, p2, sgm.PATHS_8), sgm.sgm(volume, 0.08, p2, sgm.PATHS_8),
                               atol=1e-5)
 
+    def test_one_thread_and_two_give_the_same_sums(self):
+        # on one thread the rows' paths run without a parallel region per row: the same arithmetic
+        volume = torch.rand(1, 11, 23, 31, generator=torch.Generator().manual_seed(6))
+        before = torch.get_num_threads()
+        try:
+            torch.set_num_threads(1)
+            one = sgm_numba.sgm_numba(volume, 0.08, 0.6, sgm.PATHS_8)
+            torch.set_num_threads(2)
+            two = sgm_numba.sgm_numba(volume, 0.08, 0.6, sgm.PATHS_8)
+        finally:
+            torch.set_num_threads(before)
+        assert torch.equal(one, two)
+        assert torch.allclose(one, sgm.sgm(volume, 0.08, 0.6, sgm.PATHS_8), atol=1e-5)
+
     def test_a_single_disparity_is_the_cost_times_the_paths(self):
         volume = torch.rand(1, 1, 6, 7)
         assert torch.allclose(sgm_numba.sgm_numba(volume, 0.1, 0.5, sgm.PATHS_4), 4 * volume, atol=1e-6)
@@ -57,7 +71,6 @@ class TestSgmNumba:
             assert torch.get_num_threads() == 1  # and torch's own count is left as it was
         finally:
             torch.set_num_threads(before)
-
 
     def test_leaves_each_pixels_disparities_side_by_side(self):
         out = sgm_numba.sgm_numba(torch.rand(1, 5, 6, 7), 0.1, 0.5)

@@ -207,23 +207,29 @@ def test_two_view_improves_held_out_synthetic_pairs_and_its_average_sharpens_the
         assert both["bad0.5"] < chosen["bad0.5"] and both["avgerr"] < chosen["avgerr"]
 
 
-def test_warm_up_reaches_every_compiled_kernel():
+@pytest.mark.parametrize("threads", [1, 2])
+def test_warm_up_reaches_every_compiled_kernel(threads):
     """In a fresh process (where no kernel has run yet): after ``warm_up`` every numba kernel of the
-    pipeline has its machine code, so the first part does not pay for compiling one."""
+    pipeline that the process's thread count runs has its machine code, so the first part does not pay for
+    compiling one."""
     import subprocess
     import sys
 
-    script = """
-import numba
+    script = f"""
+import numba, torch
+torch.set_num_threads({threads})
+# SGM's paths across the rows: one kernel for one thread, another for more (numba's threads: no more than it has)
+other = "_across_rows" if min({threads}, numba.config.NUMBA_NUM_THREADS) == 1 else "_across_rows_one_thread"
 from core.contracts import PluginContext
 from plugins.torch_sgm import aggregate_numba, align_numba, cost_numba, planes_numba, refine_numba, select_numba, sgm_numba, linalg_numba
 from plugins.torch_sgm.plugin import _factory
-_factory({}, PluginContext(device="cpu")).warm_up()
-kernels = {f"{m.__name__}.{name}": k for m in (aggregate_numba, align_numba, cost_numba, planes_numba, refine_numba,
+_factory({{}}, PluginContext(device="cpu")).warm_up()
+kernels = {{f"{{m.__name__}}.{{name}}": k for m in (aggregate_numba, align_numba, cost_numba, planes_numba, refine_numba,
                                                   select_numba, sgm_numba, linalg_numba)
-           for name, k in vars(m).items() if isinstance(k, numba.core.registry.CPUDispatcher)}
-# called only from other kernels and compiled into them: the inlined ones, and these
-inner = {"box_sums", "direct_box_sums", "_window_sums", "_guided"}
+           for name, k in vars(m).items() if isinstance(k, numba.core.registry.CPUDispatcher)}}
+# called only from other kernels and compiled into them: the inlined ones, and these; and the one this thread count
+# does not run
+inner = {{"box_sums", "direct_box_sums", "_window_sums", "_guided", other}}
 print(sorted(n for n, k in kernels.items() if not k.signatures and k.targetoptions.get("inline") != "always"
              and n.rsplit(".", 1)[1] not in inner), len(kernels))
 """

@@ -111,6 +111,27 @@ def _across_rows(cost, out, p2, p1, dy, dxs, first):
                           p2[k, b, y, x], fresh, first and k == 0)
 
 
+@njit(cache=True, nogil=True)
+def _across_rows_one_thread(cost, out, p2, p1, dy, dxs, first):
+    """``_across_rows`` with a plain loop over each row's pixels, for one thread: a parallel region started at every
+    row cost a crop 40 % of this stage's time, even with one thread to run it. (The steps written out here as
+    there: taken into a helper that both call, this one ran five times slower.)"""
+    n_b, h, w, d_count = cost.shape
+    n_k = len(dxs)
+    p1 = np.float32(p1)
+    for b in range(n_b):
+        state = np.empty((2, n_k, w, d_count), cost.dtype)
+        for i in range(h):
+            y = i if dy > 0 else h - 1 - i
+            now, before = i % 2, 1 - i % 2
+            for x in range(w):
+                for k in range(n_k):
+                    px = x - dxs[k]
+                    fresh = i == 0 or px < 0 or px >= w
+                    _step(cost, out, state[before, k, px if not fresh else 0], state[now, k, x], b, y, x, p1,
+                          p2[k, b, y, x], fresh, first and k == 0)
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def _pixel_major(cost, out):
     """(B, D, H, W) -> ``out`` (B, H, W, D): rows in parallel (NumPy's copy of the transposed view runs on one
@@ -162,11 +183,12 @@ def sgm_numba(cost: torch.Tensor, p1: float, p2: torch.Tensor | float, paths=sgm
         c = np.empty((volume.shape[0], *volume.shape[2:], volume.shape[1]), volume.dtype)
         _pixel_major(volume, c)
         out = np.empty_like(c)  # the first path writes it
+        across = _across_rows_one_thread if numba.get_num_threads() == 1 else _across_rows
         for n, (dy, dxs, maps) in enumerate(groups):
             if dy == 0:
                 _along_rows(c, out, maps, float(p1), dxs, n == 0)
             else:
-                _across_rows(c, out, maps, float(p1), int(dy), dxs, n == 0)
+                across(c, out, maps, float(p1), int(dy), dxs, n == 0)
     # a view in the (B, D, H, W) order: the winners read each pixel's disparities side by side, where the
     # numba kernels left them, instead of after a transposing copy
     return torch.from_numpy(out).permute(0, 3, 1, 2)

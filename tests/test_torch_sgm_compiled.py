@@ -35,9 +35,10 @@ class TestSgmNumba:
         assert torch.allclose(sgm_numba.sgm_numba(volume, 0.08, p2, sgm.PATHS_8), sgm.sgm(volume, 0.08, p2, sgm.PATHS_8),
                               atol=1e-5)
 
-    def test_one_thread_and_two_give_the_same_sums(self):
+    @pytest.mark.parametrize("shape", [(1, 11, 23, 31), (2, 5, 1, 6), (1, 4, 7, 1)])
+    def test_one_thread_and_two_give_the_same_sums(self, shape):
         # on one thread the rows' paths run without a parallel region per row: the same arithmetic
-        volume = torch.rand(1, 11, 23, 31, generator=torch.Generator().manual_seed(6))
+        volume = torch.rand(shape, generator=torch.Generator().manual_seed(6))
         before = torch.get_num_threads()
         try:
             torch.set_num_threads(1)

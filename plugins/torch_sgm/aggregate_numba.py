@@ -31,16 +31,16 @@ def _box_mean(x, radius, total, columns, acc, out):
             for j in range(w):
                 s += row[j]
                 total[j + 1] = s
-            middle_lo, middle_hi = min(r, w), max(w - r, min(r, w))
-            for p in range(w):
-                if p == middle_lo and middle_hi > middle_lo:
-                    count = one * (2 * r + 1)
-                    for q in range(middle_lo, middle_hi):  # windows inside the row: a pass LLVM vectorises
-                        dst[q] = (total[q + r + 1] - total[q - r]) / count
-                if middle_lo <= p < middle_hi:
-                    continue
-                lo, hi = max(p - r, 0), min(p + r, w - 1) + 1
-                dst[p] = (total[hi] - total[lo]) / (one * (hi - lo))
+            # the windows inside the row apart from those the borders cut: a pass LLVM vectorises
+            inner_lo = min(r, w)
+            inner_hi = max(w - r, inner_lo)
+            count = one * (2 * r + 1)
+            for p in range(inner_lo, inner_hi):
+                dst[p] = (total[p + r + 1] - total[p - r]) / count
+            for border in (range(0, inner_lo), range(inner_hi, w)):
+                for p in border:
+                    lo, hi = max(p - r, 0), min(p + r, w - 1) + 1
+                    dst[p] = (total[hi] - total[lo]) / (one * (hi - lo))
         # down the columns of that, a row of running sums at a time
         for j in range(w):
             acc[j] = 0.0

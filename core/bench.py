@@ -336,7 +336,15 @@ def run_live(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
                       "counts": counts}
     ratios = [d / a for a, d in zip(rows["detection alone"]["fps_rounds"], rows["with depth"]["fps_rounds"]) if a]
     return {"concurrent": loaded.recipe.stereo.concurrent, "threads": loaded.recipe.threads, "rounds": rounds,
-            "order": order, "rows": rows, "ratios": ratios, "ratio": statistics.median(ratios) if ratios else None}
+            "order": order, "rows": rows, "ratios": ratios, "ratio": statistics.median(ratios) if ratios else None,
+            "depth_share": depth_share(rows["with depth"])}
+
+
+def depth_share(row: dict[str, Any]) -> float | None:
+    """The share of the loop's frame time that depth takes (the depth goal's measure): its mean ms a part over the
+    frame time at the loop's median rate; None where the loop ran no depth or no frame."""
+    depth = row["mean_ms"].get("depth")
+    return depth * row["fps"] / 1000.0 if depth and row["fps"] > 0 else None
 
 
 def live_markdown(live: dict[str, Any]) -> str:
@@ -352,4 +360,9 @@ def live_markdown(live: dict[str, Any]) -> str:
     if live["ratio"] is not None:
         each = ", ".join(f"{r:.2f}" for r in live["ratios"])
         lines += ["", f"with depth ÷ detection alone: {live['ratio']:.2f} (round by round {each})"]
+    share = live.get("depth_share")
+    if share is not None:
+        depth = live["rows"]["with depth"]
+        lines += ["", f"depth's share of a frame with depth: {share:.0%} ({depth['mean_ms']['depth']:.0f} ms a part of "
+                      f"{1000.0 / depth['fps']:.0f} ms a frame)"]
     return "\n".join(lines) + "\n"

@@ -138,6 +138,9 @@ def test_live_runs_the_real_loop_with_and_without_depth_in_alternating_rounds(tm
     assert live["ratios"] == [d / a for a, d in zip(alone["fps_rounds"], depth["fps_rounds"])]
     assert live["ratio"] == pytest.approx(sum(live["ratios"]) / 2) and live["ratio"] > 0
     assert "with depth ÷ detection alone" in out.stdout and "round by round" in out.stdout
+    # the depth goal's measure: depth's mean time a part over the frame time at the loop's rate
+    assert live["depth_share"] == pytest.approx(depth["mean_ms"]["depth"] * depth["fps"] / 1000.0)
+    assert 0 < live["depth_share"] < 1 and f"depth's share of a frame with depth: {live['depth_share']:.0%}" in out.stdout
     assert not (ROOT / "results" / "steel_plate" / "live").exists()
 
 

@@ -210,7 +210,7 @@ def test_two_view_improves_held_out_synthetic_pairs_and_its_average_sharpens_the
 def test_warm_up_reaches_every_compiled_kernel():
     """In a fresh process (where no kernel has run yet): after ``warm_up`` every numba kernel of the
     pipeline that the process's thread count runs has its machine code, so the first part does not pay for
-    compiling one. One thread first, then two, in one process (each a process of its own took as long again)."""
+    compiling one. One thread first, then two, in one process: a process for each took twice the time."""
     import json
     import subprocess
     import sys

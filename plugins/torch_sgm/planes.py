@@ -22,6 +22,7 @@ _RANSAC_RADIUS = 3.0
 _TUKEY_RADII_AFTER_RANSAC = (2.0, 2.0, 2.0)
 _HYPOTHESES_PER_STEP = 16  # RANSAC hypotheses scored at once: bounds the (pixels x hypotheses) buffer
 _FIT_PIXELS = 65536  # matched pixels a frame's planes are fitted to
+_SUPPORT_PX = 1.0  # disparity px within which a pixel supports its region's plane
 _VOTERS = 32768  # matched pixels that score the hypotheses; more only refine a count that needs no precision
 
 
@@ -112,7 +113,7 @@ def ransac_planes(x: torch.Tensor, y: torch.Tensor, d: torch.Tensor, index: torc
 
 
 def region_planes(disp: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor, min_pixels: int,
-                  inlier_share: float, tolerance: float = 1.0, samples: int = 0,
+                  inlier_share: float, tolerance: float = _SUPPORT_PX, samples: int = 0,
                   wanted: torch.Tensor | None = None, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Fit d = a x + b y + c to the matched pixels of every region by iteratively reweighted least
     squares with Tukey's biweight, so that mismatches that passed the checks do not tilt the plane.
@@ -241,7 +242,7 @@ def planes_and_slopes(filled: torch.Tensor, disp: torch.Tensor, matched: torch.T
 
 def local_planes(local: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor, min_pixels: int,
                  inlier_share: float, density: float, max_matched: float, samples: int = 0,
-                 wanted: torch.Tensor | None = None, tolerance: float = 1.0,
+                 wanted: torch.Tensor | None = None, tolerance: float = _SUPPORT_PX,
                  seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """``region_planes`` fitted to the winners of the cost before SGM (``select.local_winners``) of every
     pixel of a region, for a region where matching failed.

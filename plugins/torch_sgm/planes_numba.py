@@ -19,7 +19,7 @@ from plugins.torch_sgm import planes, sgm_numba
 from plugins.torch_sgm.linalg_numba import solve3
 
 COORD_SCALE = planes._COORD_SCALE
-TOLERANCE = 1.0  # disparity px within which a pixel supports its region's plane (``planes.region_planes``')
+TOLERANCE = planes._SUPPORT_PX
 
 
 @njit(cache=True, nogil=True)

@@ -145,7 +145,7 @@ def test_live_runs_the_real_loop_with_and_without_depth_in_alternating_rounds(tm
 
 
 def test_live_rounds_without_live_is_refused(tmp_path):
-    out = cli("bench", "--backends", "none", "--live-rounds", "2", "--out", str(tmp_path))
+    out = cli_here("bench", "--backends", "none", "--live-rounds", "2", "--out", str(tmp_path))
     assert out.returncode == 2 and out.stderr == "error: --live-rounds needs --live FRAMES\n"
     assert list(tmp_path.iterdir()) == []
 

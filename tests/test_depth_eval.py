@@ -208,7 +208,7 @@ def test_boxes_that_are_off_are_measured_there_with_the_true_boxs_floor(evaluate
         same = true[(r["frame_id"], tuple(r["box"]))]  # rows keep the true box
         assert r["floor_mm"] == pytest.approx(same["floor_mm"])
     assert any(r["deviation_mm"] != true[(r["frame_id"], tuple(r["box"]))]["deviation_mm"] for r in moved["rows"])
-    assert cli("eval", "depth", str(TEXTURED), "--box-scale", "nan").returncode == 2
+    assert cli_here("eval", "depth", str(TEXTURED), "--box-scale", "nan").returncode == 2
 
 
 def test_a_moved_box_s_distance_is_scored_where_it_looks_and_unscored_without_the_true_disparity(evaluated, tmp_path):

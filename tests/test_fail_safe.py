@@ -317,7 +317,7 @@ def test_after_a_crash_the_next_run_says_which_rejects_may_not_have_fired(tmp_pa
     assert status == "crashed" and parts == crashed_parts
     stored = {r[0] for r in db.execute("SELECT part_id FROM alarms WHERE run_id = 2 AND part_id IS NOT NULL")}
     assert set(unconfirmed) <= stored
-    report = cli("report", str(results))
+    report = cli_here("report", str(results))
     assert "run 1 crashed" in report.stdout and f"{len(unconfirmed)} of them rejected without a confirmed output" in report.stdout
     assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
 
@@ -325,10 +325,10 @@ def test_after_a_crash_the_next_run_says_which_rejects_may_not_have_fired(tmp_pa
 # -- 8. outputs that cannot deliver ------------------------------------------------------------------------
 
 def test_an_output_without_a_delay_or_with_one_shorter_than_a_frame_is_an_error():
-    result = cli("validate", str(DEMO), "--set", "outputs.0.settings.actuator_distance_mm=null",
-                 "--set", "outputs.0.settings.conveyor_speed_mm_s=null")
+    result = cli_here("validate", str(DEMO), "--set", "outputs.0.settings.actuator_distance_mm=null",
+                      "--set", "outputs.0.settings.conveyor_speed_mm_s=null")
     _one_line_error(result, "outputs.0.settings", "give the time from the camera to the actuator")
-    result = cli("validate", str(DEMO), "--set", "outputs.0.settings.conveyor_speed_mm_s=6000")  # 100 ms at 4 fps
+    result = cli_here("validate", str(DEMO), "--set", "outputs.0.settings.conveyor_speed_mm_s=6000")  # 100 ms at 4 fps
     _one_line_error(result, "outputs.0.settings.actuator_distance_mm", "100 ms after a part's capture",
                     "frame period (250 ms at 4 fps)", "set delay_ms to at least 250")
 

@@ -385,7 +385,7 @@ def test_a_calibration_no_camera_has_fails_validation(recipe_dir):
 def test_validate_warns_where_the_working_distance_cannot_resolve_a_limit(recipe_dir):
     far = GOOD.replace("max_disparity: 64", "working_distance_mm: [300, 900]")
     path = write_recipe(recipe_dir / "far.yaml", far)
-    result = cli("validate", str(path))
+    result = cli_here("validate", str(path))
     assert result.returncode == 0 and result.stdout.startswith(f"{path}: ok")
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1
@@ -393,18 +393,18 @@ def test_validate_warns_where_the_working_distance_cannot_resolve_a_limit(recipe
     assert lines[0].startswith(f"{path.resolve()}:13: decision.rules.0: warning: rule 'any deviation_mm > 1': at 900 mm")
     assert re.search(r"resolved at \d+ mm or closer, with a [\d.]+x longer focal length .* or a \d+ mm baseline", lines[0])
     near = write_recipe(recipe_dir / "near.yaml", GOOD.replace("max_disparity: 64", "working_distance_mm: [300, 450]"))
-    assert cli("validate", str(near)).stderr == ""
+    assert cli_here("validate", str(near)).stderr == ""
 
 
 def test_validate_warns_of_classes_that_no_rule_covers(recipe_dir):
     # a defect of such a class passes however deep it is
     only = GOOD.replace("{class: any,", "{class: scratches,")
-    result = cli("validate", str(write_recipe(recipe_dir / "only.yaml", only)))
+    result = cli_here("validate", str(write_recipe(recipe_dir / "only.yaml", only)))
     assert result.returncode == 0, result.stderr
     assert re.search(r"only\.yaml:11: decision: warning: no rule covers crazing, inclusion, patches, pitted_surface, "
                      r"rolled-in_scale: such a defect passes", result.stderr), result.stderr
     none = GOOD.replace('    - {class: any, quantity: deviation_mm, op: ">", threshold: 1.0}', "    []")
-    assert "no rule covers every class the detector reports" in cli(
+    assert "no rule covers every class the detector reports" in cli_here(
         "validate", str(write_recipe(recipe_dir / "none.yaml", none))).stderr
     rejected = only.replace("decision:", "decision:\n  reject_unruled_defects: true")
     for text, name in ((rejected, "rej.yaml"), (GOOD, "good.yaml")):
@@ -414,7 +414,7 @@ def test_validate_warns_of_classes_that_no_rule_covers(recipe_dir):
 
 def test_the_demo_recipe_resolves_its_limits():
 
-    result = cli("validate", str(ROOT / "recipes" / "steel_plate.yaml"))
+    result = cli_here("validate", str(ROOT / "recipes" / "steel_plate.yaml"))
     assert result.returncode == 0 and result.stderr == ""
 
 
@@ -426,7 +426,7 @@ def test_the_demo_recipe_resolves_its_limits():
 ])
 def test_validate_warns_of_decisions_that_pass_unproven_parts(recipe_dir, setting, message):
     path = write_recipe(recipe_dir / "loose.yaml", GOOD.replace("decision:\n", f"decision:\n  {setting}\n"))
-    result = cli("validate", str(path))
+    result = cli_here("validate", str(path))
     assert result.returncode == 0 and result.stdout.startswith(f"{path}: ok")
     assert re.fullmatch(rf"{re.escape(str(path.resolve()))}:12: {message}.*\n", result.stderr), result.stderr
 
@@ -441,7 +441,7 @@ def test_a_recipe_without_outputs_is_warned_of_by_validate_and_run(recipe_dir):
     # a reject it decides is stored, and no actuator hears of it
     path = write_recipe(recipe_dir / "mute.yaml", GOOD.replace("outputs:\n  - plugin: log\n", "outputs: []\n"))
     warning = f"{path.resolve()}:14: outputs: warning: no output: a rejected part is stored but reaches no actuator"
-    result = cli("validate", str(path))
+    result = cli_here("validate", str(path))
     assert result.returncode == 0 and result.stderr.startswith(warning), result.stderr
     run = cli("run", str(path), "--quiet", "--max-frames", "1", "--set", f"results.path={recipe_dir / 'res'}")
     assert run.stderr.startswith(warning), run.stderr
@@ -456,7 +456,7 @@ def test_a_recipe_without_outputs_is_warned_of_by_validate_and_run(recipe_dir):
 def test_validate_warns_of_an_image_check_turned_off(recipe_dir, key, off, what):
     # a frame of nothing then finds no defect: its part passes unseen
     path = write_recipe(recipe_dir / "r.yaml", GOOD)
-    result = cli("validate", str(path), "--set", f"camera.image_check.{key}={off}")
+    result = cli_here("validate", str(path), "--set", f"camera.image_check.{key}={off}")
     assert result.returncode == 0
     assert re.fullmatch(rf"{re.escape(str(path.resolve()))} \(--set camera\.image_check\.{key}\): camera\.image_check\."
                         rf"{key}: warning: off: {what}.*passes instead of being an ERROR\n", result.stderr), result.stderr
@@ -473,7 +473,7 @@ def test_validate_warns_of_an_image_check_turned_off(recipe_dir, key, off, what)
 ])
 def test_validate_warns_of_detector_settings_that_drop_defects_before_any_rule(recipe_dir, key, value, message):
     path = write_recipe(recipe_dir / "r.yaml", GOOD)
-    result = cli("validate", str(path), "--set", f"detector.{key}={value}")
+    result = cli_here("validate", str(path), "--set", f"detector.{key}={value}")
     assert result.returncode == 0
     assert re.fullmatch(rf"{re.escape(str(path.resolve()))} \(--set detector\.{key}\): {message}.*\n",
                         result.stderr), result.stderr
@@ -511,7 +511,7 @@ def test_validate_warns_where_plates_come_closer_than_a_reject_pulse_allows():
     # the demo's 100 ms pulse and the 20 ms low after it need 120 ms: at 12 plates a second (83 ms) a run
     # of rejects falls 37 ms further behind with each one; at 8 (125 ms) it does not
     demo = str(ROOT / "recipes" / "steel_plate.yaml")
-    fast = cli("validate", demo, "--set", "camera.settings.rate_fps=12")
+    fast = cli_here("validate", demo, "--set", "camera.settings.rate_fps=12")
     assert fast.returncode == 0
     assert re.search(r".*steel_plate\.yaml:\d+: outputs\.0\.settings: warning: a part's pulse and the low after it "
                      r"take 120 ms, longer than the 83 ms between two plates at 12 per second: each reject right "

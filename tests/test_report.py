@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 import stereo_inspect_fixed_roi
-from conftest import cli, cli_here, write_recipe
+from conftest import cli_here, write_recipe
 from test_engine import RECIPE
 
 from core import engine
@@ -25,7 +25,7 @@ def results(tmp_path, plane_sequence):
 
 
 def test_report_counts_and_yield(results):
-    out = cli("report", str(results))
+    out = cli_here("report", str(results))
     assert out.returncode == 0, out.stderr
     assert "parts 3  passed 1  rejected 1  errors 1  yield 33.3%" in out.stdout
     assert "pit" in out.stdout and "PASS 1" in out.stdout and "REJECT 1" in out.stdout
@@ -33,7 +33,7 @@ def test_report_counts_and_yield(results):
 
 def test_report_csv_export(results, tmp_path):
     target = tmp_path / "parts.csv"
-    out = cli("report", str(results / "results.db"), "--csv", str(target))
+    out = cli_here("report", str(results / "results.db"), "--csv", str(target))
     assert out.returncode == 0
     rows = list(csv.DictReader(target.open()))
     assert [r["part_verdict"] for r in rows] == ["PASS", "REJECT", "ERROR"]
@@ -67,7 +67,7 @@ def test_report_csv_of_one_run(results, tmp_path):
     registry = Registry(make_manager((stereo_inspect_fixed_roi,)))
     engine.run(load(tmp_path / "r.yaml", registry=registry), registry=registry, device="cpu")  # run 2, same plates
     target = tmp_path / "run2.csv"
-    out = cli("report", str(results), "--run", "2", "--csv", str(target))
+    out = cli_here("report", str(results), "--run", "2", "--csv", str(target))
     assert out.returncode == 0, out.stderr
     rows = list(csv.DictReader(target.open()))
     assert len(rows) == 3 and {r["run_id"] for r in rows} == {"2"}

@@ -78,9 +78,9 @@ def test_bench_view_measures_the_loop_with_and_without_browsers(tmp_path, plane_
     assert int(rows["1 browser"][3]) >= 1 and rows["1 browser"][2] == "4"
     assert rows["1 browser + 1 stalled"][2] == "4"
     assert not (tmp_path / "results").exists()  # benchmark parts stay out of the line's results store
-    bad = cli("bench-view", str(path), "--browsers", "one", env_extra={"PYTHONPATH": str(external_plugin_site)})
+    bad = cli_here("bench-view", str(path), "--browsers", "one")
     assert bad.returncode == 2 and "--browsers" in bad.stderr
-    bad = cli("bench-view", str(path), "--browsers", "0,-1", env_extra={"PYTHONPATH": str(external_plugin_site)})
+    bad = cli_here("bench-view", str(path), "--browsers", "0,-1")
     assert bad.returncode == 2 and "a number of browsers is 0 or more" in bad.stderr
-    bad = cli("bench-view", str(path), "--browsers", "0,100000000000", env_extra={"PYTHONPATH": str(external_plugin_site)})
+    bad = cli_here("bench-view", str(path), "--browsers", "0,100000000000")
     assert bad.returncode == 2 and "at most 64 browsers" in bad.stderr

@@ -66,10 +66,10 @@ class Pipeline:
 
     def warm_up(self) -> None:
         """Run the detector once, the stereo backend's optional ``warm_up`` and a depth measurement, before
-        the first part: their first calls build the model and compile kernels (13 s for torch_sgm's and 2-3 s
-        for the depth measurement's with numba's cache empty), which would make the first part late for the
-        actuator and trip the watchdog. A stage that fails here fails on the parts too, where the failure
-        is reported per part."""
+        the first part: their first calls build the model and compile kernels (on the 2-core development
+        machine 74 s for torch_sgm's and 14 s for the depth measurement's with numba's cache empty), which would
+        make the first part late for the actuator and trip the watchdog. A stage that fails here fails on the
+        parts too, where the failure is reported per part."""
         try:
             self.detector.detect(np.zeros((64, 64, 3), dtype=np.uint8))
         except Exception:

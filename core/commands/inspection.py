@@ -14,6 +14,8 @@ from core.recipe.schema import MAX_THREADS
 from core.store import ROW_ID_MAX
 from core.types import Alarm, OutputEvent, Status
 
+# the progress line's words until the first part
+WARMING_UP = "warming up (1-2 min the first time)"
 _STYLE = {Status.PASS: "green", Status.REJECT: "bold red", Status.ERROR: "bold yellow", Status.FLAG: "bold magenta"}
 
 
@@ -137,7 +139,7 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
         total = getattr(pipeline.camera, "expected_frames", None)
         if max_frames is not None:
             total = min(total, max_frames) if total is not None else max_frames
-        progress.update(task, total=total)
+        progress.update(task, description=loaded.recipe.name, total=total)
 
     def on_event(event: OutputEvent | Alarm) -> None:
         if isinstance(event, Alarm):
@@ -150,7 +152,8 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
         signal.signal(signum, lambda number, _frame: received.append(number))
     try:
         with progress:
-            task = progress.add_task(loaded.recipe.name, total=max_frames, fps=0.0)
+            # until the first part: a machine's first run compiles the kernels, a minute or two without a line
+            task = progress.add_task(f"{loaded.recipe.name}: {WARMING_UP}", total=max_frames, fps=0.0)
             summary = engine.run(loaded, on_part=on_part, on_event=on_event, device=device, max_frames=max_frames,
                                  on_start=on_start, stop_requested=lambda: received[0] if received else
                                  (signal.SIGPIPE if console.gone else None))

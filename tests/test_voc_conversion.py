@@ -116,6 +116,31 @@ def test_split_files_a_windows_editor_saved_are_read_and_others_refused(tmp_path
                                                   f"save it as UTF-8\n"), out.stderr
 
 
+def test_another_tools_xml_is_a_fault_not_an_image_without_defects(tmp_path):
+    src = _dataset(tmp_path)
+    (src / "annotations" / "crazing_1.xml").write_text("<labelme><shape>patches</shape></labelme>")
+    report = convert_voc(src, tmp_path / "yolo")
+    assert "malformed_xml: crazing_1.xml: root element <labelme>, not a VOC <annotation>" in report.messages
+    assert not (tmp_path / "yolo" / "labels" / "train" / "crazing_1.txt").exists()  # was an empty label file
+
+
+def test_split_files_that_repeat_share_or_empty_a_split_are_said(tmp_path):
+    # a stem listed twice was converted twice and counted twice; one in both splits scored val on a training
+    # image unsaid; a split without a usable image gave a dataset nothing could be trained or scored on
+    src = _dataset(tmp_path)
+    (src / "train.txt").write_text("crazing_1\ngood_2\ncrazing_1\n")
+    (src / "val.txt").write_text("outside_3\ngood_2\n")
+    report = convert_voc(src, tmp_path / "y", {"train": src / "train.txt", "val": src / "val.txt"})
+    assert "listed_twice: crazing_1: listed twice in train (train.txt), converted once" in report.messages
+    assert ("in_two_splits: good_2: listed in train and in val: a score on val then counts an image the model was "
+            "trained on") in report.messages
+    assert report.images == 4 and "empty_split" not in report.faults
+    (src / "val.txt").write_text("truncated_10\n\n")
+    report = convert_voc(src, tmp_path / "z", {"train": src / "train.txt", "val": src / "val.txt"})
+    assert "empty_split: val: no image of the split could be converted" in report.messages
+    assert report.faults["empty_split"] == 1  # train has its images
+
+
 def test_an_image_declaring_more_pixels_than_any_camera_is_a_fault_not_decoded(tmp_path):
     src = _dataset(tmp_path)
     (src / "images" / "good_2.jpg").unlink()

@@ -94,6 +94,9 @@ def parse_voc(
     except ET.ParseError as exc:
         report.fault("malformed_xml", f"{name}: {exc}")
         return None
+    if root.tag != "annotation":  # read as it was, another tool's XML became an image without defects
+        report.fault("malformed_xml", f"{name}: root element <{root.tag}>, not a VOC <annotation>")
+        return None
     if size is None:
         try:
             size = (int(root.findtext("size/width")), int(root.findtext("size/height")))
@@ -133,6 +136,28 @@ def parse_voc(
     return lines
 
 
+def _split_stems(path: Path, split: str, report: ConversionReport) -> list[str]:
+    """The stems a split file lists, in its order, each once (a stem listed again is reported)."""
+    stems: dict[str, None] = {}  # ordered, and a stem looked up at once
+    for line in read_text(path, "split file").splitlines():
+        stem = line.strip()
+        if stem in stems:
+            report.fault("listed_twice", f"{stem}: listed twice in {split} ({path.name}), converted once")
+        elif stem:
+            stems[stem] = None
+    return list(stems)
+
+
+def _report_shared_stems(splits: dict[str, list[str]], report: ConversionReport) -> None:
+    """A stem in two splits: a score on the second is then partly a score on images the model was trained on."""
+    names = list(splits)
+    for i, first in enumerate(names):
+        for second in names[i + 1:]:
+            for stem in sorted(set(splits[first]) & set(splits[second])):
+                report.fault("in_two_splits", f"{stem}: listed in {first} and in {second}: a score on {second} then "
+                                              f"counts an image the model was trained on")
+
+
 def convert_voc(
     src: Path,
     dst: Path,
@@ -155,16 +180,15 @@ def convert_voc(
         report.fault("xml_without_image", f"{stem}.xml: annotation has no image")
 
     if split_files:
-        splits = {
-            name: [s.strip() for s in read_text(Path(path), "split file").splitlines() if s.strip()]
-            for name, path in split_files.items()
-        }
+        splits = {name: _split_stems(Path(path), name, report) for name, path in split_files.items()}
+        _report_shared_stems(splits, report)
     else:
         splits = {"train": sorted(image_stems & xml_stems)}
 
     for split, stems in splits.items():
         (dst / "images" / split).mkdir(parents=True, exist_ok=True)
         (dst / "labels" / split).mkdir(parents=True, exist_ok=True)
+        converted = report.images
         for stem in stems:
             image = _find_image(images_dir, stem)
             xml = ann_dir / f"{stem}.xml"
@@ -183,6 +207,8 @@ def convert_voc(
             write_text(dst / "labels" / split / f"{stem}.txt", "".join(f"{line}\n" for line in lines))
             report.images += 1
             report.boxes += len(lines)
+        if report.images == converted:  # a detector cannot be trained or scored on a split without images
+            report.fault("empty_split", f"{split}: no image of the split could be converted")
 
     data = {
         "path": str(dst.resolve()),

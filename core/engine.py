@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import sqlite3
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -36,7 +37,7 @@ from core.recipe.loader import (camera_answer, detector_settings, file_sha256, n
                                 unknown_class_message)
 from core.recipe.schema import StereoSection
 from core.registry import Registry, default_registry
-from core.store import ResultsStore, StoreError, store_problem
+from core.store import ResultsStore, StoreError, damaged, store_problem
 from core.stereo_region import disparity_around
 from core.types import (Alarm, Calibration, DefectMeasurement, Detection, FrameError, OutputEvent, PartResult, Status,
                         StereoFrame, Verdict)
@@ -572,10 +573,13 @@ def run(
         store = ResultsStore(results)
     except StoreError as exc:
         raise SetupError(loaded.describe(("results", "path"), str(exc))) from None
-    unfinished = store.unfinished_runs()
-    run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path), _sha256_or_none(loaded.path),
-                             _model_hashes(loaded, pipeline.detector),
-                             [getattr(output, "name", name) for name, output in pipeline.outputs])
+    try:  # the schema reads, but a page further in may not
+        unfinished = store.unfinished_runs()
+        run_id = store.start_run(recipe.name, loaded.text_hash, str(loaded.path), _sha256_or_none(loaded.path),
+                                 _model_hashes(loaded, pipeline.detector),
+                                 [getattr(output, "name", name) for name, output in pipeline.outputs])
+    except sqlite3.DatabaseError as exc:
+        raise SetupError(loaded.describe(("results", "path"), str(damaged(store.path, exc)))) from None
     age_limit = frame_age_limit_s(loaded, registry)
     rule = DepthRule.from_recipe(recipe)
     images = PartImages(store.image_dir, recipe.results.save_images, recipe.results.min_free_mb)

@@ -129,6 +129,12 @@ def _unusable(path: Path, exc: Exception) -> StoreError:
                       f"results.path")
 
 
+def damaged(path: Path, exc: sqlite3.DatabaseError) -> StoreError:
+    """A store whose tables open but whose pages do not read (a disk, or a copy, that went wrong)."""
+    return StoreError(f"{path}: the results store is damaged ({exc}): move it aside (sqlite3's .recover can save "
+                      f"what it holds) or give another results.path")
+
+
 def _required_columns() -> dict[str, set[str]]:
     """Each table's columns that every version of the store has: the schema's less ``ADDED_COLUMNS``."""
     mem = sqlite3.connect(":memory:")

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import csv
+import re
 import shutil
 from pathlib import Path
 
@@ -141,6 +142,30 @@ class TestAFileThatIsNotAStore:
         out = cli_here(command, str(path))
         assert out.returncode == 2 and out.stderr == (f"error: {path}: not a results store that can be used (no table "
                                                       f"{table}): move it aside or give another results.path\n")
+
+    def test_a_store_whose_pages_do_not_read_is_named_by_report_and_run(self, results, tmp_path, plane_sequence):
+        # its schema on the first page reads, so it passed as a store; the first query past it ended in a
+        # traceback (report), or in one before the run's first part (inspect run)
+        import sqlite3
+
+        path = tmp_path / "damaged" / "results.db"
+        path.parent.mkdir()
+        shutil.copy(results / "results.db", path)
+        page = sqlite3.connect(path).execute("PRAGMA page_size").fetchone()[0]
+        data = path.read_bytes()
+        path.write_bytes(data[:page] + b"\xff" * (len(data) - page))  # every page but the schema's
+        before = path.read_bytes()
+        says = (f"{path}: the results store is damaged (database disk image is malformed): move it aside "
+                f"(sqlite3's .recover can save what it holds) or give another results.path\n")
+        out = cli_here("report", str(path.parent))
+        assert out.returncode == 2 and out.stderr == f"error: {says}", out.stderr
+        registry = Registry(make_manager((stereo_inspect_fixed_roi,)))
+        info = plane_sequence([0.0])
+        text = RECIPE.format(box=info["box"], output="log").replace("path: results", f"path: {path.parent}")
+        with pytest.raises(engine.SetupError, match=re.escape(says.strip())):
+            engine.run(load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry), registry=registry,
+                       device="cpu")
+        assert path.read_bytes() == before  # left as it was, for the recovery
 
     def test_validate_names_it_and_leaves_it_as_it_was(self, not_a_store, tmp_path, plane_sequence):
         from core.store import store_problem

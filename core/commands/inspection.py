@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import sqlite3
 import sys
 from pathlib import Path
 
@@ -520,6 +521,16 @@ def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> 
         db = store.open_readonly(results)
     except (FileNotFoundError, store.StoreError) as exc:
         fail(str(exc))
+    try:
+        _report(db, results, run_id, csv_path)
+    except sqlite3.DatabaseError as exc:  # the schema read, a page further in did not
+        fail(str(store.damaged(store.db_path(results), exc)))
+
+
+def _report(db, results: Path, run_id: int | None, csv_path: Path | None) -> None:
+    """``report_command``'s lines from the open store ``db``."""
+    from core import store
+
     runs = db.execute("SELECT COUNT(*) FROM runs").fetchone()[0]
     if run_id is not None and (abs(run_id) > ROW_ID_MAX  # beyond SQLite's integers: no run, and no query to ask
                                or db.execute("SELECT 1 FROM runs WHERE id = ?", (run_id,)).fetchone() is None):

@@ -1,6 +1,7 @@
 """The ``inspect`` command line."""
 from __future__ import annotations
 
+import os
 import sys
 
 import click
@@ -51,11 +52,21 @@ def _build() -> click.Group:
     return cli
 
 
+def quiet_opencv() -> None:
+    """OpenCV's own warnings off (its errors stay), unless OPENCV_LOG_LEVEL asks otherwise: a file it cannot
+    decode is reported in one line naming it, which its warning about the same file would precede."""
+    import cv2
+
+    if "OPENCV_LOG_LEVEL" not in os.environ:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
 def main(args: list[str] | None = None) -> None:
     """The ``inspect`` console script, on ``args`` (default: the command line)."""
     from core.memory import keep_freed_memory
 
     keep_freed_memory()  # before the first frame's volumes are allocated
+    quiet_opencv()
     try:
         sys.exit(_build().main(args, prog_name="inspect", standalone_mode=True))
     except BrokenPipeError:  # the reader of the output went away (`| head`): nothing left to tell

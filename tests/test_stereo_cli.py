@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import cli
 
 from core.cli import _build
 from drivers.sequence_folder import read_pfm, write_pfm
@@ -172,6 +173,15 @@ def test_unreadable_or_missing_file_is_refused(pair, tmp_path):
     (tmp_path / "junk.png").write_bytes(b"not an image")
     _assert_error(invoke("stereo", left, tmp_path / "junk.png", "--max-disp", 16), "junk.png")
     _assert_error(invoke("stereo", tmp_path / "missing.png", left, "--max-disp", 16), "missing.png")
+
+
+def test_an_image_opencv_cannot_decode_is_our_one_line_alone(pair, tmp_path):
+    # OpenCV's own warning (a 32-bit float TIFF) came first on the terminal, from the library itself
+    left, right, _ = pair
+    cv2.imwrite(str(tmp_path / "float.tiff"), cv2.imread(str(left)).astype(np.float32) / 255)
+    out = cli("stereo", str(tmp_path / "float.tiff"), str(right), "--max-disp", "16")
+    assert out.returncode == 2 and out.stderr == (f"error: {tmp_path / 'float.tiff'}: left image cannot be decoded "
+                                                  f"(corrupt or not an image)\n"), out.stderr
 
 
 def write_scene(folder, seed, ndisp=32):

@@ -2,7 +2,10 @@
 ``verify_image_label`` judges it (which is called here, on copies, as the reference)."""
 from __future__ import annotations
 
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -151,6 +154,29 @@ class TestLabelProblem:
         listing.write_text("images/a.png\nimages/gone.png\n")
         why = label_problem({"val": str(listing), "nc": CLASSES}, ("val",))
         assert why == f"{images / 'gone.png'}: not found; ultralytics would leave such images out"
+
+
+    def test_a_split_without_images_is_named_with_the_dataset_file(self, tmp_path):
+        # ultralytics said it in two lines and a link, after loading the model
+        (tmp_path / "images").mkdir()
+        why = label_problem({"val": str(tmp_path / "images"), "nc": CLASSES, "yaml_file": "data.yaml"}, ("val",))
+        assert why == f"data.yaml: val: no image at {tmp_path / 'images'}: nothing to train or score on"
+
+
+def test_ultralytics_neither_goes_online_nor_installs_packages_once_the_plugin_is_loaded():
+    # an image Pillow could not identify made ultralytics pip-install pi-heif where the PC reached the internet
+    code = ("import plugins.yolov8.dataset_check; from ultralytics.utils import AUTOINSTALL, ONLINE; "
+            "print(AUTOINSTALL, ONLINE)")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("YOLO_")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120,
+                         cwd=Path(__file__).resolve().parent.parent)
+    assert out.stdout.split() == ["False", "False"], out.stdout + out.stderr
+
+
+def test_an_image_pillow_cannot_identify_is_named(tmp_path):
+    image = tmp_path / "im.webp"
+    image.write_bytes(b"RIFF" + b"\x00" * 60)
+    assert image_problem(image).startswith("not a readable image (")
 
 
 class TestSharedWithTrain:

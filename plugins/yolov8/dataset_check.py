@@ -92,6 +92,8 @@ def image_problem(path: Path) -> str | None:
             kind = (image.format or "").lower()
     except FileNotFoundError:
         return "not found"
+    except ImportError:  # ultralytics' Pillow tries a HEIF plugin, not installed, for a file Pillow cannot identify
+        return "not a readable image (no image format Pillow knows)"
     except Exception as exc:  # PIL raises many kinds for a damaged file; each means ultralytics drops it
         return f"not a readable image ({exc})"
     if min(width, height) < MIN_IMAGE_SIDE:
@@ -110,8 +112,11 @@ def label_problem(info: dict, splits: tuple[str, ...]) -> str | None:
     problems = []
     for split in splits:
         images = split_images(info[split])
+        if not images:  # ultralytics' own error for it is two lines and a link, after the model has loaded
+            return (f"{info.get('yaml_file', 'the dataset')}: {split}: no image at {info[split]}: nothing to train "
+                    f"or score on")
         labels = img2label_paths([str(p) for p in images])
-        if images and not any(Path(label).is_file() for label in labels):
+        if not any(Path(label).is_file() for label in labels):
             # each image would count as defect-free: a layout ultralytics does not read, not a set of sound parts
             return (f"{split}: none of its {len(images)} images has a label file where ultralytics looks for it (e.g. "
                     f"{labels[0]}): each would count as an image without defects")

@@ -1,7 +1,6 @@
 """The ``yolov8`` detector: ultralytics YOLO with optional sliced inference."""
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
@@ -64,7 +63,6 @@ def import_yolo():
     import cv2
     import torch
 
-    os.environ.setdefault("YOLO_OFFLINE", "1")
     torch_threads, cv_threads = torch.get_num_threads(), cv2.getNumThreads()
     from ultralytics import YOLO
 

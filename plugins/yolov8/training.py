@@ -5,7 +5,6 @@ architecture file that ships inside ultralytics (``yolov8n.yaml``).
 """
 from __future__ import annotations
 
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -60,7 +59,6 @@ def train_detector(data_yaml: Path, out_dir: Path, settings: TrainSettings, name
     ``init`` starts a new run from weights of an earlier run with a fresh learning-rate schedule:
     how a CPU-bound training is continued in stages once its first schedule has run out.
     """
-    os.environ.setdefault("YOLO_OFFLINE", "1")
     from ultralytics import YOLO
 
     last = last_checkpoint(out_dir, name)

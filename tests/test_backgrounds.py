@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -104,6 +105,21 @@ def test_a_frame_that_cannot_be_read_adds_nothing(rendered, tmp_path):
     dataset = _dataset(tmp_path / "data")
     result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(recorded), str(dataset), "--all-clear"])
     assert result.exit_code == 2 and f"{last}: left image of frame {last.stem} is not whole" in result.output
+    assert list((dataset / "images" / "train").iterdir()) == []
+
+
+def test_a_labelled_box_off_its_image_adds_nothing(rendered, tmp_path):
+    # the defect it stood for was left unmasked, and the tiles over it went in as plate without a defect
+    sequence = tmp_path / "plates"
+    shutil.copytree(rendered, sequence)
+    label_path = sorted((sequence / "labels").glob("*.json"))[-1]
+    label = json.loads(label_path.read_text())
+    label["defects"][0]["box"] = [1000.0, 1000.0, 1200.0, 1100.0]
+    label_path.write_text(json.dumps(label))
+    dataset = _dataset(tmp_path / "data")
+    result = CliRunner().invoke(_build(), ["data", "add-backgrounds", str(sequence), str(dataset)])
+    assert result.exit_code == 2
+    assert f"{label_path}: defects[0].box: [1000.0, 1000.0, 1200.0, 1100.0] lies outside the 448x300 image" in result.output
     assert list((dataset / "images" / "train").iterdir()) == []
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from drivers.file_writes import write_text
 from drivers.sequence_folder import write_image
-from plugins.yolov8.frame_eval import read_frame_labels, read_left
+from plugins.yolov8.frame_eval import check_frame_boxes, read_frame_labels, read_left
 from plugins.yolov8.tiling import tile_origins
 
 
@@ -58,10 +58,11 @@ class BackgroundReport:
     skipped_tiles: int = 0
 
 
-def _frames(sequence: Path, all_clear: bool) -> list[tuple[str, np.ndarray]]:
-    """(frame id, defect boxes) of every frame: from labels/*.json, or every left image with none."""
+def _frames(sequence: Path, all_clear: bool) -> list[tuple[str, np.ndarray, tuple[Path, dict] | None]]:
+    """(frame id, defect boxes, its labels file and labels) of every frame: from labels/*.json, or every left image
+    with none (and no labels)."""
     if all_clear:
-        frames = [(p.stem, np.zeros((0, 4))) for p in sorted((sequence / "left").glob("*")) if p.is_file()]
+        frames = [(p.stem, np.zeros((0, 4)), None) for p in sorted((sequence / "left").glob("*")) if p.is_file()]
         if not frames:
             raise BackgroundError(f"{sequence / 'left'}: no images")
         return frames
@@ -72,8 +73,8 @@ def _frames(sequence: Path, all_clear: bool) -> list[tuple[str, np.ndarray]]:
         labelled = read_frame_labels(sequence)
     except ValueError as exc:
         raise BackgroundError(str(exc)) from exc
-    return [(frame_id, np.array([d["box"] for d in defects], dtype=np.float64).reshape(-1, 4))
-            for frame_id, defects in labelled]
+    return [(frame_id, np.array([d["box"] for d in label["defects"]], dtype=np.float64).reshape(-1, 4), (path, label))
+            for path, frame_id, label in labelled]
 
 
 def add_backgrounds(sequence: Path, dataset: Path, split: str = "train", tile: int = 224,
@@ -86,13 +87,19 @@ def add_backgrounds(sequence: Path, dataset: Path, split: str = "train", tile: i
     if not images_dir.is_dir():
         raise BackgroundError(f"{images_dir}: not a YOLO dataset split (run `inspect data convert-voc` first)")
     frames = _frames(sequence, all_clear)
-    for frame_id, _ in frames:  # every image read once before any is added: a broken one adds nothing
-        _left(sequence, frame_id)
+    for frame_id, _, labelled in frames:  # every image read once before any is added: a broken one adds nothing
+        shape = _left(sequence, frame_id).shape[:2]
+        if labelled is not None:
+            # a box off its image leaves its defect unmasked: its tiles would teach the detector it is plate
+            try:
+                check_frame_boxes(*labelled, shape)
+            except ValueError as exc:
+                raise BackgroundError(str(exc)) from None
     labels_dir.mkdir(parents=True, exist_ok=True)
     report = BackgroundReport()
     written: list[Path] = []
     try:
-        for frame_id, boxes in frames:
+        for frame_id, boxes, _ in frames:
             image = _left(sequence, frame_id)
             h, w = image.shape[:2]
             origins = clear_tiles(h, w, boxes, tile, overlap, margin)

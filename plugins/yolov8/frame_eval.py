@@ -46,9 +46,18 @@ def _labels(sequence: Path) -> list[tuple[Path, str, dict]]:
     return [(path, str(label.get("frame_id", path.stem)), label) for path, label in ((p, _read(p)) for p in paths)]
 
 
-def read_frame_labels(sequence: Path) -> list[tuple[str, list[dict]]]:
-    """(frame id, labelled defects) of every ``labels/*.json``; one-line errors name the file."""
-    return [(frame_id, label["defects"]) for _, frame_id, label in _labels(sequence)]
+def read_frame_labels(sequence: Path) -> list[tuple[Path, str, dict]]:
+    """(file, frame id, labels) of every ``labels/*.json``, each box checked against its image's size by
+    ``check_frame_boxes``; one-line errors name the file."""
+    return _labels(sequence)
+
+
+def check_frame_boxes(path: Path, label: dict, shape: tuple[int, int]) -> None:
+    """``ValueError`` naming the labels file ``path`` where a box of ``label`` misses the HxW image of ``shape``."""
+    try:
+        check_label_boxes(label, shape, path)
+    except SequenceError as exc:
+        raise ValueError(str(exc)) from None
 
 
 def read_left(sequence: Path, frame_id: str) -> np.ndarray:
@@ -68,10 +77,7 @@ def load_labelled_frames(sequence: Path) -> list[tuple[str, np.ndarray, list[dic
     frames = []
     for path, frame_id, label in _labels(sequence):
         image = read_left(sequence, frame_id)
-        try:
-            check_label_boxes(label, image.shape[:2], path)
-        except SequenceError as exc:
-            raise ValueError(str(exc)) from None
+        check_frame_boxes(path, label, image.shape[:2])
         frames.append((frame_id, image, label["defects"]))
     return frames
 

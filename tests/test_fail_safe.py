@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import sqlite3
@@ -78,6 +79,26 @@ def test_weights_that_are_no_torch_file_are_said_to_be_so(tmp_path, content, say
                     f"{weights}: not a YOLO checkpoint: a torch file is a zip archive or a pickle, and {says}")
     _one_line_error(cli_here("eval", "detector-frames", str(ROOT / "sim_fixtures" / "steel_plate"), "--weights",
                         str(weights)), f"{weights}: not a YOLO checkpoint")
+
+
+def test_weights_holding_nan_are_refused_not_run_as_a_detector_that_finds_nothing(tmp_path):
+    # a diverged training's or a damaged average's model: NMS kept none of its NaN-scored boxes, and every part of
+    # the demo passed, 7 of them defective
+    import torch
+
+    checkpoint = torch.load(WEIGHTS, weights_only=False)
+    model = checkpoint.get("ema") or checkpoint["model"]
+    next(model.parameters()).data.fill_(float("nan"))
+    weights = tmp_path / "diverged.pt"
+    torch.save(checkpoint, weights)
+    says = "1 of the model's weight tensors holds NaN or infinite values (the first model.0.conv.weight)"
+    _one_line_error(cli_here("validate", str(DEMO), "--set", f"detector.weights={weights}"), "detector.weights", says)
+    _one_line_error(cli_here("train", "average", str(WEIGHTS), str(weights), "--out", str(tmp_path / "soup.pt")), says)
+    assert not (tmp_path / "soup.pt").exists()
+    from plugins.yolov8.detector import YoloDetector, YoloSettings
+
+    with pytest.raises(ValueError, match=re.escape(says)):
+        YoloDetector(YoloSettings(weights=str(weights)))
 
 
 def test_the_weights_can_be_pinned_and_every_run_records_what_it_ran(tmp_path):

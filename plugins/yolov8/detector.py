@@ -121,6 +121,13 @@ def read_checkpoint(weights: Path, trust_pickle: bool = False, hint: str | None 
     if task in UNBOXED_TASKS:  # loaded as a detector, every part's detection would fail on it
         raise ValueError(f"{weights}: the checkpoint of a YOLO {task} model, not a detector's: it {UNBOXED_TASKS[task]} "
                          f"(train a detector with `inspect train detector`)")
+    # a model with one NaN tensor scores every box NaN, and NMS keeps none: no defect is found, every part passes
+    broken = [name for name, tensor in model.state_dict().items()
+              if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all())]
+    if broken:
+        raise ValueError(f"{weights}: {len(broken)} of the model's weight tensors {'holds' if len(broken) == 1 else 'hold'} "
+                         f"NaN or infinite values (the first {broken[0]}): a training that diverged or a damaged file, "
+                         f"whose model finds no defect at all")
     return ckpt
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 from click.testing import CliRunner
+from conftest import cli_here
 
 from core.cli import _build
 from plugins.yolov8.averaging import AveragingError, average_checkpoints, average_state_dicts
@@ -103,6 +104,18 @@ def test_cli_averages_and_names_a_bad_file(two_checkpoints, tmp_path):
 
     result = runner.invoke(_build(), ["train", "average", str(two_checkpoints[0]), "--out", str(tmp_path / "n.pt")])
     assert result.exit_code == 2 and "at least two" in result.output
+
+
+def test_a_checkpoint_given_twice_or_as_the_output_is_refused(two_checkpoints, tmp_path):
+    # the mean weighed a repeated one twice, and --out overwrote an input with the mean
+    first, second = map(str, two_checkpoints)
+    before = Path(first).read_bytes()
+    twice = cli_here("train", "average", first, second, first, "--out", str(tmp_path / "m.pt"))
+    assert twice.returncode == 2 and twice.stderr == f"error: {first}: given twice (as {first} too)\n", twice.stderr
+    over = cli_here("train", "average", first, second, "--out", first)
+    assert over.returncode == 2 and over.stderr == (f"error: --out {first}: one of the checkpoints averaged, which "
+                                                    f"writing the mean would overwrite\n"), over.stderr
+    assert Path(first).read_bytes() == before and not (tmp_path / "m.pt").exists()
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full (a device that is always full) here")

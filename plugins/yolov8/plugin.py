@@ -192,6 +192,13 @@ def average_command(weights: tuple[Path, ...], out: Path) -> None:
     for path in weights:
         if not path.is_file():
             _fail(f"{path}: weights file not found")
+    seen: dict[Path, Path] = {}
+    for path in weights:
+        if path.resolve() in seen:  # a repeated glob: the mean would weigh that checkpoint twice
+            _fail(f"{path}: given twice (as {seen[path.resolve()]} too)")
+        seen[path.resolve()] = path
+    if out.resolve() in seen:
+        _fail(f"--out {out}: one of the checkpoints averaged, which writing the mean would overwrite")
     try:
         average_checkpoints(list(weights), out)
     except AveragingError as exc:

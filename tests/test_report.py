@@ -32,6 +32,16 @@ def test_report_counts_and_yield(results):
     assert "pit" in out.stdout and "PASS 1" in out.stdout and "REJECT 1" in out.stdout
 
 
+@pytest.mark.parametrize("name", ["results.db", "results.db-wal"])
+def test_a_csv_over_the_store_is_refused(results, name):
+    # `--csv results/results.db`, a completed file name: the CSV replaced the whole inspection record
+    before = (results / "results.db").read_bytes()
+    out = cli_here("report", str(results), "--csv", str(results / name))
+    assert out.returncode == 2 and out.stderr == (f"error: --csv {results / name}: the command reads that file: "
+                                                  f"writing it would destroy it\n"), out.stderr
+    assert (results / "results.db").read_bytes() == before
+
+
 def test_report_csv_export(results, tmp_path):
     target = tmp_path / "parts.csv"
     out = cli_here("report", str(results / "results.db"), "--csv", str(target))

@@ -175,6 +175,22 @@ def test_unreadable_or_missing_file_is_refused(pair, tmp_path):
     _assert_error(invoke("stereo", tmp_path / "missing.png", left, "--max-disp", 16), "missing.png")
 
 
+@pytest.mark.parametrize("outputs, says", [
+    (["--out", "{left}"], "--out {left}: the command reads that file: writing it would destroy it"),
+    (["--png", "{folder}/../{name}/right.png"], "--png {folder}/../{name}/right.png: the command reads that file (as "
+                                                "{right}): writing it would destroy it"),
+    (["--out", "{folder}/map.tif", "--png", "{folder}/map.tif"], "--png {folder}/map.tif: --out writes that file too"),
+])
+def test_an_output_over_an_input_or_the_other_output_is_refused_before_matching(pair, outputs, says):
+    # the map was written over the left image, the input a completed file name had picked
+    left, right, _ = pair
+    names = {"left": left, "right": right, "folder": left.parent, "name": left.parent.name}
+    before = left.read_bytes(), right.read_bytes()
+    result = invoke("stereo", left, right, "--max-disp", 16, *[o.format(**names) for o in outputs])
+    assert result.exit_code == 2 and result.output == f"error: {says.format(**names)}\n", result.output
+    assert (left.read_bytes(), right.read_bytes()) == before
+
+
 def test_an_image_opencv_cannot_decode_is_our_one_line_alone(pair, tmp_path):
     # OpenCV's own warning (a 32-bit float TIFF) came first on the terminal, from the library itself
     left, right, _ = pair

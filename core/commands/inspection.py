@@ -10,7 +10,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import cuda_if_present, out_file
+from core.commands.params import cuda_if_present, out_file, overwritten_input
 from core.recipe.schema import MAX_THREADS
 from core.store import ROW_ID_MAX
 from core.types import Alarm, OutputEvent, Status
@@ -517,6 +517,11 @@ def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> 
     """Yield and counts per class from a results store (folder or results.db)."""
     from core import store
 
+    db_file = store.db_path(results)
+    # the store and SQLite's journal beside it: a CSV written over either is the inspection record lost
+    overwrite = overwritten_input({"--csv": csv_path}, [db_file, db_file.with_name(db_file.name + "-wal")])
+    if overwrite is not None:
+        fail(overwrite)
     try:
         db = store.open_readonly(results)
     except (FileNotFoundError, store.StoreError) as exc:

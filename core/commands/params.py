@@ -76,3 +76,21 @@ def out_file(ctx: click.Context, param: click.Parameter, value: Path | None) -> 
     if value is not None:
         out_folder(ctx, param, value.parent)
     return value
+
+
+def overwritten_input(outputs: dict[str, Path | None], inputs: list[Path]) -> str | None:
+    """Why writing the command's ``outputs`` (option -> path, None where not given) would destroy what it reads
+    (one of ``inputs``, or another output, the same file however it is named), in one line, or None."""
+    read = {path.resolve(): path for path in inputs}
+    written: dict[Path, str] = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        target = path.resolve()
+        if target in read:
+            named = "" if str(read[target]) == str(path) else f" (as {read[target]})"
+            return f"{option} {path}: the command reads that file{named}: writing it would destroy it"
+        if target in written:
+            return f"{option} {path}: {written[target]} writes that file too"
+        written[target] = option
+    return None

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import FINITE, cuda_if_present, out_file, out_folder
+from core.commands.params import FINITE, cuda_if_present, out_file, out_folder, overwritten_input
 from core.recipe.schema import MAX_THREADS
 
 
@@ -125,6 +125,9 @@ def stereo_command(left, right, backend, max_disp, min_disp, out, png, settings,
 
     if png and not cv2.haveImageWriter(str(png)):  # said before the map is computed, not after
         _fail(f"--png {png}: no image format has the extension {png.suffix!r} (give .png, .jpg, .bmp or .tif)")
+    overwrite = overwritten_input({"--out": out, "--png": png}, [left, right])
+    if overwrite is not None:  # a map written over the left image, say, by a completed file name
+        _fail(overwrite)
     try:
         left_img, right_img = read_image(left, "left image"), read_image(right, "right image")
     except SequenceError as exc:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from core.commands.params import Finite, out_file, out_folder
+from core.commands.params import Finite, out_file, out_folder, overwritten_input
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
 from plugins.yolov8.detector import (DEFAULT_WEIGHTS, DetectionLimit, YoloDetector, YoloSettings,
@@ -197,8 +197,9 @@ def average_command(weights: tuple[Path, ...], out: Path) -> None:
         if path.resolve() in seen:  # a repeated glob: the mean would weigh that checkpoint twice
             _fail(f"{path}: given twice (as {seen[path.resolve()]} too)")
         seen[path.resolve()] = path
-    if out.resolve() in seen:
-        _fail(f"--out {out}: one of the checkpoints averaged, which writing the mean would overwrite")
+    overwrite = overwritten_input({"--out": out}, list(weights))
+    if overwrite is not None:
+        _fail(overwrite)
     try:
         average_checkpoints(list(weights), out)
     except AveragingError as exc:

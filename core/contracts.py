@@ -128,6 +128,10 @@ class PluginSpec:
     # Optional, outputs: how long after its due time a command is still sent and counted delivered, from the
     # settings alone, so that a limit reaching the plate after a part's own is warned of.
     late_limit: Callable[[dict[str, Any], PluginContext], float | None] | None = None
+    # Optional, any kind: what the settings let through without an error, from the settings alone, as (settings
+    # key, warning) pairs that ``inspect validate`` and ``inspect run`` print under that key (a detector made to
+    # see too little to find a defect, say, whose parts then pass).
+    warnings: Callable[[dict[str, Any], PluginContext], list[tuple[str, str]]] | None = None
 
     def answer(self, question: str, settings: dict[str, Any], recipe_dir: Path) -> Any:
         """The answer to one of the optional questions above (``calibration``, ``frame_rate``, ...) from the

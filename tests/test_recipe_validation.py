@@ -479,6 +479,18 @@ def test_validate_warns_of_detector_settings_that_drop_defects_before_any_rule(r
                         result.stderr), result.stderr
 
 
+def test_a_detector_input_under_half_its_training_size_is_warned_of(recipe_dir):
+    # the demo's model at 32 px found none of the demo's defects, and every part passed
+    path = write_recipe(recipe_dir / "r.yaml", GOOD)
+    result = cli_here("validate", str(path), "--set", "detector.settings.imgsz=32")
+    assert result.returncode == 0 and result.stderr == (
+        f"{path.resolve()} (--set detector.settings.imgsz): detector.settings.imgsz: warning: 32 px, under half the "
+        f"224 px the model was trained at: a defect shrinks below the sizes it learnt, may not be found, and its part "
+        f"then passes\n"), result.stderr
+    for fine in ("detector.settings.imgsz=112", "detector.settings.imgsz=null"):
+        assert not [w for w in recipe_warnings(load_recipe(path, [fine])) if "imgsz" in w], fine
+
+
 @pytest.mark.parametrize("kept", ["detector.confidence=0.99",
                                   "detector.classes=[crazing, inclusion, patches, pitted_surface, rolled-in_scale, scratches]"])
 def test_detector_settings_that_keep_every_defect_are_not_warned_of(recipe_dir, kept):

@@ -332,10 +332,29 @@ def recipe_warnings(loaded) -> list[str]:
     """What the recipe lets through without an error: limits the camera cannot resolve at the working
     distance, classes no rule covers, decisions that pass unproven parts, image checks turned off, rejects
     that reach no actuator or come faster than it can be pulsed, more threads than the machine has cores,
-    deviation rules written the wrong way round."""
+    deviation rules written the wrong way round, and what each plugin says of its own settings."""
     return (_depth_warnings(loaded) + _detector_warnings(loaded) + _coverage_warnings(loaded)
             + _guard_band_warnings(loaded) + _image_check_warnings(loaded) + _output_warnings(loaded)
-            + _output_timing_warnings(loaded) + _thread_warnings(loaded) + _rule_warnings(loaded))
+            + _output_timing_warnings(loaded) + _thread_warnings(loaded) + _rule_warnings(loaded)
+            + _plugin_warnings(loaded))
+
+
+def _plugin_warnings(loaded) -> list[str]:
+    """Each plugin's own warnings about its settings (``PluginSpec.warnings``), under the recipe key of each."""
+    from core.recipe.loader import detector_settings
+    from core.registry import default_registry
+
+    registry, recipe = default_registry(), loaded.recipe
+    plugins = [("camera", recipe.camera.plugin, ("camera",), loaded.plugin_settings["camera"]),
+               ("stereo", recipe.stereo.backend, ("stereo",), loaded.plugin_settings["stereo"]),
+               ("detector", recipe.detector.plugin, ("detector",), detector_settings(loaded))]
+    plugins += [("output", o.plugin, ("outputs", i), loaded.plugin_settings[f"outputs.{i}"])
+                for i, o in enumerate(recipe.outputs)]
+    lines = []
+    for kind, name, section, settings in plugins:
+        for key, text in registry.get(kind, name).spec.answer("warnings", settings, loaded.directory) or []:
+            lines.append(loaded.describe((*section, "settings", key), f"warning: {text}"))
+    return lines
 
 
 def _rule_warnings(loaded) -> list[str]:

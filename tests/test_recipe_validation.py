@@ -484,11 +484,14 @@ def test_a_detector_input_under_half_its_training_size_is_warned_of(recipe_dir):
     path = write_recipe(recipe_dir / "r.yaml", GOOD)
     result = cli_here("validate", str(path), "--set", "detector.settings.imgsz=32")
     assert result.returncode == 0 and result.stderr == (
-        f"{path.resolve()} (--set detector.settings.imgsz): detector.settings.imgsz: warning: 32 px, under half the "
-        f"224 px the model was trained at: a defect shrinks below the sizes it learnt, may not be found, and its part "
-        f"then passes\n"), result.stderr
-    for fine in ("detector.settings.imgsz=112", "detector.settings.imgsz=null"):
-        assert not [w for w in recipe_warnings(load_recipe(path, [fine])) if "imgsz" in w], fine
+        f"{path.resolve()} (--set detector.settings.imgsz): detector.settings.imgsz: warning: 32 px of network input, "
+        f"under half the 224 px the model was trained at: a defect shrinks below the sizes it learnt, or is cut by the "
+        f"tiles, may not be found, and its part then passes\n"), result.stderr
+    tiles = recipe_warnings(load_recipe(path, ["detector.settings.imgsz=null", "detector.settings.tile_size=64"]))
+    assert [w for w in tiles if "detector.settings.tile_size: warning: 64 px of network input" in w], tiles
+    for fine in (["detector.settings.imgsz=112"], ["detector.settings.imgsz=null"],
+                 ["detector.settings.imgsz=null", "detector.settings.tile_size=null"]):
+        assert not [w for w in recipe_warnings(load_recipe(path, fine)) if "network input" in w], fine
 
 
 @pytest.mark.parametrize("kept", ["detector.confidence=0.99",

@@ -23,15 +23,21 @@ def _class_names(settings: dict, ctx: PluginContext) -> list[str]:
 
 
 def _warnings(settings: dict, ctx: PluginContext) -> list[tuple[str, str]]:
-    """A network input under half the size the model was trained at: its defects shrink below any it learnt,
-    and the demo's model at 32 px found none of the demo's seven (every part passed)."""
+    """A network input under half the size the model was trained at: its defects shrink below any it learnt (the
+    demo's model at 32 px found none of the demo's seven, every part passed), or tiles that small cut them (at
+    32 px tiles, 3 of the 7 passed)."""
     s = YoloSettings(**settings)
+    # the network's input: imgsz, or the tile itself where imgsz is null (the whole frame's is not known here)
+    key, size = ("imgsz", s.imgsz) if s.imgsz is not None else ("tile_size", s.tile_size)
+    if size is None:
+        return []
     ckpt = read_checkpoint(Path(s.weights) if s.weights else DEFAULT_WEIGHTS, s.trust_pickle)
     trained = (ckpt.get("train_args") or {}).get("imgsz")
-    if s.imgsz is None or not isinstance(trained, int) or s.imgsz >= trained / 2:
+    if not isinstance(trained, int) or size >= trained / 2:
         return []
-    return [("imgsz", f"{s.imgsz} px, under half the {trained} px the model was trained at: a defect shrinks below "
-                      f"the sizes it learnt, may not be found, and its part then passes")]
+    return [(key, f"{size} px of network input, under half the {trained} px the model was trained at: a defect "
+                  f"shrinks below the sizes it learnt, or is cut by the tiles, may not be found, and its part then "
+                  f"passes")]
 
 
 @hookimpl

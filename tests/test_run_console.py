@@ -4,32 +4,15 @@ from __future__ import annotations
 import re
 
 from conftest import cli, write_recipe
+from test_recipe_validation import GOOD
 
 from core.commands.inspection import WARMING_UP
-
-RECIPE = """\
-name: console
-camera:
-  plugin: replay
-  settings:
-    path: seq
-stereo:
-  backend: opencv_sgbm
-  max_disparity: 64
-detector:
-  plugin: yolov8
-decision:
-  rules:
-    - {class: any, quantity: deviation_mm, op: ">", threshold: 1.0}
-outputs:
-  - plugin: log
-"""
 
 
 def test_the_progress_line_says_warming_up_until_the_first_part(tmp_path, plane_sequence):
     # a machine's first run compiles the kernels for a minute or two before any part: the line says why it waits
     plane_sequence([0.0])
-    path = write_recipe(tmp_path / "r.yaml", RECIPE)
+    path = write_recipe(tmp_path / "r.yaml", GOOD.replace("name: t\n", "name: console\n"))
     run = cli("run", str(path), "--quiet", "--max-frames", "1", "--set", f"results.path={tmp_path / 'res'}",
               env_extra={"FORCE_COLOR": "1", "TERM": "xterm", "COLUMNS": "100"})  # rich draws its live line
     assert "parts 1" in run.stdout, run.stdout + run.stderr

@@ -436,7 +436,8 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
 def warm_up() -> SurfaceFit | None:
     """Fit a small synthetic pair (a plane 4 px of disparity away) once and measure its region's cells and
     their robust offset, so that the compiled kernels are loaded (0.1 s from numba's cache, 14 s to compile
-    without it, with ``depth.warm_up``'s consensus kernel) before the first part rather than during it. Returns that fit."""
+    without it, with ``depth.warm_up``'s consensus kernel) before the first part rather than during it. Returns
+    that fit."""
     rng = np.random.default_rng(0)
     texture = cv2.GaussianBlur(rng.uniform(0, 255, (80, 120)).astype(np.float32), (0, 0), 1.5)
     left, right = texture[:, :100].copy(), texture[:, 4:104].copy()  # 4 px of disparity everywhere

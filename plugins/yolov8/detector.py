@@ -125,9 +125,10 @@ def read_checkpoint(weights: Path, trust_pickle: bool = False, hint: str | None 
     broken = [name for name, tensor in model.state_dict().items()
               if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all())]
     if broken:
-        raise ValueError(f"{weights}: {len(broken)} of the model's weight tensors {'holds' if len(broken) == 1 else 'hold'} "
-                         f"NaN or infinite values (the first {broken[0]}): a training that diverged or a damaged file, "
-                         f"whose model finds no defect at all")
+        hold = "holds" if len(broken) == 1 else "hold"
+        raise ValueError(f"{weights}: {len(broken)} of the model's weight tensors {hold} NaN or infinite values (the "
+                         f"first {broken[0]}): a training that diverged or a damaged file, whose model finds no defect "
+                         f"at all")
     return ckpt
 
 

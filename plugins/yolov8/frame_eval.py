@@ -47,8 +47,8 @@ def _labels(sequence: Path) -> list[tuple[Path, str, dict]]:
 
 
 def read_frame_labels(sequence: Path) -> list[tuple[Path, str, dict]]:
-    """(file, frame id, labels) of every ``labels/*.json``, each box checked against its image's size by
-    ``check_frame_boxes``; one-line errors name the file."""
+    """(file, frame id, labels) of every ``labels/*.json``; one-line errors name the file. Its boxes are checked
+    against their image, once that is read, by ``check_frame_boxes``."""
     return _labels(sequence)
 
 

@@ -213,8 +213,9 @@ def average_command(weights: tuple[Path, ...], out: Path) -> None:
             _fail(f"{path}: weights file not found")
     seen: dict[Path, Path] = {}
     for path in weights:
-        if path.resolve() in seen:  # a repeated glob: the mean would weigh that checkpoint twice
-            _fail(f"{path}: given twice (as {seen[path.resolve()]} too)")
+        first = seen.get(path.resolve())
+        if first is not None:  # a repeated glob: the mean would weigh that checkpoint twice
+            _fail(f"{path}: given twice" + ("" if str(first) == str(path) else f" (as {first} too)"))
         seen[path.resolve()] = path
     overwrite = overwritten_input({"--out": out}, list(weights))
     if overwrite is not None:

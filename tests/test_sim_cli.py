@@ -58,6 +58,21 @@ def test_existing_sequence_needs_overwrite(tmp_path):
     assert sorted(p.name for p in (out / "labels").iterdir()) == ["000000.json"]
 
 
+def test_a_recording_is_not_replaced_even_with_overwrite(tmp_path):
+    # a camera's frames (no gt/) were deleted for a render of the same name: a recording nothing can make again
+    out = tmp_path / "recorded"
+    args = ["sim", "generate", str(out), "--frames", "1", "--synthetic-defects", "--width", "160", "--height", "96"]
+    assert CliRunner().invoke(_build(), args).exit_code == 0
+    for path in [*(out / "gt").iterdir(), *(out / "labels").iterdir()]:
+        path.unlink()
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    result = CliRunner().invoke(_build(), args + ["--overwrite"])
+    assert result.exit_code == 2 and result.output == (f"error: {out} holds frames without ground truth (gt/), a "
+                                                       f"recording rather than a render: --overwrite replaces only "
+                                                       f"rendered sequences; choose a new folder\n"), result.output
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
 def test_evaluation_set_options(tmp_path):
     out = tmp_path / "eval"
     result = CliRunner().invoke(_build(), [

@@ -33,6 +33,11 @@ def prepare_folder(out: Path, overwrite: bool) -> None:
     if old and not overwrite:
         click.echo(f"error: {out} already holds a sequence ({len(old)} files); give --overwrite to replace it", err=True)
         raise SystemExit(2)
+    if any(p.parent.name == "left" for p in old) and not any(p.parent.name == "gt" for p in old):
+        # frames without a true disparity are no render of ours: a camera's recording, which nothing can make again
+        click.echo(f"error: {out} holds frames without ground truth (gt/), a recording rather than a render: "
+                   f"--overwrite replaces only rendered sequences; choose a new folder", err=True)
+        raise SystemExit(2)
     for path in old:
         path.unlink()
     problem = make_folder(out)

@@ -28,7 +28,7 @@ def existing_frame_files(out: Path) -> list[Path]:
 def prepare_folder(out: Path, overwrite: bool) -> None:
     """OUT made ready for a new sequence, or a one-line error (exit 2): it may not hold one already unless
     ``overwrite``, whose frames are then removed (stale frames, or another image format, would mix into
-    the new sequence)."""
+    the new sequence), and never a recording (frames without gt/)."""
     old = existing_frame_files(out)
     if old and not overwrite:
         click.echo(f"error: {out} already holds a sequence ({len(old)} files); give --overwrite to replace it", err=True)

@@ -548,7 +548,7 @@ def report_command(results: Path, run_id: int | None, csv_path: Path | None) -> 
     try:
         _report(db, results, run_id, csv_path)
     except sqlite3.DatabaseError as exc:  # the schema read, a page further in did not
-        fail(str(store.damaged(store.db_path(results), exc)))
+        fail(str(store.damaged(db_file, exc)))
 
 
 def _report(db, results: Path, run_id: int | None, csv_path: Path | None) -> None:

@@ -251,9 +251,10 @@ def current_rss_mb() -> float:
 
 
 def _looped(loaded: LoadedRecipe, folder: Path, **recipe_changes: Any) -> LoadedRecipe:
-    """The recipe with its camera looped as fast as it runs, its store in ``folder`` and a log output as its
-    only one (no PLC needed); ``recipe_changes`` replace top-level sections (e.g. ``detector``)."""
-    from core.recipe.schema import PluginRef
+    """The recipe with its camera looped as fast as it runs, its store in ``folder``, a log output as its
+    only one (no PLC needed) and no master parts (the loop's speed is measured, not its detector);
+    ``recipe_changes`` replace top-level sections (e.g. ``detector``)."""
+    from core.recipe.schema import PluginRef, VerifySection
 
     recipe = loaded.recipe
     log = {"file": str(folder / "rejects.log")}
@@ -261,6 +262,7 @@ def _looped(loaded: LoadedRecipe, folder: Path, **recipe_changes: Any) -> Loaded
         recipe=recipe.model_copy(update={
             "outputs": [PluginRef(plugin="log", settings=log)],
             "results": recipe.results.model_copy(update={"path": str(folder / "results")}),
+            "verify": VerifySection(),
             **recipe_changes,
         }),
         path=loaded.path, text_hash=loaded.text_hash,

@@ -23,6 +23,10 @@ import operator
 from core.recipe.schema import DecisionSection, Rule
 from core.types import DefectMeasurement, Status, Verdict
 
+# a defect whose true value lies at least this far from every limit is clear-cut: the evaluations and the
+# master parts (core.verification) hold a measurement to the right side of such a limit only
+CLEAR_CUT_MM = 0.3
+
 _OPS = {">": operator.gt, ">=": operator.ge, "<": operator.lt, "<=": operator.le}
 _PRECEDENCE = (Status.ERROR, Status.REJECT, Status.FLAG, Status.PASS)
 _UNCERTAIN = {"reject": Status.REJECT, "pass": Status.PASS, "flag": Status.FLAG}

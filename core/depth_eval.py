@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from core.boxes import match_boxes
-from core.decision import judge_defect, rule_applies
+from core.decision import CLEAR_CUT_MM, judge_defect, rule_applies
 from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
 from core.error_parts import error_parts, true_ring_plane
@@ -45,7 +45,6 @@ from core.types import Detection, DefectMeasurement, Status, StereoFrame
 from drivers.file_writes import write_text
 from drivers.sequence_folder import SequenceError, read_disparity_png
 
-CLEAR_CUT_MM = 0.3  # a defect whose true value is at least this far from every limit is clear-cut
 NARROW_PX = 30.0  # boxes narrower than this count as narrow defects
 MIN_RATIO_MM = 0.3  # measured / true only for defects at least this deep
 MATCH_IOU = 0.3  # a detector's box finds a labelled defect from this overlap on

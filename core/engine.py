@@ -635,6 +635,9 @@ def run(
     record(store.recover_crashed(unfinished, run_id))
 
     pipeline.warm_up()
+    verified = _verify(loaded, registry, pipeline, rule, device)
+    if verified is not None:
+        record([verified])
     if on_start:
         on_start(pipeline)
     started = time.perf_counter()
@@ -675,7 +678,8 @@ def run(
             watch.started(part_id(item), f"frame {item.frame_id} still in inspection")
             yield item
 
-    frames_in = watched(pipeline.camera.frames())
+    # a line whose master parts passed a defective one reads no plate: its run ends here, with the alarm
+    frames_in = watched(iter(()) if isinstance(verified, Alarm) else pipeline.camera.frames())
     source = (DetectAhead(frames_in, lambda item: detect_frame(item, pipeline, recipe), max_frames)
               if recipe.stereo.concurrent else OneAtATime(frames_in, max_frames))
 
@@ -822,6 +826,35 @@ def run(
     except Exception:
         pass  # a store that failed has said so
     return summary
+
+
+def _verify(loaded: LoadedRecipe, registry: Registry, pipeline: Pipeline, rule: DepthRule, device: str
+            ) -> OutputEvent | Alarm | None:
+    """The recipe's master parts (``verify.path``) inspected as the line inspects its plates, their verdicts
+    going nowhere but here (``core.verification``): an event with their tally, an alarm where a defective one
+    passed or they could not be inspected (the run then reads no plate), None without master parts."""
+    from core import verification
+
+    if loaded.recipe.verify.path is None:
+        return None
+    folder = loaded.resolve(loaded.recipe.verify.path)
+    try:
+        camera = make_plugin(loaded, registry, plugin_context(loaded, device), "camera", "replay", "verify.path",
+                             {"path": str(folder)})
+        masters = Pipeline(camera, pipeline.stereo, pipeline.detector, [])
+        try:
+            checked = verification.verify(
+                folder, camera.frames(),
+                lambda item: inspect_frame(item, f"master-{item.frame_id}", masters, loaded, rule).part.verdict.status,
+                loaded.recipe.decision)
+        finally:
+            camera.close()
+    except Exception as exc:  # an unreadable recording vouches for nothing: the line does not start on it
+        return Alarm("verify", f"master parts {folder} could not be inspected ({exc}): the run does not start",
+                     time.time(), None, "verify")
+    if checked.failed:
+        return Alarm("verify", checked.refusal(), time.time(), None, "verify")
+    return OutputEvent("verify", None, "master parts", "delivered", time.time(), checked.summary())
 
 
 def output_reports(name: str, reports: Any, part_id: str | None) -> list[OutputEvent | Alarm]:

@@ -206,7 +206,8 @@ class Alarm:
     be saved), range (plates in a row outside the stereo search range), swapped (parts in a row whose
     images match only with the left and right exchanged), unmatched (parts in a row whose images match
     nowhere), rectification (parts in a row whose images show the eyes' rows further apart than rectification
-    leaves them), behind (a free-running camera's frames went unread while the loop was busy)."""
+    leaves them), behind (a free-running camera's frames went unread while the loop was busy), verify (a
+    master part known to be defective passed, or the master parts could not be inspected: no plate is read)."""
 
     source: str
     message: str

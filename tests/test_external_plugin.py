@@ -82,9 +82,11 @@ def test_the_demo_recipe_in_a_third_party_detectors_boxes_measures_as_the_evalua
                           "settings": {"regions": [{"name": d["class"], "box": d["box"]} for d in truth]}}
     recipe["outputs"] = [{"plugin": "log", "settings": {"file": str(tmp_path / "rejects.log")}}]
     recipe["results"] = {"path": str(tmp_path / "results")}
+    recipe["verify"] = {"path": str(seq)}  # its own plate as the master part: the check's verdicts are not stored
     path = write_recipe(tmp_path / "r.yaml", yaml.safe_dump(recipe))
     ran = cli("run", str(path), env_extra={"PYTHONPATH": str(external_plugin_site)})
     assert ran.returncode == 0, ran.stdout + ran.stderr
+    assert f"master parts {seq}: 1 inspected" in ran.stdout
     evaluated = cli("eval", "depth", str(seq), "--set", "stereo.working_distance_mm=[300,700]", "--out",
                     str(tmp_path / "eval"), "--quiet", "--no-figure")
     assert evaluated.returncode == 0, evaluated.stderr

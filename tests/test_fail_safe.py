@@ -265,11 +265,11 @@ def test_a_console_whose_reader_went_away_stops_the_run_as_a_closed_terminal_doe
     args = [a for a in _run_args(results, port) if a != "--quiet"]  # a line per part, to the pipe
     with plc_sim.serve_in_thread("127.0.0.1", port, on_change=None):
         proc = subprocess.Popen([str(exe), "run", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        lines = [proc.stdout.readline() for _ in range(3)]
-        proc.stdout.close()  # the reader goes away, as `head -3` does
+        lines = [proc.stdout.readline() for _ in range(4)]
+        proc.stdout.close()  # the reader goes away, as `head -4` does
         err = proc.stderr.read()
         proc.wait(timeout=60)
-    assert all(line.startswith("R1-") for line in lines), lines
+    assert lines[0].startswith("master parts ") and all(line.startswith("R1-") for line in lines[1:]), lines
     assert proc.returncode == 128 + signal.SIGPIPE and "Traceback" not in err, err
     db = sqlite3.connect(results / "results.db")
     assert db.execute("SELECT status, exit_code FROM runs").fetchone() == ("finished", 128 + signal.SIGPIPE)
@@ -279,8 +279,9 @@ def test_a_console_whose_reader_went_away_stops_the_run_as_a_closed_terminal_doe
 def test_a_plc_unreachable_all_run_is_an_alarm_even_without_rejects(tmp_path):
     port = plc_sim.free_port()  # nothing listens there
     results = tmp_path / "results"
+    # a detector that finds nothing (and no master parts, which would keep such a line from starting)
     out = cli("run", *_run_args(results, port, "--max-frames", "3", "--set", "detector.confidence=1.0",
-                                "--set", "camera.settings.loop=false"))
+                                "--set", "camera.settings.loop=false", "--set", "verify.path=null"))
     assert out.returncode == 4, out.stdout + out.stderr
     assert f"the PLC at 127.0.0.1:{port} cannot be reached" in out.stdout
     # the hint names the real cause, and offers the simulator only where it was not given

@@ -513,6 +513,7 @@ def test_a_broken_calibration_file_fails_validate_as_it_fails_run(tmp_path):
     recipe = recipe.replace("plugin: replay", "plugin: zed", 1).replace(
         "    path: ../sim_fixtures/steel_plate\n    rate_fps: 4", f"    calibration: {broken}\n    device: 0", 1)
     recipe = recipe.replace("    loop: false\n", "", 1).replace("../models/", f"{ROOT / 'models'}/")
+    recipe = recipe.replace("../sim_fixtures/", f"{ROOT / 'sim_fixtures'}/")
     path = tmp_path / "zed.yaml"
     path.write_text(recipe)
     result = cli_here("validate", str(path))

@@ -145,6 +145,8 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
     def on_event(event: OutputEvent | Alarm) -> None:
         if isinstance(event, Alarm):
             progress.console.print(f"ALARM {event.source}: {event.message}", style="bold red", markup=False)
+        elif event.output == "verify":  # the master parts' tally, before the first part
+            progress.console.print(event.detail, style="cyan", markup=False)
 
     # systemctl stop sends SIGTERM, a closed terminal SIGHUP: both end the run as Ctrl-C does, after the
     # part in hand (its reject scheduled), delivering or alarming what is queued and finalising the run
@@ -259,6 +261,11 @@ def alarm_hints(alarms, loaded, plc_sim_given: bool) -> list[str]:
     if "images" in causes:
         lines.append("  the parts' annotated images could no longer be saved (the results disk nearly full, the images "
                      "folder not writable): every decision was still stored and sent; free the disk")
+    if "verify" in causes:
+        lines.append(f"  no plate was inspected: the master parts (verify.path) did not come out as their labels say; "
+                     f"`inspect eval depth {loaded.resolve(loaded.recipe.verify.path)} --recipe {loaded.path} --boxes "
+                     f"detector` (with this run's --set options) shows, defect by defect, what the detector missed "
+                     f"and what depth measured")
     if "stall" in causes:
         lines.append(f"  a stage, plugin or camera stopped returning for longer than watchdog_s "
                      f"({loaded.recipe.watchdog_s:g} s; the alarm names the frame or the camera): the outputs told the "
@@ -332,11 +339,29 @@ def recipe_warnings(loaded) -> list[str]:
     """What the recipe lets through without an error: limits the camera cannot resolve at the working
     distance, classes no rule covers, decisions that pass unproven parts, image checks turned off, rejects
     that reach no actuator or come faster than it can be pulsed, more threads than the machine has cores,
-    deviation rules written the wrong way round, and what each plugin says of its own settings."""
+    deviation rules written the wrong way round, master parts none of which is defective, and what each plugin
+    says of its own settings."""
     return (_depth_warnings(loaded) + _detector_warnings(loaded) + _coverage_warnings(loaded)
             + _guard_band_warnings(loaded) + _image_check_warnings(loaded) + _output_warnings(loaded)
             + _output_timing_warnings(loaded) + _thread_warnings(loaded) + _rule_warnings(loaded)
-            + _plugin_warnings(loaded))
+            + _verify_warnings(loaded) + _plugin_warnings(loaded))
+
+
+def _verify_warnings(loaded) -> list[str]:
+    """A line where the master parts (``verify.path``) hold no part that the recipe's limits clearly reject:
+    such parts pass the check whatever the detector finds, and vouch for nothing."""
+    from core.types import Status
+    from core.verification import known_verdicts
+
+    if loaded.recipe.verify.path is None:
+        return []
+    folder = loaded.resolve(loaded.recipe.verify.path)
+    known = known_verdicts(folder, loaded.recipe.decision)
+    if any(status is Status.REJECT for status in known.values()):
+        return []
+    return [loaded.describe(("verify", "path"), f"warning: none of the {len(known)} parts in {folder} has a defect "
+                                               f"clearly beyond a limit of this recipe's rules: the check passes "
+                                               f"whatever the detector finds (add a rejected master part)")]
 
 
 def _plugin_warnings(loaded) -> list[str]:

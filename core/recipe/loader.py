@@ -20,6 +20,7 @@ from pydantic import BaseModel, ValidationError
 from core.recipe.schema import Recipe
 from core.registry import Registry, UnknownPlugin, default_registry
 from drivers import text_files, yaml_reader
+from drivers.sequence_folder import labelled_sequence_problem
 from drivers.stereo_geometry import calibration_problem
 
 
@@ -275,6 +276,7 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
             raise locator.error(("detector", "weights"), f"{weights}: {exc.strerror or exc}") from None
         if not found:
             raise locator.error(("detector", "weights"), f"weights file not found: {weights}")
+    _check_verify_path(loaded, locator)
     loaded.plugin_settings["camera"] = _validate_plugin(
         registry, "camera", recipe.camera.plugin, recipe.camera.settings, ("camera",), locator, context
     )
@@ -293,6 +295,23 @@ def load_recipe(path: str | Path, overrides: list[str] | tuple[str, ...] = (), r
     _check_output_delays(loaded, registry, locator)
     _check_camera_geometry(loaded, registry, locator)
     return loaded
+
+
+def _check_verify_path(loaded: LoadedRecipe, locator: _Locator) -> None:
+    """The master parts' folder (``verify.path``) readable to its end, each frame labelled: a frame it could not
+    read at the start would leave the check half done."""
+    if loaded.recipe.verify.path is None:
+        return
+    folder = loaded.resolve(loaded.recipe.verify.path)
+    try:
+        found = folder.is_dir()
+    except OSError as exc:
+        raise locator.error(("verify", "path"), f"{folder}: {exc.strerror or exc}") from None
+    if not found:
+        raise locator.error(("verify", "path"), f"sequence folder not found: {folder}")
+    problem = labelled_sequence_problem(folder)
+    if problem is not None:
+        raise locator.error(("verify", "path"), problem)
 
 
 def _check_finite(node: Any, key: KeyPath, locator: _Locator) -> None:

@@ -196,6 +196,16 @@ class ResultsSection(Section):
     min_free_mb: float = Field(200.0, ge=0)
 
 
+class VerifySection(Section):
+    """Parts whose verdicts are known, inspected before the line's first part (``core.verification``)."""
+
+    # a labelled sequence (left/, right/, calib.yaml, labels/*.json, as ``inspect sim generate`` writes and
+    # ``inspect eval depth`` reads): a recording of the plant's own master parts, each defect's true depth in its
+    # labels. A part whose labels put a defect clearly beyond a limit must come out rejected, or the run does not
+    # start. null: no check.
+    path: str | None = Field(None, min_length=1)
+
+
 class ViewSection(Section):
     """The operator's web page (``inspect run --view``)."""
 
@@ -231,6 +241,7 @@ class Recipe(Section):
     decision: DecisionSection = Field(default_factory=DecisionSection)
     outputs: list[PluginRef] = Field(default_factory=lambda: [PluginRef(plugin="log")])
     results: ResultsSection = Field(default_factory=ResultsSection)
+    verify: VerifySection = Field(default_factory=VerifySection)
     view: ViewSection = Field(default_factory=ViewSection)
 
     @field_validator("threads", mode="before")

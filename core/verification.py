@@ -1,0 +1,125 @@
+"""Master parts: plates whose verdicts are known, inspected before the line's first part.
+
+A detector that finds nothing passes every part without a word: weights that score too low, a confidence set
+too high, an image shrunk below what the model can see, the wrong model. Nothing on the line tells such a
+failure from a run of good plates. A plant's answer is the master part: a plate with known defects put
+through the machine at the start, which must come out rejected. ``verify.path`` names a recording of such
+parts with each defect's true depth in its labels; the engine inspects them as parts (detector, stereo,
+depth and the recipe's rules) before the first plate, and a defective one that passes stops the run before
+it starts (``core.engine.run``).
+
+A part is known defective when a labelled defect lies beyond one of the recipe's depth limits by CLEAR_CUT_MM
+or more, and known good when every labelled defect lies inside every limit by as much; a part near a limit
+is inspected and counted but decides nothing, since a measurement may prove neither side of it.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from core.decision import CLEAR_CUT_MM, rule_applies
+from core.types import FrameError, Status, StereoFrame
+from drivers.sequence_folder import list_frames, read_labels
+
+DEPTH_QUANTITIES = ("deviation_mm", "distance_mm")
+
+
+def known_verdict(labels: dict, decision) -> Status | None:
+    """What a part's labels (``labels['defects']``, each with ``class`` and a true ``deviation_mm`` and
+    ``distance_mm`` where known) call for under ``decision`` (a recipe's ``DecisionSection``), counting only
+    its depth rules: REJECT where a defect lies CLEAR_CUT_MM or more beyond a limit, PASS where every defect
+    lies that far inside every limit that applies to it, None where neither is clear (a defect near a limit,
+    one whose truth lacks a quantity a rule needs)."""
+    rules = [r for r in decision.rules if r.quantity in DEPTH_QUANTITIES]
+    clear_pass = True
+    for defect in labels.get("defects", []):
+        applying = [r for r in rules if rule_applies(r, defect["class"])]
+        if not applying:
+            if decision.reject_unruled_defects:
+                return Status.REJECT
+            continue
+        for rule in applying:
+            value = defect.get(rule.quantity)
+            if value is None:
+                clear_pass = False
+                continue
+            beyond = _beyond(value, rule.op, rule.threshold)
+            if beyond >= CLEAR_CUT_MM:
+                return Status.REJECT
+            if beyond > -CLEAR_CUT_MM:
+                clear_pass = False
+    return Status.PASS if clear_pass else None
+
+
+def _beyond(value: float, op: str, threshold: float) -> float:
+    """How far ``value`` lies beyond the limit ``op threshold`` (a rule rejects ``value op threshold``): above
+    0 where it is rejected, below where it is inside."""
+    return value - threshold if op in (">", ">=") else threshold - value
+
+
+@dataclass(frozen=True)
+class MasterPart:
+    """One master part: its frame, what its labels call for (None: near a limit) and the verdict it got."""
+
+    frame_id: str
+    known: Status | None
+    got: Status
+
+    @property
+    def passed_defective(self) -> bool:
+        """A known defective part passed: the line would pass such parts."""
+        return self.known is Status.REJECT and self.got is Status.PASS
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The master parts of ``folder`` and their verdicts."""
+
+    folder: str
+    parts: tuple[MasterPart, ...]
+
+    @property
+    def failed(self) -> bool:
+        return any(p.passed_defective for p in self.parts)
+
+    def _count(self, known: Status, got: tuple[Status, ...]) -> tuple[int, int]:
+        of = [p for p in self.parts if p.known is known]
+        return sum(p.got in got for p in of), len(of)
+
+    def summary(self) -> str:
+        """One line: how many master parts were inspected and how each kind came out."""
+        caught, defective = self._count(Status.REJECT, (Status.REJECT, Status.FLAG, Status.ERROR))
+        passed, good = self._count(Status.PASS, (Status.PASS,))
+        errors = sum(p.got is Status.ERROR for p in self.parts)
+        near = sum(p.known is None for p in self.parts)
+        return (f"master parts {self.folder}: {len(self.parts)} inspected, {caught} of {defective} defective "
+                f"ones rejected, {passed} of {good} good ones passed"
+                + (f", {errors} could not be inspected (ERROR)" if errors else "")
+                + (f", {near} near a limit (not counted)" if near else ""))
+
+    def refusal(self) -> str:
+        """Why the run does not start: the defective master parts that passed."""
+        passed = [p.frame_id for p in self.parts if p.passed_defective]
+        shown = ", ".join(passed[:5]) + (f" and {len(passed) - 5} more" if len(passed) > 5 else "")
+        return (f"{len(passed)} master part{'s' if len(passed) > 1 else ''} with a defect beyond a limit passed "
+                f"(frame{'s' if len(passed) > 1 else ''} {shown} of {self.folder}): the line would pass such "
+                f"parts; the run does not start (check the detector's weights, confidence and image size, and "
+                f"decision.uncertain)")
+
+
+def known_verdicts(folder: Path, decision) -> dict[str, Status | None]:
+    """``known_verdict`` of each frame of the labelled sequence ``folder``, by frame id (a frame without
+    labels: None). ``SequenceError`` naming the file where labels cannot be read."""
+    return {f.frame_id: None if f.labels is None else known_verdict(read_labels(f.labels), decision)
+            for f in list_frames(folder)}
+
+
+def verify(folder: Path, frames: Iterable[StereoFrame | FrameError],
+           inspect: Callable[[StereoFrame | FrameError], Status], decision) -> Verification:
+    """The master parts of the labelled sequence ``folder``, its ``frames`` (as its camera delivers them) each
+    ``inspect``-ed to a verdict and held against what its labels call for under ``decision``.
+    ``SequenceError`` naming the file where a frame's labels cannot be read."""
+    known = known_verdicts(folder, decision)
+    return Verification(str(folder), tuple(MasterPart(item.frame_id, known.get(item.frame_id), inspect(item))
+                                           for item in frames))

@@ -1,0 +1,177 @@
+"""Master parts (``verify.path``): known parts inspected before the line's first plate; a defective one that
+passes keeps the run from reading any plate."""
+from __future__ import annotations
+
+import json
+import shutil
+import sqlite3
+
+import cv2
+import pytest
+from conftest import ROOT, cli, cli_here
+
+from core.recipe.schema import DecisionSection
+from core.types import Status
+from core.verification import MasterPart, Verification, known_verdict, known_verdicts, verify
+
+DEMO = ROOT / "recipes" / "steel_plate.yaml"
+FIXTURE = ROOT / "sim_fixtures" / "steel_plate"
+BOTH_WAYS = DecisionSection(rules=[
+    {"class": "any", "quantity": "deviation_mm", "op": ">", "threshold": 1.0},
+    {"class": "any", "quantity": "deviation_mm", "op": "<", "threshold": -1.0},
+])
+
+
+def _labels(*defects: tuple[str, float | None]) -> dict:
+    return {"defects": [{"class": cls, "box": [0, 0, 10, 10], "deviation_mm": deviation} for cls, deviation in defects]}
+
+
+class TestKnownVerdict:
+    @pytest.mark.parametrize("deviation, expected", [
+        (1.3, Status.REJECT), (2.5, Status.REJECT), (-1.3, Status.REJECT),  # clearly beyond either limit
+        (1.1, None), (0.8, None), (-0.75, None),  # within 0.3 mm of one: a measurement may prove neither side
+        (0.69, Status.PASS), (0.0, Status.PASS), (-0.5, Status.PASS),
+    ])
+    def test_a_defects_depth_against_the_limits(self, deviation, expected):
+        assert known_verdict(_labels(("pit", deviation)), BOTH_WAYS) is expected
+
+    def test_a_part_without_defects_is_good(self):
+        assert known_verdict({"defects": []}, BOTH_WAYS) is Status.PASS
+
+    def test_one_clearly_defective_defect_makes_the_part_defective_whatever_the_others(self):
+        assert known_verdict(_labels(("pit", 0.2), ("pit", 1.05), ("pit", 1.6)), BOTH_WAYS) is Status.REJECT
+
+    def test_a_defect_near_a_limit_leaves_an_otherwise_good_part_unknown(self):
+        assert known_verdict(_labels(("pit", 0.2), ("pit", 0.9)), BOTH_WAYS) is None
+
+    def test_a_truth_without_the_ruled_quantity_decides_nothing(self):
+        assert known_verdict(_labels(("pit", None)), BOTH_WAYS) is None
+
+    def test_rules_of_other_classes_and_of_other_quantities_do_not_apply(self):
+        decision = DecisionSection(rules=[
+            {"class": "scratches", "quantity": "deviation_mm", "op": ">", "threshold": 1.0},
+            {"class": "any", "quantity": "confidence", "op": ">", "threshold": 0.5},
+        ])
+        assert known_verdict(_labels(("pit", 3.0)), decision) is Status.PASS
+        assert known_verdict(_labels(("scratches", 3.0)), decision) is Status.REJECT
+
+    def test_an_unruled_class_is_defective_where_the_recipe_rejects_unruled_defects(self):
+        decision = DecisionSection(rules=[{"class": "scratches", "quantity": "deviation_mm", "op": ">",
+                                           "threshold": 1.0}], reject_unruled_defects=True)
+        assert known_verdict(_labels(("pit", 0.0)), decision) is Status.REJECT
+
+    def test_an_inclusive_operator_counts_the_same_margin(self):
+        decision = DecisionSection(rules=[{"class": "any", "quantity": "deviation_mm", "op": ">=", "threshold": 1.0}])
+        assert known_verdict(_labels(("pit", 1.3)), decision) is Status.REJECT
+        assert known_verdict(_labels(("pit", 1.29)), decision) is None
+
+
+class TestVerification:
+    def test_only_a_known_defective_part_that_passed_fails_the_check(self):
+        fine = Verification("m", (MasterPart("1", Status.REJECT, Status.REJECT), MasterPart("2", Status.REJECT, Status.FLAG),
+                                  MasterPart("3", Status.REJECT, Status.ERROR), MasterPart("4", Status.PASS, Status.REJECT),
+                                  MasterPart("5", None, Status.PASS)))
+        assert not fine.failed
+        assert fine.summary() == ("master parts m: 5 inspected, 3 of 3 defective ones rejected, 0 of 1 good ones "
+                                  "passed, 1 could not be inspected (ERROR), 1 near a limit (not counted)")
+        failing = Verification("m", fine.parts + (MasterPart("6", Status.REJECT, Status.PASS),))
+        assert failing.failed
+        assert failing.refusal().startswith("1 master part with a defect beyond a limit passed (frame 6 of m)")
+
+    def test_the_refusal_names_the_first_five_frames(self):
+        parts = tuple(MasterPart(f"{i:06d}", Status.REJECT, Status.PASS) for i in range(7))
+        said = Verification("m", parts).refusal()
+        assert said.startswith("7 master parts") and "000004 and 2 more of m" in said and "000005" not in said
+
+
+class TestVerify:
+    def test_the_demo_plates_hold_defective_and_good_parts(self):
+        known = known_verdicts(FIXTURE, BOTH_WAYS)
+        assert len(known) == 10 and Status.REJECT in known.values() and Status.PASS in known.values()
+
+    def test_each_frame_is_held_against_its_labels(self):
+        known = known_verdicts(FIXTURE, BOTH_WAYS)
+        frames = [type("Frame", (), {"frame_id": frame_id})() for frame_id in sorted(known)]
+        blind = verify(FIXTURE, frames, lambda item: Status.PASS, BOTH_WAYS)
+        assert blind.failed
+        assert {p.frame_id for p in blind.parts if p.passed_defective} == {
+            f for f, status in known.items() if status is Status.REJECT}
+        assert not verify(FIXTURE, frames, lambda item: Status.REJECT, BOTH_WAYS).failed
+
+
+def _run_demo(tmp_path, *sets: str):
+    return cli("run", str(DEMO), "--set", f"results.path={tmp_path / 'results'}",
+               "--set", f"outputs=[{{plugin: log, settings: {{file: {tmp_path / 'rejects.log'}}}}}]", *sets)
+
+
+def test_a_detector_made_blind_by_its_confidence_keeps_the_line_from_starting(tmp_path):
+    """At confidence 0.9 the demo's detector finds nothing, and before master parts every plate passed."""
+    out = _run_demo(tmp_path, "--set", "detector.confidence=0.9")
+    assert out.returncode == 4, out.stdout + out.stderr
+    assert "ALARM verify: 5 master parts with a defect beyond a limit passed (frames 000002" in out.stdout
+    assert "parts 0  passed 0" in out.stdout  # no plate was read
+    assert f"`inspect eval depth {FIXTURE} --recipe {DEMO} --boxes detector`" in out.stdout  # where to look
+    db = sqlite3.connect(tmp_path / "results" / "results.db")
+    assert db.execute("SELECT COUNT(*) FROM parts").fetchone()[0] == 0
+    (message,) = db.execute("SELECT message FROM alarms WHERE source = 'verify'").fetchone()
+    assert message.startswith("5 master parts with a defect beyond a limit passed")
+    assert db.execute("SELECT exit_code FROM runs").fetchone()[0] == 4
+
+
+def test_a_master_part_whose_image_cannot_be_decoded_is_counted_an_error_not_a_pass(tmp_path):
+    masters = tmp_path / "masters"
+    shutil.copytree(FIXTURE, masters)
+    image = masters / "right" / "000003.jpg"
+    cv2.imwrite(str(image), cv2.imread(str(image))[:100, :100])  # whole, but not the calibration's size
+    out = _run_demo(tmp_path, "--set", f"verify.path={masters}", "--set", "camera.settings.max_frames=1")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "5 of 5 defective ones rejected" in out.stdout and "1 could not be inspected (ERROR)" in out.stdout
+
+
+def test_labels_that_become_unreadable_after_the_recipe_was_loaded_keep_the_line_from_starting(tmp_path):
+    from core import engine
+    from core.recipe import load_recipe
+
+    masters = tmp_path / "masters"
+    shutil.copytree(FIXTURE, masters)
+    loaded = load_recipe(DEMO, overrides=[f"verify.path={masters}", f"results.path={tmp_path / 'results'}",
+                                          f"outputs=[{{plugin: log, settings: {{file: {tmp_path / 'rejects.log'}}}}}]"])
+    (masters / "labels" / "000006.json").write_text("{")
+    summary = engine.run(loaded, device="cpu")
+    assert summary.frames == 0 and summary.exit_code == engine.EXIT_ALARMS
+    (alarm,) = summary.alarms
+    assert alarm.source == "verify" and "could not be inspected" in alarm.message and "000006.json" in alarm.message
+
+
+class TestRecipe:
+    def test_a_missing_folder_is_named_at_its_key(self, tmp_path):
+        out = cli_here("validate", str(DEMO), "--set", f"verify.path={tmp_path / 'nope'}")
+        assert out.returncode == 2
+        assert out.stderr.strip().endswith(f"verify.path: sequence folder not found: {tmp_path / 'nope'}")
+
+    def test_a_master_image_cut_short_is_named(self, tmp_path):
+        masters = tmp_path / "masters"
+        shutil.copytree(FIXTURE, masters)
+        image = masters / "right" / "000003.jpg"
+        image.write_bytes(image.read_bytes()[:1000])
+        out = cli_here("validate", str(DEMO), "--set", f"verify.path={masters}")
+        assert out.returncode == 2 and "verify.path" in out.stderr and "000003" in out.stderr
+
+    def test_a_frame_without_labels_is_named(self, tmp_path):
+        masters = tmp_path / "masters"
+        shutil.copytree(FIXTURE, masters)
+        (masters / "labels" / "000004.json").unlink()
+        out = cli_here("validate", str(DEMO), "--set", f"verify.path={masters}")
+        assert out.returncode == 2 and "verify.path" in out.stderr and "000004" in out.stderr
+
+    def test_master_parts_none_of_which_is_defective_are_warned_of(self, tmp_path):
+        masters = tmp_path / "masters"
+        shutil.copytree(FIXTURE, masters)
+        for path in (masters / "labels").glob("*.json"):
+            labels = json.loads(path.read_text())
+            labels["defects"] = [dict(d, deviation_mm=0.1) for d in labels["defects"]]
+            path.write_text(json.dumps(labels))
+        out = cli_here("validate", str(DEMO), "--set", f"verify.path={masters}")
+        assert out.returncode == 0
+        assert "verify.path: warning: none of the 10 parts" in out.stderr
+        assert "verify.path" not in cli_here("validate", str(DEMO)).stderr

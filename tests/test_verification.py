@@ -164,6 +164,16 @@ class TestRecipe:
         out = cli_here("validate", str(DEMO), "--set", f"verify.path={masters}")
         assert out.returncode == 2 and "verify.path" in out.stderr and "000004" in out.stderr
 
+    def test_labels_without_their_frames_images_are_named(self, tmp_path):
+        """Their part would not be inspected, and the check would vouch for it all the same."""
+        masters = tmp_path / "masters"
+        shutil.copytree(FIXTURE, masters)
+        shutil.copy(masters / "labels" / "000003.json", masters / "labels" / "000099.json")
+        out = cli_here("validate", str(DEMO), "--set", f"verify.path={masters}")
+        assert out.returncode == 2
+        assert out.stderr.strip().endswith(f"verify.path: {masters / 'labels' / '000099.json'}: no left/ or right/ "
+                                           f"image of that frame")
+
     def test_master_parts_none_of_which_is_defective_are_warned_of(self, tmp_path):
         masters = tmp_path / "masters"
         shutil.copytree(FIXTURE, masters)

@@ -20,7 +20,7 @@ from pydantic import BaseModel, ValidationError
 from core.recipe.schema import Recipe
 from core.registry import Registry, UnknownPlugin, default_registry
 from drivers import text_files, yaml_reader
-from drivers.sequence_folder import labelled_sequence_problem
+from drivers.sequence_folder import labelled_sequence_problem, list_frames
 from drivers.stereo_geometry import calibration_problem
 
 
@@ -312,6 +312,12 @@ def _check_verify_path(loaded: LoadedRecipe, locator: _Locator) -> None:
     problem = labelled_sequence_problem(folder)
     if problem is not None:
         raise locator.error(("verify", "path"), problem)
+    # a master part whose images are missing would not be inspected, and the check would vouch for it all the same
+    frames = {f.frame_id for f in list_frames(folder)}
+    orphans = sorted(p.name for p in (folder / "labels").glob("*.json") if p.stem not in frames)
+    if orphans:
+        raise locator.error(("verify", "path"), f"{folder / 'labels' / orphans[0]}: no left/ or right/ image of that "
+                                               f"frame" + (f" (and {len(orphans) - 1} more labels)" if len(orphans) > 1 else ""))
 
 
 def _check_finite(node: Any, key: KeyPath, locator: _Locator) -> None:

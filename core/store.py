@@ -422,6 +422,17 @@ def crashed_runs(db: sqlite3.Connection, run_id: int | None = None) -> list[dict
     return [{"id": r[0], "parts": r[1], "unconfirmed": len(unconfirmed_rejects(db, r[0]))} for r in rows]
 
 
+def master_part_checks(db: sqlite3.Connection, run_id: int | None = None) -> list[tuple[int, bool, str]]:
+    """Each run's master-part check (``core.verification``), by run: (run id, whether the line started on it,
+    its tally or the alarm that kept the line from starting)."""
+    where, args = ("AND run_id = ?", (run_id,)) if run_id is not None else ("", ())
+    rows = db.execute(
+        f"SELECT run_id, 1, detail, id FROM output_events WHERE output = 'verify' {where}"
+        f" UNION ALL SELECT run_id, 0, message, id FROM alarms WHERE source = 'verify' {where}"
+        " ORDER BY 1, 4", args + args).fetchall()
+    return [(r[0], bool(r[1]), r[2] or "") for r in rows]
+
+
 CSV_COLUMNS = [
     "run_id", "part_id", "frame_id", "time", "part_verdict", "part_reasons", "error", "class", "confidence",
     "x0", "y0", "x1", "y1", "distance_mm", "deviation_mm", "valid_fraction", "depth_resolution_mm", "area_mm2",

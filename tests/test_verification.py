@@ -116,6 +116,8 @@ def test_a_detector_made_blind_by_its_confidence_keeps_the_line_from_starting(tm
     (message,) = db.execute("SELECT message FROM alarms WHERE source = 'verify'").fetchone()
     assert message.startswith("5 master parts with a defect beyond a limit passed")
     assert db.execute("SELECT exit_code FROM runs").fetchone()[0] == 4
+    report = cli_here("report", str(tmp_path / "results")).stdout
+    assert "run 1 did not start: 5 master parts with a defect beyond a limit passed" in report
 
 
 def test_a_master_part_whose_image_cannot_be_decoded_is_counted_an_error_not_a_pass(tmp_path):
@@ -126,6 +128,8 @@ def test_a_master_part_whose_image_cannot_be_decoded_is_counted_an_error_not_a_p
     out = _run_demo(tmp_path, "--set", f"verify.path={masters}", "--set", "camera.settings.max_frames=1")
     assert out.returncode == 0, out.stdout + out.stderr
     assert "5 of 5 defective ones rejected" in out.stdout and "1 could not be inspected (ERROR)" in out.stdout
+    report = cli_here("report", str(tmp_path / "results")).stdout  # which run was checked, and how
+    assert f"run 1 checked its master parts {masters}: 10 inspected, 5 of 5 defective" in report
 
 
 def test_labels_that_become_unreadable_after_the_recipe_was_loaded_keep_the_line_from_starting(tmp_path):

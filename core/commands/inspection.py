@@ -592,6 +592,8 @@ def _report(db, results: Path, run_id: int | None, csv_path: Path | None) -> Non
     for row in store.crashed_runs(db, run_id):
         click.echo(f"run {row['id']} crashed (never finished): {row['parts']} parts, {row['unconfirmed']} of them "
                    "rejected without a confirmed output: check them by hand", err=False)
+    for run, started, text in store.master_part_checks(db, run_id):
+        click.echo(f"run {run} " + (f"checked its {text}" if started else f"did not start: {text}"))
     flagged = f"  flagged {s['flagged']}" if s["flagged"] else ""
     click.echo(f"parts {s['parts']}  passed {s['passed']}  rejected {s['rejected']}  errors {s['errors']}{flagged}  "
                f"yield {yield_text}  alarms {s['alarms']}")

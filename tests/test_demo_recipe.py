@@ -48,7 +48,8 @@ def test_demo_runs_and_summarises(demo):
     out, _, port = demo
     assert f"nothing listens on 127.0.0.1:{port}: starting the PLC simulator in-process" in out.stdout
     # the master parts, before the first plate: every defective one rejected
-    assert re.search(r"master parts \S+steel_plate: 10 inspected, (\d) of \1 defective ones rejected", out.stdout), \
+    assert re.search(r"master parts \S+steel_plate_masters: 4 inspected, (\d) of \1 defective ones rejected",
+                     out.stdout), \
         out.stdout
     summary = re.search(r"parts 10  passed (\d+)  rejected (\d+)  errors (\d+)  alarms 0  [\d.]+ frames/s", out.stdout)
     assert summary, out.stdout + out.stderr

@@ -16,6 +16,7 @@ from core.verification import MasterPart, Verification, known_verdict, known_ver
 
 DEMO = ROOT / "recipes" / "steel_plate.yaml"
 FIXTURE = ROOT / "sim_fixtures" / "steel_plate"
+MASTERS = ROOT / "sim_fixtures" / "steel_plate_masters"  # the demo recipe's: four of its plates
 BOTH_WAYS = DecisionSection(rules=[
     {"class": "any", "quantity": "deviation_mm", "op": ">", "threshold": 1.0},
     {"class": "any", "quantity": "deviation_mm", "op": "<", "threshold": -1.0},
@@ -108,28 +109,29 @@ def test_a_detector_made_blind_by_its_confidence_keeps_the_line_from_starting(tm
     """At confidence 0.9 the demo's detector finds nothing, and before master parts every plate passed."""
     out = _run_demo(tmp_path, "--set", "detector.confidence=0.9")
     assert out.returncode == 4, out.stdout + out.stderr
-    assert "ALARM verify: 5 master parts with a defect beyond a limit passed (frames 000002" in out.stdout
+    assert ("ALARM verify: 3 master parts with a defect beyond a limit passed (frames 000003, 000006, 000009 of "
+            f"{MASTERS})") in out.stdout
     assert "parts 0  passed 0" in out.stdout  # no plate was read
-    assert f"`inspect eval depth {FIXTURE} --recipe {DEMO} --boxes detector`" in out.stdout  # where to look
+    assert f"`inspect eval depth {MASTERS} --recipe {DEMO} --boxes detector`" in out.stdout  # where to look
     db = sqlite3.connect(tmp_path / "results" / "results.db")
     assert db.execute("SELECT COUNT(*) FROM parts").fetchone()[0] == 0
     (message,) = db.execute("SELECT message FROM alarms WHERE source = 'verify'").fetchone()
-    assert message.startswith("5 master parts with a defect beyond a limit passed")
+    assert message.startswith("3 master parts with a defect beyond a limit passed")
     assert db.execute("SELECT exit_code FROM runs").fetchone()[0] == 4
     report = cli_here("report", str(tmp_path / "results")).stdout
-    assert "run 1 did not start: 5 master parts with a defect beyond a limit passed" in report
+    assert "run 1 did not start: 3 master parts with a defect beyond a limit passed" in report
 
 
 def test_a_master_part_whose_image_cannot_be_decoded_is_counted_an_error_not_a_pass(tmp_path):
     masters = tmp_path / "masters"
-    shutil.copytree(FIXTURE, masters)
+    shutil.copytree(MASTERS, masters)
     image = masters / "right" / "000003.jpg"
     cv2.imwrite(str(image), cv2.imread(str(image))[:100, :100])  # whole, but not the calibration's size
     out = _run_demo(tmp_path, "--set", f"verify.path={masters}", "--set", "camera.settings.max_frames=1")
     assert out.returncode == 0, out.stdout + out.stderr
-    assert "5 of 5 defective ones rejected" in out.stdout and "1 could not be inspected (ERROR)" in out.stdout
+    assert "3 of 3 defective ones rejected" in out.stdout and "1 could not be inspected (ERROR)" in out.stdout
     report = cli_here("report", str(tmp_path / "results")).stdout  # which run was checked, and how
-    assert f"run 1 checked its master parts {masters}: 10 inspected, 5 of 5 defective" in report
+    assert f"run 1 checked its master parts {masters}: 4 inspected, 3 of 3 defective" in report
 
 
 def test_labels_that_become_unreadable_after_the_recipe_was_loaded_keep_the_line_from_starting(tmp_path):
@@ -137,7 +139,7 @@ def test_labels_that_become_unreadable_after_the_recipe_was_loaded_keep_the_line
     from core.recipe import load_recipe
 
     masters = tmp_path / "masters"
-    shutil.copytree(FIXTURE, masters)
+    shutil.copytree(MASTERS, masters)
     loaded = load_recipe(DEMO, overrides=[f"verify.path={masters}", f"results.path={tmp_path / 'results'}",
                                           f"outputs=[{{plugin: log, settings: {{file: {tmp_path / 'rejects.log'}}}}}]"])
     (masters / "labels" / "000006.json").write_text("{")
@@ -155,7 +157,7 @@ class TestRecipe:
 
     def test_a_master_image_cut_short_is_named(self, tmp_path):
         masters = tmp_path / "masters"
-        shutil.copytree(FIXTURE, masters)
+        shutil.copytree(MASTERS, masters)
         image = masters / "right" / "000003.jpg"
         image.write_bytes(image.read_bytes()[:1000])
         out = cli_here("validate", str(DEMO), "--set", f"verify.path={masters}")
@@ -163,7 +165,7 @@ class TestRecipe:
 
     def test_a_frame_without_labels_is_named(self, tmp_path):
         masters = tmp_path / "masters"
-        shutil.copytree(FIXTURE, masters)
+        shutil.copytree(MASTERS, masters)
         (masters / "labels" / "000004.json").unlink()
         out = cli_here("validate", str(DEMO), "--set", f"verify.path={masters}")
         assert out.returncode == 2 and "verify.path" in out.stderr and "000004" in out.stderr
@@ -171,7 +173,7 @@ class TestRecipe:
     def test_labels_without_their_frames_images_are_named(self, tmp_path):
         """Their part would not be inspected, and the check would vouch for it all the same."""
         masters = tmp_path / "masters"
-        shutil.copytree(FIXTURE, masters)
+        shutil.copytree(MASTERS, masters)
         shutil.copy(masters / "labels" / "000003.json", masters / "labels" / "000099.json")
         out = cli_here("validate", str(DEMO), "--set", f"verify.path={masters}")
         assert out.returncode == 2
@@ -180,12 +182,12 @@ class TestRecipe:
 
     def test_master_parts_none_of_which_is_defective_are_warned_of(self, tmp_path):
         masters = tmp_path / "masters"
-        shutil.copytree(FIXTURE, masters)
+        shutil.copytree(MASTERS, masters)
         for path in (masters / "labels").glob("*.json"):
             labels = json.loads(path.read_text())
             labels["defects"] = [dict(d, deviation_mm=0.1) for d in labels["defects"]]
             path.write_text(json.dumps(labels))
         out = cli_here("validate", str(DEMO), "--set", f"verify.path={masters}")
         assert out.returncode == 0
-        assert "verify.path: warning: none of the 10 parts" in out.stderr
+        assert "verify.path: warning: none of the 4 parts" in out.stderr
         assert "verify.path" not in cli_here("validate", str(DEMO)).stderr

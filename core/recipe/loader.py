@@ -316,8 +316,9 @@ def _check_verify_path(loaded: LoadedRecipe, locator: _Locator) -> None:
     frames = {f.frame_id for f in list_frames(folder)}
     orphans = sorted(p.name for p in (folder / "labels").glob("*.json") if p.stem not in frames)
     if orphans:
+        more = f" (and {len(orphans) - 1} more labels)" if len(orphans) > 1 else ""
         raise locator.error(("verify", "path"), f"{folder / 'labels' / orphans[0]}: no left/ or right/ image of that "
-                                               f"frame" + (f" (and {len(orphans) - 1} more labels)" if len(orphans) > 1 else ""))
+                                               f"frame{more}")
 
 
 def _check_finite(node: Any, key: KeyPath, locator: _Locator) -> None:

@@ -634,8 +634,11 @@ def run(
     # runs that never finished (the process was killed, the power cut): their rejects may not have fired
     record(store.recover_crashed(unfinished, run_id))
 
-    pipeline.warm_up()
-    verified = _verify(loaded, registry, pipeline, rule, device)
+    try:
+        pipeline.warm_up()
+        verified = _verify(loaded, registry, pipeline, rule, device)
+    except KeyboardInterrupt:  # before the first plate: the run still closes its outputs and is finalised
+        interrupted, verified = True, None
     if verified is not None:
         record([verified])
     if on_start:
@@ -679,7 +682,7 @@ def run(
             yield item
 
     # a line whose master parts passed a defective one reads no plate: its run ends here, with the alarm
-    frames_in = watched(iter(()) if isinstance(verified, Alarm) else pipeline.camera.frames())
+    frames_in = watched(iter(()) if interrupted or isinstance(verified, Alarm) else pipeline.camera.frames())
     source = (DetectAhead(frames_in, lambda item: detect_frame(item, pipeline, recipe), max_frames)
               if recipe.stereo.concurrent else OneAtATime(frames_in, max_frames))
 
@@ -850,6 +853,7 @@ def _verify(loaded: LoadedRecipe, registry: Registry, pipeline: Pipeline, rule: 
         finally:
             camera.close()
     except Exception as exc:  # an unreadable recording vouches for nothing: the line does not start on it
+        raise_if_interrupted(exc)
         return Alarm("verify", f"master parts {folder} could not be inspected ({exc}): the run does not start",
                      time.time(), None, "verify")
     if checked.failed:

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import json
 import shutil
+import signal
 import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import cv2
 import pytest
@@ -191,3 +196,39 @@ class TestRecipe:
         assert out.returncode == 0
         assert "verify.path: warning: none of the 4 parts" in out.stderr
         assert "verify.path" not in cli_here("validate", str(DEMO)).stderr
+
+
+def test_ctrl_c_while_the_master_parts_are_inspected_ends_the_run_finished_without_a_plate(tmp_path):
+    """Ctrl-C before the first plate (the model loading, the master parts) went past the run's finalising: its
+    outputs were not closed and the store kept it as running, a crash for the next run to report."""
+    masters = tmp_path / "masters"
+    for copy in range(3):  # 30 master parts: several seconds to interrupt them in
+        for frame in sorted((FIXTURE / "left").glob("*.jpg")):
+            name = f"{copy}{frame.stem}"
+            for eye in ("left", "right"):
+                (masters / eye).mkdir(parents=True, exist_ok=True)
+                shutil.copy(FIXTURE / eye / frame.name, masters / eye / f"{name}.jpg")
+            (masters / "labels").mkdir(exist_ok=True)
+            shutil.copy(FIXTURE / "labels" / f"{frame.stem}.json", masters / "labels" / f"{name}.json")
+    shutil.copy(FIXTURE / "calib.yaml", masters / "calib.yaml")
+    results = tmp_path / "results"
+    exe = Path(sys.executable).parent / "inspect"
+    proc = subprocess.Popen([str(exe), "run", str(DEMO), "--quiet", "--set", f"results.path={results}",
+                             "--set", f"outputs=[{{plugin: log, settings: {{file: {tmp_path / 'rejects.log'}}}}}]",
+                             "--set", f"verify.path={masters}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None:  # the run is in the store: its start is under way
+        try:
+            with sqlite3.connect(results / "results.db", timeout=1) as db:
+                if db.execute("SELECT COUNT(*) FROM runs").fetchone()[0]:
+                    break
+        except sqlite3.Error:
+            pass
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "Traceback" not in err, out + err
+    db = sqlite3.connect(results / "results.db")
+    assert db.execute("SELECT status, exit_code FROM runs").fetchone() == ("finished", 130)
+    assert db.execute("SELECT COUNT(*) FROM parts").fetchone()[0] == 0

@@ -848,7 +848,7 @@ def _verify(loaded: LoadedRecipe, registry: Registry, pipeline: Pipeline, rule: 
         try:
             checked = verification.verify(
                 folder, camera.frames(),
-                lambda item: inspect_frame(item, f"master-{item.frame_id}", masters, loaded, rule).part.verdict.status,
+                lambda item: inspect_frame(item, f"master-{item.frame_id}", masters, loaded, rule).part.verdict,
                 loaded.recipe.decision)
         finally:
             camera.close()

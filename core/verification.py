@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from core.decision import CLEAR_CUT_MM, rule_applies
-from core.types import FrameError, Status, StereoFrame
+from core.types import FrameError, Status, StereoFrame, Verdict
 from drivers.sequence_folder import list_frames, read_labels
 
 DEPTH_QUANTITIES = ("deviation_mm", "distance_mm")
@@ -60,11 +60,13 @@ def _beyond(value: float, op: str, threshold: float) -> float:
 
 @dataclass(frozen=True)
 class MasterPart:
-    """One master part: its frame, what its labels call for (None: near a limit) and the verdict it got."""
+    """One master part: its frame, what its labels call for (None: near a limit), the verdict it got and that
+    verdict's first reason."""
 
     frame_id: str
     known: Status | None
     got: Status
+    why: str = ""
 
     @property
     def passed_defective(self) -> bool:
@@ -81,7 +83,18 @@ class Verification:
 
     @property
     def failed(self) -> bool:
-        return any(p.passed_defective for p in self.parts)
+        """A defective master part passed, or none of them was measured (all ERROR): then nothing showed that
+        the detector finds a defect (a blind one's parts are ERROR too where their plate lies outside the
+        working distance)."""
+        return any(p.passed_defective for p in self.parts) or bool(self._defective) and not self._measured
+
+    @property
+    def _defective(self) -> list[MasterPart]:
+        return [p for p in self.parts if p.known is Status.REJECT]
+
+    @property
+    def _measured(self) -> list[MasterPart]:
+        return [p for p in self._defective if p.got in (Status.REJECT, Status.FLAG)]
 
     def _count(self, known: Status, got: tuple[Status, ...]) -> tuple[int, int]:
         of = [p for p in self.parts if p.known is known]
@@ -99,8 +112,14 @@ class Verification:
                 + (f", {near} near a limit (not counted)" if near else ""))
 
     def refusal(self) -> str:
-        """Why the run does not start: the defective master parts that passed."""
+        """Why the run does not start: the defective master parts that passed, or that none was measured."""
         passed = [p.frame_id for p in self.parts if p.passed_defective]
+        if not passed:
+            first = self._defective[0]
+            said = first.why if first.why.startswith(f"frame {first.frame_id}") else \
+                f"frame {first.frame_id}: {first.why}"
+            return (f"none of the {len(self._defective)} defective master parts of {self.folder} could be inspected "
+                    f"({said}): nothing shows that the line finds a defect; the run does not start")
         shown = ", ".join(passed[:5]) + (f" and {len(passed) - 5} more" if len(passed) > 5 else "")
         return (f"{len(passed)} master part{'s' if len(passed) > 1 else ''} with a defect beyond a limit passed "
                 f"(frame{'s' if len(passed) > 1 else ''} {shown} of {self.folder}): the line would pass such "
@@ -116,10 +135,14 @@ def known_verdicts(folder: Path, decision) -> dict[str, Status | None]:
 
 
 def verify(folder: Path, frames: Iterable[StereoFrame | FrameError],
-           inspect: Callable[[StereoFrame | FrameError], Status], decision) -> Verification:
+           inspect: Callable[[StereoFrame | FrameError], Verdict], decision) -> Verification:
     """The master parts of the labelled sequence ``folder``, its ``frames`` (as its camera delivers them) each
     ``inspect``-ed to a verdict and held against what its labels call for under ``decision``.
     ``SequenceError`` naming the file where a frame's labels cannot be read."""
     known = known_verdicts(folder, decision)
-    return Verification(str(folder), tuple(MasterPart(item.frame_id, known.get(item.frame_id), inspect(item))
-                                           for item in frames))
+    parts = []
+    for item in frames:
+        verdict = inspect(item)
+        parts.append(MasterPart(item.frame_id, known.get(item.frame_id), verdict.status,
+                                verdict.reasons[0] if verdict.reasons else ""))
+    return Verification(str(folder), tuple(parts))

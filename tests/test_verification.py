@@ -16,7 +16,7 @@ import pytest
 from conftest import ROOT, cli, cli_here
 
 from core.recipe.schema import DecisionSection
-from core.types import Status
+from core.types import Status, Verdict
 from core.verification import MasterPart, Verification, known_verdict, known_verdicts, verify
 
 DEMO = ROOT / "recipes" / "steel_plate.yaml"
@@ -84,6 +84,20 @@ class TestVerification:
         assert failing.failed
         assert failing.refusal().startswith("1 master part with a defect beyond a limit passed (frame 6 of m)")
 
+    def test_defective_master_parts_none_of_which_was_measured_fail_the_check(self):
+        """A blind detector's parts are ERROR where their plate lies outside the working distance: errors
+        alone show nothing of the detector."""
+        errors = Verification("m", (MasterPart("1", Status.REJECT, Status.ERROR, "frame 1: no defect found, but ..."),
+                                    MasterPart("2", Status.REJECT, Status.ERROR, "no defect found"),
+                                    MasterPart("3", Status.PASS, Status.PASS)))
+        assert errors.failed
+        assert errors.refusal() == ("none of the 2 defective master parts of m could be inspected (frame 1: no defect "
+                                    "found, but ...): nothing shows that the line finds a defect; the run does not "
+                                    "start")
+        one_measured = Verification("m", errors.parts + (MasterPart("4", Status.REJECT, Status.FLAG),))
+        assert not one_measured.failed
+        assert not Verification("m", (MasterPart("3", Status.PASS, Status.ERROR),)).failed  # nothing to show
+
     def test_the_refusal_names_the_first_five_frames(self):
         parts = tuple(MasterPart(f"{i:06d}", Status.REJECT, Status.PASS) for i in range(7))
         said = Verification("m", parts).refusal()
@@ -98,11 +112,11 @@ class TestVerify:
     def test_each_frame_is_held_against_its_labels(self):
         known = known_verdicts(FIXTURE, BOTH_WAYS)
         frames = [type("Frame", (), {"frame_id": frame_id})() for frame_id in sorted(known)]
-        blind = verify(FIXTURE, frames, lambda item: Status.PASS, BOTH_WAYS)
+        blind = verify(FIXTURE, frames, lambda item: Verdict(Status.PASS), BOTH_WAYS)
         assert blind.failed
         assert {p.frame_id for p in blind.parts if p.passed_defective} == {
             f for f, status in known.items() if status is Status.REJECT}
-        assert not verify(FIXTURE, frames, lambda item: Status.REJECT, BOTH_WAYS).failed
+        assert not verify(FIXTURE, frames, lambda item: Verdict(Status.REJECT), BOTH_WAYS).failed
 
 
 def _run_demo(tmp_path, *sets: str):
@@ -125,6 +139,16 @@ def test_a_detector_made_blind_by_its_confidence_keeps_the_line_from_starting(tm
     assert db.execute("SELECT exit_code FROM runs").fetchone()[0] == 4
     report = cli_here("report", str(tmp_path / "results")).stdout
     assert "run 1 did not start: 3 master parts with a defect beyond a limit passed" in report
+
+
+def test_master_parts_all_in_error_keep_the_line_from_starting(tmp_path):
+    """A blind detector on plates outside the working distance: every master part an ERROR, which had counted
+    as rejected."""
+    out = _run_demo(tmp_path, "--set", "detector.confidence=0.9", "--set", "stereo.working_distance_mm=[600,700]")
+    assert out.returncode == 4, out.stdout + out.stderr
+    assert (f"ALARM verify: none of the 3 defective master parts of {MASTERS} could be inspected (frame 000003: no "
+            f"defect found, but the images show the plate at 98 px of disparity") in out.stdout
+    assert "parts 0  passed 0" in out.stdout
 
 
 def test_a_master_part_whose_image_cannot_be_decoded_is_counted_an_error_not_a_pass(tmp_path):

@@ -179,6 +179,11 @@ def test_labels_that_become_unreadable_after_the_recipe_was_loaded_keep_the_line
 
 
 class TestRecipe:
+    def test_validate_says_how_many_master_parts_and_how_many_defective(self):
+        assert cli_here("validate", str(DEMO)).stdout.rstrip().endswith(", master parts 4 (3 defective))")
+        assert cli_here("validate", str(DEMO), "--set", "verify.path=null").stdout.rstrip().endswith(
+            ", no master parts)")
+
     def test_a_missing_folder_is_named_at_its_key(self, tmp_path):
         out = cli_here("validate", str(DEMO), "--set", f"verify.path={tmp_path / 'nope'}")
         assert out.returncode == 2

@@ -310,7 +310,8 @@ def validate_command(recipe: Path, overrides: tuple[str, ...]) -> None:
         fail(loaded.describe(("stereo",), memory))
     click.echo(
         f"{recipe}: ok (recipe {r.name!r}, camera {r.camera.plugin}, stereo {r.stereo.backend}, detector {r.detector.plugin}, "
-        f"{len(r.decision.rules)} rules, outputs {', '.join(o.plugin for o in r.outputs) or 'none'})"
+        f"{len(r.decision.rules)} rules, outputs {', '.join(o.plugin for o in r.outputs) or 'none'}"
+        f"{_master_parts_said(loaded)})"
     )
     for line in recipe_warnings(loaded):
         click.echo(line, err=True)
@@ -345,6 +346,18 @@ def recipe_warnings(loaded) -> list[str]:
             + _guard_band_warnings(loaded) + _image_check_warnings(loaded) + _output_warnings(loaded)
             + _output_timing_warnings(loaded) + _thread_warnings(loaded) + _rule_warnings(loaded)
             + _verify_warnings(loaded) + _plugin_warnings(loaded))
+
+
+def _master_parts_said(loaded) -> str:
+    """What ``verify.path`` holds, for ``validate``'s line: ``, master parts N (D defective)``, or that there are
+    none."""
+    from core.types import Status
+    from core.verification import known_verdicts
+
+    if loaded.recipe.verify.path is None:
+        return ", no master parts"
+    known = known_verdicts(loaded.resolve(loaded.recipe.verify.path), loaded.recipe.decision).values()
+    return f", master parts {len(known)} ({sum(status is Status.REJECT for status in known)} defective)"
 
 
 def _verify_warnings(loaded) -> list[str]:

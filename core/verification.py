@@ -30,15 +30,18 @@ def known_verdict(labels: dict, decision) -> Status | None:
     ``distance_mm`` where known) call for under ``decision`` (a recipe's ``DecisionSection``), counting only
     its depth rules: REJECT where a defect lies CLEAR_CUT_MM or more beyond a limit, PASS where every defect
     lies that far inside every limit that applies to it, None where neither is clear (a defect near a limit,
-    one whose truth lacks a quantity a rule needs)."""
-    rules = [r for r in decision.rules if r.quantity in DEPTH_QUANTITIES]
+    one whose truth lacks a quantity a rule needs, one only rules on other quantities cover). A defect no rule
+    covers is REJECT where the decision rejects unruled defects."""
     clear_pass = True
     for defect in labels.get("defects", []):
-        applying = [r for r in rules if rule_applies(r, defect["class"])]
-        if not applying:
+        ruled = [r for r in decision.rules if rule_applies(r, defect["class"])]
+        if not ruled:
             if decision.reject_unruled_defects:
                 return Status.REJECT
             continue
+        applying = [r for r in ruled if r.quantity in DEPTH_QUANTITIES]
+        if len(applying) < len(ruled):  # a confidence or area rule: the labels do not say how it decides
+            clear_pass = False
         for rule in applying:
             value = defect.get(rule.quantity)
             if value is None:

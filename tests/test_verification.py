@@ -53,13 +53,19 @@ class TestKnownVerdict:
     def test_a_truth_without_the_ruled_quantity_decides_nothing(self):
         assert known_verdict(_labels(("pit", None)), BOTH_WAYS) is None
 
-    def test_rules_of_other_classes_and_of_other_quantities_do_not_apply(self):
-        decision = DecisionSection(rules=[
-            {"class": "scratches", "quantity": "deviation_mm", "op": ">", "threshold": 1.0},
-            {"class": "any", "quantity": "confidence", "op": ">", "threshold": 0.5},
-        ])
+    def test_rules_of_other_classes_do_not_apply(self):
+        decision = DecisionSection(rules=[{"class": "scratches", "quantity": "deviation_mm", "op": ">",
+                                           "threshold": 1.0}])
         assert known_verdict(_labels(("pit", 3.0)), decision) is Status.PASS
         assert known_verdict(_labels(("scratches", 3.0)), decision) is Status.REJECT
+
+    def test_a_rule_on_another_quantity_leaves_its_defect_undecided_by_the_labels(self):
+        decision = DecisionSection(rules=[
+            {"class": "scratches", "quantity": "deviation_mm", "op": ">", "threshold": 1.0},
+            {"class": "pit", "quantity": "confidence", "op": ">", "threshold": 0.5},
+        ], reject_unruled_defects=True)
+        assert known_verdict(_labels(("pit", 0.1)), decision) is None  # ruled, on its confidence: not unruled
+        assert known_verdict(_labels(("pit", 0.1), ("scratches", 3.0)), decision) is Status.REJECT
 
     def test_an_unruled_class_is_defective_where_the_recipe_rejects_unruled_defects(self):
         decision = DecisionSection(rules=[{"class": "scratches", "quantity": "deviation_mm", "op": ">",

@@ -20,7 +20,7 @@ from core import engine
 from core.recipe import load_recipe
 from core.registry import Registry, make_manager
 from core.store import ResultsStore
-from core.types import Alarm
+from core.types import Alarm, OutputEvent
 from core.view.app import create_app
 from core.view.feed import LiveFeed
 from core.view.queries import StoreReader, counters
@@ -62,6 +62,23 @@ def test_review_state_counts_verdict_filmstrip_and_alarms(results):
         ("R1-000004", "ERROR"), ("R1-000003", "REJECT"), ("R1-000001", "REJECT")]
     assert state["filmstrip"][1]["classes"] == ["pit"]
     assert [a["message"] for a in state["alarms"]] == ["PLC 127.0.0.1:5020 unreachable"]
+
+
+def test_the_runs_master_part_check_is_in_the_state(results):
+    client = TestClient(create_app(results))
+    assert client.get("/api/state").json()["master_parts"] is None  # the recipe named none
+    store = ResultsStore(results)
+    checked = store.start_run("r", "h", "r.yaml", None, {}, ["log"])
+    store.record_events(checked, [OutputEvent("verify", None, "master parts", "delivered", time.time(),
+                                              "master parts m: 4 inspected, 3 of 3 defective ones rejected")])
+    refused = store.start_run("r", "h", "r.yaml", None, {}, ["log"])
+    store.record_events(refused, [Alarm("verify", "2 master parts with a defect beyond a limit passed", time.time(),
+                                        None, "verify")])
+    store.close()
+    assert client.get(f"/api/state?run={checked}").json()["master_parts"] == {
+        "started": True, "text": "master parts m: 4 inspected, 3 of 3 defective ones rejected"}
+    assert client.get(f"/api/state?run={refused}").json()["master_parts"] == {
+        "started": False, "text": "2 master parts with a defect beyond a limit passed"}
 
 
 @pytest.mark.parametrize("method, url", [("get", "/api/parts?run=99999999999999999999"), ("get", "/api/parts?run=-1"),

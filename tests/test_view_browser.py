@@ -137,6 +137,7 @@ def test_live_page_follows_the_run_and_opens_a_reject(tmp_path, plane_sequence, 
         assert _number(page, "#count-rejected") == PITS.count(6.0)
         assert _number(page, "#count-passed") == PITS.count(0.0)
         assert page.locator(".film-item").count() == PITS.count(6.0)
+        assert page.text_content("#masters") == "no master parts"  # the recipe names none
         page.screenshot(path=str(tmp_path / "live.png"))
         # acknowledging clears every alarm from the page
         for _ in range(50):
@@ -204,6 +205,8 @@ def test_demo_recipe_page(tmp_path, browser):
         page.wait_for_function("() => document.getElementById('run-state').textContent.includes('finished')", timeout=120000)
         page.wait_for_function("() => document.getElementById('frame').naturalWidth === 672")
         assert _number(page, "#count-parts") == 10
+        masters = page.locator("#masters")  # checked before the first plate, its tally on hover
+        assert masters.text_content() == "master parts ✓" and "3 of 3 defective ones rejected" in masters.get_attribute("title")
         if page.locator(".film-item").count():
             page.wait_for_function("() => [...document.querySelectorAll('.film-item img')].every(i => i.naturalWidth === 160)")
         page.screenshot(path=os.environ.get("VIEW_SCREENSHOT") or str(tmp_path / "demo.png"), full_page=True)

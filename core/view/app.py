@@ -94,6 +94,7 @@ def create_app(results: Path, feed: LiveFeed | None = None, *, token: str | None
             "frame_seq": feed.seq if feed is not None else None,
             "filmstrip": reader.filmstrip(run_id),
             "alarms": reader.alarms(run_id),
+            "master_parts": reader.master_parts(run_id),
             "max_fps": max_fps,
             "time": time.time(),
         }

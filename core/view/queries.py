@@ -115,6 +115,18 @@ class StoreReader:
         part["output_events"] = [dict(e) for e in events]
         return part
 
+    def master_parts(self, run_id: int | None) -> dict | None:
+        """The run's master-part check (``store.master_part_checks``): {"started": whether the line started on
+        it, "text": its tally or the alarm}; None where the run had none."""
+        with self._db() as db:
+            if db is None or run_id is None:
+                return None
+            checks = store.master_part_checks(db, run_id)
+        if not checks:
+            return None
+        _, started, text = checks[-1]
+        return {"started": started, "text": text}
+
     def alarms(self, run_id: int | None) -> list[dict]:
         """The run's alarms not yet acknowledged, newest first."""
         with self._db() as db:

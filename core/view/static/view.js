@@ -63,6 +63,11 @@ function render(s) {
   $("recipe").textContent = s.recipe || "";
   $("mode").textContent = s.mode === "live" ? "LIVE" : "REVIEW";
   $("run-state").textContent = s.run_id ? `run ${s.run_id} · ${s.state}` : s.state;
+  // the master parts checked before the first plate (verify.path): the tally, or why the line did not start
+  const m = s.master_parts;
+  $("masters").textContent = m ? (m.started ? "master parts ✓" : "master parts failed") : "no master parts";
+  $("masters").className = "tag" + (m ? (m.started ? " ok" : " bad") : "");
+  $("masters").title = m ? m.text : "the recipe names no master parts (verify.path)";
   if (first) {
     if (s.mode === "live") pullFrames(); else $("frame-note").textContent = "review of a finished run: click a part to see it";
   }

@@ -5,8 +5,8 @@ too high, an image shrunk below what the model can see, the wrong model. Nothing
 failure from a run of good plates. A plant's answer is the master part: a plate with known defects put
 through the machine at the start, which must come out rejected. ``verify.path`` names a recording of such
 parts with each defect's true depth in its labels; the engine inspects them as parts (detector, stereo,
-depth and the recipe's rules) before the first plate, and a defective one that passes stops the run before
-it starts (``core.engine.run``).
+depth and the recipe's rules) before the first plate, and a defective one that passes, or defective ones
+none of which could be measured, stop the run before it starts (``core.engine.run``).
 
 A part is known defective when a labelled defect lies beyond one of the recipe's depth limits by CLEAR_CUT_MM
 or more, and known good when every labelled defect lies inside every limit by as much; a part near a limit

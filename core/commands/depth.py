@@ -43,14 +43,11 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     boxes of the recipe's detector that match the labels, and counts the labelled defects it missed. The
     floor stays the true box's."""
     from core import depth_eval as ev
-    from core.commands.inspection import _load, fail
+    from core.commands.inspection import _load, fail, replay_of
     from core.depth import warm_up
     from core.engine import SetupError, StageFailed, command_threads, make_plugin, plugin_context
     from core.registry import default_registry
     from drivers.sequence_folder import SequenceError, labelled_sequence_problem, read_labels
-    from pydantic import ValidationError
-
-    from core.recipe.loader import first_problem
 
     overrides = list(overrides)
     if backend is not None:
@@ -76,7 +73,6 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
                              loaded.plugin_settings["stereo"])
     except SetupError as exc:
         fail(str(exc))
-    replay = registry.get("camera", "replay")
     warm_up()  # the compiled kernels loaded before the first defect: its time would count them
     rows, timings = [], []
     unscored = 0  # labelled defects whose truth has no distance or deviation
@@ -91,12 +87,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
         except SetupError as exc:
             fail(str(exc))
     for folder in sequences:
-        try:
-            camera = replay.spec.factory({"path": str(folder.resolve())}, ctx)
-        except ValidationError as exc:
-            fail(f"{folder}: {first_problem(exc, replay.spec.settings_model)[1]}")
-        except (SequenceError, ValueError) as exc:
-            fail(f"{folder}: {exc}")
+        camera = replay_of(folder, registry, ctx)
         for frame in camera.frames():
             if not hasattr(frame, "left"):
                 said = frame.message if frame.frame_id in frame.message else f"frame {frame.frame_id}: {frame.message}"

@@ -25,6 +25,23 @@ def fail(message: str, code: int = 2) -> None:
     sys.exit(code)
 
 
+def replay_of(folder: Path, registry, ctx):
+    """The ``replay`` camera over the sequence ``folder``; a one-line error naming the folder where it cannot
+    be opened (its calibration, its images' layout)."""
+    from pydantic import ValidationError
+
+    from core.recipe.loader import first_problem
+    from drivers.sequence_folder import SequenceError
+
+    replay = registry.get("camera", "replay")
+    try:
+        return replay.spec.factory({"path": str(folder.resolve())}, ctx)
+    except ValidationError as exc:
+        fail(f"{folder}: {first_problem(exc, replay.spec.settings_model)[1]}")
+    except (SequenceError, ValueError) as exc:
+        fail(f"{folder}: {exc}")
+
+
 def _load(recipe: Path, overrides: tuple[str, ...], options: dict[str, str] | None = None):
     from core.recipe import RecipeError, load_recipe
 

@@ -31,28 +31,18 @@ def draft_labels_command(folder: Path, recipe: Path, overrides: tuple[str, ...])
     """Draft labels/FRAME.json for each frame of FOLDER (master parts recorded with `inspect camera record`)
     that has none: the recipe's detector's boxes, each defect's deviation_mm left null. Frames already
     labelled are left as they are; nothing is written if a frame cannot be read or detected on."""
-    from pydantic import ValidationError
-
-    from core.commands.inspection import _load, fail
+    from core.commands.inspection import _load, fail, replay_of
     from core.engine import SetupError, build_detector, kept_detections, plugin_context
     from core.interrupts import raise_if_interrupted
-    from core.recipe.loader import first_problem
     from core.registry import default_registry
     from drivers.file_writes import write_text
-    from drivers.sequence_folder import SequenceError
 
     if not folder.is_dir():
         fail(f"{folder}: not a sequence folder")
     loaded = _load(recipe, overrides)
     registry = default_registry()
     ctx = plugin_context(loaded, "cpu")
-    replay = registry.get("camera", "replay")
-    try:
-        camera = replay.spec.factory({"path": str(folder.resolve())}, ctx)
-    except ValidationError as exc:
-        fail(f"{folder}: {first_problem(exc, replay.spec.settings_model)[1]}")
-    except (SequenceError, ValueError) as exc:
-        fail(f"{folder}: {exc}")
+    camera = replay_of(folder, registry, ctx)
     try:
         detector = build_detector(loaded, registry, ctx)
     except SetupError as exc:

@@ -26,7 +26,10 @@ decision:
     - {class: any, quantity: deviation_mm, op: ">", threshold: 1.0}
 outputs:
   - plugin: log
-"""
+verify:
+  path: MASTERS
+""".replace("MASTERS", str(ROOT / "sim_fixtures" / "steel_plate_masters"))  # named, as a line's recipe names them
+# (validate reads their labels only; run would inspect them, which 64 px of disparity cannot reach)
 
 
 @pytest.fixture

@@ -220,6 +220,14 @@ class TestRecipe:
         assert out.stderr.strip().endswith(f"verify.path: {masters / 'labels' / '000099.json'}: no left/ or right/ "
                                            f"image of that frame")
 
+    def test_a_recipe_without_master_parts_is_warned_of(self):
+        out = cli_here("validate", str(DEMO), "--set", "verify.path=null")
+        assert out.returncode == 0
+        assert out.stderr.strip().endswith("verify.path: warning: no master parts: a detector that finds nothing "
+                                           "(weights that score low, a confidence set too high) passes every part "
+                                           "unnoticed; name a recording of known parts (docs/recipe-reference.md, "
+                                           "verify)")
+
     def test_master_parts_none_of_which_is_defective_are_warned_of(self, tmp_path):
         masters = tmp_path / "masters"
         shutil.copytree(MASTERS, masters)

@@ -120,14 +120,15 @@ def run_command(recipe: Path, overrides: tuple[str, ...], device: str, max_frame
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
     console = LineConsole(highlight=False, soft_wrap=True)
-    for line in recipe_warnings(loaded):  # what inspect validate would say: the line runs as the recipe says
-        click.echo(line, err=True)
     if token is not None and len(token) < 8:
         fail("--token: use at least 8 characters")
     feed = server = None
     settings = loaded.recipe.view
     if keep_serving and not (view or settings.enabled):
         fail("--keep-serving: there is no page to keep up (add --view or set view.enabled)")
+    # what inspect validate would say, once the options are known to be usable: the line runs as the recipe says
+    for line in recipe_warnings(loaded):
+        click.echo(line, err=True)
     if view or settings.enabled:
         from core.commands.view import start_view
         from core.view.feed import LiveFeed
@@ -378,13 +379,17 @@ def _master_parts_said(loaded) -> str:
 
 
 def _verify_warnings(loaded) -> list[str]:
-    """A line where the master parts (``verify.path``) hold no part that the recipe's limits clearly reject:
-    such parts pass the check whatever the detector finds, and vouch for nothing."""
+    """A line where the recipe names no master parts (``verify.path``), or where they hold no part that the
+    recipe's limits clearly reject: such parts pass the check whatever the detector finds, and vouch for
+    nothing."""
     from core.types import Status
     from core.verification import known_verdicts
 
     if loaded.recipe.verify.path is None:
-        return []
+        return [loaded.describe(("verify", "path"), "warning: no master parts: a detector that finds nothing (weights "
+                                                   "that score low, a confidence set too high) passes every part "
+                                                   "unnoticed; name a recording of known parts (docs/recipe-reference.md, "
+                                                   "verify)")]
     folder = loaded.resolve(loaded.recipe.verify.path)
     known = known_verdicts(folder, loaded.recipe.decision)
     if any(status is Status.REJECT for status in known.values()):

@@ -37,19 +37,14 @@ def _read(path: Path) -> dict:
         raise ValueError(str(exc)) from None
 
 
-def _labels(sequence: Path) -> list[tuple[Path, str, dict]]:
-    """(file, frame id, labels) of every ``labels/*.json``; one-line errors name the file."""
+def read_frame_labels(sequence: Path) -> list[tuple[Path, str, dict]]:
+    """(file, frame id, labels) of every ``labels/*.json``; one-line errors name the file. Its boxes are checked
+    against their image, once that is read, by ``check_frame_boxes``."""
     paths = sorted((sequence / "labels").glob("*.json"))
     if not paths:
         raise ValueError(f"{sequence / 'labels'}: no frame labels")
     # the file's own name when the labels do not say (the sequence's frames are named by it)
     return [(path, str(label.get("frame_id", path.stem)), label) for path, label in ((p, _read(p)) for p in paths)]
-
-
-def read_frame_labels(sequence: Path) -> list[tuple[Path, str, dict]]:
-    """(file, frame id, labels) of every ``labels/*.json``; one-line errors name the file. Its boxes are checked
-    against their image, once that is read, by ``check_frame_boxes``."""
-    return _labels(sequence)
 
 
 def check_frame_boxes(path: Path, label: dict, shape: tuple[int, int]) -> None:
@@ -75,7 +70,7 @@ def load_labelled_frames(sequence: Path) -> list[tuple[str, np.ndarray, list[dic
     """(frame id, left image, labelled defects) for every frame of ``sequence``, each labelled box checked
     against its image's size (one outside it would count as a defect the detector missed)."""
     frames = []
-    for path, frame_id, label in _labels(sequence):
+    for path, frame_id, label in read_frame_labels(sequence):
         image = read_left(sequence, frame_id)
         check_frame_boxes(path, label, image.shape[:2])
         frames.append((frame_id, image, label["defects"]))

@@ -327,3 +327,7 @@ class TestDraftLabels:
         assert not (folder / "labels").exists()
         assert cli_here("data", "draft-labels", str(tmp_path / "nope")).stderr.strip() == \
             f"error: {tmp_path / 'nope'}: not a sequence folder"
+        for eye in ("left", "right"):  # a recording without frames
+            shutil.rmtree(folder / eye)
+            (folder / eye).mkdir()
+        assert cli_here("data", "draft-labels", str(folder)).stderr.strip() == f"error: {folder}: no frames in left/"

@@ -38,8 +38,8 @@ def replay_of(folder: Path, registry, ctx):
         return replay.spec.factory({"path": str(folder.resolve())}, ctx)
     except ValidationError as exc:
         fail(f"{folder}: {first_problem(exc, replay.spec.settings_model)[1]}")
-    except (SequenceError, ValueError) as exc:
-        fail(f"{folder}: {exc}")
+    except (SequenceError, ValueError) as exc:  # the camera's own message may name the folder already
+        fail(str(exc) if str(folder.resolve()) in str(exc) else f"{folder}: {exc}")
 
 
 def _load(recipe: Path, overrides: tuple[str, ...], options: dict[str, str] | None = None):

@@ -65,16 +65,13 @@ def draft_labels_command(folder: Path, recipe: Path, overrides: tuple[str, ...])
         if problem is not None:
             fail(f"{folder}: frame {frame.frame_id}: {problem}")
         drafts[frame.frame_id] = draft(frame.frame_id, found)
-    camera.close()
-    if not drafts and not kept:
-        fail(f"{folder}: no frames in left/")
-    if drafts:
-        labels.mkdir(exist_ok=True)
-    for frame_id, labelled in drafts.items():
-        write_text(labels / f"{frame_id}.json", json.dumps(labelled, indent=2) + "\n")
+    camera.close()  # a folder without frames its factory refused
     if not drafts:
         click.echo(f"{labels}: every frame is labelled already; nothing written")
         return
+    labels.mkdir(exist_ok=True)
+    for frame_id, labelled in drafts.items():
+        write_text(labels / f"{frame_id}.json", json.dumps(labelled, indent=2) + "\n")
     boxes = sum(len(d["defects"]) for d in drafts.values())
     click.echo(f"wrote {len(drafts)} labels ({boxes} boxes) to {labels}"
                + (f"; {len(kept)} frames already labelled, left as they were" if kept else ""))

@@ -366,37 +366,41 @@ def recipe_warnings(loaded) -> list[str]:
             + _verify_warnings(loaded) + _plugin_warnings(loaded))
 
 
-def _master_parts_said(loaded) -> str:
-    """What ``verify.path`` holds, for ``validate``'s line: ``, master parts N (D defective)``, or that there are
-    none."""
-    from core.types import Status
+def _master_verdicts(loaded):
+    """What the labels of each master part (``verify.path``) call for under the recipe's rules, by frame
+    (``core.verification.known_verdicts``); None where the recipe names no master parts."""
     from core.verification import known_verdicts
 
     if loaded.recipe.verify.path is None:
+        return None
+    return known_verdicts(loaded.resolve(loaded.recipe.verify.path), loaded.recipe.decision)
+
+
+def _master_parts_said(loaded) -> str:
+    """What ``verify.path`` holds, for ``validate``'s line: ``, master parts N (D defective)``, or that there are
+    none."""
+    known = _master_verdicts(loaded)
+    if known is None:
         return ", no master parts"
-    known = known_verdicts(loaded.resolve(loaded.recipe.verify.path), loaded.recipe.decision).values()
-    return f", master parts {len(known)} ({sum(status is Status.REJECT for status in known)} defective)"
+    return f", master parts {len(known)} ({sum(status is Status.REJECT for status in known.values())} defective)"
 
 
 def _verify_warnings(loaded) -> list[str]:
     """A line where the recipe names no master parts (``verify.path``), or where they hold no part that the
     recipe's limits clearly reject: such parts pass the check whatever the detector finds, and vouch for
     nothing."""
-    from core.types import Status
-    from core.verification import known_verdicts
-
-    if loaded.recipe.verify.path is None:
+    known = _master_verdicts(loaded)
+    if known is None:
         return [loaded.describe(("verify", "path"), "warning: no master parts: a detector that finds nothing (weights "
                                                    "that score low, a confidence set too high) passes every part "
                                                    "unnoticed; name a recording of known parts (docs/recipe-reference.md, "
                                                    "verify)")]
-    folder = loaded.resolve(loaded.recipe.verify.path)
-    known = known_verdicts(folder, loaded.recipe.decision)
     if any(status is Status.REJECT for status in known.values()):
         return []
-    return [loaded.describe(("verify", "path"), f"warning: none of the {len(known)} parts in {folder} has a defect "
-                                               f"clearly beyond a limit of this recipe's rules: the check passes "
-                                               f"whatever the detector finds (add a rejected master part)")]
+    return [loaded.describe(("verify", "path"), f"warning: none of the {len(known)} parts in "
+                                               f"{loaded.resolve(loaded.recipe.verify.path)} has a defect clearly "
+                                               f"beyond a limit of this recipe's rules: the check passes whatever the "
+                                               f"detector finds (add a rejected master part)")]
 
 
 def _plugin_warnings(loaded) -> list[str]:

@@ -455,10 +455,13 @@ def generate_sequence(
     ranges: EvalRanges = EvalRanges(),
     texture_contrast: float = 1.0,
     camera: CameraModel = CameraModel(),
+    captures: int = 1,
 ) -> list[dict]:
     """Write a sequence folder; returns the labels of every frame. ``neu_det=None`` uses the
     synthetic stand-in defect appearance. ``ranges``, ``texture_contrast`` and ``camera`` make an evaluation
-    set; left at their defaults, the draws (and so the files) are those of the demo plan."""
+    set; left at their defaults, the draws (and so the files) are those of the demo plan. ``captures``: each of
+    the ``frames`` plates captured that many times in a row, the sensor's noise drawn anew each time (a plate
+    standing still under the camera, as ``inspect eval repeatability`` reads it); 1 draws what it always did."""
     out = Path(out)
     crops = NeuCrops(Path(neu_det)) if neu_det is not None else None
     calib = zed_calibration(width, height)
@@ -473,17 +476,24 @@ def generate_sequence(
     all_labels = []
     for i in range(frames):
         t_start = time.perf_counter()
-        frame_id = f"{i:06d}"
+        frame_id = f"{i * captures:06d}"
         spec = plan_frame(rng, i, distance_mm, tilt_deg, jitter, decks, ranges)
-        left, right, gt, labels, _ = render_frame(rng, calib, spec, crops, frame_id, ss=supersample,
-                                                  texture_contrast=texture_contrast, flat_floor=ranges.flat_floor,
-                                                  camera=camera, round_defects=ranges.round_defects)
-        write_frame(out, frame_id, left, right, gt, labels, image_format)
-        all_labels.append(labels)
+        left, right, gt, labels, scene = render_frame(rng, calib, spec, crops, frame_id, ss=supersample,
+                                                      texture_contrast=texture_contrast, flat_floor=ranges.flat_floor,
+                                                      camera=camera, round_defects=ranges.round_defects)
+        for k in range(captures):
+            if k:  # the same light again, another draw of the sensor's noise
+                frame_id = f"{i * captures + k:06d}"
+                left, right = render_pair(scene, rng, ss=supersample,
+                                          rectification_error_px=camera.rectification_error_px)[:2]
+            captured = labels if captures == 1 else {**labels, "frame_id": frame_id, "plate": i}
+            write_frame(out, frame_id, left, right, gt, captured, image_format)
+            all_labels.append(captured)
         if log is not None:
             summary = ", ".join(
                 f"{d['class']} " + ("n/a" if d["deviation_mm"] is None else f"{d['deviation_mm']:+.2f} mm")
                 for d in labels["defects"]) or "no defect"
-            log(f"{frame_id}: Z={labels['distance_mm']:.0f} mm tilt={labels['tilt_deg']:.1f} deg: {summary}"
-                f" ({time.perf_counter() - t_start:.1f} s)")
+            shots = f", {captures} captures" if captures > 1 else ""
+            log(f"{labels['frame_id']}: Z={labels['distance_mm']:.0f} mm tilt={labels['tilt_deg']:.1f} deg: {summary}"
+                f"{shots} ({time.perf_counter() - t_start:.1f} s)")
     return all_labels

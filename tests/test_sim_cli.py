@@ -43,6 +43,34 @@ def test_generate_with_synthetic_defects(tmp_path):
     assert labels["distance_mm"] == 420.0 and labels["tilt_deg"] == 3.0
 
 
+def test_captures_repeat_each_plate_with_noise_of_its_own_and_leave_the_first_capture_as_it_was(tmp_path):
+    import cv2
+    import numpy as np
+
+    args = ["--seed", "5", "--synthetic-defects", "--width", "160", "--height", "96", "--no-jitter",
+            "--depth-range-mm", "0.5", "2", "--defect-size-px", "10", "20"]
+    once, thrice = tmp_path / "once", tmp_path / "thrice"
+    assert CliRunner().invoke(_build(), ["sim", "generate", str(once), "--frames", "1", *args]).exit_code == 0
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(thrice), "--frames", "2", "--captures", "3", *args])
+    assert result.exit_code == 0, result.output
+    assert "wrote 6 frames" in result.output
+    frames = list_frames(thrice)
+    assert [f.frame_id for f in frames] == [f"{i:06d}" for i in range(6)]
+    grey = [cv2.imread(str(f.left), cv2.IMREAD_GRAYSCALE).astype(int) for f in frames]
+    labels = [json.loads(f.labels.read_text()) for f in frames]
+    assert [lab["plate"] for lab in labels] == [0, 0, 0, 1, 1, 1]
+    for plate in (0, 3):
+        for k in (1, 2):
+            # the same plate under the same light: only the sensor's noise differs (1.5-2 grey levels)
+            assert 0.5 < np.abs(grey[plate + k] - grey[plate]).mean() < 4.0
+            assert {**labels[plate + k], "frame_id": ""} == {**labels[plate], "frame_id": ""}
+            assert cv2.imread(str(frames[plate + k].gt), -1).tobytes() == cv2.imread(str(frames[plate].gt), -1).tobytes()
+    assert np.abs(grey[3] - grey[0]).mean() > 10  # another plate
+    # the first capture draws what a sequence without captures draws
+    assert (thrice / "left" / "000000.png").read_bytes() == (once / "left" / "000000.png").read_bytes()
+    assert "plate" not in json.loads((once / "labels" / "000000.json").read_text())
+
+
 def test_existing_sequence_needs_overwrite(tmp_path):
     out = tmp_path / "seq"
     args = ["sim", "generate", str(out), "--frames", "2", "--synthetic-defects", "--width", "160", "--height", "96"]

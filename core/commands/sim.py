@@ -132,10 +132,14 @@ def register(cli: click.Group) -> None:
     @click.option("--lens-blur-px", default=0.0, show_default=True, type=Finite(0.0, 3.0),
                   help="The optics' blur (Gaussian sigma, px) before the pixels integrate the light (0: the "
                        "pixels alone, sharper than a real lens gives).")
+    @click.option("--captures", default=1, show_default=True, type=click.IntRange(1, 1000),
+                  help="Each plate captured this many times in a row, the sensor's noise drawn anew each time (a "
+                       "plate standing still under the camera: what `inspect eval repeatability` reads). --frames "
+                       "plates make frames x captures frames.")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
                  image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
                  defects_per_frame, texture_contrast, flat_floor, round_defects, defect_aspect, defect_angle_deg,
-                 rectification_error_px, noise_sigma, specular, lens_blur_px) -> None:
+                 rectification_error_px, noise_sigma, specular, lens_blur_px, captures) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
@@ -209,11 +213,11 @@ def register(cli: click.Group) -> None:
                 neu_det=None if synthetic_defects else neu_det, width=width, height=height, jitter=jitter,
                 supersample=supersample, image_format=image_format, log=click.echo, ranges=ranges,
                 texture_contrast=texture_contrast,
-                camera=CameraModel(noise_sigma, specular, lens_blur_px, rectification_error_px),
+                camera=CameraModel(noise_sigma, specular, lens_blur_px, rectification_error_px), captures=captures,
             )
         except (NeuDetError, GenerateError, OSError) as exc:  # OSError: a full disk, the folder removed under it
             discard_and_fail(out, exc)
-        click.echo(f"wrote {frames} frames to {out} in {time.perf_counter() - start:.1f} s")
+        click.echo(f"wrote {frames * captures} frames to {out} in {time.perf_counter() - start:.1f} s")
 
     @sim_group.command("raycast")
     @click.argument("out", type=click.Path(file_okay=False, path_type=Path))

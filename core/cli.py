@@ -6,10 +6,11 @@ import sys
 
 import click
 
-from core.commands import bench, depth, depth_suite, hardware, inspection, masters, sim, stereo, view
+from core.commands import (bench, depth, depth_suite, hardware, inspection, masters, repeatability, sim, stereo,
+                           view)
 from core.interrupts import raise_if_interrupted
 
-BUILTIN_COMMAND_MODULES = (inspection, bench, stereo, depth, depth_suite, hardware, masters, sim, view)
+BUILTIN_COMMAND_MODULES = (inspection, bench, stereo, depth, depth_suite, repeatability, hardware, masters, sim, view)
 
 
 @click.group()

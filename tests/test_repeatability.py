@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import ROOT, cli
+from conftest import ROOT, cli, cli_here
 
 from core.repeatability import (Capture, Defect, Labelled, Reading, Spread, Study, chi2_upper_ratio, same_defects)
 from core.types import Status
@@ -192,18 +192,33 @@ def test_the_demo_plate_in_its_labelled_boxes_is_inspected_alike_and_within_its_
     assert (tmp_path / "out" / "repeatability.md").read_text().startswith(f"### {part}")
 
 
-def test_the_same_images_twice_and_a_single_capture_are_refused(tmp_path):
+def test_folders_that_cannot_make_a_study_are_refused_before_the_model_loads(tmp_path, monkeypatch):
+    import core.engine
+
+    def no_model(*args, **kwargs):
+        raise AssertionError("the detector was built before the folders were checked")
+
+    monkeypatch.setattr(core.engine, "build_detector", no_model)
+    good = _captures_of("000003", tmp_path / "good", 2)
     twice = _captures_of("000003", tmp_path / "twice", 2)
     for eye in ("left", "right"):
         shutil.copy(twice / eye / "000000.png", twice / eye / "000001.png")
-    out = cli("eval", "repeatability", str(twice), "--out", str(tmp_path / "out"))
-    assert out.returncode == 2
-    assert out.stderr.strip().splitlines() == [
-        f"error: {twice}: frames 000000 and 000001 hold the same images: a camera that delivered its last frame "
-        f"again, or a copied file; a repeatability study needs captures of their own"]
     once = _captures_of("000003", tmp_path / "once", 1)
-    out = cli("eval", "repeatability", str(once), "--boxes", "labels", "--out", str(tmp_path / "out"))
-    assert out.returncode == 2 and "1 capture; a repeatability study needs two or more" in out.stderr
-    (once / "labels" / "000000.json").unlink()
-    out = cli("eval", "repeatability", str(once), "--boxes", "labels", "--out", str(tmp_path / "out"))
-    assert out.returncode == 2 and "frame 000000 has no labels/000000.json (--boxes labels" in out.stderr
+    unlabelled = _captures_of("000003", tmp_path / "unlabelled", 2, seed=2)
+    (unlabelled / "labels" / "000001.json").unlink()
+    broken = _captures_of("000003", tmp_path / "broken", 2, seed=3)
+    (broken / "labels" / "000000.json").write_text("{")
+    for folder, boxes, said in (
+            (twice, "detector", f"{twice}: frames 000000 and 000001 hold the same images: a camera that delivered its "
+                                f"last frame again, or a copied file; a repeatability study needs captures of their own"),
+            (once, "detector", f"{once}: 1 capture; a repeatability study needs two or more of the same part"),
+            (unlabelled, "labels", f"{unlabelled}: frame 000001 has no labels/000001.json (--boxes labels measures in "
+                                   f"its labelled boxes)"),
+            (broken, "detector", f"{broken / 'labels' / '000000.json'}: labels are not JSON"),
+            (good, "detector", f"{good}: given twice (also as {good})")):
+        parts = (str(good), str(folder))
+        out = cli_here("eval", "repeatability", *parts, "--boxes", boxes, "--out", str(tmp_path / "out"))
+        assert out.returncode == 2, out.stdout
+        (line,) = out.stderr.strip().splitlines()
+        assert line.startswith(f"error: {said}")
+    assert not (tmp_path / "out" / "repeatability.json").exists()

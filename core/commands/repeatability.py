@@ -34,16 +34,11 @@ def repeatability_command(parts, recipe, overrides, out, device, threads, boxes)
     on the same part, or reports an uncertainty this camera does not meet. Where the captures are labelled
     (`inspect data draft-labels`), the first capture's labels name the part's defects, each counted however
     seldom it is found. Saves JSON and Markdown."""
-    from core import repeatability as rp
     from core.commands.inspection import _load, fail, replay_of
-    from core.decision import judge_defect
     from core.depth import DepthRule
-    from core.engine import (Detected, Pipeline, SetupError, build_detector, command_threads, inspect_frame,
-                             make_plugin, plugin_context)
+    from core.engine import Pipeline, SetupError, build_detector, command_threads, make_plugin, plugin_context
     from core.registry import default_registry
-    from core.types import Detection
     from drivers.file_writes import write_text
-    from drivers.sequence_folder import SequenceError, read_labels
 
     seen = {}
     for folder in parts:
@@ -56,6 +51,12 @@ def repeatability_command(parts, recipe, overrides, out, device, threads, boxes)
     command_threads(threads)
     registry = default_registry()
     ctx = plugin_context(loaded, device)
+    for folder in parts:  # before the model loads: a folder that cannot hold a study is said at once
+        camera = replay_of(folder, registry, ctx)
+        try:
+            _check_captures(folder, camera.frames(), boxes)
+        finally:
+            camera.close()
     try:
         stereo = make_plugin(loaded, registry, ctx, "stereo", loaded.recipe.stereo.backend, "stereo",
                              loaded.plugin_settings["stereo"])
@@ -63,48 +64,15 @@ def repeatability_command(parts, recipe, overrides, out, device, threads, boxes)
     except SetupError as exc:
         fail(str(exc))
     rule = DepthRule.from_recipe(loaded.recipe)
-    # an undecided measurement proves neither side, whatever the recipe then does with the part
-    proving = loaded.recipe.decision.model_copy(update={"uncertain": "flag"})
     studies = []
     for folder in parts:
-        camera = replay_of(folder, registry, ctx)
-        pipeline = Pipeline(camera, stereo, detector, [])
+        pipeline = Pipeline(replay_of(folder, registry, ctx), stereo, detector, [])
         if not studies:
             pipeline.warm_up()
-        captures, images, labelled = [], {}, None
-        for item in camera.frames():
-            labels = None
-            if hasattr(item, "left"):
-                digest = hashlib.sha256(item.left.tobytes() + item.right.tobytes()).hexdigest()
-                if digest in images:  # the same images again measure alike whatever the camera's noise
-                    fail(f"{folder}: frames {images[digest]} and {item.frame_id} hold the same images: a camera that "
-                         f"delivered its last frame again, or a copied file; a repeatability study needs captures of "
-                         f"their own")
-                images[digest] = item.frame_id
-                if "labels" in item.meta:
-                    try:
-                        labels = read_labels(item.meta["labels"], item.left.shape[:2])
-                    except SequenceError as exc:
-                        fail(str(exc))
-                    if labelled is None:
-                        labelled = tuple(rp.Labelled(d["class"], tuple(d["box"]), d.get("deviation_mm"))
-                                         for d in labels["defects"])
-            detected = None
-            if boxes == "labels" and hasattr(item, "left"):
-                if labels is None:
-                    fail(f"{folder}: frame {item.frame_id} has no labels/{item.frame_id}.json (--boxes labels "
-                         f"measures in its labelled boxes)")
-                detected = Detected([Detection(d["class"], 1.0, tuple(d["box"])) for d in labels["defects"]])
-            outcome = inspect_frame(item, f"capture-{item.frame_id}", pipeline, loaded, rule, detected)
-            readings = tuple(
-                rp.Reading(m.detection.class_name, tuple(float(v) for v in m.detection.box), m.deviation_mm,
-                           m.deviation_sigma_mm, m.distance_mm, m.distance_sigma_mm, judge_defect(m, proving)[0])
-                for m in outcome.part.measurements)
-            captures.append(rp.Capture(item.frame_id, outcome.part.verdict.status, readings, outcome.part.error or ""))
-        camera.close()
-        if len(captures) < 2:
-            fail(f"{folder}: {len(captures)} capture; a repeatability study needs two or more of the same part")
-        studies.append(rp.Study(str(folder), tuple(captures), labelled or ()))
+        try:
+            studies.append(_study(folder, pipeline, loaded, rule, boxes))
+        finally:
+            pipeline.close()
     text = "\n\n".join(s.markdown() for s in studies)
     click.echo(text)
     write_text(out / "repeatability.md", text + "\n")
@@ -119,6 +87,68 @@ def repeatability_command(parts, recipe, overrides, out, device, threads, boxes)
     click.echo(f"wrote {out / 'repeatability.md'}, {out / 'repeatability.json'}")
     if findings:
         raise SystemExit(1)
+
+
+def _check_captures(folder: Path, frames, boxes: str) -> None:
+    """A one-line error (exit 2) where the captures ``frames`` of ``folder`` cannot make a study: fewer than two,
+    two with the same images (which measure alike whatever the camera's noise), labels that cannot be read, or a
+    capture without labels where ``boxes`` is "labels"."""
+    from core.commands.inspection import fail
+    from drivers.sequence_folder import SequenceError, read_labels
+
+    count, images = 0, {}
+    for item in frames:
+        count += 1
+        if not hasattr(item, "left"):  # a capture that cannot be read: its part is an ERROR, which the study says
+            continue
+        digest = hashlib.sha256(item.left.tobytes() + item.right.tobytes()).hexdigest()
+        if digest in images:
+            fail(f"{folder}: frames {images[digest]} and {item.frame_id} hold the same images: a camera that "
+                 f"delivered its last frame again, or a copied file; a repeatability study needs captures of "
+                 f"their own")
+        images[digest] = item.frame_id
+        if "labels" in item.meta:
+            try:
+                read_labels(item.meta["labels"], item.left.shape[:2])
+            except SequenceError as exc:
+                fail(str(exc))
+        elif boxes == "labels":
+            fail(f"{folder}: frame {item.frame_id} has no labels/{item.frame_id}.json (--boxes labels measures in its "
+                 f"labelled boxes)")
+    if count < 2:
+        fail(f"{folder}: {count} capture; a repeatability study needs two or more of the same part")
+
+
+def _study(folder: Path, pipeline, loaded, rule, boxes: str):
+    """The captures of the part in ``folder`` (``pipeline.camera`` plays them), each inspected as the line inspects
+    a plate (``core.engine.inspect_frame``), in the detector's boxes or (``boxes`` "labels") in its labelled ones;
+    the first capture's labels name the part's defects (``_check_captures`` has read them once already)."""
+    from core import repeatability as rp
+    from core.decision import judge_defect
+    from core.engine import Detected, inspect_frame
+    from core.types import Detection
+    from drivers.sequence_folder import read_labels
+
+    # an undecided measurement proves neither side, whatever the recipe then does with the part
+    proving = loaded.recipe.decision.model_copy(update={"uncertain": "flag"})
+    captures, labelled = [], None
+    for item in pipeline.camera.frames():
+        labels = None
+        if hasattr(item, "left") and "labels" in item.meta:
+            labels = read_labels(item.meta["labels"], item.left.shape[:2])
+            if labelled is None:
+                labelled = tuple(rp.Labelled(d["class"], tuple(d["box"]), d.get("deviation_mm"))
+                                 for d in labels["defects"])
+        detected = None
+        if boxes == "labels" and labels is not None:
+            detected = Detected([Detection(d["class"], 1.0, tuple(d["box"])) for d in labels["defects"]])
+        outcome = inspect_frame(item, f"capture-{item.frame_id}", pipeline, loaded, rule, detected)
+        readings = tuple(
+            rp.Reading(m.detection.class_name, tuple(float(v) for v in m.detection.box), m.deviation_mm,
+                       m.deviation_sigma_mm, m.distance_mm, m.distance_sigma_mm, judge_defect(m, proving)[0])
+            for m in outcome.part.measurements)
+        captures.append(rp.Capture(item.frame_id, outcome.part.verdict.status, readings, outcome.part.error or ""))
+    return rp.Study(str(folder), tuple(captures), labelled or ())
 
 
 def register(cli: click.Group) -> None:

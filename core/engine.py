@@ -845,11 +845,14 @@ def _verify(loaded: LoadedRecipe, registry: Registry, pipeline: Pipeline, rule: 
         camera = make_plugin(loaded, registry, plugin_context(loaded, device), "camera", "replay", "verify.path",
                              {"path": str(folder)})
         masters = Pipeline(camera, pipeline.stereo, pipeline.detector, [])
+
+        def inspected(item):
+            outcome = inspect_frame(item, f"master-{item.frame_id}", masters, loaded, rule)
+            return outcome.part.verdict, [(m.detection.box, status) for m, status in
+                                          zip(outcome.part.measurements, outcome.defect_status)]
+
         try:
-            checked = verification.verify(
-                folder, camera.frames(),
-                lambda item: inspect_frame(item, f"master-{item.frame_id}", masters, loaded, rule).part.verdict,
-                loaded.recipe.decision)
+            checked = verification.verify(folder, camera.frames(), inspected, loaded.recipe.decision)
         finally:
             camera.close()
     except Exception as exc:  # an unreadable recording vouches for nothing: the line does not start on it

@@ -10,7 +10,9 @@ none of which could be measured, stop the run before it starts (``core.engine.ru
 
 A part is known defective when a labelled defect lies beyond one of the recipe's depth limits by CLEAR_CUT_MM
 or more, and known good when every labelled defect lies inside every limit by as much; a part near a limit
-is inspected and counted but decides nothing, since a measurement may prove neither side of it.
+is inspected and counted but decides nothing, since a measurement may prove neither side of it. Each such
+defect must be rejected by a box of its own: a part rejected for another box (a sound patch read undecided, a
+box the wrong model put anywhere) says nothing of whether the line finds that defect.
 """
 from __future__ import annotations
 
@@ -18,11 +20,16 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from core.boxes import box_iou
 from core.decision import CLEAR_CUT_MM, rule_applies
 from core.types import FrameError, Status, StereoFrame, Verdict
 from drivers.sequence_folder import list_frames, read_labels
 
 DEPTH_QUANTITIES = ("deviation_mm", "distance_mm")
+MATCH_IOU = 0.3  # a box overlapping a labelled defect this much is the detector's box of it (as `inspect eval depth`)
+REJECTING = (Status.REJECT, Status.FLAG, Status.ERROR)  # a defect's own outcomes that keep its part off the line
 
 
 def known_verdict(labels: dict, decision) -> Status | None:
@@ -32,27 +39,50 @@ def known_verdict(labels: dict, decision) -> Status | None:
     lies that far inside every limit that applies to it, None where neither is clear (a defect near a limit,
     one whose truth lacks a quantity a rule needs, one only rules on other quantities cover). A defect no rule
     covers is REJECT where the decision rejects unruled defects."""
-    clear_pass = True
-    for defect in labels.get("defects", []):
-        ruled = [r for r in decision.rules if rule_applies(r, defect["class"])]
-        if not ruled:
-            if decision.reject_unruled_defects:
-                return Status.REJECT
-            continue
-        applying = [r for r in ruled if r.quantity in DEPTH_QUANTITIES]
-        if len(applying) < len(ruled):  # a confidence or area rule: the labels do not say how it decides
+    calls = [_known(defect, decision) for defect in labels.get("defects", [])]
+    if Status.REJECT in calls:
+        return Status.REJECT
+    return Status.PASS if all(call is Status.PASS for call in calls) else None
+
+
+def beyond_a_limit(labels: dict, decision) -> list[dict]:
+    """The labelled defects of ``labels`` that ``known_verdict`` rejects the part for, each of which the line must
+    reject."""
+    return [defect for defect in labels.get("defects", []) if _known(defect, decision) is Status.REJECT]
+
+
+def _known(defect: dict, decision) -> Status | None:
+    """``known_verdict`` of one labelled defect: REJECT, PASS (every rule on it clear of its limit, or none covers
+    it) or None."""
+    ruled = [r for r in decision.rules if rule_applies(r, defect["class"])]
+    if not ruled:
+        return Status.REJECT if decision.reject_unruled_defects else Status.PASS
+    applying = [r for r in ruled if r.quantity in DEPTH_QUANTITIES]
+    clear_pass = len(applying) == len(ruled)  # a confidence or area rule: the labels do not say how it decides
+    for rule in applying:
+        value = defect.get(rule.quantity)
+        if value is None:
             clear_pass = False
-        for rule in applying:
-            value = defect.get(rule.quantity)
-            if value is None:
-                clear_pass = False
-                continue
-            beyond = _beyond(value, rule.op, rule.threshold)
-            if beyond >= CLEAR_CUT_MM:
-                return Status.REJECT
-            if beyond > -CLEAR_CUT_MM:
-                clear_pass = False
+            continue
+        beyond = _beyond(value, rule.op, rule.threshold)
+        if beyond >= CLEAR_CUT_MM:
+            return Status.REJECT
+        if beyond > -CLEAR_CUT_MM:
+            clear_pass = False
     return Status.PASS if clear_pass else None
+
+
+def missed_defects(defects: list[dict], boxes: list[tuple[tuple[float, float, float, float], Status]]) -> list[str]:
+    """Of the labelled ``defects`` (``beyond_a_limit``), those no box of ``boxes`` (each box and its own outcome)
+    that overlaps it by MATCH_IOU rejects, each as "class at (x0, y0)-(x1, y1)"."""
+    missed = []
+    for defect in defects:
+        box = [float(v) for v in defect["box"]]
+        hit = [status for found, status in boxes
+               if box_iou(np.array([box]), np.array([found], float))[0, 0] >= MATCH_IOU]
+        if not any(status in REJECTING for status in hit):
+            missed.append(f"{defect['class']} at ({box[0]:.0f}, {box[1]:.0f})-({box[2]:.0f}, {box[3]:.0f})")
+    return missed
 
 
 def _beyond(value: float, op: str, threshold: float) -> float:
@@ -64,17 +94,20 @@ def _beyond(value: float, op: str, threshold: float) -> float:
 @dataclass(frozen=True)
 class MasterPart:
     """One master part: its frame, what its labels call for (None: near a limit), the verdict it got and that
-    verdict's first reason."""
+    verdict's first reason, and its defects beyond a limit that no box of their own rejected (``missed_defects``;
+    none counted where the part could not be inspected)."""
 
     frame_id: str
     known: Status | None
     got: Status
     why: str = ""
+    missed: tuple[str, ...] = ()
 
     @property
     def passed_defective(self) -> bool:
-        """A known defective part passed: the line would pass such parts."""
-        return self.known is Status.REJECT and self.got is Status.PASS
+        """A known defective part passed, or a defect of it beyond a limit went unrejected while another box
+        rejected the part: the line would pass a part with that defect alone."""
+        return self.known is Status.REJECT and (self.got is Status.PASS or bool(self.missed))
 
 
 @dataclass(frozen=True)
@@ -124,9 +157,14 @@ class Verification:
             return (f"none of the {len(self._defective)} defective master parts of {self.folder} could be inspected "
                     f"({said}): nothing shows that the line finds a defect; the run does not start")
         shown = ", ".join(passed[:5]) + (f" and {len(passed) - 5} more" if len(passed) > 5 else "")
-        return (f"{len(passed)} master part{'s' if len(passed) > 1 else ''} with a defect beyond a limit passed "
-                f"(frame{'s' if len(passed) > 1 else ''} {shown} of {self.folder}): the line would pass such "
-                f"parts; the run does not start (check the detector's weights, confidence and image size, and "
+        missed = [f"{p.frame_id}'s {m}" for p in self.parts if p.passed_defective and p.got is not Status.PASS
+                  for m in p.missed]
+        unboxed = (f"; {', '.join(missed[:3])}{' and more' if len(missed) > 3 else ''} rejected by no box of "
+                   f"{'its' if len(missed) == 1 else 'their'} own") if missed else ""
+        how = "got through (passed, or rejected only for another box)" if missed else "passed"
+        return (f"{len(passed)} master part{'s' if len(passed) > 1 else ''} with a defect beyond a limit {how} "
+                f"(frame{'s' if len(passed) > 1 else ''} {shown} of {self.folder}{unboxed}): the line would pass "
+                f"such parts; the run does not start (check the detector's weights, confidence and image size, and "
                 f"decision.uncertain)")
 
 
@@ -138,14 +176,22 @@ def known_verdicts(folder: Path, decision) -> dict[str, Status | None]:
 
 
 def verify(folder: Path, frames: Iterable[StereoFrame | FrameError],
-           inspect: Callable[[StereoFrame | FrameError], Verdict], decision) -> Verification:
+           inspect: Callable[[StereoFrame | FrameError], tuple[Verdict, list[tuple[tuple[float, float, float, float],
+                                                                                  Status]]]],
+           decision) -> Verification:
     """The master parts of the labelled sequence ``folder``, its ``frames`` (as its camera delivers them) each
-    ``inspect``-ed to a verdict and held against what its labels call for under ``decision``.
-    ``SequenceError`` naming the file where a frame's labels cannot be read."""
-    known = known_verdicts(folder, decision)
+    ``inspect``-ed to its verdict and each box's own outcome, and held against what its labels call for under
+    ``decision``, defect by defect. ``SequenceError`` naming the file where a frame's labels cannot be read."""
+    labels = {f.frame_id: None if f.labels is None else read_labels(f.labels) for f in list_frames(folder)}
     parts = []
     for item in frames:
-        verdict = inspect(item)
-        parts.append(MasterPart(item.frame_id, known.get(item.frame_id), verdict.status,
-                                verdict.reasons[0] if verdict.reasons else ""))
+        verdict, boxes = inspect(item)
+        said = labels.get(item.frame_id)
+        known = None if said is None else known_verdict(said, decision)
+        # a part that could not be inspected (no box measured) counts as such, not as one whose defects were missed
+        inspected = verdict.status is not Status.ERROR or bool(boxes)
+        missed = tuple(missed_defects(beyond_a_limit(said, decision), boxes)) \
+            if known is Status.REJECT and inspected and verdict.status is not Status.PASS else ()
+        parts.append(MasterPart(item.frame_id, known, verdict.status, verdict.reasons[0] if verdict.reasons else "",
+                                missed))
     return Verification(str(folder), tuple(parts))

@@ -101,6 +101,35 @@ def test_the_demo_recipe_in_a_third_party_detectors_boxes_measures_as_the_evalua
             (row["distance_mm"], row["deviation_mm"], row["deviation_sigma_mm"]), abs=1e-6)
 
 
+def test_a_master_part_rejected_only_for_a_box_beside_its_defect_keeps_the_line_from_starting(tmp_path,
+                                                                                                external_plugin_site):
+    """A detector that puts a box somewhere else on a defective master part (the wrong model, say), a box some rule
+    rejects, had the part counted as caught: its own defect, on a plate of its own, would have passed."""
+    source = ROOT / "sim_fixtures" / "plates_textured"
+    seq = tmp_path / "seq"
+    for folder, name in (("left", "000001.jpg"), ("right", "000001.jpg"), ("labels", "000001.json")):
+        (seq / folder).mkdir(parents=True)
+        shutil.copy(source / folder / name, seq / folder / name)
+    shutil.copy(source / "calib.yaml", seq / "calib.yaml")
+    recipe = yaml.safe_load((ROOT / "recipes" / "steel_plate.yaml").read_text())
+    recipe["camera"]["settings"] = {"path": str(seq), "rate_fps": 0, "loop": False}
+    recipe["stereo"]["working_distance_mm"] = [300, 700]
+    recipe["detector"] = {"plugin": "fixed_roi", "confidence": 0.3,
+                          "settings": {"regions": [{"name": "decoy", "box": [440, 60, 490, 110]}]}}
+    recipe["decision"]["rules"].append({"class": "decoy", "quantity": "confidence", "op": ">", "threshold": 0.5})
+    recipe["outputs"] = [{"plugin": "log", "settings": {"file": str(tmp_path / "rejects.log")}}]
+    recipe["results"] = {"path": str(tmp_path / "results")}
+    recipe["verify"] = {"path": str(seq)}
+    path = write_recipe(tmp_path / "r.yaml", yaml.safe_dump(recipe))
+    ran = cli("run", str(path), env_extra={"PYTHONPATH": str(external_plugin_site)})
+    assert ran.returncode == 4, ran.stdout + ran.stderr
+    # the 1.42 mm pit, not the 0.40 mm scratch or the 0.58 mm inclusion, which lie inside the limits
+    assert (f"ALARM verify: 1 master part with a defect beyond a limit got through (passed, or rejected only for "
+            f"another box) (frame 000001 of {seq}; 000001's pitted_surface at (208, 255)-(243, 330) rejected by no "
+            f"box of its own): the line would pass such parts") in ran.stdout
+    assert "parts 0  passed 0" in ran.stdout
+
+
 def _broken_package(site):
     """A package whose entry point cannot be imported (a dependency missing), as pip would leave it."""
     info = site / "broken_plugin-1.0.dist-info"

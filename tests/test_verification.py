@@ -17,7 +17,8 @@ from conftest import ROOT, cli, cli_here
 
 from core.recipe.schema import DecisionSection
 from core.types import Status, Verdict
-from core.verification import MasterPart, Verification, known_verdict, known_verdicts, verify
+from core.verification import (MasterPart, Verification, beyond_a_limit, known_verdict, known_verdicts,
+                               missed_defects, verify)
 
 DEMO = ROOT / "recipes" / "steel_plate.yaml"
 FIXTURE = ROOT / "sim_fixtures" / "steel_plate"
@@ -118,11 +119,66 @@ class TestVerify:
     def test_each_frame_is_held_against_its_labels(self):
         known = known_verdicts(FIXTURE, BOTH_WAYS)
         frames = [type("Frame", (), {"frame_id": frame_id})() for frame_id in sorted(known)]
-        blind = verify(FIXTURE, frames, lambda item: Verdict(Status.PASS), BOTH_WAYS)
+        blind = verify(FIXTURE, frames, lambda item: (Verdict(Status.PASS), []), BOTH_WAYS)
         assert blind.failed
         assert {p.frame_id for p in blind.parts if p.passed_defective} == {
             f for f, status in known.items() if status is Status.REJECT}
-        assert not verify(FIXTURE, frames, lambda item: Verdict(Status.REJECT), BOTH_WAYS).failed
+
+        def own_boxes(item):  # each labelled defect rejected by a box of its own
+            labels = json.loads((FIXTURE / "labels" / f"{item.frame_id}.json").read_text())
+            return Verdict(Status.REJECT), [(tuple(d["box"]), Status.REJECT) for d in labels["defects"]]
+
+        assert not verify(FIXTURE, frames, own_boxes, BOTH_WAYS).failed
+
+    def test_a_part_rejected_for_another_box_than_its_defects_fails_the_check(self):
+        """A box the wrong model put anywhere, read undecided, rejects the part: that says nothing of whether the
+        line finds the defect, which on a plate of its own would pass."""
+        known = known_verdicts(FIXTURE, BOTH_WAYS)
+        frames = [type("Frame", (), {"frame_id": frame_id})() for frame_id in sorted(known)]
+        elsewhere = verify(FIXTURE, frames, lambda item: (Verdict(Status.REJECT), [((0.0, 0.0, 20.0, 20.0),
+                                                                                    Status.FLAG)]), BOTH_WAYS)
+        assert elsewhere.failed
+        missed = {p.frame_id: p.missed for p in elsewhere.parts if p.passed_defective}
+        assert sorted(missed) == ["000002", "000003", "000006", "000008", "000009"]
+        assert missed["000003"] == ("crazing at (250, 90)-(403, 160)",)  # not its 0.32 mm pit, inside the limits
+        assert elsewhere.refusal().startswith(
+            f"5 master parts with a defect beyond a limit got through (passed, or rejected only for another box) "
+            f"(frames 000002, 000003, 000006, 000008, 000009 of {FIXTURE}; 000002's scratches at (335, 52)-(460, 75), "
+            f"000003's crazing at (250, 90)-(403, 160), ")
+        assert " and more rejected by no box of their own): the line would pass such parts" in elsewhere.refusal()
+
+    def test_a_part_that_could_not_be_inspected_is_no_missed_defect(self):
+        frames = [type("Frame", (), {"frame_id": "000003"})()]
+        failed = verify(FIXTURE, frames, lambda item: (Verdict(Status.ERROR, ["frame 000003: no image"]), []),
+                        BOTH_WAYS)
+        (part,) = failed.parts
+        assert part.missed == () and not part.passed_defective
+        assert failed.failed and failed.refusal().startswith("none of the 1 defective master parts")
+
+
+class TestMissedDefects:
+    DEFECT = {"class": "pit", "box": [100, 100, 140, 120], "deviation_mm": 2.0}
+
+    @pytest.mark.parametrize("status", [Status.REJECT, Status.FLAG, Status.ERROR])
+    def test_a_box_of_its_own_that_keeps_the_part_off_the_line(self, status):
+        assert missed_defects([self.DEFECT], [((104.0, 102.0, 146.0, 124.0), status)]) == []
+
+    def test_a_box_of_its_own_that_passes_it(self):
+        assert missed_defects([self.DEFECT], [((104.0, 102.0, 146.0, 124.0), Status.PASS)]) == [
+            "pit at (100, 100)-(140, 120)"]
+
+    def test_a_box_that_overlaps_it_too_little(self):
+        # IoU 0.25: another place on the plate
+        assert missed_defects([self.DEFECT], [((124.0, 100.0, 164.0, 120.0), Status.REJECT)]) == [
+            "pit at (100, 100)-(140, 120)"]
+
+    def test_one_rejecting_box_of_several_is_enough(self):
+        boxes = [((100.0, 100.0, 140.0, 120.0), Status.PASS), ((98.0, 99.0, 139.0, 121.0), Status.REJECT)]
+        assert missed_defects([self.DEFECT], boxes) == []
+
+    def test_beyond_a_limit_lists_the_defects_a_part_is_rejected_for(self):
+        labels = _labels(("pit", 0.2), ("pit", 1.6), ("pit", 1.1), ("pit", -1.4))
+        assert [d["deviation_mm"] for d in beyond_a_limit(labels, BOTH_WAYS)] == [1.6, -1.4]
 
 
 def _run_demo(tmp_path, *sets: str):

@@ -171,14 +171,26 @@ def _captures_of(frame_id: str, out: Path, count: int, noise: float = 1.5, seed:
     return out
 
 
-def test_the_demo_plate_in_its_labelled_boxes_is_inspected_alike_and_within_its_uncertainty(tmp_path):
+def test_parts_in_their_labelled_boxes_are_inspected_alike_and_within_their_uncertainty(tmp_path):
     part = _captures_of("000003", tmp_path / "part", 4)
     broken = _captures_of("000006", tmp_path / "broken", 3, seed=1)
     (broken / "right" / "000001.png").write_bytes(b"not an image")
-    out = cli("eval", "repeatability", str(part), str(broken), "--boxes", "labels", "--out", str(tmp_path / "out"))
+    plates = tmp_path / "plates"  # two rendered plates, each captured twice: a study of each
+    made = cli_here("sim", "generate", str(plates), "--frames", "2", "--captures", "2", "--seed", "5",
+                    "--synthetic-defects", "--no-jitter", "--width", "336", "--height", "188", "--depth-range-mm",
+                    "0.5", "2", "--defect-size-px", "20", "40", "--defects-per-frame", "1", "1")
+    assert made.returncode == 0, made.stderr
+    out = cli("eval", "repeatability", str(part), str(broken), str(plates), "--boxes", "labels",
+              "--out", str(tmp_path / "out"))
     assert out.returncode == 1, out.stderr  # the broken part's capture
     result = json.loads((tmp_path / "out" / "repeatability.json").read_text())
-    first, second = result["parts"]
+    first, second, *rendered = result["parts"]
+    assert [(p["part"], p["captures"]) for p in rendered] == [
+        (f"{plates} plate 0", ["000000", "000001"]), (f"{plates} plate 1", ["000002", "000003"])]
+    for study, capture in zip(rendered, ("000000", "000002")):
+        labels = json.loads((plates / "labels" / f"{capture}.json").read_text())["defects"]
+        assert [row["box"] for row in study["defects"]] == [d["box"] for d in labels]
+        assert all(row["found"] == 2 for row in study["defects"])
     assert first["verdicts"] == {"REJECT": 4} and first["findings"] == []
     for row in first["defects"]:
         assert row["found"] == 4 and row["box_scatter_px"] == 0.0  # the labels' boxes hold still
@@ -204,6 +216,8 @@ def test_folders_that_cannot_make_a_study_are_refused_before_the_model_loads(tmp
     for eye in ("left", "right"):
         shutil.copy(twice / eye / "000000.png", twice / eye / "000001.png")
     once = _captures_of("000003", tmp_path / "once", 1)
+    lone = _captures_of("000003", tmp_path / "lone", 3, seed=4)  # a third capture of another plate
+    (lone / "labels" / "000002.json").write_text(json.dumps({"frame_id": "000002", "plate": 7, "defects": []}))
     unlabelled = _captures_of("000003", tmp_path / "unlabelled", 2, seed=2)
     (unlabelled / "labels" / "000001.json").unlink()
     broken = _captures_of("000003", tmp_path / "broken", 2, seed=3)
@@ -212,6 +226,8 @@ def test_folders_that_cannot_make_a_study_are_refused_before_the_model_loads(tmp
             (twice, "detector", f"{twice}: frames 000000 and 000001 hold the same images: a camera that delivered its "
                                 f"last frame again, or a copied file; a repeatability study needs captures of their own"),
             (once, "detector", f"{once}: 1 capture; a repeatability study needs two or more of the same part"),
+            (lone, "detector", f"{lone}: 1 capture of plate 7; a repeatability study needs two or more of the same "
+                               f"part"),
             (unlabelled, "labels", f"{unlabelled}: frame 000001 has no labels/000001.json (--boxes labels measures in "
                                    f"its labelled boxes)"),
             (broken, "detector", f"{broken / 'labels' / '000000.json'}: labels are not JSON"),

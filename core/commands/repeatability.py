@@ -26,9 +26,10 @@ from core.recipe.schema import MAX_THREADS
                    "(labels/FRAME.json), which leaves the detector out of the scatter")
 def repeatability_command(parts, recipe, overrides, out, device, threads, boxes) -> None:
     """Each of PARTS: a folder of one part captured several times as it stands under the camera (`inspect camera
-    record` with the part held still, or `inspect sim generate --captures N`), inspected capture by capture as the
-    line inspects a plate. Per defect: how often it was found, its deviation's and distance's scatter over the
-    captures against the uncertainty reported with them, and what its rules proved. Exit 1 where a part's verdict
+    record` with the part held still, or `inspect sim generate --captures N`, whose labels name each plate of a
+    folder of several, each then studied on its own), inspected capture by capture as the line inspects a plate.
+    Per defect: how often it was found, its deviation's and distance's scatter over the captures against the
+    uncertainty reported with them, and what its rules proved. Exit 1 where a part's verdict
     differs between captures, a defect is found only sometimes or proven on both sides of a limit, or a
     measurement scatters more than its uncertainty allows at 99 % confidence: such a line does not decide alike
     on the same part, or reports an uncertainty this camera does not meet. Where the captures are labelled
@@ -70,7 +71,7 @@ def repeatability_command(parts, recipe, overrides, out, device, threads, boxes)
         if not studies:
             pipeline.warm_up()
         try:
-            studies.append(_study(folder, pipeline, loaded, rule, boxes))
+            studies += _study(folder, pipeline, loaded, rule, boxes)
         finally:
             pipeline.close()
     text = "\n\n".join(s.markdown() for s in studies)
@@ -89,40 +90,55 @@ def repeatability_command(parts, recipe, overrides, out, device, threads, boxes)
         raise SystemExit(1)
 
 
+def _plate(item, labels: dict | None, previous):
+    """Which plate of the folder a capture shows: its labels' ``plate`` (``inspect sim generate --captures`` renders
+    several in a row), else ``previous`` for a capture that cannot be read (it was taken among its plate's), else
+    None (a folder of one part)."""
+    if labels is not None:
+        return labels.get("plate")
+    return previous if not hasattr(item, "left") else None
+
+
 def _check_captures(folder: Path, frames, boxes: str) -> None:
-    """A one-line error (exit 2) where the captures ``frames`` of ``folder`` cannot make a study: fewer than two,
-    two with the same images (which measure alike whatever the camera's noise), labels that cannot be read, or a
-    capture without labels where ``boxes`` is "labels"."""
+    """A one-line error (exit 2) where the captures ``frames`` of ``folder`` cannot make a study: fewer than two of a
+    plate, two with the same images (which measure alike whatever the camera's noise), labels that cannot be read, or
+    a capture without labels where ``boxes`` is "labels"."""
     from core.commands.inspection import fail
     from drivers.sequence_folder import SequenceError, read_labels
 
-    count, images = 0, {}
+    counts, images, plate = {}, {}, None
     for item in frames:
-        count += 1
-        if not hasattr(item, "left"):  # a capture that cannot be read: its part is an ERROR, which the study says
-            continue
-        digest = hashlib.sha256(item.left.tobytes() + item.right.tobytes()).hexdigest()
-        if digest in images:
-            fail(f"{folder}: frames {images[digest]} and {item.frame_id} hold the same images: a camera that "
-                 f"delivered its last frame again, or a copied file; a repeatability study needs captures of "
-                 f"their own")
-        images[digest] = item.frame_id
-        if "labels" in item.meta:
-            try:
-                read_labels(item.meta["labels"], item.left.shape[:2])
-            except SequenceError as exc:
-                fail(str(exc))
-        elif boxes == "labels":
-            fail(f"{folder}: frame {item.frame_id} has no labels/{item.frame_id}.json (--boxes labels measures in its "
-                 f"labelled boxes)")
-    if count < 2:
-        fail(f"{folder}: {count} capture; a repeatability study needs two or more of the same part")
+        labels = None
+        if hasattr(item, "left"):
+            digest = hashlib.sha256(item.left.tobytes() + item.right.tobytes()).hexdigest()
+            if digest in images:
+                fail(f"{folder}: frames {images[digest]} and {item.frame_id} hold the same images: a camera that "
+                     f"delivered its last frame again, or a copied file; a repeatability study needs captures of "
+                     f"their own")
+            images[digest] = item.frame_id
+            if "labels" in item.meta:
+                try:
+                    labels = read_labels(item.meta["labels"], item.left.shape[:2])
+                except SequenceError as exc:
+                    fail(str(exc))
+            elif boxes == "labels":
+                fail(f"{folder}: frame {item.frame_id} has no labels/{item.frame_id}.json (--boxes labels measures "
+                     f"in its labelled boxes)")
+        plate = _plate(item, labels, plate)
+        counts[plate] = counts.get(plate, 0) + 1
+    if not counts:
+        counts[None] = 0
+    for plate, count in counts.items():
+        if count < 2:
+            of = "" if plate is None else f" of plate {plate}"
+            fail(f"{folder}: {count} capture{of}; a repeatability study needs two or more of the same part")
 
 
-def _study(folder: Path, pipeline, loaded, rule, boxes: str):
-    """The captures of the part in ``folder`` (``pipeline.camera`` plays them), each inspected as the line inspects
-    a plate (``core.engine.inspect_frame``), in the detector's boxes or (``boxes`` "labels") in its labelled ones;
-    the first capture's labels name the part's defects (``_check_captures`` has read them once already)."""
+def _study(folder: Path, pipeline, loaded, rule, boxes: str) -> list:
+    """The captures in ``folder`` (``pipeline.camera`` plays them), each inspected as the line inspects a plate
+    (``core.engine.inspect_frame``), in the detector's boxes or (``boxes`` "labels") in its labelled ones: a study
+    of each plate its labels name (one for a folder of one part), whose first capture's labels name its defects
+    (``_check_captures`` has read them once already)."""
     from core import repeatability as rp
     from core.decision import judge_defect
     from core.engine import Detected, inspect_frame
@@ -131,14 +147,15 @@ def _study(folder: Path, pipeline, loaded, rule, boxes: str):
 
     # an undecided measurement proves neither side, whatever the recipe then does with the part
     proving = loaded.recipe.decision.model_copy(update={"uncertain": "flag"})
-    captures, labelled = [], None
+    captures, labelled, plate = {}, {}, None
     for item in pipeline.camera.frames():
         labels = None
         if hasattr(item, "left") and "labels" in item.meta:
             labels = read_labels(item.meta["labels"], item.left.shape[:2])
-            if labelled is None:
-                labelled = tuple(rp.Labelled(d["class"], tuple(d["box"]), d.get("deviation_mm"))
-                                 for d in labels["defects"])
+        plate = _plate(item, labels, plate)
+        if labels is not None and plate not in labelled:
+            labelled[plate] = tuple(rp.Labelled(d["class"], tuple(d["box"]), d.get("deviation_mm"))
+                                    for d in labels["defects"])
         detected = None
         if boxes == "labels" and labels is not None:
             detected = Detected([Detection(d["class"], 1.0, tuple(d["box"])) for d in labels["defects"]])
@@ -147,8 +164,10 @@ def _study(folder: Path, pipeline, loaded, rule, boxes: str):
             rp.Reading(m.detection.class_name, tuple(float(v) for v in m.detection.box), m.deviation_mm,
                        m.deviation_sigma_mm, m.distance_mm, m.distance_sigma_mm, judge_defect(m, proving)[0])
             for m in outcome.part.measurements)
-        captures.append(rp.Capture(item.frame_id, outcome.part.verdict.status, readings, outcome.part.error or ""))
-    return rp.Study(str(folder), tuple(captures), labelled or ())
+        captures.setdefault(plate, []).append(
+            rp.Capture(item.frame_id, outcome.part.verdict.status, readings, outcome.part.error or ""))
+    return [rp.Study(str(folder) if len(captures) == 1 else f"{folder} plate {plate}", tuple(shot),
+                     labelled.get(plate, ())) for plate, shot in captures.items()]
 
 
 def register(cli: click.Group) -> None:

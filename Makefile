@@ -8,9 +8,8 @@ STAMP := $(VENV)/.installed-stamp
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	# constraints.txt pins every package (torch and torchvision from the same source). --no-compile: the bytecode
-	# of the modules a run imports is written as it first imports them; all of it took a third of the install.
-	$(BIN)/python -m pip install -q --no-compile -c constraints.txt -e '.[test]'
+	# constraints.txt pins every package (torch and torchvision from the same source).
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[test]'
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
+MATCH_IOU = 0.3  # a detector's box overlapping a labelled defect this much is its box of that defect
+
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """IoU of every box in a (N,4) with every box in b (M,4); boxes are x0, y0, x1, y1."""

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from core.boxes import match_boxes
+from core.boxes import MATCH_IOU, match_boxes
 from core.decision import CLEAR_CUT_MM, judge_defect, rule_applies
 from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
@@ -47,7 +47,6 @@ from drivers.sequence_folder import SequenceError, read_disparity_png
 
 NARROW_PX = 30.0  # boxes narrower than this count as narrow defects
 MIN_RATIO_MM = 0.3  # measured / true only for defects at least this deep
-MATCH_IOU = 0.3  # a detector's box finds a labelled defect from this overlap on
 MISSED = "missed"  # the outcome of a labelled defect the detector did not box
 TRUE_PLANE_TOLERANCE_PX = 0.01  # a true disparity's pixels on its plane: KITTI PNGs round to 1/256 px
 HALF_NORMAL_MEDIAN = 0.6745  # the median of |e| for a normal e of unit standard deviation

@@ -22,13 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from core.boxes import box_iou
+from core.boxes import MATCH_IOU, box_iou
 from core.decision import CLEAR_CUT_MM, rule_applies
 from core.types import FrameError, Status, StereoFrame, Verdict
 from drivers.sequence_folder import list_frames, read_labels
 
 DEPTH_QUANTITIES = ("deviation_mm", "distance_mm")
-MATCH_IOU = 0.3  # a box overlapping a labelled defect this much is the detector's box of it (as `inspect eval depth`)
 REJECTING = (Status.REJECT, Status.FLAG, Status.ERROR)  # a defect's own outcomes that keep its part off the line
 
 

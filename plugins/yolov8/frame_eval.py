@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.sequence_folder import SequenceError, check_label_boxes, read_image, read_labels
-from core.boxes import box_iou
+from core.boxes import MATCH_IOU, box_iou
 
 
 @dataclass
@@ -78,7 +78,7 @@ def load_labelled_frames(sequence: Path) -> list[tuple[str, np.ndarray, list[dic
 
 
 def score_frames(detections: list[list[tuple[str, float, tuple]]], truths: list[list[dict]],
-                 confidences: list[float], iou: float = 0.3) -> list[FrameEvalRow]:
+                 confidences: list[float], iou: float = MATCH_IOU) -> list[FrameEvalRow]:
     """detections[i]: (class, confidence, box) of frame i; truths[i]: its labelled defects ({class, box})."""
     rows = []
     for conf in confidences:

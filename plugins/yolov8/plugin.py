@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from core.boxes import MATCH_IOU
 from core.commands.params import Finite, out_file, out_folder, overwritten_input
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
@@ -274,7 +275,7 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
 @click.option("--tile-overlap", default=0.25, show_default=True, type=Finite(0.0, 0.9, max_open=True))
 @click.option("--imgsz", type=click.IntRange(32, 4096), default=None, help="network input size; default: the tile's "
               "size, or the frame's long side (the model sees the frame at its own scale)")
-@click.option("--iou", default=0.3, show_default=True, type=Finite(0.0, 1.0, min_open=True),
+@click.option("--iou", default=MATCH_IOU, show_default=True, type=Finite(0.0, 1.0, min_open=True),
               help="a box this close to a labelled defect finds it")
 def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, tile_size: int, tile_overlap: float,
                         imgsz: int | None, iou: float) -> None:

@@ -74,13 +74,13 @@ def _known(defect: dict, decision) -> Status | None:
 def missed_defects(defects: list[dict], boxes: list[tuple[tuple[float, float, float, float], Status]]) -> list[str]:
     """Of the labelled ``defects`` (``beyond_a_limit``), those no box of ``boxes`` (each box and its own outcome)
     that overlaps it by MATCH_IOU rejects, each as "class at (x0, y0)-(x1, y1)"."""
+    iou = box_iou(np.array([d["box"] for d in defects], float).reshape(-1, 4),
+                  np.array([found for found, _ in boxes], float).reshape(-1, 4))
     missed = []
-    for defect in defects:
-        box = [float(v) for v in defect["box"]]
-        hit = [status for found, status in boxes
-               if box_iou(np.array([box]), np.array([found], float))[0, 0] >= MATCH_IOU]
-        if not any(status in REJECTING for status in hit):
-            missed.append(f"{defect['class']} at ({box[0]:.0f}, {box[1]:.0f})-({box[2]:.0f}, {box[3]:.0f})")
+    for defect, overlaps in zip(defects, iou):
+        if not any(boxes[j][1] in REJECTING for j in np.flatnonzero(overlaps >= MATCH_IOU)):
+            x0, y0, x1, y1 = (float(v) for v in defect["box"])
+            missed.append(f"{defect['class']} at ({x0:.0f}, {y0:.0f})-({x1:.0f}, {y1:.0f})")
     return missed
 
 

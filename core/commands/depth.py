@@ -43,7 +43,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     boxes of the recipe's detector that match the labels, and counts the labelled defects it missed. The
     floor stays the true box's."""
     from core import depth_eval as ev
-    from core.commands.inspection import _load, fail, replay_of
+    from core.commands.inspection import _load, distinct_folders, fail, replay_of
     from core.depth import warm_up
     from core.engine import SetupError, StageFailed, command_threads, make_plugin, plugin_context
     from core.registry import default_registry
@@ -54,13 +54,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
         overrides += [f"stereo.backend={backend}", "stereo.settings={}"]
     if boxes == "detector" and (box_scale != 1.0 or box_shift):
         fail("--box-scale and --box-shift change the true boxes; with --boxes detector the detector draws them")
-    seen = {}
+    distinct_folders(sequences, "a sequence folder")
     for folder in sequences:
-        if not folder.is_dir():
-            fail(f"{folder}: not a sequence folder")
-        if folder.resolve() in seen:  # its defects would count twice in every figure
-            fail(f"{folder}: given twice (also as {seen[folder.resolve()]})")
-        seen[folder.resolve()] = folder
         problem = labelled_sequence_problem(folder)  # it names the file
         if problem is not None:
             fail(problem)

@@ -25,6 +25,18 @@ def fail(message: str, code: int = 2) -> None:
     sys.exit(code)
 
 
+def distinct_folders(folders, what: str) -> None:
+    """A one-line error (exit 2) where one of ``folders`` is not a folder (``what`` says what it should hold) or
+    is given twice, under any name: its frames would count twice in every figure."""
+    seen = {}
+    for folder in folders:
+        if not folder.is_dir():
+            fail(f"{folder}: not {what}")
+        if folder.resolve() in seen:
+            fail(f"{folder}: given twice (also as {seen[folder.resolve()]})")
+        seen[folder.resolve()] = folder
+
+
 def replay_of(folder: Path, registry, ctx):
     """The ``replay`` camera over the sequence ``folder``; a one-line error naming the folder where it cannot
     be opened (its calibration, its images' layout)."""

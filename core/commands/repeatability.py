@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections import Counter
 from pathlib import Path
 
 import click
@@ -35,27 +36,22 @@ def repeatability_command(parts, recipe, overrides, out, device, threads, boxes)
     on the same part, or reports an uncertainty this camera does not meet. Where the captures are labelled
     (`inspect data draft-labels`), the first capture's labels name the part's defects, each counted however
     seldom it is found. Saves JSON and Markdown."""
-    from core.commands.inspection import _load, fail, replay_of
+    from core.commands.inspection import _load, distinct_folders, fail, replay_of
     from core.depth import DepthRule
     from core.engine import Pipeline, SetupError, build_detector, command_threads, make_plugin, plugin_context
     from core.registry import default_registry
     from drivers.file_writes import write_text
 
-    seen = {}
-    for folder in parts:
-        if not folder.is_dir():
-            fail(f"{folder}: not a folder of captures")
-        if folder.resolve() in seen:  # its captures would count twice
-            fail(f"{folder}: given twice (also as {seen[folder.resolve()]})")
-        seen[folder.resolve()] = folder
+    distinct_folders(parts, "a folder of captures")
     loaded = _load(recipe, overrides)
     command_threads(threads)
     registry = default_registry()
     ctx = plugin_context(loaded, device)
+    shown = {}  # each folder's captures: what each frame's labels say and which plate it shows
     for folder in parts:  # before the model loads: a folder that cannot hold a study is said at once
         camera = replay_of(folder, registry, ctx)
         try:
-            _check_captures(folder, camera.frames(), boxes)
+            shown[folder] = _check_captures(folder, camera.frames(), boxes)
         finally:
             camera.close()
     try:
@@ -71,7 +67,7 @@ def repeatability_command(parts, recipe, overrides, out, device, threads, boxes)
         if not studies:
             pipeline.warm_up()
         try:
-            studies += _study(folder, pipeline, loaded, rule, boxes)
+            studies += _study(folder, pipeline, loaded, rule, boxes, shown[folder])
         finally:
             pipeline.close()
     text = "\n\n".join(s.markdown() for s in studies)
@@ -90,23 +86,17 @@ def repeatability_command(parts, recipe, overrides, out, device, threads, boxes)
         raise SystemExit(1)
 
 
-def _plate(item, labels: dict | None, previous):
-    """Which plate of the folder a capture shows: its labels' ``plate`` (``inspect sim generate --captures`` renders
-    several in a row), else ``previous`` for a capture that cannot be read (it was taken among its plate's), else
-    None (a folder of one part)."""
-    if labels is not None:
-        return labels.get("plate")
-    return previous if not hasattr(item, "left") else None
-
-
-def _check_captures(folder: Path, frames, boxes: str) -> None:
-    """A one-line error (exit 2) where the captures ``frames`` of ``folder`` cannot make a study: fewer than two of a
-    plate, two with the same images (which measure alike whatever the camera's noise), labels that cannot be read, or
-    a capture without labels where ``boxes`` is "labels"."""
+def _check_captures(folder: Path, frames, boxes: str) -> dict:
+    """Each capture of ``frames`` (``folder``'s) by frame id: (the plate it shows, its labels or None), the plate
+    its labels' ``plate`` (``inspect sim generate --captures`` renders several in a row), else, for a capture that
+    cannot be read, the plate of the capture before it (it was taken among its plate's), else None (a folder of one
+    part). A one-line error (exit 2) where the captures cannot make a study: fewer than two of a plate, two with
+    the same images (which measure alike whatever the camera's noise), labels that cannot be read, or a capture
+    without labels where ``boxes`` is "labels"."""
     from core.commands.inspection import fail
     from drivers.sequence_folder import SequenceError, read_labels
 
-    counts, images, plate = {}, {}, None
+    shown, images, plate = {}, {}, None
     for item in frames:
         labels = None
         if hasattr(item, "left"):
@@ -124,35 +114,31 @@ def _check_captures(folder: Path, frames, boxes: str) -> None:
             elif boxes == "labels":
                 fail(f"{folder}: frame {item.frame_id} has no labels/{item.frame_id}.json (--boxes labels measures "
                      f"in its labelled boxes)")
-        plate = _plate(item, labels, plate)
-        counts[plate] = counts.get(plate, 0) + 1
-    if not counts:
-        counts[None] = 0
+            plate = None if labels is None else labels.get("plate")
+        shown[item.frame_id] = (plate, labels)
+    counts = Counter(plate for plate, _ in shown.values()) or Counter({None: 0})
     for plate, count in counts.items():
         if count < 2:
             of = "" if plate is None else f" of plate {plate}"
             fail(f"{folder}: {count} capture{of}; a repeatability study needs two or more of the same part")
+    return shown
 
 
-def _study(folder: Path, pipeline, loaded, rule, boxes: str) -> list:
+def _study(folder: Path, pipeline, loaded, rule, boxes: str, shown: dict) -> list:
     """The captures in ``folder`` (``pipeline.camera`` plays them), each inspected as the line inspects a plate
     (``core.engine.inspect_frame``), in the detector's boxes or (``boxes`` "labels") in its labelled ones: a study
-    of each plate its labels name (one for a folder of one part), whose first capture's labels name its defects
-    (``_check_captures`` has read them once already)."""
+    of each plate ``shown`` (``_check_captures``) names (one for a folder of one part), whose first capture's labels
+    name its defects."""
     from core import repeatability as rp
     from core.decision import judge_defect
     from core.engine import Detected, inspect_frame
     from core.types import Detection
-    from drivers.sequence_folder import read_labels
 
     # an undecided measurement proves neither side, whatever the recipe then does with the part
     proving = loaded.recipe.decision.model_copy(update={"uncertain": "flag"})
-    captures, labelled, plate = {}, {}, None
+    captures, labelled = {}, {}
     for item in pipeline.camera.frames():
-        labels = None
-        if hasattr(item, "left") and "labels" in item.meta:
-            labels = read_labels(item.meta["labels"], item.left.shape[:2])
-        plate = _plate(item, labels, plate)
+        plate, labels = shown[item.frame_id]
         if labels is not None and plate not in labelled:
             labelled[plate] = tuple(rp.Labelled(d["class"], tuple(d["box"]), d.get("deviation_mm"))
                                     for d in labels["defects"])

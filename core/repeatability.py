@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -205,7 +206,7 @@ class Study:
     captures: tuple[Capture, ...]
     labelled: tuple[Labelled, ...] = ()
 
-    @property
+    @cached_property  # the findings, the table and the JSON each read them
     def defects(self) -> list[Defect]:
         return same_defects(list(self.captures), self.labelled)
 

@@ -76,6 +76,11 @@ class FrameError:
     timestamp: float
     source: str = ""
 
+    @property
+    def said(self) -> str:
+        """The message, naming the frame where it does not already."""
+        return self.message if self.frame_id in self.message else f"frame {self.frame_id}: {self.message}"
+
 
 @dataclass(frozen=True)
 class Detection:

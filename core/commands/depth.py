@@ -85,8 +85,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
         camera = replay_of(folder, registry, ctx)
         for frame in camera.frames():
             if not hasattr(frame, "left"):
-                said = frame.message if frame.frame_id in frame.message else f"frame {frame.frame_id}: {frame.message}"
-                fail(f"{folder}: {said}")
+                fail(f"{folder}: {frame.said}")
             if "labels" not in frame.meta:
                 fail(f"{folder}: frame {frame.frame_id} has no labels/{frame.frame_id}.json (the truth to compare with)")
             try:

@@ -54,8 +54,7 @@ def draft_labels_command(folder: Path, recipe: Path, overrides: tuple[str, ...])
             kept.append(frame.frame_id)
             continue
         if not hasattr(frame, "left"):  # a FrameError: a master part that cannot be read is one to record again
-            said = frame.message if frame.frame_id in frame.message else f"frame {frame.frame_id}: {frame.message}"
-            fail(f"{folder}: {said}")
+            fail(f"{folder}: {frame.said}")
         try:
             found = detector.detect(frame.left)
         except Exception as exc:

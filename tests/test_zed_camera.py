@@ -454,6 +454,33 @@ def test_camera_record_says_how_many_frames_it_did_not_record(monkeypatch, tmp_p
     assert f"{out}: 2 frame(s) the camera captured were not recorded" in result.stderr
 
 
+def test_camera_record_every_so_many_seconds_of_the_cameras_stamps(monkeypatch, tmp_path):
+    """``--every``: one pair every so many seconds by the camera's capture stamps, the frames between read and let go
+    (not counted as missed or unrecorded), so that a study can spread over a shift."""
+    import sys
+    import time
+
+    from core.cli import _build
+
+    now = time.time()
+    package, sl = _stand_in_sdk([now - (14 - k) / 15 for k in range(15)])  # a second at 15 fps, frame k grey 100 + k
+    monkeypatch.setitem(sys.modules, "pyzed", package)
+    monkeypatch.setitem(sys.modules, "pyzed.sl", sl)
+    recipe = tmp_path / "line.yaml"
+    recipe.write_text("name: line\ncamera:\n  plugin: zed\n  settings: {backend: sdk, device: SN11338, fps: 15}\n"
+                      "stereo: {min_disparity: 0, max_disparity: 64}\noutputs: []\n")
+    out = tmp_path / "recorded"
+    result = CliRunner().invoke(_build(), ["camera", "record", str(recipe), "--frames", "3", "--every", "0.3", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "not recorded" not in result.stderr and "(0 missed frames)" in result.output
+    greys = [int(cv2.imread(str(p))[0, 0, 0]) for p in sorted((out / "left").iterdir())]
+    assert greys == [100, 105, 110]  # 5 frames (a third of a second) apart
+
+    again = tmp_path / "too_far_apart"
+    result = CliRunner().invoke(_build(), ["camera", "record", str(recipe), "--frames", "3", "--every", "0.5", str(again)])
+    assert result.exit_code == 1 and "2 of 3 pairs recorded (the camera stopped)" in result.stderr
+
+
 def test_camera_record_reports_a_bad_recipe(tmp_path):
     from core.cli import _build
 

@@ -4,6 +4,7 @@ Drivers and plugins are imported inside the commands so that ``inspect --help`` 
 """
 from __future__ import annotations
 
+import math
 import sys
 import time
 from pathlib import Path
@@ -65,10 +66,15 @@ def plc_sim_command(host: str, port: int, rtu: str | None, baudrate: int, delay_
 @click.option("--frames", "count", type=click.IntRange(1), required=True, help="number of rectified pairs to record")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE", help="override a recipe value (repeatable)")
 @click.option("--max-errors", type=click.IntRange(1), default=50, show_default=True, help="give up after this many missed frames in a row")
-def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ...], max_errors: int) -> None:
+@click.option("--every", "every_s", type=click.FloatRange(0.0), default=0.0, show_default=True,
+              help="seconds between the pairs recorded, by the camera's capture stamps (the frames between are read "
+                   "and let go): a repeatability study spread over a shift")
+def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ...], max_errors: int,
+                   every_s: float) -> None:
     """Record COUNT rectified pairs from RECIPE's camera into OUT, a folder the replay camera plays.
 
     OUT gets left/, right/ and calib.yaml; play it back with ``camera: {plugin: replay, settings: {path: OUT}}``.
+    With ``--every``, one pair every so many seconds of the camera's own capture stamps.
     """
     from pydantic import ValidationError
 
@@ -95,6 +101,7 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
 
     written = errors = in_a_row = 0
     calib_written = False
+    last_stamp = -math.inf
     unread = UnreadFrames(plugin.spec.answer("frame_rate", dict(settings), recipe_dir))
     not_recorded = 0
     try:
@@ -108,6 +115,9 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
                     _fail(f"{in_a_row} frames missed in a row from the {plugin_name} camera; {written} of {count} recorded in {out}")
                 continue
             in_a_row = 0
+            if item.timestamp - last_stamp < every_s:
+                continue  # read, so that the next pair recorded is the camera's newest, and let go
+            last_stamp = item.timestamp
             if not calib_written:
                 c = item.calib
                 seq.write_calibration(out, {"focal_px": c.focal_px, "baseline_mm": c.baseline_mm, "cx": c.cx, "cy": c.cy,

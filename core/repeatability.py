@@ -24,6 +24,8 @@ SAME_DEFECT_IOU = 0.5  # a box of another capture overlapping a defect's this mu
 SCATTER_Z = 2.3263  # the standard normal's upper 99 % point: the chi-square's quantile a scatter may not pass
 MIN_MEASURED = 3  # captures measured that say anything of a scatter (two give one degree of freedom)
 BOX_MOVED_PX = 0.5  # a box's centre scattering this much between captures may be what moved a reading
+TREND_Z = 2.5758  # the standard normal's two-sided 99 % point: Student's t at it bounds a trend the noise may show
+MIN_TREND = 5  # captures measured that tell a trend from the scatter about it (three degrees of freedom)
 PROOFS = {Status.REJECT: "beyond", Status.PASS: "inside", Status.FLAG: "undecided", Status.ERROR: "unavailable"}
 
 
@@ -69,6 +71,52 @@ def chi2_upper_ratio(dof: int, z: float = SCATTER_Z) -> float:
     return (1.0 - a + z * math.sqrt(a)) ** 3
 
 
+def t_quantile(dof: int, z: float = TREND_Z) -> float:
+    """Student's t quantile over ``dof`` degrees of freedom at the standard normal's quantile ``z`` (Cornish-Fisher's
+    expansion in 1 / dof: within 3.5 % from three degrees of freedom, 0.2 % from eight)."""
+    z3, z5, z7 = z ** 3, z ** 5, z ** 7
+    return (z + (z3 + z) / (4 * dof) + (5 * z5 + 16 * z3 + 3 * z) / (96 * dof ** 2)
+            + (3 * z7 + 19 * z5 + 17 * z3 - 15 * z) / (384 * dof ** 3))
+
+
+@dataclass(frozen=True)
+class Trend:
+    """A quantity's straight-line change over the captures in the order taken (least squares over the captures'
+    positions): ``change`` from the first capture to the last (mm) and its standard error, from the scatter about
+    the line; ``n`` the captures that measured it."""
+
+    n: int
+    change: float
+    se: float
+
+    @property
+    def t(self) -> float:
+        return self.change / self.se if self.se > 0 else (math.inf if self.change else 0.0)
+
+    @property
+    def drifts(self) -> bool:
+        """Whether the change stands beyond what the scatter about the line shows by chance at 99 % (two-sided),
+        over MIN_TREND captures or more: the camera warming up, the part or the camera moving."""
+        return self.n >= MIN_TREND and abs(self.t) > t_quantile(self.n - 2)
+
+    @staticmethod
+    def of(positions: list[int], values: list[float | None]) -> Trend | None:
+        """The trend of ``values`` taken at ``positions`` (each capture's place in the order taken; None where the
+        capture did not measure it); None where fewer than three were measured."""
+        pairs = [(p, v) for p, v in zip(positions, values) if v is not None]
+        if len(pairs) < 3:
+            return None
+        x = np.array([p for p, _ in pairs], dtype=np.float64)
+        y = np.array([v for _, v in pairs], dtype=np.float64)
+        x -= x.mean()
+        sxx = float(x @ x)
+        slope = float(x @ (y - y.mean())) / sxx
+        residual = y - y.mean() - slope * x
+        sd = math.sqrt(float(residual @ residual) / (len(pairs) - 2))
+        span = float(x.max() - x.min())
+        return Trend(len(pairs), slope * span, sd / math.sqrt(sxx) * span)
+
+
 @dataclass(frozen=True)
 class Spread:
     """A quantity's values over the captures that measured it: their mean and standard deviation (the
@@ -112,6 +160,7 @@ class Defect:
     captures: int
     label: str | None = None  # the class the part's labels give it, where they list it
     reference_mm: float | None = None  # the deviation they give it (measured on the plate), where they do
+    taken: tuple[str, ...] = ()  # every capture's frame id in the order taken; the readings' order where not given
 
     @property
     def found(self) -> int:
@@ -142,13 +191,22 @@ class Defect:
     def distance(self) -> Spread | None:
         return Spread.of([r.distance_mm for _, r in self.readings], [r.distance_sigma_mm for _, r in self.readings])
 
+    def trend(self, quantity: str) -> Trend | None:
+        """The straight-line trend of ``quantity`` (``deviation`` or ``distance``) over the captures in the order
+        taken, each reading at its capture's place in it."""
+        place = {frame: i for i, frame in enumerate(self.taken)}
+        positions = [place.get(frame, i) for i, (frame, _) in enumerate(self.readings)]
+        return Trend.of(positions, [getattr(r, f"{quantity}_mm") if getattr(r, f"{quantity}_sigma_mm") is not None
+                                    else None for _, r in self.readings])
+
     def name(self) -> str:
         x0, y0, x1, y1 = self.box
         what = self.label if self.label is not None else self.classes.most_common(1)[0][0]
         return f"{what} at ({x0:.0f}, {y0:.0f})-({x1:.0f}, {y1:.0f})" + (" (labelled)" if self.label else "")
 
     def findings(self) -> list[str]:
-        """One line for each way this defect was not measured alike every time, or scattered beyond its uncertainty."""
+        """One line for each way this defect was not measured alike every time, scattered beyond its uncertainty,
+        or drifted over the captures."""
         said = []
         if self.found < self.captures:
             said.append(f"{self.name()}: found in {self.found} of {self.captures} captures")
@@ -165,6 +223,12 @@ class Defect:
                 said.append(f"{self.name()}: its {what} scatters {spread.sd:.3f} mm over {spread.n} captures, "
                             f"{spread.ratio:.1f}x the {spread.sigma:.3f} mm uncertainty it is reported with: more than "
                             f"that uncertainty allows at 99 % confidence{why}")
+        for what in ("deviation", "distance"):
+            trend = self.trend(what)
+            if trend is not None and trend.drifts:
+                said.append(f"{self.name()}: its {what} drifts {trend.change:+.3f} mm from the first capture to the "
+                            f"last ({trend.n} captures in the order taken, {abs(trend.t):.1f} standard errors of that "
+                            f"trend): not the noise; the camera warming up, or the part or the camera moving")
         return said
 
 
@@ -194,7 +258,8 @@ def same_defects(captures: list[Capture], labelled: tuple[Labelled, ...] = ()) -
             taken.add(best)
             read[best].append((capture.frame_id, reading))
     labels = list(labelled) + [Labelled(None, box) for box in boxes[len(labelled):]]
-    return [Defect(box, tuple(r), len(captures), label.class_name, label.deviation_mm)
+    taken = tuple(c.frame_id for c in captures)
+    return [Defect(box, tuple(r), len(captures), label.class_name, label.deviation_mm, taken)
             for box, r, label in zip(boxes, read, labels)]
 
 
@@ -216,7 +281,7 @@ class Study:
 
     def findings(self) -> list[str]:
         """One line for each way the part was not inspected alike every time: its verdict, a defect found only
-        sometimes, proven on both sides of a limit, or scattering beyond its uncertainty."""
+        sometimes, proven on both sides of a limit, scattering beyond its uncertainty, or drifting."""
         said = []
         if len(self.verdicts) > 1:
             counts = ", ".join(f"{v} {n}" for v, n in self.verdicts.most_common())
@@ -249,6 +314,9 @@ class Study:
                 "bias_mm": None if dev is None or d.reference_mm is None else dev.mean - d.reference_mm,
                 "distance_mm": None if dist is None else {"n": dist.n, "mean": dist.mean, "sd": dist.sd,
                                                           "sigma": dist.sigma, "sd_over_sigma": dist.ratio},
+                **{f"{what}_trend_mm": None if t is None else {"n": t.n, "change": t.change, "se": t.se,
+                                                               "drifts": t.drifts}
+                   for what, t in (("deviation", d.trend("deviation")), ("distance", d.trend("distance")))},
                 "findings": d.findings(),
             })
         return rows

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from conftest import ROOT, cli, cli_here
 
-from core.repeatability import (Capture, Defect, Labelled, Reading, Spread, Study, chi2_upper_ratio, same_defects)
+from core.repeatability import (Capture, Defect, Labelled, Reading, Spread, Study, Trend, chi2_upper_ratio, same_defects,
+                                t_quantile)
 from core.types import Status
 
 FIXTURE = ROOT / "sim_fixtures" / "steel_plate"
@@ -64,6 +65,40 @@ class TestSpread:
 
     def test_two_values_say_nothing_of_a_scatter(self):
         assert not Spread.of([0.0, 5.0], [0.1, 0.1]).contradicts
+
+
+class TestTQuantile:
+    @pytest.mark.parametrize("dof, quantile, within", [(3, 5.841, 0.035), (5, 4.032, 0.006), (8, 3.355, 0.002),
+                                                       (18, 2.878, 0.001)])
+    def test_is_students_two_sided_99_percent_point(self, dof, quantile, within):
+        assert t_quantile(dof) == pytest.approx(quantile, rel=within)
+
+
+class TestTrend:
+    def test_needs_three_measured_values(self):
+        assert Trend.of([0, 1, 2], [1.0, None, 2.0]) is None
+
+    def test_a_straight_line_is_its_change_from_the_first_capture_to_the_last(self):
+        trend = Trend.of([0, 1, 2, 3, 4], [420.0, 420.1, 420.2, 420.3, 420.4])
+        assert trend.change == pytest.approx(0.4) and trend.se == pytest.approx(0.0, abs=1e-9) and trend.drifts
+
+    def test_a_capture_that_did_not_measure_keeps_the_others_in_their_places(self):
+        # the third capture missed the defect: the others still lie 0.1 mm a capture apart
+        assert Trend.of([0, 1, 3, 4, 5], [0.0, 0.1, 0.3, 0.4, 0.5]).change == pytest.approx(0.5)
+
+    def test_noise_alone_drifts_about_once_in_a_hundred(self):
+        rng = np.random.default_rng(3)
+        draws = [Trend.of(list(range(10)), list(rng.normal(0.0, 0.2, 10))).drifts for _ in range(4000)]
+        assert 0.003 < np.mean(draws) < 0.02
+
+    def test_a_drift_of_five_times_the_scatter_is_found(self):
+        rng = np.random.default_rng(4)
+        draws = [Trend.of(list(range(10)), list(np.linspace(0.0, 1.0, 10) + rng.normal(0.0, 0.2, 10))).drifts
+                 for _ in range(1000)]
+        assert np.mean(draws) > 0.9
+
+    def test_four_captures_say_nothing_of_a_drift(self):
+        assert not Trend.of([0, 1, 2, 3], [0.0, 0.1, 0.2, 0.31]).drifts
 
 
 class TestSameDefects:
@@ -120,6 +155,22 @@ class TestDefectFindings:
         (said,) = self._defect(readings).findings()
         assert "its distance scatters" in said and "the box's centre moved 2.6 px between captures" in said
 
+    def test_a_distance_drifting_over_the_captures(self):
+        readings = [_reading(distance=420.0 + 0.04 * k + d) for k, d in enumerate((0.0, 0.01, -0.01, 0.0, 0.01, -0.01))]
+        (said,) = self._defect(readings).findings()  # its scatter, 0.075 mm, is within the 0.05 mm uncertainty's 99 %
+        assert said.startswith("pitted_surface at (100, 50)-(140, 80): its distance drifts +0.194 mm from the first "
+                               "capture to the last (6 captures in the order taken,")
+        assert "the camera warming up" in said
+
+    def test_the_drift_is_taken_over_the_captures_in_the_order_taken(self):
+        # found in captures 0, 1, 2 and 7, 8, 9 of ten, on a straight line over the ten
+        places = (0, 1, 2, 7, 8, 9)
+        readings = [_reading(distance=420.0 + 0.02 * k) for k in places]
+        taken = tuple(f"{i:06d}" for i in range(10))
+        trend = Defect(BOX, tuple(zip([taken[i] for i in places], readings)), 10, None, None, taken).trend("distance")
+        assert trend.change == pytest.approx(0.18) and trend.se == pytest.approx(0.0, abs=1e-9)
+        assert self._defect(readings).trend("distance").se > 0.01  # read one after another, no line
+
     def test_box_scatter_is_none_for_one_reading(self):
         assert self._defect([_reading()]).box_scatter_px is None
 
@@ -155,8 +206,10 @@ class TestStudy:
         assert study.findings() == [] and "no defect labelled or found" in study.markdown()
 
 
-def _captures_of(frame_id: str, out: Path, count: int, noise: float = 1.5, seed: int = 0) -> Path:
-    """``count`` captures of one demo frame: its images with the sensor's noise drawn anew each time."""
+def _captures_of(frame_id: str, out: Path, count: int, noise: float = 1.5, seed: int = 0, drift_px: float = 0.0
+                 ) -> Path:
+    """``count`` captures of one demo frame: its images with the sensor's noise drawn anew each time; ``drift_px``
+    moves the right image that much further right each capture (a camera whose rectification drifts as it warms)."""
     rng = np.random.default_rng(seed)
     for sub in ("left", "right", "labels"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -165,6 +218,10 @@ def _captures_of(frame_id: str, out: Path, count: int, noise: float = 1.5, seed:
     for k in range(count):
         for eye in ("left", "right"):
             image = cv2.imread(str(FIXTURE / eye / f"{frame_id}.jpg")).astype(np.float32)
+            if eye == "right" and drift_px:
+                move = np.float32([[1, 0, drift_px * k], [0, 1, 0]])
+                image = cv2.warpAffine(image, move, image.shape[1::-1], flags=cv2.INTER_CUBIC,
+                                       borderMode=cv2.BORDER_REPLICATE)
             noisy = image + rng.normal(0.0, noise, image.shape[:2])[..., None]
             cv2.imwrite(str(out / eye / f"{k:06d}.png"), np.clip(np.round(noisy), 0, 255).astype(np.uint8))
         (out / "labels" / f"{k:06d}.json").write_text(json.dumps({**labels, "frame_id": f"{k:06d}"}))
@@ -172,7 +229,8 @@ def _captures_of(frame_id: str, out: Path, count: int, noise: float = 1.5, seed:
 
 
 def test_parts_in_their_labelled_boxes_are_inspected_alike_and_within_their_uncertainty(tmp_path):
-    part = _captures_of("000003", tmp_path / "part", 4)
+    part = _captures_of("000003", tmp_path / "part", 5)
+    warming = _captures_of("000003", tmp_path / "warming", 5, seed=2, drift_px=0.05)
     broken = _captures_of("000006", tmp_path / "broken", 3, seed=1)
     (broken / "right" / "000001.png").write_bytes(b"not an image")
     plates = tmp_path / "plates"  # two rendered plates, each captured twice: a study of each
@@ -180,24 +238,31 @@ def test_parts_in_their_labelled_boxes_are_inspected_alike_and_within_their_unce
                     "--synthetic-defects", "--no-jitter", "--width", "336", "--height", "188", "--depth-range-mm",
                     "0.5", "2", "--defect-size-px", "20", "40", "--defects-per-frame", "1", "1")
     assert made.returncode == 0, made.stderr
-    out = cli("eval", "repeatability", str(part), str(broken), str(plates), "--boxes", "labels",
+    out = cli("eval", "repeatability", str(part), str(broken), str(warming), str(plates), "--boxes", "labels",
               "--out", str(tmp_path / "out"))
-    assert out.returncode == 1, out.stderr  # the broken part's capture
+    assert out.returncode == 1, out.stderr  # the broken part's capture, the warming camera's drift
     result = json.loads((tmp_path / "out" / "repeatability.json").read_text())
-    first, second, *rendered = result["parts"]
+    first, second, third, *rendered = result["parts"]
     assert [(p["part"], p["captures"]) for p in rendered] == [
         (f"{plates} plate 0", ["000000", "000001"]), (f"{plates} plate 1", ["000002", "000003"])]
     for study, capture in zip(rendered, ("000000", "000002")):
         labels = json.loads((plates / "labels" / f"{capture}.json").read_text())["defects"]
         assert [row["box"] for row in study["defects"]] == [d["box"] for d in labels]
         assert all(row["found"] == 2 for row in study["defects"])
-    assert first["verdicts"] == {"REJECT": 4} and first["findings"] == []
+    assert first["verdicts"] == {"REJECT": 5} and first["findings"] == []
     for row in first["defects"]:
-        assert row["found"] == 4 and row["box_scatter_px"] == 0.0  # the labels' boxes hold still
+        assert row["found"] == 5 and row["box_scatter_px"] == 0.0  # the labels' boxes hold still
         dev = row["deviation_mm"]
-        assert dev["n"] == 4 and 0 < dev["sd"] < dev["sigma"]
+        assert dev["n"] == 5 and 0 < dev["sd"] < dev["sigma"]
         assert abs(row["bias_mm"]) < 2 * dev["sigma"]
-    assert f"{part}: 4 captures, REJECT 4; 2 defects; inspected alike every time" in out.stdout
+        assert not row["distance_trend_mm"]["drifts"] and not row["deviation_trend_mm"]["drifts"]
+    assert f"{part}: 5 captures, REJECT 5; 2 defects; inspected alike every time" in out.stdout
+    # 0.2 px of disparity over the five captures: the plate some 0.8 mm farther at the last, the deviations as they were
+    for row, steady in zip(third["defects"], first["defects"]):
+        trend = row["distance_trend_mm"]
+        assert trend["drifts"] and 0.5 < trend["change"] < 1.2, trend
+        assert abs(row["deviation_mm"]["mean"] - steady["deviation_mm"]["mean"]) < 2 * steady["deviation_mm"]["sigma"]
+        assert any("its distance drifts +" in f for f in row["findings"])
     assert second["verdicts"]["ERROR"] == 1
     assert any(f.startswith("capture 000001 could not be inspected") for f in second["findings"])
     assert f"  {broken}: capture 000001 could not be inspected" in out.stdout

@@ -31,9 +31,10 @@ def repeatability_command(parts, recipe, overrides, out, device, threads, boxes)
     folder of several, each then studied on its own), inspected capture by capture as the line inspects a plate.
     Per defect: how often it was found, its deviation's and distance's scatter over the captures against the
     uncertainty reported with them, and what its rules proved. Exit 1 where a part's verdict
-    differs between captures, a defect is found only sometimes or proven on both sides of a limit, or a
-    measurement scatters more than its uncertainty allows at 99 % confidence: such a line does not decide alike
-    on the same part, or reports an uncertainty this camera does not meet. Where the captures are labelled
+    differs between captures, a defect is found only sometimes or proven on both sides of a limit, a
+    measurement scatters more than its uncertainty allows at 99 % confidence, or it drifts over the captures in
+    the order taken (`inspect camera record --every`: a camera warming up): such a line does not decide alike on
+    the same part, or reports an uncertainty this camera does not meet. Where the captures are labelled
     (`inspect data draft-labels`), the first capture's labels name the part's defects, each counted however
     seldom it is found. Saves JSON and Markdown."""
     from core.commands.inspection import _load, distinct_folders, fail, replay_of

@@ -5,6 +5,7 @@ packages declare themselves in the entry-point group, built-in ones included.
 """
 from __future__ import annotations
 
+import difflib
 import importlib.metadata
 from dataclasses import dataclass
 from functools import lru_cache
@@ -26,7 +27,9 @@ class UnknownPlugin(LookupError):
     def __init__(self, kind: str, name: str, known: list[str], failed: list[str] | None = None):
         self.kind, self.name, self.known = kind, name, known
         why = f"; these plugin packages failed to load: {'; '.join(failed)}" if failed else ""
-        super().__init__(f"unknown {kind} plugin {name!r}; known: {', '.join(known) or 'none'}{why}")
+        close = difflib.get_close_matches(str(name), known, n=1, cutoff=0.6)
+        hint = f"; did you mean {close[0]!r}? known" if close else "; known"
+        super().__init__(f"unknown {kind} plugin {name!r}{hint}: {', '.join(known) or 'none'}{why}")
 
 
 class PluginConflict(UnknownPlugin):

@@ -109,8 +109,18 @@ def test_a_page_rate_a_browser_cannot_wait_for_is_refused(recipe_dir):
 
 def test_unknown_plugin_lists_known_ones(recipe_dir):
     message = _error(recipe_dir, GOOD.replace("plugin: yolov8", "plugin: yolo9"))
-    assert ":10: detector.plugin: unknown detector plugin 'yolo9'; known:" in message
-    assert "yolov8" in message
+    assert ":10: detector.plugin: unknown detector plugin 'yolo9'; did you mean 'yolov8'? known:" in message
+    message = _error(recipe_dir, GOOD.replace("plugin: yolov8", "plugin: detr"))
+    assert message.endswith(":10: detector.plugin: unknown detector plugin 'detr'; known: yolov8")
+
+
+@pytest.mark.parametrize("setting, says", [
+    # the value given is said even where the allowed ones hold it ('surface' holds 'surfac', 0.05 holds 0)
+    ("depth.method=surfac", "depth.method: Input should be 'surface' or 'disparity' (got 'surfac')"),
+    ("stereo.scale=0", "stereo.scale: Input should be greater than 0.05 (got 0)"),
+])
+def test_the_value_given_is_said_where_the_allowed_ones_contain_it(recipe_dir, setting, says):
+    assert _error(recipe_dir, GOOD, [setting]).endswith(says)
 
 
 def test_missing_weights_file(recipe_dir):

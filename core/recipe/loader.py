@@ -10,6 +10,7 @@ import difflib
 import hashlib
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Union, get_args, get_origin
@@ -102,9 +103,17 @@ def first_problem(exc: ValidationError, model: type[BaseModel]) -> tuple[KeyPath
     else:
         message = err["msg"].removeprefix("Value error, ")
         if "input" in err and kind not in ("model_type", "dict_type") and not isinstance(err["input"], dict) \
-                and str(err["input"]).rstrip("/") not in message:  # a message naming the file it read says it
+                and not _names(message, err["input"]):
             message += f" (got {err['input']!r})"
     return loc, message
+
+
+def _names(message: str, value: Any) -> bool:
+    """Whether ``message`` already gives ``value``: a file it read, by its path, or the value as written, standing
+    alone (``'surfac'`` is not named by ``'surface'``, nor ``0`` by ``0.05``)."""
+    if isinstance(value, str) and ("/" in value or "\\" in value) and value.rstrip("/") in message:
+        return True
+    return re.search(rf"(?<![\w.']){re.escape(repr(value))}(?![\w.'])", message) is not None
 
 
 def _first_error(exc: ValidationError, base: KeyPath, locator: _Locator, model: type[BaseModel]) -> RecipeError:

@@ -211,7 +211,7 @@ def largest_defect_px(width: int, height: int) -> float:
 
 def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, texture_contrast: float = 1.0,
                 flat_floor: tuple[float, float] | None = None, camera: CameraModel = CameraModel(),
-                round_defects: bool = False) -> Scene:
+                round_defects: bool = False, grain_angle_deg: float = 0.0) -> Scene:
     z0 = spec.distance_mm
     e1, e2, n = plate_axes(spec.tilt_deg, spec.yaw_deg)
     p0 = np.array([0.0, 0.0, z0])
@@ -230,7 +230,7 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
     pad = 6 * texel
     s0, s1, t0, t1 = min(ss) - pad, max(ss) + pad, min(ts) - pad, max(ts) + pad
     shape = (int(np.ceil((t1 - t0) / texel)) + 1, int(np.ceil((s1 - s0) / texel)) + 1)
-    albedo = steel_albedo(rng, shape, texel, texture_contrast)
+    albedo = steel_albedo(rng, shape, texel, texture_contrast, grain_angle_deg)
     belt = belt_albedo(rng, shape, texel)
     height = np.zeros(shape, np.float32)
 
@@ -385,9 +385,9 @@ def quantise_disparity(disparity: np.ndarray) -> np.ndarray:
 
 def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None, frame_id: str, ss: int = 2,
                  texture_contrast: float = 1.0, flat_floor: tuple[float, float] | None = None,
-                 camera: CameraModel = CameraModel(), round_defects: bool = False):
+                 camera: CameraModel = CameraModel(), round_defects: bool = False, grain_angle_deg: float = 0.0):
     """(left, right, gt disparity (quantised), labels dict, scene)."""
-    scene = build_scene(rng, calib, spec, crops, texture_contrast, flat_floor, camera, round_defects)
+    scene = build_scene(rng, calib, spec, crops, texture_contrast, flat_floor, camera, round_defects, grain_angle_deg)
     left, right, disparity, hits = render_pair(scene, rng, ss=ss, rectification_error_px=camera.rectification_error_px)
     largest = float(np.nanmax(disparity, initial=0.0))
     if largest > KITTI_MAX_DISPARITY:  # clipped, every label near it would read the plate as farther and flat
@@ -431,6 +431,7 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
         "sensor": {"noise_sigma": round(scene.sensor.noise_sigma, 4), "right_gain": round(scene.sensor.right_gain, 4),
                    "right_offset": round(scene.sensor.right_offset, 4)},
         "texture_contrast": texture_contrast,
+        **({} if not grain_angle_deg else {"grain_angle_deg": grain_angle_deg}),
         **({} if not camera.rectification_error_px else {"rectification_error_px": camera.rectification_error_px}),
         **({} if camera.specular else {"specular": False}),
         **({} if not camera.lens_blur_px else {"lens_blur_px": camera.lens_blur_px}),
@@ -456,12 +457,15 @@ def generate_sequence(
     texture_contrast: float = 1.0,
     camera: CameraModel = CameraModel(),
     captures: int = 1,
+    grain_angle_deg: float = 0.0,
 ) -> list[dict]:
     """Write a sequence folder; returns the labels of every frame. ``neu_det=None`` uses the
-    synthetic stand-in defect appearance. ``ranges``, ``texture_contrast`` and ``camera`` make an evaluation
-    set; left at their defaults, the draws (and so the files) are those of the demo plan. ``captures``: each of
-    the ``frames`` plates captured that many times in a row, the sensor's noise drawn anew each time (a plate
-    standing still under the camera, as ``inspect eval repeatability`` reads it); 1 draws what it always did."""
+    synthetic stand-in defect appearance. ``ranges``, ``texture_contrast``, ``grain_angle_deg`` (the rolling
+    direction turned from down the image towards its rows, ``sim.texture.steel_albedo``) and ``camera`` make an
+    evaluation set; left at their defaults, the draws (and so the files) are those of the demo plan. ``captures``:
+    each of the ``frames`` plates captured that many times in a row, the sensor's noise drawn anew each time (a
+    plate standing still under the camera, as ``inspect eval repeatability`` reads it); 1 draws what it always
+    did."""
     out = Path(out)
     crops = NeuCrops(Path(neu_det)) if neu_det is not None else None
     calib = zed_calibration(width, height)
@@ -480,7 +484,8 @@ def generate_sequence(
         spec = plan_frame(rng, i, distance_mm, tilt_deg, jitter, decks, ranges)
         left, right, gt, labels, scene = render_frame(rng, calib, spec, crops, frame_id, ss=supersample,
                                                       texture_contrast=texture_contrast, flat_floor=ranges.flat_floor,
-                                                      camera=camera, round_defects=ranges.round_defects)
+                                                      camera=camera, round_defects=ranges.round_defects,
+                                                      grain_angle_deg=grain_angle_deg)
         for k in range(captures):
             if k:  # the same light again, another draw of the sensor's noise
                 frame_id = f"{i * captures + k:06d}"

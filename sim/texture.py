@@ -11,14 +11,31 @@ import numpy as np
 PLATE_MEAN = 125.0
 
 
-def _blur_noise(rng: np.random.Generator, shape: tuple[int, int], sx: float, sy: float) -> np.ndarray:
-    """White noise blurred with a Gaussian of sigma (sx, sy) texels, normalised to unit std."""
+def _blur_noise(rng: np.random.Generator, shape: tuple[int, int], sx: float, sy: float,
+                angle_deg: float = 0.0) -> np.ndarray:
+    """White noise blurred with a Gaussian of sigma (sx, sy) texels, its y axis turned ``angle_deg`` towards the
+    grid's x axis, normalised to unit std."""
     noise = rng.standard_normal(shape).astype(np.float32)
     sx, sy = max(sx, 0.3), max(sy, 0.3)
-    kx, ky = 2 * int(3 * sx) + 1, 2 * int(3 * sy) + 1
-    out = cv2.GaussianBlur(noise, (kx, ky), sigmaX=sx, sigmaY=sy, borderType=cv2.BORDER_REFLECT)
+    if angle_deg % 360.0 == 0.0:
+        kx, ky = 2 * int(3 * sx) + 1, 2 * int(3 * sy) + 1
+        out = cv2.GaussianBlur(noise, (kx, ky), sigmaX=sx, sigmaY=sy, borderType=cv2.BORDER_REFLECT)
+    else:
+        out = cv2.filter2D(noise, -1, _turned_gaussian(sx, sy, angle_deg), borderType=cv2.BORDER_REFLECT)
     std = float(out.std())
     return out / std if std > 0 else out
+
+
+def _turned_gaussian(sx: float, sy: float, angle_deg: float) -> np.ndarray:
+    """A normalised Gaussian kernel of sigma ``sx`` across and ``sy`` along its long axis, that axis turned
+    ``angle_deg`` from the grid's y axis towards its x axis."""
+    a = np.deg2rad(angle_deg)
+    r = int(3 * max(sx, sy))
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1].astype(np.float64)
+    along = yy * np.cos(a) + xx * np.sin(a)
+    across = -yy * np.sin(a) + xx * np.cos(a)
+    kernel = np.exp(-0.5 * ((across / sx) ** 2 + (along / sy) ** 2))
+    return (kernel / kernel.sum()).astype(np.float32)
 
 
 def _coarse_noise(rng: np.random.Generator, shape: tuple[int, int], cell: float) -> np.ndarray:
@@ -31,14 +48,16 @@ def _coarse_noise(rng: np.random.Generator, shape: tuple[int, int], cell: float)
     return out / std if std > 0 else out
 
 
-def steel_albedo(rng: np.random.Generator, shape: tuple[int, int], texel_mm: float, contrast: float = 1.0) -> np.ndarray:
-    """Rolled/brushed steel, grey ~125: streaks along the plate's t axis (rolling direction),
-    fine isotropic grain (what stereo matches on), mill-scale mottling and a few stains.
-    ``contrast`` scales every variation about the mean (below 1: polished, low-texture metal)."""
+def steel_albedo(rng: np.random.Generator, shape: tuple[int, int], texel_mm: float, contrast: float = 1.0,
+                 grain_angle_deg: float = 0.0) -> np.ndarray:
+    """Rolled/brushed steel, grey ~125: streaks along the rolling direction, fine isotropic grain (what stereo
+    matches on), mill-scale mottling and a few stains. ``contrast`` scales every variation about the mean (below
+    1: polished, low-texture metal); ``grain_angle_deg`` turns the rolling direction from the plate's t axis (0,
+    down the image: the streaks cross a horizontal baseline) towards its s axis (90: along the baseline)."""
     t = texel_mm
-    streaks = _blur_noise(rng, shape, sx=0.35 / t, sy=8.0 / t)
+    streaks = _blur_noise(rng, shape, sx=0.35 / t, sy=8.0 / t, angle_deg=grain_angle_deg)
     grain = _blur_noise(rng, shape, sx=0.6 / t, sy=0.6 / t)
-    medium = _blur_noise(rng, shape, sx=2.5 / t, sy=4.0 / t)
+    medium = _blur_noise(rng, shape, sx=2.5 / t, sy=4.0 / t, angle_deg=grain_angle_deg)
     mottle = _coarse_noise(rng, shape, cell=60.0 / t)
     stains = np.clip(_coarse_noise(rng, shape, cell=25.0 / t) - 1.6, 0, None)
     albedo = PLATE_MEAN + 9.0 * streaks + 8.0 * grain + 6.0 * medium + 12.0 * mottle - 25.0 * stains

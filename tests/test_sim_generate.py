@@ -340,6 +340,22 @@ def test_an_aspect_needs_the_size_it_divides_and_angles_stay_within_a_turn(tmp_p
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("angle, across_over_along", [(0.0, (1.5, 4.0)), (90.0, (0.2, 0.5)), (45.0, (0.8, 1.25))])
+def test_the_grain_turns_the_streaks_from_across_the_baseline_to_along_it(angle, across_over_along):
+    calib = zed_calibration(W, H)
+    spec = FrameSpec(400.0, 0.0, 0.0, [])
+    albedo = build_scene(np.random.default_rng(3), calib, spec, None, grain_angle_deg=angle).albedo.astype(np.float64)
+    # the albedo's columns run along the plate's s axis, the image's rows: streaks down the image vary along them
+    along_rows, along_columns = np.mean(np.diff(albedo, axis=1) ** 2), np.mean(np.diff(albedo, axis=0) ** 2)
+    low, high = across_over_along
+    assert low < along_rows / along_columns < high
+    base = build_scene(np.random.default_rng(3), calib, spec, None)
+    if angle == 0.0:
+        assert np.array_equal(albedo, base.albedo)  # the default plates, draw for draw
+    else:
+        assert np.std(albedo) == pytest.approx(np.std(base.albedo), rel=0.02)  # the same texture, turned
+
+
 def test_the_camera_model_changes_only_what_it_names(tmp_path):
     """The same seed renders the same plates whatever the camera does; noise, highlight and lens blur
     each change the images the way they say."""

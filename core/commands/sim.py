@@ -105,6 +105,10 @@ def register(cli: click.Group) -> None:
                   metavar="MIN MAX", help="With --depth-range-mm: defects per frame, drawn uniformly.")
     @click.option("--texture-contrast", default=1.0, show_default=True, type=Finite(0.05, 3.0),
                   help="Scale of the plate texture's variation (0.3: polished, low-texture metal).")
+    @click.option("--grain-angle-deg", default=0.0, show_default=True, type=Finite(-180.0, 180.0),
+                  help="The plate's rolling direction (its streaks) turned this far from down the image, where they "
+                       "cross the cameras' baseline, towards its rows (90: along the baseline, which leaves the "
+                       "matcher the fine grain alone).")
     @click.option("--flat-floor", nargs=2, type=FINITE, default=None, metavar="MIN MAX",
                   help="Evaluation set: the share of each defect's half-size that is flat floor, drawn per defect "
                        "(the wall rises over the rest; near 1: a flat-bottomed pit with a steep wall). Default: "
@@ -138,8 +142,8 @@ def register(cli: click.Group) -> None:
                        "plates make frames x captures frames.")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
                  image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
-                 defects_per_frame, texture_contrast, flat_floor, round_defects, defect_aspect, defect_angle_deg,
-                 rectification_error_px, noise_sigma, specular, lens_blur_px, captures) -> None:
+                 defects_per_frame, texture_contrast, grain_angle_deg, flat_floor, round_defects, defect_aspect,
+                 defect_angle_deg, rectification_error_px, noise_sigma, specular, lens_blur_px, captures) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
@@ -212,7 +216,7 @@ def register(cli: click.Group) -> None:
                 out, frames=frames, seed=seed, distance_mm=distance_mm, tilt_deg=tilt_deg,
                 neu_det=None if synthetic_defects else neu_det, width=width, height=height, jitter=jitter,
                 supersample=supersample, image_format=image_format, log=click.echo, ranges=ranges,
-                texture_contrast=texture_contrast,
+                texture_contrast=texture_contrast, grain_angle_deg=grain_angle_deg,
                 camera=CameraModel(noise_sigma, specular, lens_blur_px, rectification_error_px), captures=captures,
             )
         except (NeuDetError, GenerateError, OSError) as exc:  # OSError: a full disk, the folder removed under it

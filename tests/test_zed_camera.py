@@ -432,21 +432,28 @@ def test_camera_record_builds_a_replayable_sequence(dots_video, tmp_path):
     assert again.exit_code == 2 and "already holds" in again.output
 
 
-def test_camera_record_says_how_many_frames_it_did_not_record(monkeypatch, tmp_path):
-    """A live camera keeps only its newest frame while a pair is written: the recording's gaps are counted from
-    the capture stamps (the SDK's here) and said, so that a test set is not taken for the line as it ran."""
+def _sdk_line(monkeypatch, tmp_path, stamps_s: list[float]):
+    """A recipe whose camera is a ZED through the stand-in SDK (``_stand_in_sdk``), grabbing one pair per stamp."""
     import sys
-    import time
 
-    from core.cli import _build
-
-    now = time.time()
-    package, sl = _stand_in_sdk([now - k / 15 for k in (9, 8, 5, 4)])  # 8 -> 5 periods back: two frames gone
+    package, sl = _stand_in_sdk(stamps_s)
     monkeypatch.setitem(sys.modules, "pyzed", package)
     monkeypatch.setitem(sys.modules, "pyzed.sl", sl)
     recipe = tmp_path / "line.yaml"
     recipe.write_text("name: line\ncamera:\n  plugin: zed\n  settings: {backend: sdk, device: SN11338, fps: 15}\n"
                       "stereo: {min_disparity: 0, max_disparity: 64}\noutputs: []\n")
+    return recipe
+
+
+def test_camera_record_says_how_many_frames_it_did_not_record(monkeypatch, tmp_path):
+    """A live camera keeps only its newest frame while a pair is written: the recording's gaps are counted from
+    the capture stamps (the SDK's here) and said, so that a test set is not taken for the line as it ran."""
+    import time
+
+    from core.cli import _build
+
+    now = time.time()
+    recipe = _sdk_line(monkeypatch, tmp_path, [now - k / 15 for k in (9, 8, 5, 4)])  # 8 -> 5 periods back: two gone
     out = tmp_path / "recorded"
     result = CliRunner().invoke(_build(), ["camera", "record", str(recipe), "--frames", "4", str(out)])
     assert result.exit_code == 0, result.output
@@ -457,18 +464,12 @@ def test_camera_record_says_how_many_frames_it_did_not_record(monkeypatch, tmp_p
 def test_camera_record_every_so_many_seconds_of_the_cameras_stamps(monkeypatch, tmp_path):
     """``--every``: one pair every so many seconds by the camera's capture stamps, the frames between read and let go
     (not counted as missed or unrecorded), so that a study can spread over a shift."""
-    import sys
     import time
 
     from core.cli import _build
 
     now = time.time()
-    package, sl = _stand_in_sdk([now - (14 - k) / 15 for k in range(15)])  # a second at 15 fps, frame k grey 100 + k
-    monkeypatch.setitem(sys.modules, "pyzed", package)
-    monkeypatch.setitem(sys.modules, "pyzed.sl", sl)
-    recipe = tmp_path / "line.yaml"
-    recipe.write_text("name: line\ncamera:\n  plugin: zed\n  settings: {backend: sdk, device: SN11338, fps: 15}\n"
-                      "stereo: {min_disparity: 0, max_disparity: 64}\noutputs: []\n")
+    recipe = _sdk_line(monkeypatch, tmp_path, [now - (14 - k) / 15 for k in range(15)])  # 15 fps, frame k grey 100 + k
     out = tmp_path / "recorded"
     result = CliRunner().invoke(_build(), ["camera", "record", str(recipe), "--frames", "3", "--every", "0.3", str(out)])
     assert result.exit_code == 0, result.output

@@ -476,6 +476,8 @@ def test_camera_record_every_so_many_seconds_of_the_cameras_stamps(monkeypatch, 
     assert "not recorded" not in result.stderr and "(0 missed frames)" in result.output
     greys = [int(cv2.imread(str(p))[0, 0, 0]) for p in sorted((out / "left").iterdir())]
     assert greys == [100, 105, 110]  # 5 frames (a third of a second) apart
+    assert f"{out}: pair 2 of 3 recorded, the next in 0.3 s\n" in result.stderr  # each said as it comes
+    assert f"{out}: pair 3 of 3 recorded\n" in result.stderr
 
     again = tmp_path / "too_far_apart"
     result = CliRunner().invoke(_build(), ["camera", "record", str(recipe), "--frames", "3", "--every", "0.5", str(again)])

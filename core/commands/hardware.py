@@ -125,6 +125,9 @@ def record_command(recipe: Path, out: Path, count: int, overrides: tuple[str, ..
                 calib_written = True
             seq.write_frame(out, f"{written:06d}", item.left, item.right)
             written += 1
+            if every_s:  # hours between the first pair and the last: say each as it comes
+                click.echo(f"{out}: pair {written} of {count} recorded"
+                           + (f", the next in {every_s:g} s" if written < count else ""), err=True)
             if written >= count:
                 break
     except KeyboardInterrupt:

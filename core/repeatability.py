@@ -96,7 +96,8 @@ class Trend:
     @property
     def drifts(self) -> bool:
         """Whether the change stands beyond what the scatter about the line shows by chance at 99 % (two-sided),
-        over MIN_TREND captures or more: the camera warming up, the part or the camera moving."""
+        over MIN_TREND captures or more: the camera warming up, the part or the camera moving (a finding where it
+        also exceeds the uncertainty reported, ``Defect.findings``)."""
         return self.n >= MIN_TREND and abs(self.t) > t_quantile(self.n - 2)
 
     @staticmethod
@@ -223,12 +224,14 @@ class Defect:
                 said.append(f"{self.name()}: its {what} scatters {spread.sd:.3f} mm over {spread.n} captures, "
                             f"{spread.ratio:.1f}x the {spread.sigma:.3f} mm uncertainty it is reported with: more than "
                             f"that uncertainty allows at 99 % confidence{why}")
-        for what in ("deviation", "distance"):
+        for what, spread in (("deviation", self.deviation), ("distance", self.distance)):
             trend = self.trend(what)
-            if trend is not None and trend.drifts:
+            # a drift within the uncertainty reported is covered by its guard band, however sure the trend
+            if trend is not None and trend.drifts and spread is not None and abs(trend.change) > spread.sigma:
                 said.append(f"{self.name()}: its {what} drifts {trend.change:+.3f} mm from the first capture to the "
-                            f"last ({trend.n} captures in the order taken, {abs(trend.t):.1f} standard errors of that "
-                            f"trend): not the noise; the camera warming up, or the part or the camera moving")
+                            f"last, more than its {spread.sigma:.3f} mm uncertainty ({trend.n} captures in the order "
+                            f"taken, {abs(trend.t):.1f} standard errors of that trend): not the noise; the camera "
+                            f"warming up, or the part or the camera moving")
         return said
 
 

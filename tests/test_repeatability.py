@@ -159,8 +159,14 @@ class TestDefectFindings:
         readings = [_reading(distance=420.0 + 0.04 * k + d) for k, d in enumerate((0.0, 0.01, -0.01, 0.0, 0.01, -0.01))]
         (said,) = self._defect(readings).findings()  # its scatter, 0.075 mm, is within the 0.05 mm uncertainty's 99 %
         assert said.startswith("pitted_surface at (100, 50)-(140, 80): its distance drifts +0.194 mm from the first "
-                               "capture to the last (6 captures in the order taken,")
+                               "capture to the last, more than its 0.050 mm uncertainty (6 captures in the order taken,")
         assert "the camera warming up" in said
+
+    def test_a_drift_within_the_reported_uncertainty_is_no_finding(self):
+        readings = [_reading(distance=420.0 + 0.04 * k + d, distance_sigma=0.25)
+                    for k, d in enumerate((0.0, 0.01, -0.01, 0.0, 0.01, -0.01))]
+        assert self._defect(readings).trend("distance").drifts  # sure, but 0.19 mm within a 0.25 mm uncertainty
+        assert self._defect(readings).findings() == []
 
     def test_the_drift_is_taken_over_the_captures_in_the_order_taken(self):
         # found in captures 0, 1, 2 and 7, 8, 9 of ten, on a straight line over the ten

@@ -73,12 +73,16 @@ class CameraModel:
     levels of Gaussian noise added to each eye (None: drawn per frame, 1.5-2; 0: none but the 8-bit
     rounding); ``specular``: the point light's highlight and sheen on the steel (False: a matte plate);
     ``lens_blur_px``: the optics' Gaussian blur before the pixels integrate the light (0: the pixels alone);
-    ``rectification_error_px``: the right eye's rows that far below the left's (0: exactly rectified)."""
+    ``rectification_error_px``: the right eye's rows that far below the left's (0: exactly rectified);
+    ``motion_blur_px``: how far the plate moves across the image during the exposure (0: it stands still), towards
+    ``motion_angle_deg`` (0: along the rows, the baseline; 90: down the image)."""
 
     noise_sigma: float | None = None
     specular: bool = True
     lens_blur_px: float = 0.0
     rectification_error_px: float = 0.0
+    motion_blur_px: float = 0.0
+    motion_angle_deg: float = 90.0
 
 
 def zed_calibration(width: int = 672, height: int = 376) -> Calibration:
@@ -261,6 +265,8 @@ def build_scene(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | None
         right_offset=float(rng.uniform(1.0, 5.0)),
         vignetting=float(rng.uniform(0.05, 0.12)),
         lens_blur_px=camera.lens_blur_px,
+        motion_blur_px=camera.motion_blur_px,
+        motion_angle_deg=camera.motion_angle_deg,
     )
     if camera.noise_sigma is not None:
         sensor.noise_sigma = camera.noise_sigma
@@ -435,6 +441,8 @@ def render_frame(rng, calib: Calibration, spec: FrameSpec, crops: NeuCrops | Non
         **({} if not camera.rectification_error_px else {"rectification_error_px": camera.rectification_error_px}),
         **({} if camera.specular else {"specular": False}),
         **({} if not camera.lens_blur_px else {"lens_blur_px": camera.lens_blur_px}),
+        **({} if not camera.motion_blur_px else {"motion_blur_px": camera.motion_blur_px,
+                                                 "motion_angle_deg": camera.motion_angle_deg}),
         "defects": defects,
     }
     return left, right, gt, labels, scene

@@ -121,7 +121,29 @@ def render_radiance(scene: Scene, origin: np.ndarray, ss: int = 2, row_offset_px
     if blur > 0:
         img = cv2.GaussianBlur(img.reshape(calib.height * ss, calib.width * ss), (0, 0), blur * ss,
                                borderType=cv2.BORDER_REFLECT)
+    travel = scene.sensor.motion_blur_px
+    if travel > 0:
+        img = cv2.filter2D(img.reshape(calib.height * ss, calib.width * ss), -1,
+                           motion_kernel(travel * ss, scene.sensor.motion_angle_deg), borderType=cv2.BORDER_REFLECT)
     return img.reshape(calib.height, ss, calib.width, ss).mean(axis=(1, 3))
+
+
+def motion_kernel(length_px: float, angle_deg: float, steps_per_px: int = 8) -> np.ndarray:
+    """The exposure's average of the image moving ``length_px`` towards ``angle_deg`` (0: along the rows, 90:
+    down the columns), centred: a line of that length, bilinearly splatted, summing to 1."""
+    a = np.deg2rad(angle_deg)
+    r = int(np.ceil(length_px / 2)) + 1
+    kernel = np.zeros((2 * r + 1, 2 * r + 1), np.float64)
+    n = max(2, int(np.ceil(length_px * steps_per_px)) + 1)
+    for t in np.linspace(-length_px / 2, length_px / 2, n):
+        x, y = r + t * np.cos(a), r + t * np.sin(a)
+        x0, y0 = int(np.floor(x)), int(np.floor(y))
+        fx, fy = x - x0, y - y0
+        kernel[y0, x0] += (1 - fx) * (1 - fy)
+        kernel[y0, x0 + 1] += fx * (1 - fy)
+        kernel[y0 + 1, x0] += (1 - fx) * fy
+        kernel[y0 + 1, x0 + 1] += fx * fy
+    return (kernel / kernel.sum()).astype(np.float32)
 
 
 def sensor(

@@ -95,6 +95,8 @@ class Sensor:
     right_offset: float = 3.0
     vignetting: float = 0.08
     lens_blur_px: float = 0.0  # Gaussian sigma of the optics, before the pixels integrate the light
+    motion_blur_px: float = 0.0  # how far the plate moves across the image during the exposure, both eyes alike
+    motion_angle_deg: float = 90.0  # which way: 0 along the rows (the baseline), 90 down the image
 
 
 @dataclass

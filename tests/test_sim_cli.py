@@ -107,14 +107,14 @@ def test_evaluation_set_options(tmp_path):
         "sim", "generate", str(out), "--frames", "2", "--synthetic-defects", "--width", "224", "--height", "126",
         "--distance-range-mm", "380", "460", "--defect-size-px", "8", "16", "--depth-range-mm", "0.3", "2.5",
         "--texture-contrast", "0.3", "--supersample", "1", "--noise-sigma", "0.5", "--no-specular",
-        "--lens-blur-px", "0.6", "--grain-angle-deg", "90",
+        "--lens-blur-px", "0.6", "--grain-angle-deg", "90", "--motion-blur-px", "2", "--motion-angle-deg", "0",
     ])
     assert result.exit_code == 0, result.output
     for f in list_frames(out):
         labels = json.loads(f.labels.read_text())
         assert 380 <= labels["distance_mm"] <= 460 and labels["texture_contrast"] == 0.3 and labels["defects"]
         assert labels["sensor"]["noise_sigma"] == 0.5 and labels["specular"] is False and labels["lens_blur_px"] == 0.6
-        assert labels["grain_angle_deg"] == 90.0
+        assert labels["grain_angle_deg"] == 90.0 and (labels["motion_blur_px"], labels["motion_angle_deg"]) == (2.0, 0.0)
 
 
 def test_a_reversed_range_is_a_one_line_error(tmp_path):

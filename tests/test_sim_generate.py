@@ -384,6 +384,54 @@ def test_the_camera_model_changes_only_what_it_names(tmp_path):
         assert abs(np.mean(a) - np.mean(b)) < 1.0
 
 
+def test_a_moving_plate_blurs_both_eyes_along_its_motion_alone(tmp_path):
+    """The same plates; the exposure's travel takes the contrast along the motion and leaves it across."""
+    from sim.generate import CameraModel, EvalRanges
+
+    ranges = EvalRanges(depth_mm=(0.5, 1.5), defects_per_frame=(1, 2))
+
+    def render(name, **camera):
+        labels = generate_sequence(tmp_path / name, frames=1, seed=4, width=W, height=H, supersample=2,
+                                   ranges=ranges, camera=CameraModel(noise_sigma=0.0, **camera))
+        frame = list_frames(tmp_path / name)[0]
+        return labels[0], [read_image(p).astype(np.float64)[..., 0] for p in (frame.left, frame.right)]
+
+    still_labels, still = render("still")
+    down_labels, down = render("down", motion_blur_px=3.0, motion_angle_deg=90.0)
+    _, along = render("along", motion_blur_px=3.0, motion_angle_deg=0.0)
+    assert down_labels["defects"] == still_labels["defects"] and "motion_blur_px" not in still_labels
+    assert (down_labels["motion_blur_px"], down_labels["motion_angle_deg"]) == (3.0, 90.0)
+
+    def energy(image, axis):
+        return np.mean(np.diff(image, axis=axis) ** 2)
+
+    for eye in (0, 1):  # both eyes alike
+        kept = {name: [energy(image[eye], axis) / energy(still[eye], axis) for axis in (0, 1)]
+                for name, image in (("down", down), ("along", along))}
+        # the contrast along the motion goes; across it, what the texture's own grain shares between neighbours
+        assert kept["down"][0] < 0.6 * kept["down"][1] and kept["along"][1] < 0.6 * kept["along"][0], kept
+        assert abs(np.mean(down[eye]) - np.mean(still[eye])) < 1.0 and abs(np.mean(along[eye]) - np.mean(still[eye])) < 1.0
+
+
+class TestMotionKernel:
+    @pytest.mark.parametrize("length, angle", [(3.0, 0.0), (6.0, 90.0), (4.5, 30.0)])
+    def test_a_centred_line_of_the_length_that_sums_to_one(self, length, angle):
+        from sim.render import motion_kernel
+
+        kernel = motion_kernel(length, angle).astype(np.float64)
+        assert kernel.sum() == pytest.approx(1.0, abs=1e-6)
+        r = kernel.shape[0] // 2
+        yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+        assert (kernel * xx).sum() == pytest.approx(0.0, abs=1e-6) and (kernel * yy).sum() == pytest.approx(0.0, abs=1e-6)
+        a = np.deg2rad(angle)
+        along = xx * np.cos(a) + yy * np.sin(a)
+        across = -xx * np.sin(a) + yy * np.cos(a)
+        # a uniform line's variance is length^2 / 12; the splatting and the line's samples add a quarter of a pixel
+        # squared at most
+        assert length ** 2 / 12 <= (kernel * along ** 2).sum() < length ** 2 / 12 + 0.3
+        assert (kernel * across ** 2).sum() < 0.2
+
+
 class TestDisparityTheTruthCanHold:
     """A KITTI PNG holds disparities up to 255.996 px; a nearer plate's truth clipped there read as a farther,
     flat one (a 2K frame at 490 mm: every label 539 mm away and 0 mm deep)."""

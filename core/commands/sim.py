@@ -136,6 +136,11 @@ def register(cli: click.Group) -> None:
     @click.option("--lens-blur-px", default=0.0, show_default=True, type=Finite(0.0, 3.0),
                   help="The optics' blur (Gaussian sigma, px) before the pixels integrate the light (0: the "
                        "pixels alone, sharper than a real lens gives).")
+    @click.option("--motion-blur-px", default=0.0, show_default=True, type=Finite(0.0, 20.0),
+                  help="How far the plate moves across the image while the shutters are open (the conveyor's speed "
+                       "times the exposure, in pixels), both eyes alike; 0: it stands still.")
+    @click.option("--motion-angle-deg", default=90.0, show_default=True, type=Finite(-180.0, 180.0),
+                  help="Which way it moves: 90 down the image, 0 along its rows (along the cameras' baseline).")
     @click.option("--captures", default=1, show_default=True, type=click.IntRange(1, 1000),
                   help="Each plate captured this many times in a row, the sensor's noise drawn anew each time (a "
                        "plate standing still under the camera: what `inspect eval repeatability` reads). --frames "
@@ -143,7 +148,8 @@ def register(cli: click.Group) -> None:
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
                  image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
                  defects_per_frame, texture_contrast, grain_angle_deg, flat_floor, round_defects, defect_aspect,
-                 defect_angle_deg, rectification_error_px, noise_sigma, specular, lens_blur_px, captures) -> None:
+                 defect_angle_deg, rectification_error_px, noise_sigma, specular, lens_blur_px, motion_blur_px,
+                 motion_angle_deg, captures) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
@@ -217,7 +223,8 @@ def register(cli: click.Group) -> None:
                 neu_det=None if synthetic_defects else neu_det, width=width, height=height, jitter=jitter,
                 supersample=supersample, image_format=image_format, log=click.echo, ranges=ranges,
                 texture_contrast=texture_contrast, grain_angle_deg=grain_angle_deg,
-                camera=CameraModel(noise_sigma, specular, lens_blur_px, rectification_error_px), captures=captures,
+                camera=CameraModel(noise_sigma, specular, lens_blur_px, rectification_error_px, motion_blur_px,
+                                   motion_angle_deg), captures=captures,
             )
         except (NeuDetError, GenerateError, OSError) as exc:  # OSError: a full disk, the folder removed under it
             discard_and_fail(out, exc)

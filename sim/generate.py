@@ -85,10 +85,11 @@ class CameraModel:
     motion_angle_deg: float = 90.0
 
 
-def zed_calibration(width: int = 672, height: int = 376) -> Calibration:
-    """The ZED WVGA pair, scaled to ``width`` (focal length scales with the width)."""
+def zed_calibration(width: int = 672, height: int = 376, baseline_mm: float = ZED_WVGA["baseline_mm"]) -> Calibration:
+    """The ZED WVGA pair, scaled to ``width`` (focal length scales with the width); ``baseline_mm``: another
+    camera's eyes that far apart (a ZED Mini's 63 mm)."""
     f = ZED_WVGA["focal_px"] * width / ZED_WVGA["width"]
-    return Calibration(f, ZED_WVGA["baseline_mm"], (width - 1) / 2.0, (height - 1) / 2.0, width, height, 0.0)
+    return Calibration(f, baseline_mm, (width - 1) / 2.0, (height - 1) / 2.0, width, height, 0.0)
 
 
 class _Deck:
@@ -466,6 +467,7 @@ def generate_sequence(
     camera: CameraModel = CameraModel(),
     captures: int = 1,
     grain_angle_deg: float = 0.0,
+    baseline_mm: float = ZED_WVGA["baseline_mm"],
 ) -> list[dict]:
     """Write a sequence folder; returns the labels of every frame. ``neu_det=None`` uses the
     synthetic stand-in defect appearance. ``ranges``, ``texture_contrast``, ``grain_angle_deg`` (the rolling
@@ -473,16 +475,17 @@ def generate_sequence(
     evaluation set; left at their defaults, the draws (and so the files) are those of the demo plan. ``captures``:
     each of the ``frames`` plates captured that many times in a row, the sensor's noise drawn anew each time (a
     plate standing still under the camera, as ``inspect eval repeatability`` reads it); 1 draws what it always
-    did."""
+    did. ``baseline_mm``: the eyes that far apart (``zed_calibration``)."""
     out = Path(out)
     crops = NeuCrops(Path(neu_det)) if neu_det is not None else None
-    calib = zed_calibration(width, height)
+    calib = zed_calibration(width, height, baseline_mm)
     rng = np.random.default_rng(seed)
     decks = (_Deck(NEU_CLASSES, rng), _Deck(BELOW_CLASSES, rng), _Deck(RAISED_CLASSES, rng))
     write_calibration(out, {
         "focal_px": calib.focal_px, "baseline_mm": calib.baseline_mm, "cx": calib.cx, "cy": calib.cy,
         "width": calib.width, "height": calib.height, "doffs": 0.0,
-        "camera": "ZED WVGA (synthetic)",
+        "camera": "ZED WVGA (synthetic)" if baseline_mm == ZED_WVGA["baseline_mm"] else
+                  f"ZED WVGA's optics, {baseline_mm:g} mm baseline (synthetic)",
         "generator": f"inspect sim generate (seed {seed})",
     })
     all_labels = []

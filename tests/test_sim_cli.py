@@ -3,11 +3,12 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
 from core.cli import _build
-from drivers.sequence_folder import list_frames, read_calibration
+from drivers.sequence_folder import list_frames, read_calibration, read_disparity_png
 
 
 def test_missing_neu_det_is_a_one_line_error(tmp_path):
@@ -108,8 +109,15 @@ def test_evaluation_set_options(tmp_path):
         "--distance-range-mm", "380", "460", "--defect-size-px", "8", "16", "--depth-range-mm", "0.3", "2.5",
         "--texture-contrast", "0.3", "--supersample", "1", "--noise-sigma", "0.5", "--no-specular",
         "--lens-blur-px", "0.6", "--grain-angle-deg", "90", "--motion-blur-px", "2", "--motion-angle-deg", "0",
+        "--baseline-mm", "63",
     ])
     assert result.exit_code == 0, result.output
+    calib = read_calibration(out)
+    assert calib["baseline_mm"] == 63.0 and calib["focal_px"] == pytest.approx(350.06 * 224 / 672)
+    fb = calib["focal_px"] * 63.0
+    for f in list_frames(out):  # the truth is the disparity of a 63 mm baseline at 380-460 mm
+        disparity = read_disparity_png(f.gt)
+        assert 0.9 * fb / 470 < np.nanmedian(disparity[disparity > 0]) < 1.1 * fb / 370
     for f in list_frames(out):
         labels = json.loads(f.labels.read_text())
         assert 380 <= labels["distance_mm"] <= 460 and labels["texture_contrast"] == 0.3 and labels["defects"]

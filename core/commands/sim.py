@@ -141,6 +141,9 @@ def register(cli: click.Group) -> None:
                        "times the exposure, in pixels), both eyes alike; 0: it stands still.")
     @click.option("--motion-angle-deg", default=90.0, show_default=True, type=Finite(-180.0, 180.0),
                   help="Which way it moves: 90 down the image, 0 along its rows (along the cameras' baseline).")
+    @click.option("--baseline-mm", default=120.0, show_default=True, type=Finite(20.0, 500.0),
+                  help="The eyes this far apart: the ZED's 120 mm, or another camera's (a ZED Mini's 63 mm), with the "
+                       "same optics.")
     @click.option("--captures", default=1, show_default=True, type=click.IntRange(1, 1000),
                   help="Each plate captured this many times in a row, the sensor's noise drawn anew each time (a "
                        "plate standing still under the camera: what `inspect eval repeatability` reads). --frames "
@@ -149,7 +152,7 @@ def register(cli: click.Group) -> None:
                  image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
                  defects_per_frame, texture_contrast, grain_angle_deg, flat_floor, round_defects, defect_aspect,
                  defect_angle_deg, rectification_error_px, noise_sigma, specular, lens_blur_px, motion_blur_px,
-                 motion_angle_deg, captures) -> None:
+                 motion_angle_deg, baseline_mm, captures) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
@@ -187,7 +190,7 @@ def register(cli: click.Group) -> None:
             click.echo(f"error: --defect-size-px: a side of {defect_size_px[1]:g} px does not fit a {width}x{height} "
                        f"frame with room for the ring around it (below {largest:.0f} px)", err=True)
             raise SystemExit(2)
-        nearest = nearest_plate_mm(zed_calibration(width, height))
+        nearest = nearest_plate_mm(zed_calibration(width, height, baseline_mm))
         if distance_range_mm is not None:
             option, plate, jittered = f"--distance-range-mm {distance_range_mm[0]:g}", distance_range_mm[0], ""
         elif jitter:
@@ -224,7 +227,7 @@ def register(cli: click.Group) -> None:
                 supersample=supersample, image_format=image_format, log=click.echo, ranges=ranges,
                 texture_contrast=texture_contrast, grain_angle_deg=grain_angle_deg,
                 camera=CameraModel(noise_sigma, specular, lens_blur_px, rectification_error_px, motion_blur_px,
-                                   motion_angle_deg), captures=captures,
+                                   motion_angle_deg), captures=captures, baseline_mm=baseline_mm,
             )
         except (NeuDetError, GenerateError, OSError) as exc:  # OSError: a full disk, the folder removed under it
             discard_and_fail(out, exc)

@@ -468,6 +468,7 @@ def generate_sequence(
     captures: int = 1,
     grain_angle_deg: float = 0.0,
     baseline_mm: float = ZED_WVGA["baseline_mm"],
+    capture_drift_px: float = 0.0,
 ) -> list[dict]:
     """Write a sequence folder; returns the labels of every frame. ``neu_det=None`` uses the
     synthetic stand-in defect appearance. ``ranges``, ``texture_contrast``, ``grain_angle_deg`` (the rolling
@@ -475,7 +476,9 @@ def generate_sequence(
     evaluation set; left at their defaults, the draws (and so the files) are those of the demo plan. ``captures``:
     each of the ``frames`` plates captured that many times in a row, the sensor's noise drawn anew each time (a
     plate standing still under the camera, as ``inspect eval repeatability`` reads it); 1 draws what it always
-    did. ``baseline_mm``: the eyes that far apart (``zed_calibration``)."""
+    did. ``baseline_mm``: the eyes that far apart (``zed_calibration``). ``capture_drift_px``: each capture's right
+    eye that much further right than the one before (a camera whose calibration drifts as it warms up; the truth
+    stays the scene's)."""
     out = Path(out)
     crops = NeuCrops(Path(neu_det)) if neu_det is not None else None
     calib = zed_calibration(width, height, baseline_mm)
@@ -501,8 +504,11 @@ def generate_sequence(
             if k:  # the same light again, another draw of the sensor's noise
                 frame_id = f"{i * captures + k:06d}"
                 left, right = render_pair(scene, rng, ss=supersample,
-                                          rectification_error_px=camera.rectification_error_px)[:2]
-            captured = labels if captures == 1 else {**labels, "frame_id": frame_id, "plate": i}
+                                          rectification_error_px=camera.rectification_error_px,
+                                          right_columns_px=k * capture_drift_px)[:2]
+            captured = labels if captures == 1 else {**labels, "frame_id": frame_id, "plate": i,
+                                                     **({"right_columns_px": round(k * capture_drift_px, 6)}
+                                                        if capture_drift_px else {})}
             write_frame(out, frame_id, left, right, gt, captured, image_format)
             all_labels.append(captured)
         if log is not None:

@@ -110,13 +110,15 @@ def shade(scene: Scene, origin: np.ndarray, hits: Hits) -> np.ndarray:
     return radiance + np.where(hits.on_plate, spec, 0.0)
 
 
-def render_radiance(scene: Scene, origin: np.ndarray, ss: int = 2, row_offset_px: float = 0.0) -> np.ndarray:
+def render_radiance(scene: Scene, origin: np.ndarray, ss: int = 2, row_offset_px: float = 0.0,
+                    column_offset_px: float = 0.0) -> np.ndarray:
     """HxW radiance of one eye, box-filtered over ss x ss supersamples; ``row_offset_px``: the eye sees
-    every point that many rows lower than a rectified eye would (what a calibration leaves). The optics'
-    blur (``scene.sensor.lens_blur_px``) acts on the light before the pixels integrate it."""
+    every point that many rows lower than a rectified eye would (what a calibration leaves), and
+    ``column_offset_px`` that many columns further right (a principal point that moved since calibration). The
+    optics' blur (``scene.sensor.lens_blur_px``) acts on the light before the pixels integrate it."""
     calib = scene.calib
     uu, vv = pixel_grid(calib, ss)
-    img = shade(scene, origin, trace(scene, origin, uu, vv - row_offset_px))
+    img = shade(scene, origin, trace(scene, origin, uu - column_offset_px, vv - row_offset_px))
     blur = scene.sensor.lens_blur_px
     if blur > 0:
         img = cv2.GaussianBlur(img.reshape(calib.height * ss, calib.width * ss), (0, 0), blur * ss,
@@ -161,14 +163,15 @@ def sensor(
 
 
 def render_pair(scene: Scene, rng: np.random.Generator | None, ss: int = 2, nuisances: bool = True,
-                rectification_error_px: float = 0.0):
+                rectification_error_px: float = 0.0, right_columns_px: float = 0.0):
     """(left BGR, right BGR, left GT disparity float32, left centre-ray hits). ``rectification_error_px``:
-    the right eye's rows that far off the left's (0: an exactly rectified pair)."""
+    the right eye's rows that far off the left's (0: an exactly rectified pair); ``right_columns_px``: its
+    columns that far right of where the calibration puts them (every disparity that much smaller)."""
     calib = scene.calib
     left_o = np.zeros(3)
     right_o = np.array([calib.baseline_mm, 0.0, 0.0])
     rad_l = render_radiance(scene, left_o, ss)
-    rad_r = render_radiance(scene, right_o, ss, rectification_error_px)
+    rad_r = render_radiance(scene, right_o, ss, rectification_error_px, right_columns_px)
     sn = scene.sensor
     if nuisances:
         left = sensor(rad_l, rng, 1.0, 0.0, sn.noise_sigma, sn.vignetting)

@@ -72,6 +72,35 @@ def test_captures_repeat_each_plate_with_noise_of_its_own_and_leave_the_first_ca
     assert "plate" not in json.loads((once / "labels" / "000000.json").read_text())
 
 
+def test_a_capture_drift_moves_each_captures_right_eye_further_and_keeps_the_truth(tmp_path):
+    import cv2
+
+    args = ["--frames", "1", "--seed", "5", "--synthetic-defects", "--width", "160", "--height", "96", "--no-jitter",
+            "--depth-range-mm", "0.5", "2", "--defect-size-px", "10", "20", "--noise-sigma", "0", "--captures", "3"]
+    still, drifting = tmp_path / "still", tmp_path / "drifting"
+    assert CliRunner().invoke(_build(), ["sim", "generate", str(still), *args]).exit_code == 0
+    result = CliRunner().invoke(_build(), ["sim", "generate", str(drifting), *args, "--capture-drift-px", "0.5"])
+    assert result.exit_code == 0, result.output
+    frames = list_frames(drifting)
+    assert [json.loads(f.labels.read_text())["right_columns_px"] for f in frames] == [0.0, 0.5, 1.0]
+
+    def right(folder, frame_id):
+        return cv2.imread(str(folder / "right" / f"{frame_id}.png"), cv2.IMREAD_GRAYSCALE).astype(np.float64)
+
+    def apart(frame_id, columns):  # the drifting capture against the still one moved that many columns right
+        a, b = right(drifting, frame_id), right(still, frame_id)
+        return np.abs(a[:, 8 + columns:-8] - b[:, 8:b.shape[1] - 8 - columns]).mean()
+
+    assert apart("000000", 0) == 0.0  # the first capture as it was
+    # two captures on, a pixel further right (but for the vignetting, which stays where it was, and the rounding)
+    assert apart("000002", 1) < 0.5 < 5 < apart("000002", 0)
+    assert apart("000001", 0) > 2 and apart("000001", 1) > 2  # half a pixel: between the two
+    for frame_id in ("000000", "000001", "000002"):  # the scene's truth, whatever the camera does
+        assert (drifting / "gt" / f"{frame_id}.png").read_bytes() == (still / "gt" / f"{frame_id}.png").read_bytes()
+    refused = CliRunner().invoke(_build(), ["sim", "generate", str(tmp_path / "one"), "--capture-drift-px", "0.5"])
+    assert refused.exit_code == 2 and "needs --captures 2 or more" in refused.output
+
+
 def test_existing_sequence_needs_overwrite(tmp_path):
     out = tmp_path / "seq"
     args = ["sim", "generate", str(out), "--frames", "2", "--synthetic-defects", "--width", "160", "--height", "96"]

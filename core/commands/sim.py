@@ -148,11 +148,14 @@ def register(cli: click.Group) -> None:
                   help="Each plate captured this many times in a row, the sensor's noise drawn anew each time (a "
                        "plate standing still under the camera: what `inspect eval repeatability` reads). --frames "
                        "plates make frames x captures frames.")
+    @click.option("--capture-drift-px", default=0.0, show_default=True, type=Finite(-1.0, 1.0),
+                  help="With --captures: each capture's right eye this much further right than the one before (a "
+                       "camera whose calibration drifts as it warms up; the truth stays the scene's).")
     def generate(out, frames, seed, distance_mm, tilt_deg, jitter, neu_det, synthetic_defects, width, height,
                  image_format, overwrite, supersample, distance_range_mm, defect_size_px, depth_range_mm,
                  defects_per_frame, texture_contrast, grain_angle_deg, flat_floor, round_defects, defect_aspect,
                  defect_angle_deg, rectification_error_px, noise_sigma, specular, lens_blur_px, motion_blur_px,
-                 motion_angle_deg, baseline_mm, captures) -> None:
+                 motion_angle_deg, baseline_mm, captures, capture_drift_px) -> None:
         """Render a sequence folder OUT: calib.yaml, left/, right/, gt/ (exact left disparity), labels/.
 
         The defaults render the demo's plan (sound, shallow and deep plates around 400 mm); the range
@@ -180,6 +183,9 @@ def register(cli: click.Group) -> None:
                 click.echo(f"error: {name}: {pair[1]:g} is beyond the largest allowed, {high:g}", err=True)
                 raise SystemExit(2)
         rays = width * height * supersample**2
+        if capture_drift_px and captures < 2:
+            click.echo("error: --capture-drift-px: a drift from capture to capture needs --captures 2 or more", err=True)
+            raise SystemExit(2)
         if rays > MAX_RAYS:
             click.echo(f"error: --supersample {supersample} at {width}x{height} casts {rays / 1e6:.0f} M rays per eye, "
                        f"more than the {MAX_RAYS / 1e6:.0f} M that fit about 5 GB of memory: a lower --supersample or a "
@@ -228,6 +234,7 @@ def register(cli: click.Group) -> None:
                 texture_contrast=texture_contrast, grain_angle_deg=grain_angle_deg,
                 camera=CameraModel(noise_sigma, specular, lens_blur_px, rectification_error_px, motion_blur_px,
                                    motion_angle_deg), captures=captures, baseline_mm=baseline_mm,
+                capture_drift_px=capture_drift_px,
             )
         except (NeuDetError, GenerateError, OSError) as exc:  # OSError: a full disk, the folder removed under it
             discard_and_fail(out, exc)

@@ -426,8 +426,8 @@ class TestMotionKernel:
         a = np.deg2rad(angle)
         along = xx * np.cos(a) + yy * np.sin(a)
         across = -xx * np.sin(a) + yy * np.cos(a)
-        # a uniform line's variance is length^2 / 12; the splatting and the line's samples add a quarter of a pixel
-        # squared at most
+        # a uniform line's variance is length^2 / 12; the splatting and the line's samples add under a third of a
+        # pixel squared
         assert length ** 2 / 12 <= (kernel * along ** 2).sum() < length ** 2 / 12 + 0.3
         assert (kernel * across ** 2).sum() < 0.2
 

@@ -186,19 +186,24 @@ class Defect:
 
     @property
     def deviation(self) -> Spread | None:
-        return Spread.of([r.deviation_mm for _, r in self.readings], [r.deviation_sigma_mm for _, r in self.readings])
+        return Spread.of(*self._measured("deviation"))
 
     @property
     def distance(self) -> Spread | None:
-        return Spread.of([r.distance_mm for _, r in self.readings], [r.distance_sigma_mm for _, r in self.readings])
+        return Spread.of(*self._measured("distance"))
 
     def trend(self, quantity: str) -> Trend | None:
         """The straight-line trend of ``quantity`` (``deviation`` or ``distance``) over the captures in the order
-        taken, each reading at its capture's place in it."""
+        taken, each reading at its capture's place in it, as ``Spread.of`` counts them (those with an uncertainty)."""
         place = {frame: i for i, frame in enumerate(self.taken)}
         positions = [place.get(frame, i) for i, (frame, _) in enumerate(self.readings)]
-        return Trend.of(positions, [getattr(r, f"{quantity}_mm") if getattr(r, f"{quantity}_sigma_mm") is not None
-                                    else None for _, r in self.readings])
+        values, sigmas = self._measured(quantity)
+        return Trend.of(positions, [v if s is not None else None for v, s in zip(values, sigmas)])
+
+    def _measured(self, quantity: str) -> tuple[list[float | None], list[float | None]]:
+        """Each reading's ``quantity`` (``deviation`` or ``distance``) in mm and its standard uncertainty."""
+        return ([getattr(r, f"{quantity}_mm") for _, r in self.readings],
+                [getattr(r, f"{quantity}_sigma_mm") for _, r in self.readings])
 
     def name(self) -> str:
         x0, y0, x1, y1 = self.box
@@ -216,7 +221,8 @@ class Defect:
             said.append(f"{self.name()}: proven beyond its limit in {proofs['beyond']} captures and inside it in "
                         f"{proofs['inside']}: the uncertainty does not hold")
         moved = self.box_scatter_px
-        for what, spread in (("deviation", self.deviation), ("distance", self.distance)):
+        spreads = (("deviation", self.deviation), ("distance", self.distance))
+        for what, spread in spreads:
             if spread is not None and spread.contradicts:
                 why = "" if moved is None or moved < BOX_MOVED_PX else (
                     f"; the box's centre moved {moved:.1f} px between captures, and with it where the {what} is read "
@@ -224,7 +230,7 @@ class Defect:
                 said.append(f"{self.name()}: its {what} scatters {spread.sd:.3f} mm over {spread.n} captures, "
                             f"{spread.ratio:.1f}x the {spread.sigma:.3f} mm uncertainty it is reported with: more than "
                             f"that uncertainty allows at 99 % confidence{why}")
-        for what, spread in (("deviation", self.deviation), ("distance", self.distance)):
+        for what, spread in spreads:
             trend = self.trend(what)
             # a drift within the uncertainty reported is covered by its guard band, however sure the trend
             if trend is not None and trend.drifts and spread is not None and abs(trend.change) > spread.sigma:

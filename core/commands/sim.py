@@ -182,10 +182,10 @@ def register(cli: click.Group) -> None:
             if high is not None and pair[1] > high:
                 click.echo(f"error: {name}: {pair[1]:g} is beyond the largest allowed, {high:g}", err=True)
                 raise SystemExit(2)
-        rays = width * height * supersample**2
         if capture_drift_px and captures < 2:
             click.echo("error: --capture-drift-px: a drift from capture to capture needs --captures 2 or more", err=True)
             raise SystemExit(2)
+        rays = width * height * supersample**2
         if rays > MAX_RAYS:
             click.echo(f"error: --supersample {supersample} at {width}x{height} casts {rays / 1e6:.0f} M rays per eye, "
                        f"more than the {MAX_RAYS / 1e6:.0f} M that fit about 5 GB of memory: a lower --supersample or a "

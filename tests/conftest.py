@@ -19,23 +19,15 @@ from synthetic_pairs import Pit, calib_for, render  # noqa: E402
 from drivers.sequence_folder import write_calibration, write_frame  # noqa: E402
 
 
-# Each compiles every kernel its stage runs into numba's cache beside the code (torch_sgm at one thread and at two).
-WARM_UPS = (
-    "from core.depth import warm_up\nwarm_up()",
-    "import torch\nfrom core.contracts import PluginContext\nfrom plugins.torch_sgm.plugin import _factory\n"
-    "backend = _factory({}, PluginContext(device='cpu'))\nfor threads in (1, 2):\n"
-    "    torch.set_num_threads(threads)\n    backend.warm_up()",
-)
-
-
 def pytest_sessionstart(session):
     """Fill numba's cache once before any test runs (in the controller of a run on several workers): in a fresh
     checkout every worker and every `inspect` process a test started compiled the same kernels again until one
-    had written them, some 70 s of CPU each. Where the cache is warm this takes a few seconds."""
+    had written them, some 70 s of CPU each. Two processes compile different kernels at once
+    (``kernel_warm_up.py``). Where the cache is warm this takes a few seconds."""
     if hasattr(session.config, "workerinput"):  # a worker: the controller warmed it
         return
-    warming = [subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL) for script in WARM_UPS]
+    warming = [subprocess.Popen([sys.executable, str(TESTS / "kernel_warm_up.py"), part], cwd=ROOT,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for part in ("first", "later")]
     for process in warming:  # a warm-up that fails leaves the kernels to the tests, which then say why
         try:
             process.wait(timeout=600)

@@ -357,6 +357,7 @@ def test_another_plugin_by_set_starts_from_its_own_settings():
         ("plugin: yolov8", "plugin: yolo9"),
         ("plugin: yolov8", "plugin: yolov8\n  weights: nope.pt"),
         ("path: seq", "path: nope"),
+        ("path: seq", 'path: "se\\nq"'),  # a line break in a value: written as its escape, on the one line
         ("  backend: opencv_sgbm", "  backend: [opencv_sgbm"),
         ("  - plugin: log", "  - plugin: log\n    settings: {reject_format: 'REJECT {part}'}"),  # not at the first reject
     ],

@@ -28,6 +28,10 @@ from drivers.stereo_geometry import calibration_problem
 class RecipeError(Exception):
     """A recipe that cannot be used; ``str()`` is the one-line message for the user."""
 
+    def __init__(self, message: str):
+        # a value that holds a line break (a path, a plugin's own message) is written as its escape: one line
+        super().__init__(message.replace("\r", "\\r").replace("\n", "\\n"))
+
 
 KeyPath = tuple[str | int, ...]
 

@@ -1,6 +1,6 @@
 """Fill numba's cache beside the code before the tests start (``conftest.pytest_sessionstart``), in two processes
-that compile different kernels at once: a fresh checkout's cold compile took some 86 s on one core, the other idle
-after depth's 13 s.
+that compile different kernels at once: from a cold cache torch_sgm's kernels took 98-107 s on one core, the other
+idle after depth's 13 s; split this way both are done in 70-72 s (docs/research-log.md).
 
 ``python tests/kernel_warm_up.py first``: torch_sgm's whole pipeline, at one thread and at two (its first stages'
 kernels are compiled here; the later ones are, by then, mostly in the cache).
@@ -44,7 +44,7 @@ def later() -> None:
                                     (sgm_numba, "sgm_numba", pixel_major_sgm),
                                     (align_numba, "vertical_offsets_numba", align.vertical_offsets),
                                     (align_numba, "resample_rows_numba", align.resample_rows)):
-        getattr(module, name)  # the pipeline looks each up at every call: one renamed there is renamed here
+        getattr(module, name)  # the pipeline looks each up at every call; renamed there, this raises
         setattr(module, name, reference)
     _torch_sgm((1,))
 

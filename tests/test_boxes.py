@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.boxes import box_iou, match_boxes
+from core.boxes import box_iou, box_placement, match_boxes
 
 
 class TestBoxIou:
@@ -34,3 +34,21 @@ class TestMatchBoxes:
     def test_nothing_found_or_nothing_to_find(self):
         assert match_boxes(np.array([[0, 0, 1, 1]], float), np.zeros((0, 4)), 0.3) == [None]
         assert match_boxes(np.zeros((0, 4)), np.array([[0, 0, 1, 1]], float), 0.3) == []
+
+
+class TestBoxPlacement:
+    def test_a_box_moved_and_scaled_as_eval_depth_moves_them(self):
+        truth = np.array([[0, 0, 20, 10], [0, 0, 20, 10], [100, 50, 140, 70]], float)
+        # a tenth of its width along; 6 px along and 4 down; the same centre, 1.5 times as large
+        found = np.array([[2, 0, 22, 10], [6, 4, 26, 14], [90, 45, 150, 75]], float)
+        shift, scale = box_placement(truth, found)
+        assert shift == pytest.approx([0.1, np.hypot(6 / 20, 4 / 10), 0.0])
+        assert scale == pytest.approx([1.0, 1.0, 1.5])
+
+    def test_shapes_must_pair_and_true_boxes_have_a_size(self):
+        with pytest.raises(ValueError, match="must pair up"):
+            box_placement(np.zeros((2, 4)), np.zeros((1, 4)))
+        with pytest.raises(ValueError, match="width and a height"):
+            box_placement(np.array([[5, 5, 5, 9]], float), np.array([[5, 5, 6, 9]], float))
+        shift, scale = box_placement(np.zeros((0, 4)), np.zeros((0, 4)))
+        assert shift.shape == scale.shape == (0,)

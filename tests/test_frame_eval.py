@@ -3,11 +3,12 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
 from core.cli import _build
-from plugins.yolov8.frame_eval import score_frames
+from plugins.yolov8.frame_eval import markdown, score_frames
 from sim.generate import generate_sequence
 
 
@@ -24,6 +25,24 @@ def test_score_frames_counts_found_defects_and_boxes_on_sound_surface():
     assert (low.defects, low.found, low.found_same_class, low.other_boxes, low.frames) == (2, 2, 1, 2, 2)
     assert (high.found, high.found_same_class, high.other_boxes) == (1, 1, 1)
     assert high.other_per_frame == 0.5
+    # each found defect's box against its own: the scratch's a pixel low on a 20 px height, the inclusion's a pixel
+    # right on a 20 px width and shorter
+    assert low.shifts == pytest.approx([0.05, 0.05]) and high.shifts == pytest.approx([0.05])
+    assert low.scales == pytest.approx([np.sqrt(96 * 22 / 2000), np.sqrt(20 * 50 / 1200)])
+
+
+def test_the_table_says_how_far_the_boxes_lie_off_their_defects():
+    truths = [[{"class": "pitted_surface", "box": [0, 0, 30, 30]}, {"class": "inclusion", "box": [100, 0, 130, 30]},
+               {"class": "crazing", "box": [200, 0, 230, 30]}]]
+    detections = [[("pitted_surface", 0.9, (1, 0, 31, 30)),  # a thirtieth off
+                   ("inclusion", 0.9, (106, 0, 136, 30)),  # a fifth off
+                   ("crazing", 0.4, (212, 0, 242, 30))]]  # two fifths off, found only at the lower threshold
+    table = markdown(score_frames(detections, truths, [0.3, 0.5]))
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[6:9]] for line in table.splitlines()
+            if line.startswith("| 0.")}
+    assert rows["0.30"] == ["0.20 / 0.40", "1.00-1.00", "2 (1) of 3"]
+    assert rows["0.50"] == ["0.12 / 0.20", "1.00-1.00", "1 (0) of 2"]
+    assert markdown(score_frames([[]], truths, [0.3])).splitlines()[2].endswith("| - | - | - |")
 
 
 def test_cli_on_a_rendered_sequence(tmp_path, monkeypatch):

@@ -3,17 +3,18 @@
 
 NEU-DET's mAP is measured on 200x200 crops that each hold a defect. On the line the same model
 sees whole frames, mostly plain plate and belt; what matters there is how many real defects it
-finds and how many boxes it puts on sound surface, at the recipe's confidence threshold.
+finds and how many boxes it puts on sound surface, at the recipe's confidence threshold, and how far its boxes
+lie off their defects, since depth is measured in them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from drivers.sequence_folder import SequenceError, check_label_boxes, read_image, read_labels
-from core.boxes import MATCH_IOU, box_iou
+from core.boxes import HELD_SHIFT, MATCH_IOU, UNSAFE_SHIFT, box_iou, box_placement, match_boxes
 
 
 @dataclass
@@ -24,6 +25,10 @@ class FrameEvalRow:
     found_same_class: int
     other_boxes: int  # boxes on no labelled defect
     frames: int
+    # each found defect's box against its labelled one (``core.boxes.box_placement``): the centre's offset as a
+    # share of the defect's size, and the box's size over the defect's
+    shifts: list[float] = field(default_factory=list)
+    scales: list[float] = field(default_factory=list)
 
     @property
     def other_per_frame(self) -> float:
@@ -98,13 +103,32 @@ def score_frames(detections: list[list[tuple[str, float, tuple]]], truths: list[
             same = np.array([[t["class"] == d[0] for d in kept] for t in truth])
             row.found_same_class += int((overlap & same).any(axis=1).sum())
             row.other_boxes += int((~overlap.any(axis=0)).sum())
+            pairs = [(i, j) for i, j in enumerate(match_boxes(gt, boxes, iou)) if j is not None]
+            if pairs:
+                shift, scale = box_placement(gt[[i for i, _ in pairs]], boxes[[j for _, j in pairs]])
+                row.shifts += shift.tolist()
+                row.scales += scale.tolist()
         rows.append(row)
     return rows
 
 
 def markdown(rows: list[FrameEvalRow]) -> str:
-    lines = ["| confidence | defects found (any class) | same class | boxes on sound surface | per frame |",
-             "|---|---|---|---|---|"]
+    lines = ["| confidence | defects found (any class) | same class | boxes on sound surface | per frame | box centre "
+             "off its defect's, median / max (share of its size) | box size ÷ the defect's, min-max | boxes off by "
+             "more than a tenth (a third) |",
+             "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {r.confidence:.2f} | {r.found}/{r.defects} | {r.found_same_class}/{r.defects} | {r.other_boxes} | "
-              f"{r.other_per_frame:.1f} |" for r in rows]
+              f"{r.other_per_frame:.1f} | {_placement(r)} |" for r in rows]
+    lines += ["", "Depth is measured in a detector's boxes: boxes within a tenth of their defect's size of its centre "
+              "keep the evaluation's depth figures; a third off, a defect beyond its limit may be proven inside it "
+              "(docs/depth-conditions.md, boxes that are off)."]
     return "\n".join(lines)
+
+
+def _placement(row: FrameEvalRow) -> str:
+    """The table's placement columns of ``row``: dashes where it matched no defect."""
+    if not row.shifts:
+        return "- | - | -"
+    shifts = np.array(row.shifts)
+    return (f"{np.median(shifts):.2f} / {shifts.max():.2f} | {min(row.scales):.2f}-{max(row.scales):.2f} | "
+            f"{int(np.sum(shifts > HELD_SHIFT))} ({int(np.sum(shifts > UNSAFE_SHIFT))}) of {len(shifts)}")

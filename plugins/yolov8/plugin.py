@@ -279,7 +279,8 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
               help="a box this close to a labelled defect finds it")
 def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, tile_size: int, tile_overlap: float,
                         imgsz: int | None, iou: float) -> None:
-    """The detector on whole frames of a labelled sequence, tiled as on the line: defects found, boxes on sound surface."""
+    """The detector on whole frames of a labelled sequence, tiled as on the line: defects found, boxes on sound
+    surface, and how far its boxes lie off their defects (depth is measured in them)."""
     from plugins.yolov8.frame_eval import load_labelled_frames, markdown, score_frames
 
     try:

@@ -12,7 +12,9 @@ A part is known defective when a labelled defect lies beyond one of the recipe's
 or more, and known good when every labelled defect lies inside every limit by as much; a part near a limit
 is inspected and counted but decides nothing, since a measurement may prove neither side of it. Each such
 defect must be rejected by a box of its own: a part rejected for another box (a sound patch read undecided, a
-box the wrong model put anywhere) says nothing of whether the line finds that defect.
+box the wrong model put anywhere) says nothing of whether the line finds that defect. And where a defect's box lies
+more than a third of its size off it, the tally warns: depth read in such a box may prove a defect beyond its limit
+inside it.
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.boxes import MATCH_IOU, box_iou
+from core.boxes import MATCH_IOU, UNSAFE_SHIFT, box_iou, box_placement, match_boxes
 from core.decision import CLEAR_CUT_MM, rule_applies
 from core.types import FrameError, Status, StereoFrame, Verdict
 from drivers.sequence_folder import list_frames, read_labels
@@ -84,6 +86,21 @@ def missed_defects(defects: list[dict], boxes: list[tuple[tuple[float, float, fl
     return missed
 
 
+def boxes_off(defects: list[dict], boxes: list[tuple[float, float, float, float]]) -> list[str]:
+    """Of the labelled ``defects``, those whose box among ``boxes`` (matched by IoU, ``core.boxes.match_boxes``)
+    lies more than UNSAFE_SHIFT of the defect's size off its centre, each as "class (0.38 of its size off)": depth
+    read in such a box may prove a defect beyond its limit inside it (docs/depth-conditions.md, boxes that are
+    off)."""
+    truth = np.array([d["box"] for d in defects], float).reshape(-1, 4)
+    found = np.array(boxes, float).reshape(-1, 4)
+    pairs = [(i, j) for i, j in enumerate(match_boxes(truth, found, MATCH_IOU)) if j is not None]
+    if not pairs:
+        return []
+    shifts, _ = box_placement(truth[[i for i, _ in pairs]], found[[j for _, j in pairs]])
+    return [f"{defects[i]['class']} ({shift:.2f} of its size off)" for (i, _), shift in zip(pairs, shifts)
+            if shift > UNSAFE_SHIFT]
+
+
 def _beyond(value: float, op: str, threshold: float) -> float:
     """How far ``value`` lies beyond the limit ``op threshold`` (a rule rejects ``value op threshold``): above
     0 where it is rejected, below where it is inside."""
@@ -101,6 +118,7 @@ class MasterPart:
     got: Status
     why: str = ""
     missed: tuple[str, ...] = ()
+    off: tuple[str, ...] = ()  # its labelled defects whose box lies more than a third off them (``boxes_off``)
 
     @property
     def passed_defective(self) -> bool:
@@ -141,10 +159,16 @@ class Verification:
         passed, good = self._count(Status.PASS, (Status.PASS,))
         errors = sum(p.got is Status.ERROR for p in self.parts)
         near = sum(p.known is None for p in self.parts)
+        off = [f"{p.frame_id}'s {defect}" for p in self.parts for defect in p.off]
         return (f"master parts {self.folder}: {len(self.parts)} inspected, {caught} of {defective} defective "
                 f"ones rejected, {passed} of {good} good ones passed"
                 + (f", {errors} could not be inspected (ERROR)" if errors else "")
-                + (f", {near} near a limit (not counted)" if near else ""))
+                + (f", {near} near a limit (not counted)" if near else "")
+                + (f"; warning: the detector's box{'es' if len(off) > 1 else ''} on {', '.join(off[:3])}"
+                   f"{f' and {len(off) - 3} more' if len(off) > 3 else ''} lie{'' if len(off) > 1 else 's'} more "
+                   f"than a third off {'their defects' if len(off) > 1 else 'its defect'}, where depth may prove a "
+                   f"defect beyond its limit inside it (docs/depth-conditions.md, boxes that are off): check the "
+                   f"detector with inspect eval detector-frames" if off else ""))
 
     def refusal(self) -> str:
         """Why the run does not start: the defective master parts that passed, or that none was measured."""
@@ -191,6 +215,7 @@ def verify(folder: Path, frames: Iterable[StereoFrame | FrameError],
         inspected = verdict.status is not Status.ERROR or bool(boxes)
         missed = tuple(missed_defects(beyond_a_limit(said, decision), boxes)) \
             if known is Status.REJECT and inspected and verdict.status is not Status.PASS else ()
+        off = tuple(boxes_off(said.get("defects", []), [found for found, _ in boxes])) if said else ()
         parts.append(MasterPart(item.frame_id, known, verdict.status, verdict.reasons[0] if verdict.reasons else "",
-                                missed))
+                                missed, off))
     return Verification(str(folder), tuple(parts))

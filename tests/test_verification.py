@@ -17,7 +17,7 @@ from conftest import ROOT, cli, cli_here
 
 from core.recipe.schema import DecisionSection
 from core.types import Status, Verdict
-from core.verification import (MasterPart, Verification, beyond_a_limit, known_verdict, known_verdicts,
+from core.verification import (MasterPart, Verification, beyond_a_limit, boxes_off, known_verdict, known_verdicts,
                                missed_defects, verify)
 
 DEMO = ROOT / "recipes" / "steel_plate.yaml"
@@ -154,6 +154,50 @@ class TestVerify:
         (part,) = failed.parts
         assert part.missed == () and not part.passed_defective
         assert failed.failed and failed.refusal().startswith("none of the 1 defective master parts")
+
+
+class TestBoxesOff:
+    DEFECTS = [{"class": "pit", "box": [100, 100, 140, 120]}, {"class": "crazing", "box": [300, 100, 330, 160]}]
+
+    def test_a_box_more_than_a_third_off_its_defect_is_named(self):
+        # the pit's box 16 px along its 40 px width (0.4), the crazing's 18 px down its 60 px height (0.3)
+        assert boxes_off(self.DEFECTS, [(116, 100, 156, 120), (300, 118, 330, 178)]) == ["pit (0.40 of its size off)"]
+
+    def test_boxes_on_their_defects_or_on_none_name_nothing(self):
+        assert boxes_off(self.DEFECTS, [(101, 100, 141, 121), (300, 100, 330, 160)]) == []
+        assert boxes_off(self.DEFECTS, [(0, 0, 20, 20)]) == []  # no box of theirs: missed_defects' to say
+        assert boxes_off(self.DEFECTS, []) == [] and boxes_off([], [(0, 0, 20, 20)]) == []
+
+    def test_the_tally_warns_of_them_and_the_check_still_passes(self):
+        parts = (MasterPart("1", Status.REJECT, Status.REJECT, off=("pit (0.40 of its size off)",)),
+                 MasterPart("2", Status.PASS, Status.PASS))
+        checked = Verification("m", parts)
+        assert not checked.failed
+        assert checked.summary() == (
+            "master parts m: 2 inspected, 1 of 1 defective ones rejected, 1 of 1 good ones passed; warning: the "
+            "detector's box on 1's pit (0.40 of its size off) lies more than a third off its defect, where depth may "
+            "prove a defect beyond its limit inside it (docs/depth-conditions.md, boxes that are off): check the "
+            "detector with inspect eval detector-frames")
+        two = Verification("m", parts + (MasterPart("3", Status.PASS, Status.PASS, off=("crazing (0.50 of its size "
+                                                                                        "off)",)),))
+        assert "the detector's boxes on 1's pit (0.40 of its size off), 3's crazing (0.50 of its size off) lie more " \
+               "than a third off their defects" in two.summary()
+
+    def test_verify_holds_each_defects_box_against_its_label(self):
+        labels = json.loads((FIXTURE / "labels" / "000003.json").read_text())
+        frames = [type("Frame", (), {"frame_id": "000003"})()]
+
+        def moved(item):  # each labelled defect boxed half its width to the right
+            return Verdict(Status.REJECT), [((d["box"][0] + (d["box"][2] - d["box"][0]) / 2, d["box"][1],
+                                              d["box"][2] + (d["box"][2] - d["box"][0]) / 2, d["box"][3]),
+                                             Status.REJECT) for d in labels["defects"]]
+
+        (part,) = verify(FIXTURE, frames, moved, BOTH_WAYS).parts
+        assert part.off == tuple(f"{d['class']} (0.50 of its size off)" for d in labels["defects"])
+        (part,) = verify(FIXTURE, frames, lambda item: (Verdict(Status.REJECT), [(tuple(d["box"]), Status.REJECT)
+                                                                                 for d in labels["defects"]]),
+                         BOTH_WAYS).parts
+        assert part.off == ()
 
 
 class TestMissedDefects:

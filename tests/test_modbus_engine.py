@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sqlite3
 import time
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -227,7 +228,11 @@ def test_a_stage_that_stops_returning_drops_the_ready_coil_and_raises_an_alarm(t
     unread = [o.part for o in seen if "+" in o.part.frame_id]
     if stage == "camera":  # every part still inspected, and the camera's periods in the stall are plates unseen
         assert unread and all(p.verdict.status is Status.ERROR for p in unread)
-        assert len({p.frame_id.split("+")[0] for p in unread}) == 1  # one gap: the stall
+        gaps = Counter(p.frame_id.split("+")[0] for p in unread)
+        # the stall: a second or more at 20 frames a second. A frame slower than the camera's period on a loaded
+        # machine leaves a short gap of its own (a fresh clone's suite saw one of a few periods)
+        stall_periods, *others = sorted(gaps.values(), reverse=True)
+        assert stall_periods >= 15 and all(n <= 5 for n in others), gaps
     else:  # the replay as fast as asked states no rate
         assert unread == []
     db = sqlite3.connect(tmp_path / "results" / "results.db")

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from core.boxes import MATCH_IOU, match_boxes
+from core.boxes import HELD_SHIFT, MATCH_IOU, UNSAFE_SHIFT, box_placement, match_boxes
 from core.decision import CLEAR_CUT_MM, judge_defect, rule_applies
 from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
@@ -86,6 +86,10 @@ class DefectRow:
     error_ring_mm: float | None = None
     error_region_mm: float | None = None
     error_extent_mm: float | None = None
+    # the box measured in against the true one (``core.boxes.box_placement``): its centre's offset as a share of
+    # the defect's size, and its size over the defect's; None for a defect the detector missed
+    box_shift: float | None = None
+    box_scale: float | None = None
 
     @property
     def width_px(self) -> float:
@@ -123,6 +127,11 @@ class Summary:
     clear_cut_wrong_plain: int = 0  # decided on the value alone, without the guard band
     missed: int = 0  # labelled defects the detector did not box (``--boxes detector``)
     missed_beyond_a_limit: int = 0  # ... of them, those whose truth rejects
+    # where the boxes measured in lie (``DefectRow.box_shift``, ``box_scale``): the shift's median, p90 and max,
+    # the scale's min and max, and how many lie more than HELD_SHIFT and UNSAFE_SHIFT off
+    box_shift: dict[str, float] = field(default_factory=dict)
+    box_scale: dict[str, float] = field(default_factory=dict)
+    boxes_beyond: dict[str, int] = field(default_factory=dict)
     # the error's parts (``core.error_parts``): over how many defects; each part's median and p90 of |part| (mm)
     # and its share of the parts' summed squares
     error_parts: dict[str, Any] = field(default_factory=dict)
@@ -286,6 +295,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             texture_floor_mm=texture_floor, texture_distance_floor_mm=texture_distance_floor,
             **({} if parts is None else {"error_ring_mm": parts.ring_mm, "error_region_mm": parts.region_mm,
                                          "error_extent_mm": parts.extent_mm}),
+            **dict(zip(("box_shift", "box_scale"), (float(v[0]) for v in box_placement([box], [det.box])))),
         ))
     return rows
 
@@ -428,6 +438,12 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
             if with_floor:
                 s.sigma_over_texture_floor_median = float(np.median([r.deviation_sigma_mm / r.texture_floor_mm
                                                                      for r in with_floor]))
+    placed = [r for r in rows if r.box_shift is not None]
+    if placed:
+        s.box_shift = _stats(r.box_shift for r in placed)
+        s.box_scale = {"min": min(r.box_scale for r in placed), "max": max(r.box_scale for r in placed)}
+        s.boxes_beyond = {"tenth": sum(r.box_shift > HELD_SHIFT for r in placed),
+                          "third": sum(r.box_shift > UNSAFE_SHIFT for r in placed)}
     missed = [r for r in rows if r.proven == MISSED]
     s.missed = len(missed)
     s.missed_beyond_a_limit = sum(r.true_status == Status.REJECT.value for r in missed)
@@ -555,6 +571,12 @@ def markdown(body: dict[str, Any]) -> str:
                   f"{s['defects'] - s['missed']} of the {s['defects']} labelled defects boxed (IoU at least {MATCH_IOU:g}); "
                   f"{s['missed']} missed, {s['missed_beyond_a_limit']} of them beyond a limit (on the line their part "
                   "passes unless another box rejects it). The figures above are over the boxed ones."]
+        if s.get("box_shift"):
+            lines[-1] += (f" Its boxes lie a median {s['box_shift']['median']:.2f} of their defect's size off its "
+                          f"centre (p90 {s['box_shift']['p90']:.2f}, at most {s['box_shift']['max']:.2f}), "
+                          f"{s['boxes_beyond']['tenth']} more than a tenth and {s['boxes_beyond']['third']} more than a "
+                          f"third off, at {s['box_scale']['min']:.2f}-{s['box_scale']['max']:.2f} of its size "
+                          f"(docs/depth-conditions.md, boxes that are off).")
     if body.get("unscored"):
         lines += ["", f"Not scored: {body['unscored']} labelled defect(s) whose labels give no true deviation "
                   "(their truth could not be measured, as for a defect the right camera does not see)."]

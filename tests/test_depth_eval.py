@@ -207,6 +207,8 @@ def test_boxes_that_are_off_are_measured_there_with_the_true_boxs_floor(evaluate
     for r in moved["rows"]:
         same = true[(r["frame_id"], tuple(r["box"]))]  # rows keep the true box
         assert r["floor_mm"] == pytest.approx(same["floor_mm"])
+        # and the box measured in, against it, in the options' own measures
+        assert (r["box_shift"], r["box_scale"]) == pytest.approx((0.15, 1.3)) and same["box_shift"] == 0
     assert any(r["deviation_mm"] != true[(r["frame_id"], tuple(r["box"]))]["deviation_mm"] for r in moved["rows"])
     assert cli_here("eval", "depth", str(TEXTURED), "--box-scale", "nan").returncode == 2
 
@@ -291,6 +293,11 @@ def test_the_detectors_boxes_are_measured_and_the_defects_it_missed_counted(tmp_
     assert all(r["deviation_mm"] is None and r["note"] == "missed by the detector" for r in missed)
     assert 0 < s["measured"] <= s["defects"] - s["missed"]  # the demo's detector finds most of its defects
     assert f"{s['defects'] - s['missed']} of the {s['defects']} labelled defects boxed" in result.stdout
+    # where the detector's boxes lie, from the rows of the defects it boxed
+    placed = [r["box_shift"] for r in body["rows"] if r["status"] != ev.MISSED]
+    assert all(r["box_shift"] is None for r in missed) and s["box_shift"]["max"] == pytest.approx(max(placed))
+    assert s["boxes_beyond"]["tenth"] == sum(x > 0.1 for x in placed) and 0 < s["box_shift"]["median"] < 0.1
+    assert f"Its boxes lie a median {s['box_shift']['median']:.2f} of their defect's size off its centre" in result.stdout
     # rows keep the true boxes; a measured one was measured in a box of the detector's, not the true one
     assert cli("eval", "depth", str(DEMO), "--out", str(tmp_path / "true"), "--threads", "1", "--no-figure",
                "--quiet").returncode == 0

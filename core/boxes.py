@@ -57,3 +57,20 @@ def box_placement(truth: np.ndarray, found: np.ndarray) -> tuple[np.ndarray, np.
     dy = (found[:, 1] + found[:, 3] - truth[:, 1] - truth[:, 3]) / 2
     area = np.clip(found[:, 2] - found[:, 0], 0, None) * np.clip(found[:, 3] - found[:, 1], 0, None)
     return np.hypot(dx / w, dy / h), np.sqrt(area / (w * h))
+
+
+def matched_placement(truth: np.ndarray, found: np.ndarray, min_iou: float) -> list[tuple[int, float, float]]:
+    """``box_placement`` of each (N, 4) ``truth`` box that ``match_boxes`` pairs with one of the (M, 4) ``found``:
+    (the truth's index, shift, scale) for each, in the truths' order."""
+    truth, found = np.asarray(truth, float).reshape(-1, 4), np.asarray(found, float).reshape(-1, 4)
+    pairs = [(i, j) for i, j in enumerate(match_boxes(truth, found, min_iou)) if j is not None]
+    if not pairs:
+        return []
+    shift, scale = box_placement(truth[[i for i, _ in pairs]], found[[j for _, j in pairs]])
+    return [(i, float(a), float(b)) for (i, _), a, b in zip(pairs, shift, scale)]
+
+
+def shifts_beyond(shifts) -> tuple[int, int]:
+    """How many of ``shifts`` (``box_placement``'s) lie more than HELD_SHIFT and more than UNSAFE_SHIFT off."""
+    shifts = np.asarray(list(shifts), float)
+    return int(np.sum(shifts > HELD_SHIFT)), int(np.sum(shifts > UNSAFE_SHIFT))

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from core.boxes import HELD_SHIFT, MATCH_IOU, UNSAFE_SHIFT, box_placement, match_boxes
+from core.boxes import MATCH_IOU, box_placement, match_boxes, shifts_beyond
 from core.decision import CLEAR_CUT_MM, judge_defect, rule_applies
 from core.depth import DepthRule, _clip_box, measure_frame, ring_mask, roi_box
 from core.engine import StageFailed, disparity_range, frame_disparity, kept_detections
@@ -276,6 +276,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
                  or m.groove_angle_deg is not None else
                  error_parts(m.deviation_mm, m.distance_mm, truth["deviation_mm"], true_disparity, frame.calib, det.box,
                              rule, TRUE_PLANE_TOLERANCE_PX))
+        shift, scale = box_placement([box], [det.box])
         if truth.get("distance_mm") is not None and _moved(det.box, box):
             # a box off its defect's centre measures the distance where it looks; without the true disparity
             # there is no truth for that point
@@ -295,7 +296,7 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             texture_floor_mm=texture_floor, texture_distance_floor_mm=texture_distance_floor,
             **({} if parts is None else {"error_ring_mm": parts.ring_mm, "error_region_mm": parts.region_mm,
                                          "error_extent_mm": parts.extent_mm}),
-            **dict(zip(("box_shift", "box_scale"), (float(v[0]) for v in box_placement([box], [det.box])))),
+            box_shift=float(shift[0]), box_scale=float(scale[0]),
         ))
     return rows
 
@@ -442,8 +443,7 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
     if placed:
         s.box_shift = _stats(r.box_shift for r in placed)
         s.box_scale = {"min": min(r.box_scale for r in placed), "max": max(r.box_scale for r in placed)}
-        s.boxes_beyond = {"tenth": sum(r.box_shift > HELD_SHIFT for r in placed),
-                          "third": sum(r.box_shift > UNSAFE_SHIFT for r in placed)}
+        s.boxes_beyond = dict(zip(("tenth", "third"), shifts_beyond(r.box_shift for r in placed)))
     missed = [r for r in rows if r.proven == MISSED]
     s.missed = len(missed)
     s.missed_beyond_a_limit = sum(r.true_status == Status.REJECT.value for r in missed)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.boxes import MATCH_IOU, UNSAFE_SHIFT, box_iou, box_placement, match_boxes
+from core.boxes import MATCH_IOU, UNSAFE_SHIFT, box_iou, matched_placement
 from core.decision import CLEAR_CUT_MM, rule_applies
 from core.types import FrameError, Status, StereoFrame, Verdict
 from drivers.sequence_folder import list_frames, read_labels
@@ -91,14 +91,8 @@ def boxes_off(defects: list[dict], boxes: list[tuple[float, float, float, float]
     lies more than UNSAFE_SHIFT of the defect's size off its centre, each as "class (0.38 of its size off)": depth
     read in such a box may prove a defect beyond its limit inside it (docs/depth-conditions.md, boxes that are
     off)."""
-    truth = np.array([d["box"] for d in defects], float).reshape(-1, 4)
-    found = np.array(boxes, float).reshape(-1, 4)
-    pairs = [(i, j) for i, j in enumerate(match_boxes(truth, found, MATCH_IOU)) if j is not None]
-    if not pairs:
-        return []
-    shifts, _ = box_placement(truth[[i for i, _ in pairs]], found[[j for _, j in pairs]])
-    return [f"{defects[i]['class']} ({shift:.2f} of its size off)" for (i, _), shift in zip(pairs, shifts)
-            if shift > UNSAFE_SHIFT]
+    placed = matched_placement([d["box"] for d in defects], boxes, MATCH_IOU)
+    return [f"{defects[i]['class']} ({shift:.2f} of its size off)" for i, shift, _ in placed if shift > UNSAFE_SHIFT]
 
 
 def _beyond(value: float, op: str, threshold: float) -> float:
@@ -159,16 +153,23 @@ class Verification:
         passed, good = self._count(Status.PASS, (Status.PASS,))
         errors = sum(p.got is Status.ERROR for p in self.parts)
         near = sum(p.known is None for p in self.parts)
-        off = [f"{p.frame_id}'s {defect}" for p in self.parts for defect in p.off]
         return (f"master parts {self.folder}: {len(self.parts)} inspected, {caught} of {defective} defective "
                 f"ones rejected, {passed} of {good} good ones passed"
                 + (f", {errors} could not be inspected (ERROR)" if errors else "")
                 + (f", {near} near a limit (not counted)" if near else "")
-                + (f"; warning: the detector's box{'es' if len(off) > 1 else ''} on {', '.join(off[:3])}"
-                   f"{f' and {len(off) - 3} more' if len(off) > 3 else ''} lie{'' if len(off) > 1 else 's'} more "
-                   f"than a third off {'their defects' if len(off) > 1 else 'its defect'}, where depth may prove a "
-                   f"defect beyond its limit inside it (docs/depth-conditions.md, boxes that are off): check the "
-                   f"detector with inspect eval detector-frames" if off else ""))
+                + self._boxes_off_warning())
+
+    def _boxes_off_warning(self) -> str:
+        """The tally's closing warning of the boxes more than a third off their defects (``boxes_off``), or ""."""
+        off = [f"{p.frame_id}'s {defect}" for p in self.parts for defect in p.off]
+        if not off:
+            return ""
+        many = len(off) > 1
+        shown = ", ".join(off[:3]) + (f" and {len(off) - 3} more" if len(off) > 3 else "")
+        return (f"; warning: the detector's box{'es' if many else ''} on {shown} lie{'' if many else 's'} more than a "
+                f"third off {'their defects' if many else 'its defect'}, where depth may prove a defect beyond its "
+                f"limit inside it (docs/depth-conditions.md, boxes that are off): check the detector with inspect "
+                f"eval detector-frames")
 
     def refusal(self) -> str:
         """Why the run does not start: the defective master parts that passed, or that none was measured."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.boxes import box_iou, box_placement, match_boxes
+from core.boxes import box_iou, box_placement, match_boxes, matched_placement, shifts_beyond
 
 
 class TestBoxIou:
@@ -52,3 +52,18 @@ class TestBoxPlacement:
             box_placement(np.array([[5, 5, 5, 9]], float), np.array([[5, 5, 6, 9]], float))
         shift, scale = box_placement(np.zeros((0, 4)), np.zeros((0, 4)))
         assert shift.shape == scale.shape == (0,)
+
+
+class TestMatchedPlacement:
+    def test_each_matched_truth_with_its_boxs_placement(self):
+        truth = np.array([[0, 0, 20, 10], [100, 0, 120, 10], [300, 0, 320, 10]], float)
+        found = np.array([[104, 0, 124, 10], [2, 0, 22, 10]], float)  # the third truth has none
+        assert matched_placement(truth, found, 0.3) == [(0, pytest.approx(0.1), pytest.approx(1.0)),
+                                                        (1, pytest.approx(0.2), pytest.approx(1.0))]
+        assert matched_placement(truth, np.zeros((0, 4)), 0.3) == []
+
+
+class TestShiftsBeyond:
+    def test_a_tenth_and_a_third_are_inside_their_own_bound(self):
+        assert shifts_beyond([0.05, 0.1, 0.2, 1 / 3, 0.5]) == (3, 1)
+        assert shifts_beyond([]) == (0, 0)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.sequence_folder import SequenceError, check_label_boxes, read_image, read_labels
-from core.boxes import HELD_SHIFT, MATCH_IOU, UNSAFE_SHIFT, box_iou, box_placement, match_boxes
+from core.boxes import MATCH_IOU, box_iou, matched_placement, shifts_beyond
 
 
 @dataclass
@@ -103,11 +103,9 @@ def score_frames(detections: list[list[tuple[str, float, tuple]]], truths: list[
             same = np.array([[t["class"] == d[0] for d in kept] for t in truth])
             row.found_same_class += int((overlap & same).any(axis=1).sum())
             row.other_boxes += int((~overlap.any(axis=0)).sum())
-            pairs = [(i, j) for i, j in enumerate(match_boxes(gt, boxes, iou)) if j is not None]
-            if pairs:
-                shift, scale = box_placement(gt[[i for i, _ in pairs]], boxes[[j for _, j in pairs]])
-                row.shifts += shift.tolist()
-                row.scales += scale.tolist()
+            for _, shift, scale in matched_placement(gt, boxes, iou):
+                row.shifts.append(shift)
+                row.scales.append(scale)
         rows.append(row)
     return rows
 
@@ -129,6 +127,6 @@ def _placement(row: FrameEvalRow) -> str:
     """The table's placement columns of ``row``: dashes where it matched no defect."""
     if not row.shifts:
         return "- | - | -"
-    shifts = np.array(row.shifts)
-    return (f"{np.median(shifts):.2f} / {shifts.max():.2f} | {min(row.scales):.2f}-{max(row.scales):.2f} | "
-            f"{int(np.sum(shifts > HELD_SHIFT))} ({int(np.sum(shifts > UNSAFE_SHIFT))}) of {len(shifts)}")
+    tenth, third = shifts_beyond(row.shifts)
+    return (f"{np.median(row.shifts):.2f} / {max(row.shifts):.2f} | {min(row.scales):.2f}-{max(row.scales):.2f} | "
+            f"{tenth} ({third}) of {len(row.shifts)}")

@@ -1,6 +1,8 @@
 """The stages compiled with numba against the plain stage functions they replace on the CPU."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -319,6 +321,14 @@ class TestWeightedMedianNumba:
         disp, image = self.scene()
         with pytest.raises(ValueError, match="must match"):
             refine_numba.weighted_median_numba(disp, image[..., :-1], 3, 0.1, 5.0)
+
+    def test_a_map_where_nothing_matched_stays_unmatched_without_a_warning(self):
+        _, image = self.scene()
+        disp = torch.full((1, 40, 64), float("nan"))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            out = refine_numba.weighted_median_numba(disp, image, 2, 0.1, 5.0, 1.0)
+        assert torch.isnan(out).all()
 
 
 class TestOutOfViewNumba:

@@ -271,7 +271,8 @@ def _weighted_median_spanning(disp, image, radius, inv_colour2, inv_space2, jump
     tenths of this stage's time (a plate's windows mostly span less)."""
     if jump > 0:
         kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
-        wanted = np.stack([cv2.dilate(m, kernel) - cv2.erode(m, kernel) > jump for m in disp])
+        with np.errstate(over="ignore", invalid="ignore"):  # a map where nothing matched is NaN throughout
+            wanted = np.stack([cv2.dilate(m, kernel) - cv2.erode(m, kernel) > jump for m in disp])
     else:
         wanted = np.ones(disp.shape, np.bool_)
     _weighted_median(disp, image, radius, inv_colour2, inv_space2, wanted, out)

@@ -56,6 +56,23 @@ def test_an_image_with_as_many_boxes_as_max_det_is_an_error_not_a_cut_list(untra
         detector.detect(image)
 
 
+def test_a_whole_frame_is_seen_at_its_long_side_up_to_960_px(untrained_weights, monkeypatch):
+    """A 2K frame fed at its own 2208 px showed the committed model its defects at twice the scale it finds them at."""
+    from plugins.yolov8.detector import YoloDetector
+
+    sizes = []
+    original = YoloDetector._predict
+
+    def recording(self, images, imgsz):
+        sizes.append((images[0].shape[1], imgsz))
+        return original(self, images, imgsz)
+
+    monkeypatch.setattr(YoloDetector, "_predict", recording)
+    for width, height, imgsz in ((672, 376, None), (1280, 720, None), (2208, 1242, None), (2208, 1242, 1280)):
+        _detector(untrained_weights, tile_size=None, imgsz=imgsz).detect(np.zeros((height, width, 3), np.uint8))
+    assert sizes == [(672, 672), (1280, 960), (2208, 960), (2208, 1280)]
+
+
 def test_missing_weights_file_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.pt: detector weights not found"):
         _detector(tmp_path / "nope.pt")

@@ -274,7 +274,7 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
               help="0: the whole frame in one piece; else at least 32")
 @click.option("--tile-overlap", default=0.25, show_default=True, type=Finite(0.0, 0.9, max_open=True))
 @click.option("--imgsz", type=click.IntRange(32, 4096), default=None, help="network input size; default: the tile's "
-              "size, or the frame's long side (the model sees the frame at its own scale)")
+              "size, or the frame's long side up to 960 px (a larger frame shrunk to it)")
 @click.option("--iou", default=MATCH_IOU, show_default=True, type=Finite(0.0, 1.0, min_open=True),
               help="a box this close to a labelled defect finds it")
 def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, tile_size: int, tile_overlap: float,

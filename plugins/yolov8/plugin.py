@@ -268,7 +268,7 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
 @click.command("detector-frames")
 @click.argument("sequence", type=click.Path(path_type=Path), default=Path("sim_fixtures/steel_plate"))
 @click.option("--weights", default=None, type=click.Path(path_type=Path), help="default: the committed model")
-@click.option("--confidence", "confidences", default="0.3,0.4,0.5,0.6,0.7", show_default=True,
+@click.option("--confidence", "confidences", default="0.05,0.1,0.2,0.3,0.4,0.5", show_default=True,
               help="comma-separated thresholds to score")
 @click.option("--tile-size", default=224, show_default=True, type=click.IntRange(min=0),
               help="0: the whole frame in one piece; else at least 32")

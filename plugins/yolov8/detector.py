@@ -26,7 +26,7 @@ class YoloSettings(Settings):
     iou: float = Field(0.5, gt=0.0, le=1.0)
     imgsz: int | None = Field(224, ge=32, le=4096, description="network input size (per tile when tiling); null = "
                               "the image's own size (a tile's edge, or the whole frame's long side up to "
-                              "WHOLE_FRAME_MAX_IMGSZ, beyond which the frame is shrunk to it)")
+                              f"{WHOLE_FRAME_MAX_IMGSZ} px, beyond which the frame is shrunk to it)")
     tile_size: int | None = Field(224, ge=32, description="tile edge in frame pixels; null = whole frame")
     tile_overlap: float = Field(0.25, ge=0.0, lt=0.9)
     # NEU-DET boxes whole images of texture-like classes (pitted surface, crazing), so on a tile of

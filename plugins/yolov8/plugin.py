@@ -10,8 +10,8 @@ from core.boxes import MATCH_IOU
 from core.commands.params import Finite, out_file, out_folder, overwritten_input
 from core.contracts import PluginContext, PluginSpec
 from core.hookspecs import hookimpl
-from plugins.yolov8.detector import (DEFAULT_WEIGHTS, DetectionLimit, YoloDetector, YoloSettings,
-                                     checkpoint_class_names, read_checkpoint)
+from plugins.yolov8.detector import (DEFAULT_WEIGHTS, WHOLE_FRAME_MAX_IMGSZ, DetectionLimit, YoloDetector,
+                                     YoloSettings, checkpoint_class_names, read_checkpoint)
 
 
 def _factory(settings: dict, ctx: PluginContext) -> YoloDetector:
@@ -274,7 +274,7 @@ def eval_command(data: Path, weights: Path, split: str, imgsz: int, iou: float, 
               help="0: the whole frame in one piece; else at least 32")
 @click.option("--tile-overlap", default=0.25, show_default=True, type=Finite(0.0, 0.9, max_open=True))
 @click.option("--imgsz", type=click.IntRange(32, 4096), default=None, help="network input size; default: the tile's "
-              "size, or the frame's long side up to 960 px (a larger frame shrunk to it)")
+              f"size, or the frame's long side up to {WHOLE_FRAME_MAX_IMGSZ} px (a larger frame shrunk to it)")
 @click.option("--iou", default=MATCH_IOU, show_default=True, type=Finite(0.0, 1.0, min_open=True),
               help="a box this close to a labelled defect finds it")
 def eval_frames_command(sequence: Path, weights: Path | None, confidences: str, tile_size: int, tile_overlap: float,

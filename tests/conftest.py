@@ -23,16 +23,15 @@ def pytest_sessionstart(session):
     """Fill numba's cache once before any test runs (in the controller of a run on several workers): in a fresh
     checkout every worker and every `inspect` process a test started compiled the same kernels again until one
     had written them, some 70 s of CPU each. Two processes compile different kernels at once
-    (``kernel_warm_up.py``). Where the cache is warm this takes a few seconds."""
+    (``plugins/torch_sgm/kernel_warm_up.py``), the first at one thread and at two. Where the cache is warm this takes
+    a few seconds."""
     if hasattr(session.config, "workerinput"):  # a worker: the controller warmed it
         return
-    warming = [subprocess.Popen([sys.executable, str(TESTS / "kernel_warm_up.py"), part], cwd=ROOT,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for part in ("first", "later")]
-    for process in warming:  # a warm-up that fails leaves the kernels to the tests, which then say why
-        try:
-            process.wait(timeout=600)
-        except subprocess.TimeoutExpired:
-            process.kill()
+    from plugins.torch_sgm import kernel_warm_up
+
+    # a warm-up that fails leaves the kernels to the tests, which then say why
+    for process in [kernel_warm_up.start("first", {}, (1, 2)), kernel_warm_up.start("later", {})]:
+        kernel_warm_up.finish(process)
 
 
 def write_plane_sequence(folder: Path, pit_depths_mm: list[float], width: int = 320, height: int = 192,

@@ -50,16 +50,27 @@ class TorchSGM:
     def compute(self, left: np.ndarray, right: np.ndarray, min_disp: float, max_disp: float) -> np.ndarray:
         return self.compute_with_mask(left, right, min_disp, max_disp)[0]
 
-    def warm_up(self) -> None:
+    def warm_up(self, helper: bool = True) -> None:
         """Match a small synthetic scene (matches, an occlusion, holes to fill) on every device this backend
         may match on, so that every stage's kernels are compiled, or loaded from numba's cache, before the
-        first part."""
+        first part. Where the cache lacks them (and ``helper``), a second process compiles the later stages'
+        kernels and depth's meanwhile (``kernel_warm_up``), and this waits for it."""
+        import torch
+
+        from plugins.torch_sgm import kernel_warm_up
         from plugins.torch_sgm.pipeline import compute_disparity
         from plugins.torch_sgm.synthetic import layered_scene
 
-        left, right, _, _ = layered_scene()
-        for device in {self.device, self.device_for(*left.shape[:2])}:
-            compute_disparity(left, right, 0.0, 24.0, self.params, device)
+        settings = self.params.model_dump(mode="json")
+        started = (kernel_warm_up.start("later", settings, (torch.get_num_threads(),))
+                   if helper and kernel_warm_up.cold(settings) else None)
+        try:
+            left, right, _, _ = layered_scene()
+            for device in {self.device, self.device_for(*left.shape[:2])}:
+                compute_disparity(left, right, 0.0, 24.0, self.params, device)
+        finally:
+            if started is not None:
+                kernel_warm_up.finish(started)
 
     def memory_bytes(self, height: int, width: int, disparities: int) -> int:
         """Host memory one map takes at most: on the CPU the cost volume, the SGM sums and the stages'

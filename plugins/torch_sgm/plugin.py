@@ -53,8 +53,11 @@ class TorchSGM:
     def warm_up(self, helper: bool = True) -> None:
         """Match a small synthetic scene (matches, an occlusion, holes to fill) on every device this backend
         may match on, so that every stage's kernels are compiled, or loaded from numba's cache, before the
-        first part. Where the cache lacks them (and ``helper``), a second process compiles the later stages'
-        kernels and depth's meanwhile (``kernel_warm_up``), and this waits for it."""
+        first part. Where the cache lacks them (and ``helper``, on a machine of two cores or more), a second
+        process compiles the later stages' kernels and depth's meanwhile (``kernel_warm_up``), and this waits
+        for it."""
+        import os
+
         import torch
 
         from plugins.torch_sgm import kernel_warm_up
@@ -63,7 +66,7 @@ class TorchSGM:
 
         settings = self.params.model_dump(mode="json")
         started = (kernel_warm_up.start("later", settings, (torch.get_num_threads(),))
-                   if helper and kernel_warm_up.cold(settings) else None)
+                   if helper and (os.cpu_count() or 1) > 1 and kernel_warm_up.cold(settings) else None)
         try:
             left, right, _, _ = layered_scene()
             for device in {self.device, self.device_for(*left.shape[:2])}:

@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from core.contracts import PluginContext
@@ -68,3 +69,19 @@ class TestBackendWarmUp:
         assert helper.args[3:] == ["later", helper.args[4], str(torch.get_num_threads())]
         assert TorchSGMParams.model_validate_json(helper.args[4]) == backend.params
         assert helper.returncode == 0  # waited for, and it ran to its end
+
+    def test_a_warm_up_that_fails_stops_its_helper_at_once(self, monkeypatch):
+        from plugins.torch_sgm import pipeline
+
+        started, real = [], kernel_warm_up.start
+        monkeypatch.setattr(kernel_warm_up, "cold", lambda settings: True)
+        monkeypatch.setattr(kernel_warm_up, "start", lambda *a: started.append(real(*a)) or started[-1])
+
+        def interrupted(*args, **kwargs):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(pipeline, "compute_disparity", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            _factory({"device": "cpu"}, PluginContext(device="cpu")).warm_up()
+        (helper,) = started
+        assert helper.returncode not in (None, 0)  # stopped, not waited for to its end

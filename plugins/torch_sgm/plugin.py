@@ -71,9 +71,12 @@ class TorchSGM:
             left, right, _, _ = layered_scene()
             for device in {self.device, self.device_for(*left.shape[:2])}:
                 compute_disparity(left, right, 0.0, 24.0, self.params, device)
-        finally:
+        except BaseException:  # a stop (Ctrl-C, SIGTERM) or a failure here: the helper's kernels are not awaited
             if started is not None:
-                kernel_warm_up.finish(started)
+                kernel_warm_up.finish(started, timeout_s=0)
+            raise
+        if started is not None:
+            kernel_warm_up.finish(started)
 
     def memory_bytes(self, height: int, width: int, disparities: int) -> int:
         """Host memory one map takes at most: on the CPU the cost volume, the SGM sums and the stages'

@@ -64,14 +64,25 @@ def quiet_opencv() -> None:
 
 def main(args: list[str] | None = None) -> None:
     """The ``inspect`` console script, on ``args`` (default: the command line)."""
+    from core import kernel_cache
     from core.memory import keep_freed_memory
 
+    said = kernel_cache.ensure()  # before any kernel's module is imported
+    if said is not None:
+        click.echo(said, err=True)
     keep_freed_memory()  # before the first frame's volumes are allocated
     quiet_opencv()
     try:
         sys.exit(_build().main(args, prog_name="inspect", standalone_mode=True))
     except BrokenPipeError:  # the reader of the output went away (`| head`): nothing left to tell
         sys.exit(1)
+    except RuntimeError as exc:
+        if "cannot cache function" not in str(exc):
+            raise
+        # not even the temporary folder could be written (kernel_cache.ensure)
+        click.echo(f"Error: numba can keep the compiled kernels nowhere ({exc}): set NUMBA_CACHE_DIR to a folder "
+                   f"this user can write", err=True)
+        sys.exit(2)
     except SystemError as exc:
         try:
             raise_if_interrupted(exc)

@@ -25,24 +25,16 @@ ROOT = Path(__file__).resolve().parents[2]
 HELPER_TIMEOUT_S = 600  # a helper that has not finished by then is stopped: the parts compile what it left
 
 
-def _backend(settings: dict):
+def first(settings: dict, threads: tuple[int, ...] = (1,)) -> None:
+    import torch
+
     from core.contracts import PluginContext
     from plugins.torch_sgm.plugin import _factory
 
-    return _factory({**settings, "device": "cpu"}, PluginContext(device="cpu"))
-
-
-def _match(settings: dict, threads: tuple[int, ...]) -> None:
-    import torch
-
-    backend = _backend(settings)
+    backend = _factory({**settings, "device": "cpu"}, PluginContext(device="cpu"))
     for count in threads:
         torch.set_num_threads(count)
         backend.warm_up(helper=False)
-
-
-def first(settings: dict, threads: tuple[int, ...] = (1,)) -> None:
-    _match(settings, threads)
 
 
 def later(settings: dict, threads: tuple[int, ...] = (1,)) -> None:
@@ -59,7 +51,7 @@ def later(settings: dict, threads: tuple[int, ...] = (1,)) -> None:
                                     (align_numba, "resample_rows_numba", align.resample_rows)):
         getattr(module, name)  # the pipeline looks each up at every call; renamed there, this raises
         setattr(module, name, reference)
-    _match(settings, threads)
+    first(settings, threads)
 
 
 def _cached(kernel) -> bool:

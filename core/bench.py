@@ -303,22 +303,27 @@ def run_soak(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
             "machine": machine(), "when": time.strftime("%Y-%m-%d %H:%M")}
 
 
-LIVE_LOOPS = ("detection alone", "with depth")
+LIVE_LOOPS = ("detection alone", "the matcher's depth", "with depth")
 
 
 def run_live(loaded: LoadedRecipe, registry: Registry, frames: int, device: str, rounds: int = 3) -> dict[str, Any]:
     """The real loop as the recipe runs it (detection a frame ahead where ``stereo.concurrent``), ``frames``
     frames of its looped camera with detection alone (no detection passes the confidence, so no stereo or
-    depth) and with depth for every defect, in ``rounds`` rounds of both, the first loop of each round alternating:
-    each loop's median frame rate and each round's ratio, the ratio their median. A shared machine's speed
-    drifts within minutes; a ratio of two loops run side by side in time follows the loops, not the drift. The
-    stage table times the stages one after another and cannot show what running them side by side gains."""
+    depth), with the matcher's depth for every defect (``depth.method: disparity``, the reference the surface fit
+    is added to; left out where the recipe's method is that already) and with the recipe's depth, in ``rounds``
+    rounds, the order of the loops reversed from one round to the next: each loop's median frame rate and each
+    round's ratio, the ratio their median. A shared machine's speed drifts within minutes; a ratio of loops run
+    side by side in time follows the loops, not the drift. The stage table times the stages one after another and
+    cannot show what running them side by side gains."""
     from core import engine
 
-    alone = {"detector": loaded.recipe.detector.model_copy(update={"confidence": 1.0})}
-    changes = dict(zip(LIVE_LOOPS, (alone, {})))
-    runs: dict[str, list] = {name: [] for name in LIVE_LOOPS}
-    order = [name for r in range(rounds) for name in (LIVE_LOOPS if r % 2 == 0 else LIVE_LOOPS[::-1])]
+    recipe = loaded.recipe
+    changes = {"detection alone": {"detector": recipe.detector.model_copy(update={"confidence": 1.0})},
+               "the matcher's depth": {"depth": recipe.depth.model_copy(update={"method": "disparity"})},
+               "with depth": {}}
+    loops = tuple(name for name in LIVE_LOOPS if name != "the matcher's depth" or recipe.depth.method != "disparity")
+    runs: dict[str, list] = {name: [] for name in loops}
+    order = [name for r in range(rounds) for name in (loops if r % 2 == 0 else loops[::-1])]
     for name in order:
         with tempfile.TemporaryDirectory() as tmp:
             runs[name].append(engine.run(_looped(loaded, Path(tmp), **changes[name]), registry=registry,
@@ -337,23 +342,34 @@ def run_live(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
                                   for k in stages},
                       "counts": counts}
     ratios = [d / a for a, d in zip(rows["detection alone"]["fps_rounds"], rows["with depth"]["fps_rounds"]) if a]
-    return {"concurrent": loaded.recipe.stereo.concurrent, "threads": loaded.recipe.threads, "rounds": rounds,
+    return {"concurrent": recipe.stereo.concurrent, "threads": recipe.threads, "rounds": rounds,
             "order": order, "rows": rows, "ratios": ratios, "ratio": statistics.median(ratios) if ratios else None,
-            "depth_share": depth_share(rows["with depth"])}
+            "depth_share": depth_share(rows["with depth"]),
+            "added_share": added_share(rows["with depth"], rows.get("the matcher's depth"))}
 
 
 def depth_share(row: dict[str, Any]) -> float | None:
-    """The share of the loop's frame time that depth takes (the depth goal's measure): its mean ms a part over the
-    frame time at the loop's median rate; None where the loop ran no depth or no frame."""
+    """The share of the loop's frame time that depth takes: its mean ms a part over the frame time at the loop's
+    median rate; None where the loop ran no depth or no frame."""
     depth = row["mean_ms"].get("depth")
     return depth * row["fps"] / 1000.0 if depth and row["fps"] > 0 else None
+
+
+def added_share(row: dict[str, Any], reference: dict[str, Any] | None) -> float | None:
+    """The share of the loop's frame time (``row``'s, at its median rate) that the recipe's depth takes beyond the
+    matcher's depth (``reference``'s loop): what the surface fit adds to a part, its mean ms a part less the
+    reference's; None without a reference or where either loop ran no depth."""
+    if reference is None or not reference["mean_ms"].get("depth") or not row["mean_ms"].get("depth") \
+            or row["fps"] <= 0:
+        return None
+    return (row["mean_ms"]["depth"] - reference["mean_ms"]["depth"]) * row["fps"] / 1000.0
 
 
 def live_markdown(live: dict[str, Any]) -> str:
     mode = "detection a frame ahead" if live["concurrent"] else "one frame at a time"
     rounds = live["rounds"]
     lines = [f"The real loop ({mode}, threads {live['threads']}), looped replay, as fast as it runs, {rounds} "
-             f"round{'s' if rounds > 1 else ''} of both loops:", "",
+             f"round{'s' if rounds > 1 else ''} of every loop:", "",
              "| loop | frames a round | fps, median (each round) | mean ms per part |", "|---|---|---|---|"]
     for name, row in live["rows"].items():
         stages = ", ".join(f"{k} {v:.0f}" for k, v in row["mean_ms"].items())
@@ -367,4 +383,9 @@ def live_markdown(live: dict[str, Any]) -> str:
         depth = live["rows"]["with depth"]
         lines += ["", f"depth's share of a frame with depth: {share:.0%} ({depth['mean_ms']['depth']:.0f} ms a part of "
                       f"{1000.0 / depth['fps']:.0f} ms a frame)"]
+        added = live.get("added_share")
+        if added is not None:
+            matcher = live["rows"]["the matcher's depth"]["mean_ms"]["depth"]
+            lines.append(f"the surface fit's share beyond the matcher's depth: {added:.0%} "
+                         f"({depth['mean_ms']['depth'] - matcher:.0f} ms a part more than its {matcher:.0f})")
     return "\n".join(lines) + "\n"

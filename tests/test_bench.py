@@ -127,9 +127,11 @@ def test_live_runs_the_real_loop_with_and_without_depth_in_alternating_rounds(tm
     assert out.returncode == 0, out.stderr
     live = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())["live"]
     alone, depth = live["rows"]["detection alone"], live["rows"]["with depth"]
-    assert live["concurrent"] is True and alone["frames"] == depth["frames"] == 6
-    # the second round starts with the loop the first ended with, so that a steady drift falls on both alike
-    assert live["order"] == ["detection alone", "with depth", "with depth", "detection alone"]
+    matcher = live["rows"]["the matcher's depth"]
+    assert live["concurrent"] is True and alone["frames"] == depth["frames"] == matcher["frames"] == 6
+    # the second round runs the loops in reverse, so that a steady drift falls on all alike
+    assert live["order"] == ["detection alone", "the matcher's depth", "with depth", "with depth",
+                             "the matcher's depth", "detection alone"]
     # nothing measured; the images of each part without defects are checked to show the plate in range
     assert set(alone["mean_ms"]) == {"detection", "plate check"} and alone["counts"] == {"PASS": 12}
     assert {"detection", "stereo", "depth"} <= set(depth["mean_ms"]) and depth["counts"].get("REJECT", 0) > 0
@@ -141,6 +143,11 @@ def test_live_runs_the_real_loop_with_and_without_depth_in_alternating_rounds(tm
     # the depth goal's measure: depth's mean time a part over the frame time at the loop's rate
     assert live["depth_share"] == pytest.approx(depth["mean_ms"]["depth"] * depth["fps"] / 1000.0)
     assert 0 < live["depth_share"] < 1 and f"depth's share of a frame with depth: {live['depth_share']:.0%}" in out.stdout
+    # what the surface fit adds: the recipe's depth less the matcher's alone, the same parts decided on its map
+    assert {"detection", "stereo", "depth"} <= set(matcher["mean_ms"]) and 0 < matcher["mean_ms"]["depth"]
+    assert live["added_share"] == pytest.approx((depth["mean_ms"]["depth"] - matcher["mean_ms"]["depth"])
+                                                * depth["fps"] / 1000.0)
+    assert live["added_share"] < live["depth_share"] and "the surface fit's share beyond the matcher's depth" in out.stdout
     assert not (ROOT / "results" / "steel_plate" / "live").exists()
 
 

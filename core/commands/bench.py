@@ -40,10 +40,10 @@ from drivers.zed_calibration import RESOLUTIONS as ZED_MODES
 @click.option("--quiet", is_flag=True, help="soak: no line per sample")
 @click.option("--live", default=None, type=click.IntRange(1), metavar="FRAMES",
               help="after the table: the real loop as the recipe runs it (detection a frame ahead where "
-                   "stereo.concurrent) for FRAMES frames, with detection alone and with depth, in --live-rounds "
-                   "rounds, and their ratio")
+                   "stereo.concurrent) for FRAMES frames, with detection alone, with the matcher's depth "
+                   "(depth.method: disparity) and with the recipe's depth, in --live-rounds rounds, and their ratio")
 @click.option("--live-rounds", default=3, show_default=True, type=click.IntRange(1),
-              help="live: rounds of both loops, the first of each round alternating; the ratio is the rounds' median")
+              help="live: rounds of every loop, their order reversed each round; the ratio is the rounds' median")
 @click.option("--threads", type=click.IntRange(1, MAX_THREADS), default=None,
               help="torch and OpenCV CPU threads (1 is fastest when another job keeps a core busy)")
 @click.option("--set", "overrides", multiple=True, metavar="KEY.PATH=VALUE")

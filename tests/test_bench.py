@@ -121,7 +121,7 @@ def test_soak_reports_rss_at_start_and_end(tmp_path):
     assert "RSS" in out.stdout and not (ROOT / "results" / "steel_plate" / "soak").exists()
 
 
-def test_live_runs_the_real_loop_with_and_without_depth_in_alternating_rounds(tmp_path):
+def test_live_runs_the_real_loop_alone_with_the_matchers_depth_and_with_the_recipes_in_reversed_rounds(tmp_path):
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "none", "--repeats", "1",
               "--frames", "1", "--live", "6", "--live-rounds", "2", "--threads", "1", "--out", str(tmp_path))
     assert out.returncode == 0, out.stderr

@@ -140,15 +140,25 @@ def test_live_runs_the_real_loop_alone_with_the_matchers_depth_and_with_the_reci
     assert live["ratios"] == [d / a for a, d in zip(alone["fps_rounds"], depth["fps_rounds"])]
     assert live["ratio"] == pytest.approx(sum(live["ratios"]) / 2) and live["ratio"] > 0
     assert "with depth ÷ detection alone" in out.stdout and "round by round" in out.stdout
-    # the depth goal's measure: depth's mean time a part over the frame time at the loop's rate
+    # depth's share of a frame: its mean time a part over the frame time at the loop's rate
     assert live["depth_share"] == pytest.approx(depth["mean_ms"]["depth"] * depth["fps"] / 1000.0)
     assert 0 < live["depth_share"] < 1 and f"depth's share of a frame with depth: {live['depth_share']:.0%}" in out.stdout
-    # what the surface fit adds: the recipe's depth less the matcher's alone, the same parts decided on its map
+    # the depth goal's measure: what the surface fit adds to the matcher's depth, over the same frame time
     assert {"detection", "stereo", "depth"} <= set(matcher["mean_ms"]) and 0 < matcher["mean_ms"]["depth"]
     assert live["added_share"] == pytest.approx((depth["mean_ms"]["depth"] - matcher["mean_ms"]["depth"])
                                                 * depth["fps"] / 1000.0)
     assert live["added_share"] < live["depth_share"] and "the surface fit's share beyond the matcher's depth" in out.stdout
     assert not (ROOT / "results" / "steel_plate" / "live").exists()
+
+
+def test_live_with_the_matchers_depth_as_the_recipes_runs_it_once(tmp_path):
+    out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "none", "--repeats", "1",
+              "--frames", "1", "--live", "2", "--live-rounds", "1", "--threads", "1", "--set", "depth.method=disparity",
+              "--out", str(tmp_path))
+    assert out.returncode == 0, out.stderr
+    live = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())["live"]
+    assert live["order"] == ["detection alone", "with depth"] and live["added_share"] is None
+    assert live["depth_share"] > 0 and "beyond the matcher's depth" not in out.stdout
 
 
 def test_live_rounds_without_live_is_refused(tmp_path):

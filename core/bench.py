@@ -303,9 +303,6 @@ def run_soak(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
             "machine": machine(), "when": time.strftime("%Y-%m-%d %H:%M")}
 
 
-LIVE_LOOPS = ("detection alone", "the matcher's depth", "with depth")
-
-
 def run_live(loaded: LoadedRecipe, registry: Registry, frames: int, device: str, rounds: int = 3) -> dict[str, Any]:
     """The real loop as the recipe runs it (detection a frame ahead where ``stereo.concurrent``), ``frames``
     frames of its looped camera with detection alone (no detection passes the confidence, so no stereo or
@@ -318,10 +315,12 @@ def run_live(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
     from core import engine
 
     recipe = loaded.recipe
-    changes = {"detection alone": {"detector": recipe.detector.model_copy(update={"confidence": 1.0})},
-               "the matcher's depth": {"depth": recipe.depth.model_copy(update={"method": "disparity"})},
-               "with depth": {}}
-    loops = tuple(name for name in LIVE_LOOPS if name != "the matcher's depth" or recipe.depth.method != "disparity")
+    # each loop's recipe changes, in the order of a round
+    changes: dict[str, dict] = {"detection alone": {"detector": recipe.detector.model_copy(update={"confidence": 1.0})}}
+    if recipe.depth.method != "disparity":
+        changes["the matcher's depth"] = {"depth": recipe.depth.model_copy(update={"method": "disparity"})}
+    changes["with depth"] = {}
+    loops = tuple(changes)
     runs: dict[str, list] = {name: [] for name in loops}
     order = [name for r in range(rounds) for name in (loops if r % 2 == 0 else loops[::-1])]
     for name in order:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import operator
 
+from core import uncertainty_budget
 from core.recipe.schema import DecisionSection, Rule
 from core.types import DefectMeasurement, Status, Verdict
 
@@ -99,8 +100,10 @@ def judge_defect(m: DefectMeasurement, decision: DecisionSection) -> tuple[Statu
         elif state == "undecided":
             outcome = _UNCERTAIN[decision.uncertain]
             outcomes.append(outcome)
+            # what the uncertainty is made of says what would let the rule decide (more light, better boxes)
+            cause = uncertainty_budget.cause_clause(m.uncertainty_parts) if rule.quantity == "deviation_mm" else ""
             reasons.append(f"{label}: {shown} straddles {rule.threshold:g}, conformance not proven "
-                           f"(rule '{rule.describe()}', uncertain: {decision.uncertain})")
+                           f"(rule '{rule.describe()}', uncertain: {decision.uncertain})" + (f"; {cause}" if cause else ""))
     return _worst(outcomes), reasons
 
 

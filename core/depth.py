@@ -30,9 +30,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from core import band_scan, box_reach, depth_numba, surface_fit
+from core import band_scan, box_reach, depth_numba, surface_fit, uncertainty_budget
 from core.surface_scan import scan_surface
-from core.types import Calibration, DefectMeasurement, Detection, StereoFrame
+from core.types import Calibration, DefectMeasurement, Detection, StereoFrame, UncertaintyPart
 
 
 @dataclass(frozen=True)
@@ -464,33 +464,48 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         # read on its band alone.
         offset = cells.delta if groove else (1 - FIT_SHARE) * cells.delta + FIT_SHARE * fit.delta
         d, var_d = c + offset, cells.variance
+        budget = _cells_budget(cells)
     else:
         d, var_d = c + fit.delta, cov[0, 0] + cov[3, 3] + 2 * cov[0, 3]
+        budget = [(NOISE_CAUSE, var_d)]
+    # (each term below goes into the budget with its cause: what a rule that cannot decide names)
     # The region may hold part of a pixel of the defect's wall that the fit cannot tell from its floor
     # (the wall facing the camera is seen broad, the other foreshortened): a share of WALL_PX / w of a region
     # w pixels across, and so of the offset (docs/research-log.md).
-    var_d += (WALL_PX * (d - c) / max(width, 1.0)) ** 2
+    wall = (WALL_PX * (d - c) / max(width, 1.0)) ** 2
+    var_d += wall
+    budget.append((f"the defect's wall, which a region {width:.0f} px across may hold", wall))
     # and what one eye sees of the region and the other does not (the walls' sheen, a wall one eye sees broad and the
     # other edge-on) may pull the offset by that share of it: a narrow pit's walls read 0.63 +- 0.17 mm for 2.18 mm
     if not groove:
-        var_d += unshared_variance(d - c, surface_fit.contrast_ratio(fit, (ring_u, ring_v), (uu, vv), weights))
+        unshared = unshared_variance(d - c, surface_fit.contrast_ratio(fit, (ring_u, ring_v), (uu, vv), weights))
+        var_d += unshared
+        budget.append((UNSHARED_CAUSE, unshared))
     # and a floor that is not flat over the region (the box cut through a wall) widens it by how much
-    var_d += surface_fit.unevenness_variance(offsets_px, sds, centres)
+    uneven = surface_fit.unevenness_variance(offsets_px, sds, centres)
+    var_d += uneven
+    budget.append((UNEVEN_CAUSE, uneven))
     # and by how much its strongly textured cells (the information weighs them) disagree with its area
     if np.isfinite(cells.variance):
-        var_d += surface_fit.weighting_variance(offsets_px, sds, areas, cells.delta)
+        weighting = surface_fit.weighting_variance(offsets_px, sds, areas, cells.delta)
+        var_d += weighting
+        budget.append((WEIGHTING_CAUSE, weighting))
     # and a part of the region that may be the defect, too faint to measure on: a band across it, along its edges,
     # or its central part (``_parts_variance``)
+    part = moved = None
     if not groove and np.isfinite(cells.variance):
         patch = band_scan.central_patch(offsets_px, settled_sds, areas, centres, middle,
                                         ((inner[2] - inner[0]) / 2, (inner[3] - inner[1]) / 2))
         moved = _farthest_moved(left, right, fit, inner, (detection.width, detection.height), shift, cells.delta,
                                 cells.variance)
-        var_d += _parts_variance(cells.delta, band, along_edges, patch, moved, cells.variance)
+        part = _widest_part(cells.delta, band, along_edges, patch, moved, cells.variance)
+        var_d += 0.0 if part is None else part.variance
     # and it is known no better than the region would be at its interior's information per pixel (the border
     # may be the walls' edges, strong gradients that each eye sees at another place)
     # (the interior's variance comes from the same residuals as the cells': their scatter scales it alike)
-    var_d = max(var_d, interior * min(cells.birge, 1.0))
+    at_interior = interior * min(cells.birge, 1.0)
+    if at_interior > var_d:
+        var_d, budget, part = at_interior, [(INTERIOR_CAUSE, at_interior)], None
     if d <= 0 or c <= 0:
         return _unavailable(reference, "the surface fit gave no disparity in front of the camera")
     a, b = fit.slopes
@@ -501,13 +516,51 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     deviation = fb * (c / d - 1.0) / n
     deviation_sigma = float(np.sqrt((fb / (d * n)) ** 2 * cov[0, 0] + (fb * c / (d * d * n)) ** 2 * var_d))
     distance = fb / d
+    if part is not None:
+        budget.append((_part_cause(part, moved, (detection.width, detection.height),
+                                   lambda offset: fb * (c / (c + offset) - 1.0) / n), part.variance))
+    parts = (UncertaintyPart(RING_CAUSE, float((fb / (d * n)) ** 2 * cov[0, 0])),) + tuple(
+        UncertaintyPart(cause, float((fb * c / (d * d * n)) ** 2 * v)) for cause, v in budget if v > 0)
     return DefectMeasurement(
         detection, float(distance), float(deviation), reference.valid_fraction, reference.depth_resolution_mm,
         reference.area_mm2 * (distance / reference.distance_mm) ** 2,
         distance_sigma_mm=float(fb / d**2 * np.sqrt(var_d)), deviation_sigma_mm=deviation_sigma, method="surface",
         note=f"measured along a groove across the box, {band.angle_deg:.0f} degrees from its rows" if groove else "",
-        groove_angle_deg=float(band.angle_deg) if groove else None,
+        groove_angle_deg=float(band.angle_deg) if groove else None, uncertainty_parts=parts,
     )
+
+
+# what makes each term of a surface measurement's variance, as a rule that cannot decide names it
+RING_CAUSE = "placing the surface around the box"
+NOISE_CAUSE = "the sensor's noise over the region's texture"
+UNSHARED_CAUSE = ("contrast that one eye sees in the region and the other does not: a sheen on its walls, or a wall "
+                  "one eye sees edge-on")
+UNEVEN_CAUSE = "a floor that is not flat over the region: the box may cut through a wall"
+WEIGHTING_CAUSE = "its strongly textured cells, which read it otherwise than the rest of it"
+INTERIOR_CAUSE = "the region's interior, which has little texture of its own: its border's edges may be the walls'"
+
+
+def _cells_budget(cells: surface_fit.RobustOffset) -> list[tuple[str, float]]:
+    """The cells' variance (px^2) as the budget's terms: their noise's, and where they scatter more than that says
+    (a Birge ratio above 1), the excess."""
+    if cells.birge <= 1.0:
+        return [(NOISE_CAUSE, cells.variance)]
+    noise = cells.variance / cells.birge
+    return [(NOISE_CAUSE, noise), (f"its cells, which scatter {cells.birge:.1f} times as much as their noise says: the "
+                                   f"region may hold more than one surface", cells.variance - noise)]
+
+
+def _part_cause(part: _Part, moved: box_reach.MovedRegion | None, size: tuple[float, float], mm) -> str:
+    """What ``part`` (``_widest_part``) is, in words, with its reading: ``mm(offset px)`` the deviation (mm) of an
+    offset; size: the box's (w, h), by which ``moved`` was moved."""
+    reads = f"which reads {mm(part.offset):.2f} mm"
+    if part.kind == "moved":
+        x0, y0, _, _ = box_reach.moved_box((0.0, 0.0, 0.0, 0.0), size, moved.share, moved.angle_deg)
+        return (f"the region moved {uncertainty_budget.shift_words(x0, y0)}, {reads}: the box may not hold its "
+                f"defect")
+    return {"band": f"a band across the region, {reads}: a groove too faint to measure along",
+            "along_edges": f"a band along the region's edges, {reads}: a groove along them",
+            "patch": f"the region's centre, {reads}: a box larger than its defect"}[part.kind]
 
 
 def unshared_variance(offset: float, ratio: float) -> float:
@@ -542,14 +595,35 @@ def _parts_variance(region: float, band: band_scan.Band | None, along_edges: ban
     (``box_reach``), where it reads farther from the surface than the region by MOVED_Z or more standard deviations
     of their difference, ``region_variance`` (px^2) the region's own (a box half a pit's size off it read 0.03 +-
     0.48 mm for 1.40 mm and passed). docs/research-log.md has what each threshold cost and caught."""
-    parts = [(b.offset, b.variance) for b in (band if band is not None and abs(band.z) >= BAND_Z else None,
-                                              along_edges) if b is not None]
+    part = _widest_part(region, band, along_edges, patch, moved, region_variance)
+    return 0.0 if part is None else part.variance
+
+
+@dataclass(frozen=True)
+class _Part:
+    """The part of a region that ``_parts_variance`` widens its uncertainty for: which (``band``, ``along_edges``,
+    ``patch`` or ``moved``), its offset (px) and the variance it adds (px^2)."""
+
+    kind: str
+    offset: float
+    variance: float
+
+
+def _widest_part(region: float, band: band_scan.Band | None, along_edges: band_scan.Band | None,
+                 patch: surface_fit.RobustOffset | None, moved: box_reach.MovedRegion | None = None,
+                 region_variance: float = 0.0) -> _Part | None:
+    """``_parts_variance``'s part that adds the most variance (the first of equals), None where none adds any."""
+    parts = [(kind, b.offset, b.variance) for kind, b in (
+        ("band", band if band is not None and abs(band.z) >= BAND_Z else None), ("along_edges", along_edges))
+        if b is not None]
     if patch is not None and abs(patch.delta) > 2 * abs(region) \
             and abs(patch.delta - region) >= PATCH_Z * np.sqrt(patch.variance):
-        parts.append((patch.delta, patch.variance))
+        parts.append(("patch", patch.delta, patch.variance))
     if moved is not None and moved.z(region, region_variance) >= MOVED_Z:
-        parts.append((moved.offset, moved.variance))
-    return max([max(0.0, (offset - region) ** 2 - variance) for offset, variance in parts], default=0.0)
+        parts.append(("moved", moved.offset, moved.variance))
+    added = [_Part(kind, offset, max(0.0, (offset - region) ** 2 - variance)) for kind, offset, variance in parts]
+    widest = max(added, key=lambda p: p.variance, default=None)
+    return widest if widest is not None and widest.variance > 0 else None
 
 
 def _farthest_moved(left: np.ndarray, right: np.ndarray, fit: surface_fit.SurfaceFit,

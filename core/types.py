@@ -99,6 +99,16 @@ class Detection:
         return self.box[3] - self.box[1]
 
 
+@dataclass(frozen=True)
+class UncertaintyPart:
+    """One term of a deviation's variance: ``variance_mm2`` and what makes it, ``cause`` (a clause an integrator
+    can act on: the sensor's noise over the texture, a wall the region may hold, a box that may miss its
+    defect, ...)."""
+
+    cause: str
+    variance_mm2: float
+
+
 @dataclass
 class DefectMeasurement:
     """What depth says about one detection. ``None`` means "not available" and says why in ``note``.
@@ -133,6 +143,9 @@ class DefectMeasurement:
     # the deviation was read along a groove that crosses the box at this angle (degrees from the image's rows), on
     # the band of the region it runs through rather than on the whole region (``core.band_scan``)
     groove_angle_deg: float | None = None
+    # what deviation_sigma_mm is made of (``core.uncertainty_budget``): its variance is their sum; empty where the
+    # measurement has no such account (the backend's map alone)
+    uncertainty_parts: tuple[UncertaintyPart, ...] = ()
 
     def quantity(self, name: str) -> float | None:
         if name == "confidence":

@@ -6,7 +6,7 @@ import pytest
 
 from core.decision import decide, holds_at_the_surface, judge_defect, unruled_classes
 from core.recipe.schema import DecisionSection, Rule
-from core.types import DefectMeasurement, Detection, Status
+from core.types import DefectMeasurement, Detection, Status, UncertaintyPart
 
 
 def _m(cls="scratches", conf=0.8, distance=400.0, deviation=0.5, note=""):
@@ -144,6 +144,29 @@ def test_an_undecided_pass_keeps_its_reason_and_shows_the_band():
     assert verdict.status is Status.PASS
     assert verdict.reasons == ["pit (0.80): deviation_mm 0.95 ± 0.20 straddles 1, conformance not proven "
                                "(rule 'any deviation_mm > 1', uncertain: pass)"]
+
+
+BUDGET = (UncertaintyPart("placing the surface around the box", 0.01),
+          UncertaintyPart("the region moved 12 px down, which reads 1.60 mm: the box may not hold its defect", 0.03))
+
+
+def test_an_undecided_rule_names_what_its_uncertainty_is_mostly_made_of():
+    m = replace(_u(deviation=0.95, sigma=0.2), uncertainty_parts=BUDGET)
+    status, reasons = judge_defect(m, _section())
+    assert status is Status.REJECT
+    assert reasons == ["pit (0.80): deviation_mm 0.95 ± 0.40 straddles 1, conformance not proven (rule 'any "
+                       "deviation_mm > 1', uncertain: reject); its uncertainty: 75 % from the region moved 12 px down, "
+                       "which reads 1.60 mm: the box may not hold its defect"]
+
+
+def test_a_proven_outcome_or_a_rule_on_another_quantity_says_nothing_of_the_deviation_s_uncertainty():
+    m = replace(_u(deviation=1.5, sigma=0.1), uncertainty_parts=BUDGET)
+    assert "its uncertainty" not in judge_defect(m, _section())[1][0]
+    m = replace(_u(deviation=0.95, sigma=0.2), uncertainty_parts=BUDGET, distance_sigma_mm=0.1)
+    distance_rule = DecisionSection.model_validate({"rules": [
+        {"class": "any", "quantity": "distance_mm", "op": ">", "threshold": 400.1}]})
+    status, reasons = judge_defect(m, distance_rule)
+    assert "conformance not proven" in reasons[0] and "its uncertainty" not in reasons[0]
 
 
 def test_coverage_factor_sets_the_band():

@@ -16,7 +16,7 @@ import pytest
 from conftest import ROOT
 from synthetic_pairs import Groove, Pit, calib_for, render
 
-from core import band_scan, box_reach, depth, depth_numba, surface_fit
+from core import band_scan, box_reach, depth, depth_numba, surface_fit, uncertainty_budget
 from core.depth import DepthRule, fit_plane_robust, measure_defect, ring_mask
 from core.decision import judge_defect
 from core.recipe import load_recipe
@@ -302,6 +302,8 @@ def test_a_band_too_faint_to_call_a_groove_widens_the_uncertainty_to_take_it_in(
     assert truth - region.deviation_mm > 3 * region.deviation_sigma_mm  # the region alone reads it short
     assert widened.deviation_sigma_mm > 1.5 * region.deviation_sigma_mm
     assert widened.deviation_mm + 2 * widened.deviation_sigma_mm > 1.0
+    assert _largest_cause(widened).startswith("a band across the region, which reads ")
+    assert not _largest_cause(region).startswith("a band")
 
 
 def test_a_band_along_the_walls_the_image_shows_widens_the_uncertainty_where_the_cells_alone_do_not(monkeypatch):
@@ -315,6 +317,7 @@ def test_a_band_along_the_walls_the_image_shows_widens_the_uncertainty_where_the
     assert truth - region.deviation_mm > 3 * region.deviation_sigma_mm
     assert along_edges.deviation_sigma_mm > 1.5 * region.deviation_sigma_mm
     assert along_edges.deviation_mm + 2 * along_edges.deviation_sigma_mm > 1.0
+    assert _largest_cause(along_edges).startswith("a band along the region's edges, which reads ")
 
 
 def test_a_round_pit_s_edges_run_every_way_and_add_nothing(monkeypatch):
@@ -338,9 +341,45 @@ def test_a_box_half_its_size_off_its_pit_is_not_proven_shallow(monkeypatch, angl
     off = (true_box[0] + dx, true_box[1] + dy, true_box[2] + dx, true_box[3] + dy)
     m = _surface(left, right, disparity, box=off)
     assert m.deviation_mm < 0.5 * truth and abs(m.deviation_mm - truth) <= 2 * m.deviation_sigma_mm
+    # and a rule that cannot decide says so: the region moved back towards the pit, and what it reads there
+    cause = _largest_cause(m)
+    assert cause.startswith("the region moved ") and cause.endswith(" mm: the box may not hold its defect")
+    back = ("up", "right") if angle_deg == 120.0 else ("down", "left")
+    assert all(f" px {way}" in cause for way in back), cause
+    reads = float(cause.split("which reads ")[1].split(" mm")[0])
+    assert reads > m.deviation_mm + 2 * m.uncertainty_parts[0].variance_mm2 ** 0.5
     monkeypatch.setattr(depth, "_farthest_moved", lambda *args: None)
     alone = _surface(left, right, disparity, box=off)
     assert alone.deviation_mm == m.deviation_mm and abs(alone.deviation_mm - truth) > 2 * alone.deviation_sigma_mm
+    assert not _largest_cause(alone).startswith("the region moved")
+
+
+def _largest_cause(m) -> str:
+    return uncertainty_budget.largest(m.uncertainty_parts)[0].cause
+
+
+@pytest.mark.parametrize("scene", ["flat plate", "pit", "groove", "box off its pit"])
+def test_the_uncertainty_s_parts_add_up_to_its_variance(scene):
+    """``uncertainty_parts`` is an account of deviation_sigma_mm: the surface around the box first, every term
+    that adds to it after, none of them empty."""
+    if scene == "groove":
+        left, right, disparity, box, _ = _groove_and_box(40.0, 6.0)
+    else:
+        pits = [] if scene == "flat plate" else [Pit(160, 96, 8.0 if scene == "box off its pit" else 25.0, 2.0,
+                                                     floor=0.8)]
+        left, right, disparity = render(CALIB, 400.0, 3.0, pits)
+        box = (150.0, 100.0, 178.0, 128.0) if scene == "box off its pit" else BOX
+    m = _surface(left, right, disparity, box)
+    assert m.method == "surface" and m.deviation_sigma_mm > 0
+    assert sum(p.variance_mm2 for p in m.uncertainty_parts) == pytest.approx(m.deviation_sigma_mm ** 2, rel=1e-9)
+    assert m.uncertainty_parts[0].cause == depth.RING_CAUSE
+    assert all(p.variance_mm2 > 0 for p in m.uncertainty_parts)
+    assert len({p.cause for p in m.uncertainty_parts}) == len(m.uncertainty_parts)
+
+
+def test_the_backend_s_map_alone_gives_no_account_of_its_uncertainty():
+    left, right, disparity = render(CALIB, 400.0, 3.0, [Pit(160, 96, 25.0, 2.0)])
+    assert _measure(disparity).uncertainty_parts == ()
 
 
 def _band(offset: float, variance: float, z: float) -> band_scan.Band:
@@ -391,6 +430,23 @@ class TestPartsVariance:
     def test_of_several_parts_the_one_further_off(self):
         assert depth._parts_variance(-0.1, _band(-0.3, 0.0, depth.BAND_Z), _band(-0.4, 0.0, 0.1),
                                      _patch(-0.6, 0.0001)) == pytest.approx(0.25 - 0.0001)
+
+
+class TestWidestPart:
+    def test_none_where_no_part_adds_any(self):
+        assert depth._widest_part(-0.2, None, None, None) is None
+        assert depth._widest_part(-0.5, None, None, _patch(-0.01, 0.0001)) is None
+
+    def test_names_the_part_its_offset_and_what_it_adds(self):
+        moved = box_reach.MovedRegion(0.35, 180.0, -0.4, 0.01)
+        assert depth._widest_part(-0.1, None, None, None, moved) == depth._Part("moved", -0.4, pytest.approx(0.08))
+        assert depth._widest_part(-0.1, None, _band(-0.5, 0.01, 0.1), None).kind == "along_edges"
+
+    def test_of_several_the_one_further_off(self):
+        part = depth._widest_part(-0.1, _band(-0.3, 0.0, depth.BAND_Z), _band(-0.4, 0.0, 0.1), _patch(-0.6, 0.0001))
+        assert (part.kind, part.offset) == ("patch", -0.6)
+        part = depth._widest_part(-0.1, _band(-0.7, 0.0, depth.BAND_Z), _band(-0.4, 0.0, 0.1), _patch(-0.6, 0.0001))
+        assert part.kind == "band"
 
 
 class TestUnsharedVariance:

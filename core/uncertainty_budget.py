@@ -1,0 +1,40 @@
+"""Where a defect's uncertainty comes from, said so that an integrator can act on it.
+
+A surface measurement's deviation variance is a sum (``core.depth``): the surface around the box, the sensor's
+noise over the region's texture, and what the engine adds where the images show that the region may not be what
+it seems (its cells disagree, it may hold a wall, one eye sees a sheen the other does not, a copy of it moved
+within the box reads farther from the surface). When a rule cannot decide, the largest of them says what would
+help: more light or texture, a detector whose boxes hold their defects, boxes that follow a groove.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from core.types import UncertaintyPart
+
+
+def shift_words(dx: float, dy: float) -> str:
+    """A shift in the image (px, v down) in words: ``"12 px down and 3 px left"``; ``"in place"`` for less than
+    half a pixel either way."""
+    words = [f"{abs(d):.0f} px {(neg, pos)[bool(d > 0)]}" for d, neg, pos in ((dy, "up", "down"), (dx, "left", "right"))
+             if abs(d) >= 0.5]
+    return " and ".join(words) or "in place"
+
+
+def largest(parts: Sequence[UncertaintyPart]) -> tuple[UncertaintyPart, float] | None:
+    """The part with the most variance and its share of the whole (0-1); None where there is no variance (no
+    parts, or all of them 0) or it is not a number."""
+    total = sum(p.variance_mm2 for p in parts)
+    if not parts or not total > 0 or total == float("inf"):
+        return None
+    part = max(parts, key=lambda p: p.variance_mm2)
+    return part, part.variance_mm2 / total
+
+
+def cause_clause(parts: Sequence[UncertaintyPart]) -> str:
+    """``"its uncertainty: 75 % from <cause>"`` for the largest of ``parts``; '' where there is none."""
+    found = largest(parts)
+    if found is None:
+        return ""
+    part, share = found
+    return f"its uncertainty: {share:.0%} from {part.cause}".replace("%", " %", 1)

@@ -1,0 +1,48 @@
+"""Where a defect's uncertainty comes from, in words (``core.uncertainty_budget``)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.types import UncertaintyPart
+from core.uncertainty_budget import cause_clause, largest, shift_words
+
+
+class TestShiftWords:
+    def test_rows_then_columns_rounded_to_pixels(self):
+        assert shift_words(3.2, -12.6) == "13 px up and 3 px right"
+        assert shift_words(-7.0, 4.0) == "4 px down and 7 px left"
+
+    def test_a_shift_along_one_axis_names_that_one(self):
+        assert shift_words(0.3, 9.0) == "9 px down"
+        assert shift_words(-6.0, -0.2) == "6 px left"
+
+    def test_numpy_values_as_the_box_arithmetic_gives_them(self):
+        assert shift_words(np.float64(-2.0), np.float64(5.0)) == "5 px down and 2 px left"
+
+    def test_less_than_half_a_pixel_is_in_place(self):
+        assert shift_words(0.4, -0.4) == "in place"
+
+
+class TestLargest:
+    def test_the_part_with_most_variance_and_its_share(self):
+        part, share = largest([UncertaintyPart("a", 1.0), UncertaintyPart("b", 3.0)])
+        assert part.cause == "b" and share == pytest.approx(0.75)
+
+    def test_the_first_of_equals(self):
+        assert largest([UncertaintyPart("a", 2.0), UncertaintyPart("b", 2.0)])[0].cause == "a"
+
+    @pytest.mark.parametrize("parts", [[], [UncertaintyPart("a", 0.0)], [UncertaintyPart("a", float("nan"))],
+                                       [UncertaintyPart("a", float("inf"))]])
+    def test_none_without_a_variance_to_share(self, parts):
+        assert largest(parts) is None
+
+
+class TestCauseClause:
+    def test_names_the_largest_with_its_share(self):
+        parts = [UncertaintyPart("placing the surface around the box", 0.01),
+                 UncertaintyPart("the region moved 12 px down, which reads 1.60 mm", 0.49)]
+        assert cause_clause(parts) == "its uncertainty: 98 % from the region moved 12 px down, which reads 1.60 mm"
+
+    def test_empty_where_there_is_no_account(self):
+        assert cause_clause([]) == ""

@@ -467,29 +467,29 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         budget = _cells_budget(cells)
     else:
         d, var_d = c + fit.delta, cov[0, 0] + cov[3, 3] + 2 * cov[0, 3]
-        budget = [(NOISE_CAUSE, var_d)]
+        budget = [("noise", NOISE_CAUSE, var_d)]
     # (each term below goes into the budget with its cause: what a rule that cannot decide names)
     # The region may hold part of a pixel of the defect's wall that the fit cannot tell from its floor
     # (the wall facing the camera is seen broad, the other foreshortened): a share of WALL_PX / w of a region
     # w pixels across, and so of the offset (docs/research-log.md).
     wall = (WALL_PX * (d - c) / max(width, 1.0)) ** 2
     var_d += wall
-    budget.append((f"the defect's wall, which a region {width:.0f} px across may hold", wall))
+    budget.append(("wall", f"the defect's wall, which a region {width:.0f} px across may hold", wall))
     # and what one eye sees of the region and the other does not (the walls' sheen, a wall one eye sees broad and the
     # other edge-on) may pull the offset by that share of it: a narrow pit's walls read 0.63 +- 0.17 mm for 2.18 mm
     if not groove:
         unshared = unshared_variance(d - c, surface_fit.contrast_ratio(fit, (ring_u, ring_v), (uu, vv), weights))
         var_d += unshared
-        budget.append((UNSHARED_CAUSE, unshared))
+        budget.append(("unshared", UNSHARED_CAUSE, unshared))
     # and a floor that is not flat over the region (the box cut through a wall) widens it by how much
     uneven = surface_fit.unevenness_variance(offsets_px, sds, centres)
     var_d += uneven
-    budget.append((UNEVEN_CAUSE, uneven))
+    budget.append(("uneven", UNEVEN_CAUSE, uneven))
     # and by how much its strongly textured cells (the information weighs them) disagree with its area
     if np.isfinite(cells.variance):
         weighting = surface_fit.weighting_variance(offsets_px, sds, areas, cells.delta)
         var_d += weighting
-        budget.append((WEIGHTING_CAUSE, weighting))
+        budget.append(("weighting", WEIGHTING_CAUSE, weighting))
     # and a part of the region that may be the defect, too faint to measure on: a band across it, along its edges,
     # or its central part (``_parts_variance``)
     part = moved = None
@@ -505,7 +505,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     # (the interior's variance comes from the same residuals as the cells': their scatter scales it alike)
     at_interior = interior * min(cells.birge, 1.0)
     if at_interior > var_d:
-        var_d, budget, part = at_interior, [(INTERIOR_CAUSE, at_interior)], None
+        var_d, budget, part = at_interior, [("interior", INTERIOR_CAUSE, at_interior)], None
     if d <= 0 or c <= 0:
         return _unavailable(reference, "the surface fit gave no disparity in front of the camera")
     a, b = fit.slopes
@@ -517,10 +517,10 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     deviation_sigma = float(np.sqrt((fb / (d * n)) ** 2 * cov[0, 0] + (fb * c / (d * d * n)) ** 2 * var_d))
     distance = fb / d
     if part is not None:
-        budget.append((_part_cause(part, moved, (detection.width, detection.height),
-                                   lambda offset: fb * (c / (c + offset) - 1.0) / n), part.variance))
-    parts = (UncertaintyPart(RING_CAUSE, float((fb / (d * n)) ** 2 * cov[0, 0])),) + tuple(
-        UncertaintyPart(cause, float((fb * c / (d * d * n)) ** 2 * v)) for cause, v in budget if v > 0)
+        budget.append((part.kind, _part_cause(part, moved, (detection.width, detection.height),
+                                              lambda offset: fb * (c / (c + offset) - 1.0) / n), part.variance))
+    parts = (UncertaintyPart("surface", RING_CAUSE, float((fb / (d * n)) ** 2 * cov[0, 0])),) + tuple(
+        UncertaintyPart(kind, cause, float((fb * c / (d * d * n)) ** 2 * v)) for kind, cause, v in budget if v > 0)
     return DefectMeasurement(
         detection, float(distance), float(deviation), reference.valid_fraction, reference.depth_resolution_mm,
         reference.area_mm2 * (distance / reference.distance_mm) ** 2,
@@ -540,14 +540,15 @@ WEIGHTING_CAUSE = "its strongly textured cells, which read it otherwise than the
 INTERIOR_CAUSE = "the region's interior, which has little texture of its own: its border's edges may be the walls'"
 
 
-def _cells_budget(cells: surface_fit.RobustOffset) -> list[tuple[str, float]]:
-    """The cells' variance (px^2) as the budget's terms: their noise's, and where they scatter more than that says
-    (a Birge ratio above 1), the excess."""
+def _cells_budget(cells: surface_fit.RobustOffset) -> list[tuple[str, str, float]]:
+    """The cells' variance (px^2) as the budget's terms (kind, cause, variance): their noise's, and where they scatter
+    more than that says (a Birge ratio above 1), the excess."""
     if cells.birge <= 1.0:
-        return [(NOISE_CAUSE, cells.variance)]
+        return [("noise", NOISE_CAUSE, cells.variance)]
     noise = cells.variance / cells.birge
-    return [(NOISE_CAUSE, noise), (f"its cells, which scatter {cells.birge:.1f} times as much as their noise says: the "
-                                   f"region may hold more than one surface", cells.variance - noise)]
+    return [("noise", NOISE_CAUSE, noise),
+            ("scatter", f"its cells, which scatter {cells.birge:.1f} times as much as their noise says: the region may "
+                        f"hold more than one surface", cells.variance - noise)]
 
 
 def _part_cause(part: _Part, moved: box_reach.MovedRegion | None, size: tuple[float, float], mm) -> str:

@@ -39,6 +39,7 @@ from core.engine import StageFailed, disparity_range, frame_disparity, kept_dete
 from core.error_parts import error_parts, true_ring_plane
 from core.plate_view import plate_elsewhere
 from core.recipe import LoadedRecipe
+from core import uncertainty_budget
 from core.report_text import number, percent
 from core.surface_fit import gradient_x, to_grey
 from core.types import Detection, DefectMeasurement, Status, StereoFrame
@@ -90,6 +91,8 @@ class DefectRow:
     # the defect's size, and its size over the defect's; None for a defect the detector missed
     box_shift: float | None = None
     box_scale: float | None = None
+    # the largest part of the deviation's uncertainty (``core.uncertainty_budget.KINDS``), '' without an account
+    uncertainty_from: str = ""
 
     @property
     def width_px(self) -> float:
@@ -135,6 +138,9 @@ class Summary:
     # the error's parts (``core.error_parts``): over how many defects; each part's median and p90 of |part| (mm)
     # and its share of the parts' summed squares
     error_parts: dict[str, Any] = field(default_factory=dict)
+    # of the defects the measurement left undecided: the largest part of their uncertainty -> their true outcome ->
+    # count (what would let more of them be decided)
+    undecided_from: dict[str, dict[str, int]] = field(default_factory=dict)
 
 
 def floor_px(grey: np.ndarray, mask: np.ndarray, noise_sigma: float, texture_only: bool = False,
@@ -297,8 +303,14 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             **({} if parts is None else {"error_ring_mm": parts.ring_mm, "error_region_mm": parts.region_mm,
                                          "error_extent_mm": parts.extent_mm}),
             box_shift=float(shift[0]), box_scale=float(scale[0]),
+            uncertainty_from=_largest_kind(m),
         ))
     return rows
+
+
+def _largest_kind(m: DefectMeasurement) -> str:
+    found = uncertainty_budget.largest(m.uncertainty_parts)
+    return "" if found is None else found[0].kind
 
 
 def _finite(value: float) -> float | None:
@@ -454,6 +466,9 @@ def summarise(rows: list[DefectRow], reference: bool = False) -> Summary:
         proven = r.reference_proven if reference else r.proven
         s.confusion.setdefault(r.true_status, {}).setdefault(proven, 0)
         s.confusion[r.true_status][proven] += 1
+        if not reference and proven == "undecided" and r.uncertainty_from:
+            s.undecided_from.setdefault(r.uncertainty_from, {}).setdefault(r.true_status, 0)
+            s.undecided_from[r.uncertainty_from][r.true_status] += 1
         # undecided ones go as the recipe's uncertain says: that is the decision working, not a wrong side
         if not r.clear_cut or proven not in (Status.PASS.value, Status.REJECT.value) or proven == r.true_status:
             continue
@@ -565,6 +580,14 @@ def markdown(body: dict[str, Any]) -> str:
     lines.append("|---|" + "---|" * len(outcomes))
     for truth in sorted(confusion):
         lines.append(f"| {truth} | " + " | ".join(str(confusion[truth].get(o, 0)) for o in outcomes) + " |")
+    undecided = body["all"]["measurement"].get("undecided_from")
+    if undecided:
+        inside, beyond = Status.PASS.value, Status.REJECT.value
+        order = sorted(undecided, key=lambda k: -sum(undecided[k].values()))
+        lines += ["", "What the undecided defects' uncertainty mostly came from (the largest part of each one's, "
+                  "core/uncertainty_budget.py; defects inside their limit / beyond it): " + ", ".join(
+                      f"{uncertainty_budget.KINDS.get(k, k)} {undecided[k].get(inside, 0)} / {undecided[k].get(beyond, 0)}"
+                      for k in order) + "."]
     if body.get("boxes") == "detector":
         s = body["all"]["measurement"]
         lines += ["", f"Boxes from the recipe's detector (`{body['detector']}`, confidence {body['confidence']:g}): "

@@ -101,10 +101,11 @@ class Detection:
 
 @dataclass(frozen=True)
 class UncertaintyPart:
-    """One term of a deviation's variance: ``variance_mm2`` and what makes it, ``cause`` (a clause an integrator
+    """One term of a deviation's variance: ``variance_mm2``, what makes it, ``cause`` (a clause an integrator
     can act on: the sensor's noise over the texture, a wall the region may hold, a box that may miss its
-    defect, ...)."""
+    defect, ...), and which term it is, ``kind`` (one of ``core.uncertainty_budget.KINDS``)."""
 
+    kind: str
     cause: str
     variance_mm2: float
 

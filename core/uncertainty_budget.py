@@ -12,6 +12,22 @@ from collections.abc import Sequence
 
 from core.types import UncertaintyPart
 
+# each term of a surface measurement's variance (``UncertaintyPart.kind``), as a tally of many names it
+KINDS = {
+    "surface": "placing the surface around the box",
+    "noise": "the sensor's noise over the region's texture",
+    "scatter": "cells scattering beyond their noise",
+    "wall": "a wall the region may hold",
+    "unshared": "contrast one eye alone sees",
+    "uneven": "a floor not flat over the region",
+    "weighting": "textured cells reading otherwise",
+    "band": "a band across the region",
+    "along_edges": "a band along the region's edges",
+    "patch": "the region's centre",
+    "moved": "the region moved within its box",
+    "interior": "an interior with little texture",
+}
+
 
 def shift_words(dx: float, dy: float) -> str:
     """A shift in the image (px, v down) in words: ``"12 px down and 3 px left"``; ``"in place"`` for less than

@@ -146,8 +146,9 @@ def test_an_undecided_pass_keeps_its_reason_and_shows_the_band():
                                "(rule 'any deviation_mm > 1', uncertain: pass)"]
 
 
-BUDGET = (UncertaintyPart("placing the surface around the box", 0.01),
-          UncertaintyPart("the region moved 12 px down, which reads 1.60 mm: the box may not hold its defect", 0.03))
+BUDGET = (UncertaintyPart("surface", "placing the surface around the box", 0.01),
+          UncertaintyPart("moved", "the region moved 12 px down, which reads 1.60 mm: the box may not hold its defect",
+                          0.03))
 
 
 def test_an_undecided_rule_names_what_its_uncertainty_is_mostly_made_of():

@@ -302,8 +302,8 @@ def test_a_band_too_faint_to_call_a_groove_widens_the_uncertainty_to_take_it_in(
     assert truth - region.deviation_mm > 3 * region.deviation_sigma_mm  # the region alone reads it short
     assert widened.deviation_sigma_mm > 1.5 * region.deviation_sigma_mm
     assert widened.deviation_mm + 2 * widened.deviation_sigma_mm > 1.0
-    assert _largest_cause(widened).startswith("a band across the region, which reads ")
-    assert not _largest_cause(region).startswith("a band")
+    assert _largest(widened).kind == "band" and _largest(widened).cause.startswith("a band across the region, which ")
+    assert _largest(region).kind != "band"
 
 
 def test_a_band_along_the_walls_the_image_shows_widens_the_uncertainty_where_the_cells_alone_do_not(monkeypatch):
@@ -317,7 +317,8 @@ def test_a_band_along_the_walls_the_image_shows_widens_the_uncertainty_where_the
     assert truth - region.deviation_mm > 3 * region.deviation_sigma_mm
     assert along_edges.deviation_sigma_mm > 1.5 * region.deviation_sigma_mm
     assert along_edges.deviation_mm + 2 * along_edges.deviation_sigma_mm > 1.0
-    assert _largest_cause(along_edges).startswith("a band along the region's edges, which reads ")
+    assert _largest(along_edges).kind == "along_edges"
+    assert _largest(along_edges).cause.startswith("a band along the region's edges, which reads ")
 
 
 def test_a_round_pit_s_edges_run_every_way_and_add_nothing(monkeypatch):
@@ -342,8 +343,8 @@ def test_a_box_half_its_size_off_its_pit_is_not_proven_shallow(monkeypatch, angl
     m = _surface(left, right, disparity, box=off)
     assert m.deviation_mm < 0.5 * truth and abs(m.deviation_mm - truth) <= 2 * m.deviation_sigma_mm
     # and a rule that cannot decide says so: the region moved back towards the pit, and what it reads there
-    cause = _largest_cause(m)
-    assert cause.startswith("the region moved ") and cause.endswith(" mm: the box may not hold its defect")
+    cause = _largest(m).cause
+    assert _largest(m).kind == "moved" and cause.startswith("the region moved ") and cause.endswith(" mm: the box may not hold its defect")
     back = ("up", "right") if angle_deg == 120.0 else ("down", "left")
     assert all(f" px {way}" in cause for way in back), cause
     reads = float(cause.split("which reads ")[1].split(" mm")[0])
@@ -351,11 +352,11 @@ def test_a_box_half_its_size_off_its_pit_is_not_proven_shallow(monkeypatch, angl
     monkeypatch.setattr(depth, "_farthest_moved", lambda *args: None)
     alone = _surface(left, right, disparity, box=off)
     assert alone.deviation_mm == m.deviation_mm and abs(alone.deviation_mm - truth) > 2 * alone.deviation_sigma_mm
-    assert not _largest_cause(alone).startswith("the region moved")
+    assert _largest(alone).kind != "moved"
 
 
-def _largest_cause(m) -> str:
-    return uncertainty_budget.largest(m.uncertainty_parts)[0].cause
+def _largest(m):
+    return uncertainty_budget.largest(m.uncertainty_parts)[0]
 
 
 @pytest.mark.parametrize("scene", ["flat plate", "pit", "groove", "box off its pit"])
@@ -372,9 +373,9 @@ def test_the_uncertainty_s_parts_add_up_to_its_variance(scene):
     m = _surface(left, right, disparity, box)
     assert m.method == "surface" and m.deviation_sigma_mm > 0
     assert sum(p.variance_mm2 for p in m.uncertainty_parts) == pytest.approx(m.deviation_sigma_mm ** 2, rel=1e-9)
-    assert m.uncertainty_parts[0].cause == depth.RING_CAUSE
-    assert all(p.variance_mm2 > 0 for p in m.uncertainty_parts)
-    assert len({p.cause for p in m.uncertainty_parts}) == len(m.uncertainty_parts)
+    assert (m.uncertainty_parts[0].kind, m.uncertainty_parts[0].cause) == ("surface", depth.RING_CAUSE)
+    assert all(p.variance_mm2 > 0 and p.kind in uncertainty_budget.KINDS for p in m.uncertainty_parts)
+    assert len({p.kind for p in m.uncertainty_parts}) == len(m.uncertainty_parts)
 
 
 def test_the_backend_s_map_alone_gives_no_account_of_its_uncertainty():

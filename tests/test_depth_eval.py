@@ -1,6 +1,7 @@
 """``inspect eval depth`` on the committed evaluation sequences, and the figures it is made of."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import ROOT, cli, cli_here
 
-from core import depth_eval as ev
+from core import depth_eval as ev, uncertainty_budget
 from core.depth import DepthRule, ring_mask, roi_box
 from core.types import Calibration
 
@@ -69,6 +70,11 @@ def test_the_surface_fit_beats_the_backend_alone_and_states_its_uncertainty(eval
     assert surface["error_over_texture_floor_per_defect"] < surface["error_over_floor_per_defect"]
     assert surface["sigma_over_texture_floor_median"] < surface["sigma_over_floor_median"]
     assert sum(sum(by.values()) for by in surface["confusion"].values()) == len(rows)
+    # each measurement's largest part of its uncertainty, and of those left undecided a tally by it
+    assert all(r["uncertainty_from"] in uncertainty_budget.KINDS for r in rows)
+    undecided = sum(by.get("undecided", 0) for by in surface["confusion"].values())
+    assert sum(sum(by.values()) for by in surface["undecided_from"].values()) == undecided
+    assert ("undecided defects' uncertainty mostly came from" in (out / "depth_eval.md").read_text()) == (undecided > 0)
 
 
 def test_with_the_true_disparity_each_error_splits_into_the_rings_the_regions_and_its_extents(evaluated):
@@ -427,6 +433,16 @@ class TestSummarise:
         assert s.within_2_sigma == pytest.approx(0.25)  # only the first error is within 2 sigma
         assert s.distance_within_2_sigma == 1.0  # each distance exact
         assert s.ratio_median == pytest.approx(np.median([1.45 / 1.5, 0.6 / 1.5, 1.1 / 1.5, 0.7 / 1.1]))
+
+    def test_the_undecided_are_tallied_by_the_largest_part_of_their_uncertainty(self):
+        rows = [dataclasses.replace(self._row(1.5, 1.1, 0.2, "undecided", "REJECT"), uncertainty_from="moved"),
+                dataclasses.replace(self._row(0.8, 1.0, 0.2, "undecided", "PASS"), uncertainty_from="moved"),
+                dataclasses.replace(self._row(0.8, 0.9, 0.2, "undecided", "PASS"), uncertainty_from="noise"),
+                # proven outcomes, and a measurement without an account (the backend's map alone), are not tallied
+                dataclasses.replace(self._row(1.5, 1.5, 0.05, "REJECT", "REJECT"), uncertainty_from="noise"),
+                self._row(0.8, 0.9, 0.2, "undecided", "PASS")]
+        assert ev.summarise(rows).undecided_from == {"moved": {"REJECT": 1, "PASS": 1}, "noise": {"PASS": 1}}
+        assert ev.summarise(rows, reference=True).undecided_from == {}
 
     def test_the_distances_calibration_counts_its_errors_within_two_of_its_sigma(self):
         rows = [self._row(1.5, 1.5, 0.05, "REJECT", "REJECT") for _ in range(4)]

@@ -5,7 +5,11 @@ import numpy as np
 import pytest
 
 from core.types import UncertaintyPart
-from core.uncertainty_budget import cause_clause, largest, shift_words
+from core.uncertainty_budget import KINDS, cause_clause, largest, shift_words
+
+
+def _part(cause: str, variance: float, kind: str = "noise") -> UncertaintyPart:
+    return UncertaintyPart(kind, cause, variance)
 
 
 class TestShiftWords:
@@ -26,23 +30,27 @@ class TestShiftWords:
 
 class TestLargest:
     def test_the_part_with_most_variance_and_its_share(self):
-        part, share = largest([UncertaintyPart("a", 1.0), UncertaintyPart("b", 3.0)])
-        assert part.cause == "b" and share == pytest.approx(0.75)
+        part, share = largest([_part("a", 1.0), _part("b", 3.0, "moved")])
+        assert (part.kind, part.cause) == ("moved", "b") and share == pytest.approx(0.75)
 
     def test_the_first_of_equals(self):
-        assert largest([UncertaintyPart("a", 2.0), UncertaintyPart("b", 2.0)])[0].cause == "a"
+        assert largest([_part("a", 2.0), _part("b", 2.0)])[0].cause == "a"
 
-    @pytest.mark.parametrize("parts", [[], [UncertaintyPart("a", 0.0)], [UncertaintyPart("a", float("nan"))],
-                                       [UncertaintyPart("a", float("inf"))]])
+    @pytest.mark.parametrize("parts", [[], [_part("a", 0.0)], [_part("a", float("nan"))], [_part("a", float("inf"))]])
     def test_none_without_a_variance_to_share(self, parts):
         assert largest(parts) is None
 
 
 class TestCauseClause:
     def test_names_the_largest_with_its_share(self):
-        parts = [UncertaintyPart("placing the surface around the box", 0.01),
-                 UncertaintyPart("the region moved 12 px down, which reads 1.60 mm", 0.49)]
+        parts = [_part("placing the surface around the box", 0.01, "surface"),
+                 _part("the region moved 12 px down, which reads 1.60 mm", 0.49, "moved")]
         assert cause_clause(parts) == "its uncertainty: 98 % from the region moved 12 px down, which reads 1.60 mm"
 
     def test_empty_where_there_is_no_account(self):
         assert cause_clause([]) == ""
+
+
+def test_every_kind_has_a_name_for_tallies():
+    assert all(isinstance(name, str) and name for name in KINDS.values())
+    assert {"surface", "noise", "moved", "interior"} <= set(KINDS)

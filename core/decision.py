@@ -103,7 +103,8 @@ def judge_defect(m: DefectMeasurement, decision: DecisionSection) -> tuple[Statu
             # what the uncertainty is made of says what would let the rule decide (more light, better boxes)
             cause = uncertainty_budget.cause_clause(m.uncertainty_parts) if rule.quantity == "deviation_mm" else ""
             reasons.append(f"{label}: {shown} straddles {rule.threshold:g}, conformance not proven "
-                           f"(rule '{rule.describe()}', uncertain: {decision.uncertain})" + (f"; {cause}" if cause else ""))
+                           f"(rule '{rule.describe()}', uncertain: {decision.uncertain})"
+                           + (f"; {cause}" if cause else ""))
     return _worst(outcomes), reasons
 
 

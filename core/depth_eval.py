@@ -586,8 +586,8 @@ def markdown(body: dict[str, Any]) -> str:
         order = sorted(undecided, key=lambda k: -sum(undecided[k].values()))
         lines += ["", "What the undecided defects' uncertainty mostly came from (the largest part of each one's, "
                   "core/uncertainty_budget.py; defects inside their limit / beyond it): " + ", ".join(
-                      f"{uncertainty_budget.KINDS.get(k, k)} {undecided[k].get(inside, 0)} / {undecided[k].get(beyond, 0)}"
-                      for k in order) + "."]
+                      f"{uncertainty_budget.KINDS.get(k, k)} {undecided[k].get(inside, 0)} / "
+                      f"{undecided[k].get(beyond, 0)}" for k in order) + "."]
     if body.get("boxes") == "detector":
         s = body["all"]["measurement"]
         lines += ["", f"Boxes from the recipe's detector (`{body['detector']}`, confidence {body['confidence']:g}): "

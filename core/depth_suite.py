@@ -17,6 +17,7 @@ from typing import Any
 import yaml
 
 from core.report_text import number, percent
+from core.uncertainty_budget import KINDS
 from drivers.text_files import NotUtf8, decode
 from drivers.yaml_reader import Misread, safe_load
 
@@ -152,6 +153,8 @@ def group_row(name: str, body: dict) -> dict[str, Any]:
         "undecided_pass": confusion.get("PASS", {}).get("undecided", 0),
         "proven_reject": confusion.get("REJECT", {}).get("REJECT", 0),
         "undecided_reject": confusion.get("REJECT", {}).get("undecided", 0),
+        # the undecided by the largest part of their uncertainty (core/uncertainty_budget.py) and true outcome
+        "undecided_from": s.get("undecided_from", {}),
     }
 
 
@@ -182,6 +185,28 @@ def rows_table(rows: list[dict[str, Any]]) -> str:
             f"{number(r['distance_percent'], 3)} "
             f"({percent(r['distance_within_2_sigma'])}) | {number(r['distance_per_defect'])} | {r['silent_pass']} | "
             f"{r['proven_pass']} / {r['undecided_pass']} | {r['proven_reject']} / {r['undecided_reject']} |")
+    return "\n".join(lines) + "\n"
+
+
+UNDECIDED_SHOWN = 3  # parts of the uncertainty named per group, most often the largest first
+
+
+def undecided_table(rows: list[dict[str, Any]]) -> str:
+    """Per group, what its undecided defects' uncertainty was mostly made of (``undecided_from``): the parts that were
+    the largest most often, each with its count inside the limit / beyond it; '' where no group has any."""
+    kept = [r for r in rows if r.get("undecided_from")]
+    if not kept:
+        return ""
+    lines = ["| group | undecided, inside the limit / beyond it | the largest part of their uncertainty "
+             "(inside / beyond), most often first |", "|---|---|---|"]
+    for r in kept:
+        tally = r["undecided_from"]
+        order = sorted(tally, key=lambda k: -sum(tally[k].values()))
+        named = "; ".join(f"{KINDS.get(k, k)} {tally[k].get('PASS', 0)} / {tally[k].get('REJECT', 0)}"
+                          for k in order[:UNDECIDED_SHOWN])
+        more = len(order) - UNDECIDED_SHOWN
+        lines.append(f"| {r['group']} | {r['undecided_pass']} / {r['undecided_reject']} | {named}"
+                     f"{f'; {more} more' if more > 0 else ''} |")
     return "\n".join(lines) + "\n"
 
 

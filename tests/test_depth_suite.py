@@ -90,6 +90,21 @@ class TestRowsTable:
         assert "| n/a |" in ds.rows_table([{**row, "parts": exact}])
 
 
+class TestUndecidedTable:
+    def test_the_parts_most_often_largest_first_with_their_counts_inside_and_beyond(self):
+        tally = {"noise": {"PASS": 1}, "moved": {"PASS": 2, "REJECT": 3}, "surface": {"REJECT": 2},
+                 "wall": {"PASS": 1}, "band": {"REJECT": 1}}
+        table = ds.undecided_table([{"group": "g", "undecided_pass": 4, "undecided_reject": 6, "undecided_from": tally},
+                                    {"group": "none undecided", "undecided_from": {}}])
+        row = [line for line in table.splitlines() if line.startswith("| g |")]
+        assert row == ["| g | 4 / 6 | the region moved within its box 2 / 3; placing the surface around the box 0 / 2; "
+                       "the sensor's noise over the region's texture 1 / 0; 2 more |"]
+        assert "none undecided" not in table
+
+    def test_nothing_where_no_group_left_any_undecided(self):
+        assert ds.undecided_table([{"group": "g", "undecided_from": {}}]) == ""
+
+
 class TestDecisionChanges:
     def test_counts_each_side_lost_and_gained_and_the_silent_passes(self):
         before = [row("s", "0", "PASS", "PASS"), row("s", "1", "PASS", "undecided"),
@@ -131,6 +146,11 @@ def test_renders_the_missing_sets_scores_each_group_and_compares_with_an_earlier
         assert sum(r["parts"].values()) == pytest.approx(1.0)
     assert json.loads((out / "larger" / "depth_eval.json").read_text())["box_scale"] == 1.3
     assert "| true_boxes |" in (out / "suite.md").read_text() and "--box-scale 1.3" in (out / "suite.md").read_text()
+    # what the undecided defects' uncertainty was made of, where a group left any undecided
+    undecided = sum(r["undecided_pass"] + r["undecided_reject"] for r in body["rows"])
+    assert ("What the undecided defects' uncertainty" in (out / "suite.md").read_text()) == (undecided > 0)
+    assert all(sum(sum(by.values()) for by in r["undecided_from"].values())
+               == r["undecided_pass"] + r["undecided_reject"] for r in body["rows"])
     # a second run renders nothing, and decides every defect as the first did
     again = cli("eval", "depth-suite", str(root), "--suite", str(suite), "--out", str(tmp_path / "second"),
                 "--threads", "1", "--group", "true_boxes", "--against", str(out))

@@ -92,6 +92,9 @@ def eval_depth_suite_command(root, suite_path, groups, overrides, out, against, 
                     fail(f"{earlier}: cannot be compared with this run's {group.name} ({exc})")
     text = (f"Machine: {machine}; the groups took "
             f"{time.perf_counter() - began:.0f} s.\n\n" + ds.rows_table(rows))
+    undecided = ds.undecided_table(rows)
+    if undecided:
+        text += "\nWhat the undecided defects' uncertainty was mostly made of:\n\n" + undecided
     if against is not None:
         missing = [g.name for g in chosen if g.name not in changes]
         text += (f"\nDecided differently from {against}:\n\n" + ds.changes_table(changes)

@@ -18,7 +18,7 @@ from collections import Counter
 from pathlib import Path
 
 from core.file_checks import unwritable
-from core.types import Alarm, OutputEvent, PartResult, Status
+from core.types import Alarm, DefectMeasurement, OutputEvent, PartResult, Status
 from drivers.file_writes import write_text
 
 DB_NAME = "results.db"
@@ -69,7 +69,8 @@ CREATE TABLE IF NOT EXISTS defects (
     note TEXT,
     distance_sigma_mm REAL,
     deviation_sigma_mm REAL,
-    depth_method TEXT
+    depth_method TEXT,
+    uncertainty TEXT
 );
 CREATE TABLE IF NOT EXISTS output_events (
     id INTEGER PRIMARY KEY,
@@ -106,6 +107,8 @@ ADDED_COLUMNS = (
     ("defects", "distance_sigma_mm", "REAL"),
     ("defects", "deviation_sigma_mm", "REAL"),
     ("defects", "depth_method", "TEXT"),
+    # JSON [{kind, cause, variance_mm2}]: what the deviation's uncertainty is made of (core/uncertainty_budget.py)
+    ("defects", "uncertainty", "TEXT"),
 )
 
 
@@ -266,10 +269,11 @@ class ResultsStore:
                 self.db.execute(
                     "INSERT INTO defects (part_row, class, confidence, x0, y0, x1, y1, distance_mm, deviation_mm,"
                     " valid_fraction, depth_resolution_mm, area_mm2, verdict, reasons, note, distance_sigma_mm,"
-                    " deviation_sigma_mm, depth_method) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    " deviation_sigma_mm, depth_method, uncertainty)"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                     (row, d.class_name, d.confidence, *d.box, m.distance_mm, m.deviation_mm, m.valid_fraction,
                      m.depth_resolution_mm, m.area_mm2, status.value, json.dumps(reasons), m.note,
-                     m.distance_sigma_mm, m.deviation_sigma_mm, m.method),
+                     m.distance_sigma_mm, m.deviation_sigma_mm, m.method, uncertainty_json(m)),
                 )
         return row
 
@@ -394,7 +398,33 @@ def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
         per_class.setdefault(cls, Counter())[verdict] += n
     alarms = db.execute(f"SELECT COUNT(*) FROM alarms {where}", args).fetchone()[0]
     return {**verdict_counts(verdicts), "defects_per_class": {c: dict(v) for c, v in sorted(per_class.items())},
-            "alarms": alarms}
+            "alarms": alarms, "undecided_by_cause": undecided_by_cause(db, run_id)}
+
+
+UNDECIDED = "conformance not proven"  # in the reason of a rule that could not decide (core.decision)
+
+
+def undecided_by_cause(db: sqlite3.Connection, run_id: int | None = None) -> dict[str, int]:
+    """The defects a rule could not decide, by the largest part of their uncertainty (its kind,
+    ``core.uncertainty_budget.KINDS``; "" for a defect without an account, such as the backend's map alone), most
+    first; empty for a store from before the account was kept."""
+    if "uncertainty" not in _columns(db, "defects"):
+        return {}
+    where, args = ("AND p.run_id = ?", (run_id,)) if run_id is not None else ("", ())
+    tally: Counter = Counter()
+    for (text,) in db.execute(
+            f"SELECT d.uncertainty FROM defects d JOIN parts p ON p.id = d.part_row WHERE d.reasons LIKE ? {where}",
+            (f"%{UNDECIDED}%", *args)):
+        parts = json.loads(text) if text else []
+        tally[max(parts, key=lambda p: p["variance_mm2"])["kind"] if parts else ""] += 1
+    return dict(tally.most_common())
+
+
+def uncertainty_json(m: DefectMeasurement) -> str | None:
+    """A measurement's ``uncertainty_parts`` as the store keeps them, None without an account."""
+    if not m.uncertainty_parts:
+        return None
+    return json.dumps([{"kind": p.kind, "cause": p.cause, "variance_mm2": p.variance_mm2} for p in m.uncertainty_parts])
 
 
 def verdict_counts(verdicts: dict[str, int]) -> dict:
@@ -436,7 +466,7 @@ def master_part_checks(db: sqlite3.Connection, run_id: int | None = None) -> lis
 CSV_COLUMNS = [
     "run_id", "part_id", "frame_id", "time", "part_verdict", "part_reasons", "error", "class", "confidence",
     "x0", "y0", "x1", "y1", "distance_mm", "deviation_mm", "valid_fraction", "depth_resolution_mm", "area_mm2",
-    "defect_verdict", "defect_reasons", "distance_sigma_mm", "deviation_sigma_mm", "depth_method",
+    "defect_verdict", "defect_reasons", "distance_sigma_mm", "deviation_sigma_mm", "depth_method", "uncertainty",
 ]
 
 

@@ -1,8 +1,10 @@
 from __future__ import annotations
 
 import csv
+import json
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -13,6 +15,7 @@ from test_engine import RECIPE
 from core import engine
 from core.recipe import load_recipe
 from core.registry import Registry, make_manager
+from core.types import DefectMeasurement, Detection, PartResult, Status, UncertaintyPart, Verdict
 
 
 @pytest.fixture
@@ -90,7 +93,7 @@ def test_a_store_of_an_older_version_is_read_and_migrated(tmp_path):
     from core import store
 
     old_schema = store.SCHEMA.replace("    flagged INTEGER DEFAULT 0,\n", "").replace(
-        ",\n    distance_sigma_mm REAL,\n    deviation_sigma_mm REAL,\n    depth_method TEXT", "")
+        ",\n    distance_sigma_mm REAL,\n    deviation_sigma_mm REAL,\n    depth_method TEXT,\n    uncertainty TEXT", "")
     db = sqlite3.connect(tmp_path / "results.db")
     db.executescript(old_schema)
     db.execute("INSERT INTO runs (recipe_name, recipe_hash, recipe_path, started) VALUES ('old', 'h', 'p', 0)")
@@ -102,12 +105,57 @@ def test_a_store_of_an_older_version_is_read_and_migrated(tmp_path):
     db.close()
     readonly = store.open_readonly(tmp_path)
     rows = store.csv_rows(readonly, 1)  # read as it is: the new columns come back empty
-    assert rows[0][-3:] == (None, None, None) and len(rows[0]) == len(store.CSV_COLUMNS)
+    assert rows[0][-4:] == (None, None, None, None) and len(rows[0]) == len(store.CSV_COLUMNS)
+    assert store.summary(readonly)["undecided_by_cause"] == {}  # no account kept then: nothing to tally
     readonly.close()
     writer = store.ResultsStore(tmp_path)  # opened for writing, it gains them
     columns = {row[1] for row in writer.db.execute("PRAGMA table_info(defects)")}
-    assert {"distance_sigma_mm", "deviation_sigma_mm", "depth_method"} <= columns
+    assert {"distance_sigma_mm", "deviation_sigma_mm", "depth_method", "uncertainty"} <= columns
     writer.close()
+
+
+def _undecided(kind: str, cause: str) -> tuple[DefectMeasurement, tuple[Status, list[str]]]:
+    m = DefectMeasurement(Detection("pit", 0.9, (0, 0, 10, 10)), 400.0, 0.9, 1.0, 0.1, 10.0,
+                          deviation_sigma_mm=0.2, method="surface",
+                          uncertainty_parts=(UncertaintyPart("surface", "placing the surface around the box", 0.01),
+                                             UncertaintyPart(kind, cause, 0.03)))
+    return m, (Status.REJECT, ["pit (0.90): deviation_mm 0.90 ± 0.40 straddles 1, conformance not proven (rule 'r', "
+                               f"uncertain: reject); its uncertainty: 75 % from {cause}"])
+
+
+def test_the_store_keeps_each_defect_s_uncertainty_and_report_tallies_the_undecided_by_it(tmp_path):
+    from core import store
+
+    writer = store.ResultsStore(tmp_path)
+    run = writer.start_run("r", "h", "r.yaml", None, {}, ["log"])
+    moved = _undecided("moved", "the region moved 12 px down, which reads 1.60 mm: the box may not hold its defect")
+    noise = _undecided("noise", "the sensor's noise over the region's texture")
+    proven = (replace(noise[0], deviation_mm=2.0), (Status.REJECT, ["pit (0.90): deviation_mm 2.00 ± 0.40 > 1"]))
+    matcher = (replace(noise[0], uncertainty_parts=(), method="disparity"), noise[1])
+    for i, defects in enumerate([[moved], [moved, noise], [proven], [matcher]]):
+        part = PartResult(f"P{i}", f"{i:06d}", i, float(i), Verdict(Status.REJECT), [m for m, _ in defects])
+        writer.record_part(run, part, [v for _, v in defects])
+    writer.close()
+    db = store.open_readonly(tmp_path)
+    assert store.summary(db)["undecided_by_cause"] == {"moved": 2, "noise": 1, "": 1}
+    kept = json.loads(db.execute("SELECT uncertainty FROM defects ORDER BY id").fetchone()[0])
+    assert kept == [{"kind": "surface", "cause": "placing the surface around the box", "variance_mm2": 0.01},
+                    {"kind": "moved", "cause": moved[0].uncertainty_parts[1].cause, "variance_mm2": 0.03}]
+    db.close()
+    out = cli_here("report", str(tmp_path))
+    assert out.returncode == 0, out.stderr
+    tally = out.stdout.split("by the largest part of their uncertainty:\n")[1].splitlines()
+    assert [line.split(None, 1) for line in tally[:3]] == [
+        ["2", "the region moved within its box"], ["1", "the sensor's noise over the region's texture"],
+        ["1", "no account of it (the matcher's map alone)"]]
+    out = cli_here("report", str(tmp_path), "--csv", str(tmp_path / "d.csv"))
+    with open(tmp_path / "d.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert json.loads(rows[0]["uncertainty"])[1]["kind"] == "moved" and rows[-1]["uncertainty"] == ""
+
+
+def test_report_names_no_undecided_where_every_rule_decided(results):
+    assert "could decide" not in cli_here("report", str(results)).stdout
 
 
 class TestAFileThatIsNotAStore:

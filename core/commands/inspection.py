@@ -603,6 +603,9 @@ def plugins_command() -> None:
         click.echo(f"failed to load: {line}", err=True)
 
 
+WITHOUT_ACCOUNT = "no account of it (the matcher's map alone)"
+
+
 @click.command("report")
 @click.argument("results", type=click.Path(path_type=Path))
 @click.option("--run", "run_id", type=int, default=None, help="one run only (default: all runs in the store)")
@@ -653,6 +656,12 @@ def _report(db, results: Path, run_id: int | None, csv_path: Path | None) -> Non
         for cls, by_verdict in s["defects_per_class"].items():
             detail = ", ".join(f"{v} {n}" for v, n in sorted(by_verdict.items()))
             click.echo(f"  {cls:<16} {sum(by_verdict.values()):>4}  ({detail})")
+    if s["undecided_by_cause"]:
+        from core.uncertainty_budget import KINDS
+
+        click.echo("defects no rule could decide, by the largest part of their uncertainty:")
+        for kind, n in s["undecided_by_cause"].items():
+            click.echo(f"  {n:>4}  {KINDS.get(kind, kind) if kind else WITHOUT_ACCOUNT}")
     if csv_path is not None:
         n = store.export_csv(db, csv_path, run_id)  # a file it cannot write: OSError naming it, for cli.main
         click.echo(f"wrote {n} rows to {csv_path}")

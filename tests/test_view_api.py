@@ -128,6 +128,9 @@ def test_part_detail_names_the_rule_and_serves_its_image(results):
     # spans millimetres of depth (the uncertainty counts that bowl), still proven beyond the 1.5 mm limit
     assert defect["depth_method"] == "surface" and 0 < defect["deviation_sigma_mm"] < 1.5
     assert defect["deviation_mm"] - 2 * defect["deviation_sigma_mm"] > 1.5
+    # and what that uncertainty is made of, its parts' variances adding up to it
+    assert defect["uncertainty"][0]["kind"] == "surface"
+    assert sum(p["variance_mm2"] for p in defect["uncertainty"]) == pytest.approx(defect["deviation_sigma_mm"] ** 2)
     assert part["output_events"] and part["output_events"][0]["output"] == "log"
     full = client.get(part["image_url"])
     assert full.status_code == 200 and full.headers["content-type"] == "image/jpeg"

@@ -130,6 +130,11 @@ def test_live_page_follows_the_run_and_opens_a_reject(tmp_path, plane_sequence, 
         defect_row = page.inner_text("#detail-defects tbody tr")
         assert "pit" in defect_row and "REJECT" in defect_row
         assert re.search(r"\+\d+\.\d\d ± \d+\.\d\d", defect_row), defect_row  # the deviation with its uncertainty
+        # ... whose parts its tooltip gives, largest first
+        parts = page.get_attribute("#detail-defects tbody tr td:nth-child(4)", "title").splitlines()
+        assert parts[0] == "uncertainty:" and "placing the surface around the box" in " ".join(parts), parts
+        shares = [int(line.split(" %")[0]) for line in parts[1:]]
+        assert shares == sorted(shares, reverse=True) and 97 <= sum(shares) <= 103, parts
         page.keyboard.press("Escape")
         # the run ends with every plate counted
         page.wait_for_function("() => document.getElementById('run-state').textContent.includes('finished')", timeout=60000)

@@ -111,7 +111,10 @@ class StoreReader:
             ).fetchall()
         part = dict(row)
         part["reasons"] = json.loads(part["reasons"])
-        part["defects"] = [{**dict(d), "reasons": json.loads(d["reasons"])} for d in defects]
+        # a store from before the account of the uncertainty was kept has no such column: an empty account
+        part["defects"] = [{**dict(d), "reasons": json.loads(d["reasons"]),
+                            "uncertainty": json.loads(d["uncertainty"]) if "uncertainty" in d.keys() and d["uncertainty"]
+                            else []} for d in defects]
         part["output_events"] = [dict(e) for e in events]
         return part
 

@@ -225,6 +225,14 @@ async function loadParts() {
 function resetParts() { view.page = 1; view.partsKey = ""; loadParts(); }
 
 // -- detail dialog ------------------------------------------------------------------------------
+// what a deviation's uncertainty is made of, largest first, each part as its share of the variance
+function uncertaintyParts(parts) {
+  const total = parts.reduce((sum, p) => sum + p.variance_mm2, 0);
+  if (!(total > 0)) return "";
+  return "uncertainty:\n" + [...parts].sort((a, b) => b.variance_mm2 - a.variance_mm2)
+    .map((p) => `${Math.round(100 * p.variance_mm2 / total)} % ${p.cause}`).join("\n");
+}
+
 async function openDetail(partId) {
   const p = await getJSON(`/api/parts/${encodeURIComponent(partId)}`);
   $("detail-title").textContent = `${p.part_id} · frame ${p.frame_id} · ${clock(p.time)}`;
@@ -238,7 +246,8 @@ async function openDetail(partId) {
   img.src = p.image_url;
   $("detail-defects").tBodies[0].replaceChildren(...p.defects.map((d) => el("tr", {},
     el("td", {}, d.class), el("td", {}, fmt(d.confidence)), el("td", {}, withSigma(d.distance_mm, d.distance_sigma_mm, 1)),
-    el("td", {}, withSigma(d.deviation_mm, d.deviation_sigma_mm, 2, true)), el("td", {}, `${Math.round(100 * d.valid_fraction)} %`),
+    el("td", { title: uncertaintyParts(d.uncertainty) }, withSigma(d.deviation_mm, d.deviation_sigma_mm, 2, true)),
+    el("td", {}, `${Math.round(100 * d.valid_fraction)} %`),
     el("td", { class: d.verdict }, d.verdict), el("td", {}, [...d.reasons, d.note].filter(Boolean).join(" | ")))));
   $("detail-events").replaceChildren(...p.output_events.map((e) =>
     el("div", { class: "muted" }, `${clock(e.time)} ${e.output}: ${e.command} → ${e.outcome} ${e.detail || ""}`)));

@@ -42,6 +42,11 @@ def test_writes_json_markdown_and_figure(evaluated):
     # one line per defect: truth, measurement with its uncertainty, both decisions
     lines = [line for line in result.stdout.splitlines() if re.match(r"plates_\w+ \d{6} ", line)]
     assert len(lines) == len(body["rows"]) == 11 and all(" true " in line and "measured" in line for line in lines)
+    # a defect no rule could decide says what its uncertainty was mostly made of
+    undecided = {(r["sequence"], r["frame_id"], r["uncertainty_from"]) for r in body["rows"] if r["proven"] == "undecided"}
+    said = {(line.split()[0], line.split()[1], line.split("undecided: mostly ")[1].split(";")[0])
+            for line in lines if "undecided: mostly " in line}
+    assert said == {(s, f, uncertainty_budget.KINDS[k]) for s, f, k in undecided}
     # every frame lies within the working distance: none would make a part without defects an ERROR
     assert body["plate_check"]["frames"] > 0 and body["plate_check"]["flagged"] == []
     assert f"0 of {body['plate_check']['frames']} frames show the plate outside" in table

@@ -415,9 +415,22 @@ def undecided_by_cause(db: sqlite3.Connection, run_id: int | None = None) -> dic
     for (text,) in db.execute(
             f"SELECT d.uncertainty FROM defects d JOIN parts p ON p.id = d.part_row WHERE d.reasons LIKE ? {where}",
             (f"%{UNDECIDED}%", *args)):
-        parts = json.loads(text) if text else []
+        parts = uncertainty_account(text)
         tally[max(parts, key=lambda p: p["variance_mm2"])["kind"] if parts else ""] += 1
     return dict(tally.most_common())
+
+
+def uncertainty_account(text: str | None) -> list[dict]:
+    """A defect's ``uncertainty`` column as a list of {kind, cause, variance_mm2}; empty where there is none, or
+    where what the column holds is not such a list (a store another program wrote to): no account to show."""
+    try:
+        parts = json.loads(text) if text else []
+    except ValueError:
+        return []
+    ok = isinstance(parts, list) and all(isinstance(p, dict) and isinstance(p.get("kind"), str)
+                                         and isinstance(p.get("cause"), str)
+                                         and isinstance(p.get("variance_mm2"), (int, float)) for p in parts)
+    return parts if ok else []
 
 
 def uncertainty_json(m: DefectMeasurement) -> str | None:

@@ -154,6 +154,21 @@ def test_the_store_keeps_each_defect_s_uncertainty_and_report_tallies_the_undeci
     assert json.loads(rows[0]["uncertainty"])[1]["kind"] == "moved" and rows[-1]["uncertainty"] == ""
 
 
+class TestUncertaintyAccount:
+    def test_the_column_as_the_store_wrote_it(self):
+        from core import store
+
+        text = '[{"kind": "noise", "cause": "the sensor\'s noise", "variance_mm2": 0.01}]'
+        assert store.uncertainty_account(text) == [{"kind": "noise", "cause": "the sensor's noise", "variance_mm2": 0.01}]
+
+    @pytest.mark.parametrize("text", [None, "", "not json", "{}", "[1, 2]", '[{"kind": "noise"}]',
+                                      '[{"kind": "noise", "cause": "c", "variance_mm2": "big"}]'])
+    def test_anything_else_is_no_account(self, text):
+        from core import store
+
+        assert store.uncertainty_account(text) == []
+
+
 def test_report_names_no_undecided_where_every_rule_decided(results):
     assert "could decide" not in cli_here("report", str(results)).stdout
 

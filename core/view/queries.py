@@ -113,8 +113,8 @@ class StoreReader:
         part["reasons"] = json.loads(part["reasons"])
         # a store from before the account of the uncertainty was kept has no such column: an empty account
         part["defects"] = [{**dict(d), "reasons": json.loads(d["reasons"]),
-                            "uncertainty": json.loads(d["uncertainty"]) if "uncertainty" in d.keys() and d["uncertainty"]
-                            else []} for d in defects]
+                            "uncertainty": store.uncertainty_account(d["uncertainty"] if "uncertainty" in d.keys()
+                                                                     else None)} for d in defects]
         part["output_events"] = [dict(e) for e in events]
         return part
 

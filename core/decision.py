@@ -64,6 +64,9 @@ def conformance(value: float, band: float, op: str, threshold: float) -> str:
     return "undecided"
 
 
+NOT_PROVEN = "conformance not proven"  # in the reason of a rule that could not decide
+
+
 def judge_defect(m: DefectMeasurement, decision: DecisionSection) -> tuple[Status, list[str]]:
     """Status and reasons for one defect."""
     label = f"{m.detection.class_name} ({m.detection.confidence:.2f})"
@@ -102,7 +105,7 @@ def judge_defect(m: DefectMeasurement, decision: DecisionSection) -> tuple[Statu
             outcomes.append(outcome)
             # what the uncertainty is made of says what would let the rule decide (more light, better boxes)
             cause = uncertainty_budget.cause_clause(m.uncertainty_parts) if rule.quantity == "deviation_mm" else ""
-            reasons.append(f"{label}: {shown} straddles {rule.threshold:g}, conformance not proven "
+            reasons.append(f"{label}: {shown} straddles {rule.threshold:g}, {NOT_PROVEN} "
                            f"(rule '{rule.describe()}', uncertain: {decision.uncertain})"
                            + (f"; {cause}" if cause else ""))
     return _worst(outcomes), reasons

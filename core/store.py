@@ -401,23 +401,33 @@ def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
             "alarms": alarms, "undecided_by_cause": undecided_by_cause(db, run_id)}
 
 
-UNDECIDED = "conformance not proven"  # in the reason of a rule that could not decide (core.decision)
-
-
 def undecided_by_cause(db: sqlite3.Connection, run_id: int | None = None) -> dict[str, int]:
-    """The defects a rule could not decide, by the largest part of their uncertainty (its kind,
-    ``core.uncertainty_budget.KINDS``; "" for a defect without an account, such as the backend's map alone), most
-    first; empty for a store from before the account was kept."""
+    """The defects a ``deviation_mm`` rule could not decide, by the largest part of their deviation's uncertainty
+    (its kind, ``core.uncertainty_budget.KINDS``; "" for a defect without an account, such as the backend's map
+    alone), most first; empty for a store from before the account was kept."""
+    from core.decision import NOT_PROVEN
+
     if "uncertainty" not in _columns(db, "defects"):
         return {}
     where, args = ("AND p.run_id = ?", (run_id,)) if run_id is not None else ("", ())
     tally: Counter = Counter()
-    for (text,) in db.execute(
-            f"SELECT d.uncertainty FROM defects d JOIN parts p ON p.id = d.part_row WHERE d.reasons LIKE ? {where}",
-            (f"%{UNDECIDED}%", *args)):
+    for reasons, text in db.execute(
+            "SELECT d.reasons, d.uncertainty FROM defects d JOIN parts p ON p.id = d.part_row WHERE d.reasons LIKE ?"
+            f" {where}", (f"%{NOT_PROVEN}%", *args)):
+        # the account is the deviation's: a defect that only a rule on another quantity left undecided is not its
+        if not any(NOT_PROVEN in r and "deviation_mm" in r for r in _reasons(reasons)):
+            continue
         parts = uncertainty_account(text)
         tally[max(parts, key=lambda p: p["variance_mm2"])["kind"] if parts else ""] += 1
     return dict(tally.most_common())
+
+
+def _reasons(text: str) -> list[str]:
+    try:
+        reasons = json.loads(text)
+    except ValueError:
+        return []
+    return [r for r in reasons if isinstance(r, str)] if isinstance(reasons, list) else []
 
 
 def uncertainty_account(text: str | None) -> list[dict]:

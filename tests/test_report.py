@@ -132,7 +132,9 @@ def test_the_store_keeps_each_defect_s_uncertainty_and_report_tallies_the_undeci
     noise = _undecided("noise", "the sensor's noise over the region's texture")
     proven = (replace(noise[0], deviation_mm=2.0), (Status.REJECT, ["pit (0.90): deviation_mm 2.00 ± 0.40 > 1"]))
     matcher = (replace(noise[0], uncertainty_parts=(), method="disparity"), noise[1])
-    for i, defects in enumerate([[moved], [moved, noise], [proven], [matcher]]):
+    distance = (moved[0], (Status.REJECT, ["pit (0.90): distance_mm 400.00 ± 0.40 straddles 400.1, conformance not "
+                                           "proven (rule 'r', uncertain: reject)"]))
+    for i, defects in enumerate([[moved], [moved, noise], [proven], [matcher], [distance]]):
         part = PartResult(f"P{i}", f"{i:06d}", i, float(i), Verdict(Status.REJECT), [m for m, _ in defects])
         writer.record_part(run, part, [v for _, v in defects])
     writer.close()
@@ -151,7 +153,7 @@ def test_the_store_keeps_each_defect_s_uncertainty_and_report_tallies_the_undeci
     out = cli_here("report", str(tmp_path), "--csv", str(tmp_path / "d.csv"))
     with open(tmp_path / "d.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert json.loads(rows[0]["uncertainty"])[1]["kind"] == "moved" and rows[-1]["uncertainty"] == ""
+    assert json.loads(rows[0]["uncertainty"])[1]["kind"] == "moved" and rows[4]["uncertainty"] == ""  # the matcher's
 
 
 class TestUncertaintyAccount:

@@ -349,7 +349,7 @@ def test_a_box_half_its_size_off_its_pit_is_not_proven_shallow(monkeypatch, angl
     back = ("up", "right") if angle_deg == 120.0 else ("down", "left")
     assert all(f" px {way}" in cause for way in back), cause
     reads = float(cause.split("which reads ")[1].split(" mm")[0])
-    assert reads > m.deviation_mm + 2 * m.uncertainty_parts[0].variance_mm2 ** 0.5
+    assert reads > 0.5 * truth > m.deviation_mm  # the copy on the pit reads it, the region does not
     monkeypatch.setattr(depth, "_farthest_moved", lambda *args: None)
     alone = _surface(left, right, disparity, box=off)
     assert alone.deviation_mm == m.deviation_mm and abs(alone.deviation_mm - truth) > 2 * alone.deviation_sigma_mm

@@ -9,6 +9,7 @@ import csv
 import functools
 import io
 import json
+import math
 import os
 import socket
 import sqlite3
@@ -439,13 +440,15 @@ def uncertainty_account(text: str | None) -> list[dict]:
         return []
     ok = isinstance(parts, list) and all(isinstance(p, dict) and isinstance(p.get("kind"), str)
                                          and isinstance(p.get("cause"), str)
-                                         and isinstance(p.get("variance_mm2"), (int, float)) for p in parts)
+                                         and isinstance(p.get("variance_mm2"), (int, float))
+                                         and math.isfinite(p["variance_mm2"]) for p in parts)
     return parts if ok else []
 
 
 def uncertainty_json(m: DefectMeasurement) -> str | None:
-    """A measurement's ``uncertainty_parts`` as the store keeps them, None without an account."""
-    if not m.uncertainty_parts:
+    """A measurement's ``uncertainty_parts`` as the store keeps them, None without an account or with a part that is
+    not a number (a JSON reader, the page's among them, would refuse the NaN)."""
+    if not m.uncertainty_parts or not all(math.isfinite(p.variance_mm2) for p in m.uncertainty_parts):
         return None
     return json.dumps([{"kind": p.kind, "cause": p.cause, "variance_mm2": p.variance_mm2} for p in m.uncertainty_parts])
 

@@ -164,11 +164,21 @@ class TestUncertaintyAccount:
         assert store.uncertainty_account(text) == [{"kind": "noise", "cause": "the sensor's noise", "variance_mm2": 0.01}]
 
     @pytest.mark.parametrize("text", [None, "", "not json", "{}", "[1, 2]", '[{"kind": "noise"}]',
-                                      '[{"kind": "noise", "cause": "c", "variance_mm2": "big"}]'])
+                                      '[{"kind": "noise", "cause": "c", "variance_mm2": "big"}]',
+                                      '[{"kind": "noise", "cause": "c", "variance_mm2": NaN}]'])
     def test_anything_else_is_no_account(self, text):
         from core import store
 
         assert store.uncertainty_account(text) == []
+
+    def test_an_account_with_a_part_that_is_not_a_number_is_not_written(self):
+        from core import store
+
+        m = DefectMeasurement(Detection("pit", 0.9, (0, 0, 10, 10)), 400.0, 0.9, 1.0, 0.1, 10.0,
+                              uncertainty_parts=(UncertaintyPart("noise", "n", float("nan")),))
+        assert store.uncertainty_json(m) is None
+        assert json.loads(store.uncertainty_json(replace(m, uncertainty_parts=(UncertaintyPart("noise", "n", 0.5),)))) \
+            == [{"kind": "noise", "cause": "n", "variance_mm2": 0.5}]
 
 
 def test_report_names_no_undecided_where_every_rule_decided(results):

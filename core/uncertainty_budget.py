@@ -12,7 +12,8 @@ from collections.abc import Sequence
 
 from core.types import UncertaintyPart
 
-# each term of a surface measurement's variance (``UncertaintyPart.kind``), as a tally of many names it
+# each term of a surface measurement's variance by its kind (``UncertaintyPart.kind``): its name in a tally over
+# many defects
 KINDS = {
     "surface": "placing the surface around the box",
     "noise": "the sensor's noise over the region's texture",
@@ -53,4 +54,4 @@ def cause_clause(parts: Sequence[UncertaintyPart]) -> str:
     if found is None:
         return ""
     part, share = found
-    return f"its uncertainty: {share:.0%} from {part.cause}".replace("%", " %", 1)
+    return f"its uncertainty: {100 * share:.0f} % from {part.cause}"

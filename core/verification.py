@@ -14,7 +14,9 @@ is inspected and counted but decides nothing, since a measurement may prove neit
 defect must be rejected by a box of its own: a part rejected for another box (a sound patch read undecided, a
 box the wrong model put anywhere) says nothing of whether the line finds that defect. And where a defect's box lies
 more than a third of its size off it, the tally warns: depth read in such a box may prove a defect beyond its limit
-inside it.
+inside it. A defective part rejected only because no rule could decide (``decision.uncertain``) is caught, but its
+measurement did not prove the defect beyond its limit: the tally says so, with what its uncertainty was mostly made
+of, since a master defect well beyond its limit that the line cannot prove so says the line's depth is marginal.
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from core.boxes import MATCH_IOU, UNSAFE_SHIFT, box_iou, matched_placement
-from core.decision import CLEAR_CUT_MM, rule_applies
+from core.decision import CLEAR_CUT_MM, NOT_PROVEN, rule_applies
 from core.types import FrameError, Status, StereoFrame, Verdict
 from drivers.sequence_folder import list_frames, read_labels
 
@@ -113,6 +115,8 @@ class MasterPart:
     why: str = ""
     missed: tuple[str, ...] = ()
     off: tuple[str, ...] = ()  # its labelled defects whose box lies more than a third off them (``boxes_off``)
+    # rejected (or flagged) only by rules that could not decide: the first such reason, else ""
+    undecided: str = ""
 
     @property
     def passed_defective(self) -> bool:
@@ -157,7 +161,18 @@ class Verification:
                 f"ones rejected, {passed} of {good} good ones passed"
                 + (f", {errors} could not be inspected (ERROR)" if errors else "")
                 + (f", {near} near a limit (not counted)" if near else "")
+                + self._undecided_note()
                 + self._boxes_off_warning())
+
+    def _undecided_note(self) -> str:
+        """Of the defective master parts caught, those no rule proved beyond its limit (``MasterPart.undecided``),
+        with the first one's reason, or ""."""
+        undecided = [p for p in self._defective if p.undecided]
+        if not undecided:
+            return ""
+        first = undecided[0]
+        return (f"; {len(undecided)} of them only as undecided, not proven beyond the limit (frame {first.frame_id}: "
+                f"{first.undecided})")
 
     def _boxes_off_warning(self) -> str:
         """The tally's closing warning of the boxes more than a third off their defects (``boxes_off``), or ""."""
@@ -192,6 +207,15 @@ class Verification:
                 f"decision.uncertain)")
 
 
+def only_undecided(verdict: Verdict) -> str:
+    """The first reason of a part rejected or flagged only by rules that could not decide (every reason of its verdict
+    one of theirs), else ""."""
+    reasons = verdict.reasons
+    if verdict.status not in (Status.REJECT, Status.FLAG) or not reasons or not all(NOT_PROVEN in r for r in reasons):
+        return ""
+    return reasons[0]
+
+
 def known_verdicts(folder: Path, decision) -> dict[str, Status | None]:
     """``known_verdict`` of each frame of the labelled sequence ``folder``, by frame id (a frame without
     labels: None). ``SequenceError`` naming the file where labels cannot be read."""
@@ -218,5 +242,5 @@ def verify(folder: Path, frames: Iterable[StereoFrame | FrameError],
             if known is Status.REJECT and inspected and verdict.status is not Status.PASS else ()
         off = tuple(boxes_off(said.get("defects", []), [found for found, _ in boxes])) if said else ()
         parts.append(MasterPart(item.frame_id, known, verdict.status, verdict.reasons[0] if verdict.reasons else "",
-                                missed, off))
+                                missed, off, only_undecided(verdict)))
     return Verification(str(folder), tuple(parts))

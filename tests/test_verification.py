@@ -18,7 +18,7 @@ from conftest import ROOT, cli, cli_here
 from core.recipe.schema import DecisionSection
 from core.types import Status, Verdict
 from core.verification import (MasterPart, Verification, beyond_a_limit, boxes_off, known_verdict, known_verdicts,
-                               missed_defects, verify)
+                               missed_defects, only_undecided, verify)
 
 DEMO = ROOT / "recipes" / "steel_plate.yaml"
 FIXTURE = ROOT / "sim_fixtures" / "steel_plate"
@@ -154,6 +154,40 @@ class TestVerify:
         (part,) = failed.parts
         assert part.missed == () and not part.passed_defective
         assert failed.failed and failed.refusal().startswith("none of the 1 defective master parts")
+
+
+class TestOnlyUndecided:
+    NOT_PROVEN = ("pit (0.90): deviation_mm 1.05 ± 0.40 straddles 1, conformance not proven (rule 'r', uncertain: "
+                  "reject); its uncertainty: 75 % from the sensor's noise over the region's texture")
+
+    def test_a_part_rejected_only_by_rules_that_could_not_decide(self):
+        assert only_undecided(Verdict(Status.REJECT, [self.NOT_PROVEN, self.NOT_PROVEN])) == self.NOT_PROVEN
+        assert only_undecided(Verdict(Status.FLAG, [self.NOT_PROVEN])) == self.NOT_PROVEN
+
+    def test_a_proven_reject_among_them_or_another_outcome_is_not(self):
+        proven = "pit (0.90): deviation_mm 2.05 ± 0.40 > 1 (rule 'r')"
+        assert only_undecided(Verdict(Status.REJECT, [self.NOT_PROVEN, proven])) == ""
+        assert only_undecided(Verdict(Status.PASS, [self.NOT_PROVEN])) == ""  # uncertain: pass
+        assert only_undecided(Verdict(Status.ERROR, ["frame 000001: no image"])) == ""
+        assert only_undecided(Verdict(Status.REJECT, [])) == ""
+
+    def test_the_tally_says_which_defective_parts_were_caught_only_undecided_and_the_check_passes(self):
+        parts = (MasterPart("1", Status.REJECT, Status.REJECT, undecided=self.NOT_PROVEN),
+                 MasterPart("2", Status.REJECT, Status.REJECT), MasterPart("3", Status.PASS, Status.PASS))
+        checked = Verification("m", parts)
+        assert not checked.failed
+        assert checked.summary() == (
+            "master parts m: 3 inspected, 2 of 2 defective ones rejected, 1 of 1 good ones passed; 1 of them only as "
+            f"undecided, not proven beyond the limit (frame 1: {self.NOT_PROVEN})")
+        assert "undecided" not in Verification("m", parts[1:]).summary()
+
+    def test_verify_keeps_the_reason_of_a_part_caught_only_undecided(self):
+        frames = [type("Frame", (), {"frame_id": "000003"})()]
+        labels = json.loads((FIXTURE / "labels" / "000003.json").read_text())
+        boxes = [(tuple(d["box"]), Status.REJECT) for d in labels["defects"]]
+        (part,) = verify(FIXTURE, frames, lambda item: (Verdict(Status.REJECT, [self.NOT_PROVEN]), boxes),
+                         BOTH_WAYS).parts
+        assert part.undecided == self.NOT_PROVEN and not part.passed_defective
 
 
 class TestBoxesOff:

@@ -399,7 +399,7 @@ def summary(db: sqlite3.Connection, run_id: int | None = None) -> dict:
         per_class.setdefault(cls, Counter())[verdict] += n
     alarms = db.execute(f"SELECT COUNT(*) FROM alarms {where}", args).fetchone()[0]
     return {**verdict_counts(verdicts), "defects_per_class": {c: dict(v) for c, v in sorted(per_class.items())},
-            "alarms": alarms, "undecided_by_cause": undecided_by_cause(db, run_id)}
+            "alarms": alarms}
 
 
 def undecided_by_cause(db: sqlite3.Connection, run_id: int | None = None) -> dict[str, int]:

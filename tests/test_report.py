@@ -106,7 +106,7 @@ def test_a_store_of_an_older_version_is_read_and_migrated(tmp_path):
     readonly = store.open_readonly(tmp_path)
     rows = store.csv_rows(readonly, 1)  # read as it is: the new columns come back empty
     assert rows[0][-4:] == (None, None, None, None) and len(rows[0]) == len(store.CSV_COLUMNS)
-    assert store.summary(readonly)["undecided_by_cause"] == {}  # no account kept then: nothing to tally
+    assert store.undecided_by_cause(readonly) == {}  # no account kept then: nothing to tally
     readonly.close()
     writer = store.ResultsStore(tmp_path)  # opened for writing, it gains them
     columns = {row[1] for row in writer.db.execute("PRAGMA table_info(defects)")}
@@ -139,7 +139,7 @@ def test_the_store_keeps_each_defect_s_uncertainty_and_report_tallies_the_undeci
         writer.record_part(run, part, [v for _, v in defects])
     writer.close()
     db = store.open_readonly(tmp_path)
-    assert store.summary(db)["undecided_by_cause"] == {"moved": 2, "noise": 1, "": 1}
+    assert store.undecided_by_cause(db) == {"moved": 2, "noise": 1, "": 1}
     kept = json.loads(db.execute("SELECT uncertainty FROM defects ORDER BY id").fetchone()[0])
     assert kept == [{"kind": "surface", "cause": "placing the surface around the box", "variance_mm2": 0.01},
                     {"kind": "moved", "cause": moved[0].uncertainty_parts[1].cause, "variance_mm2": 0.03}]

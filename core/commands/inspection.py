@@ -656,11 +656,12 @@ def _report(db, results: Path, run_id: int | None, csv_path: Path | None) -> Non
         for cls, by_verdict in s["defects_per_class"].items():
             detail = ", ".join(f"{v} {n}" for v, n in sorted(by_verdict.items()))
             click.echo(f"  {cls:<16} {sum(by_verdict.values()):>4}  ({detail})")
-    if s["undecided_by_cause"]:
+    undecided = store.undecided_by_cause(db, run_id)
+    if undecided:
         from core.uncertainty_budget import KINDS
 
         click.echo("defects no rule could decide, by the largest part of their uncertainty:")
-        for kind, n in s["undecided_by_cause"].items():
+        for kind, n in undecided.items():
             click.echo(f"  {n:>4}  {KINDS.get(kind, kind) if kind else WITHOUT_ACCOUNT}")
     if csv_path is not None:
         n = store.export_csv(db, csv_path, run_id)  # a file it cannot write: OSError naming it, for cli.main

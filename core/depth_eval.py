@@ -582,12 +582,9 @@ def markdown(body: dict[str, Any]) -> str:
         lines.append(f"| {truth} | " + " | ".join(str(confusion[truth].get(o, 0)) for o in outcomes) + " |")
     undecided = body["all"]["measurement"].get("undecided_from")
     if undecided:
-        inside, beyond = Status.PASS.value, Status.REJECT.value
-        order = sorted(undecided, key=lambda k: -sum(undecided[k].values()))
         lines += ["", "What the undecided defects' uncertainty mostly came from (the largest part of each one's, "
-                  "core/uncertainty_budget.py; defects inside their limit / beyond it): " + ", ".join(
-                      f"{uncertainty_budget.KINDS.get(k, k)} {undecided[k].get(inside, 0)} / "
-                      f"{undecided[k].get(beyond, 0)}" for k in order) + "."]
+                  "core/uncertainty_budget.py; defects inside their limit / beyond it): "
+                  + ", ".join(uncertainty_budget.tally_words(undecided)) + "."]
     if body.get("boxes") == "detector":
         s = body["all"]["measurement"]
         lines += ["", f"Boxes from the recipe's detector (`{body['detector']}`, confidence {body['confidence']:g}): "

@@ -17,7 +17,7 @@ from typing import Any
 import yaml
 
 from core.report_text import number, percent
-from core.uncertainty_budget import KINDS
+from core.uncertainty_budget import tally_words
 from drivers.text_files import NotUtf8, decode
 from drivers.yaml_reader import Misread, safe_load
 
@@ -200,11 +200,9 @@ def undecided_table(rows: list[dict[str, Any]]) -> str:
     lines = ["| group | undecided, inside the limit / beyond it | the largest part of their uncertainty "
              "(inside / beyond), most often first |", "|---|---|---|"]
     for r in kept:
-        tally = r["undecided_from"]
-        order = sorted(tally, key=lambda k: -sum(tally[k].values()))
-        named = "; ".join(f"{KINDS.get(k, k)} {tally[k].get('PASS', 0)} / {tally[k].get('REJECT', 0)}"
-                          for k in order[:UNDECIDED_SHOWN])
-        more = len(order) - UNDECIDED_SHOWN
+        words = tally_words(r["undecided_from"])
+        named = "; ".join(words[:UNDECIDED_SHOWN])
+        more = len(words) - UNDECIDED_SHOWN
         lines.append(f"| {r['group']} | {r['undecided_pass']} / {r['undecided_reject']} | {named}"
                      f"{f'; {more} more' if more > 0 else ''} |")
     return "\n".join(lines) + "\n"

@@ -18,8 +18,9 @@ import time
 from collections import Counter
 from pathlib import Path
 
+from core import uncertainty_budget
 from core.file_checks import unwritable
-from core.types import Alarm, DefectMeasurement, OutputEvent, PartResult, Status
+from core.types import Alarm, DefectMeasurement, OutputEvent, PartResult, Status, UncertaintyPart
 from drivers.file_writes import write_text
 
 DB_NAME = "results.db"
@@ -418,8 +419,9 @@ def undecided_by_cause(db: sqlite3.Connection, run_id: int | None = None) -> dic
         # the account is the deviation's: a defect that only a rule on another quantity left undecided is not its
         if not any(NOT_PROVEN in r and "deviation_mm" in r for r in _reasons(reasons)):
             continue
-        parts = uncertainty_account(text)
-        tally[max(parts, key=lambda p: p["variance_mm2"])["kind"] if parts else ""] += 1
+        largest = uncertainty_budget.largest([UncertaintyPart(p["kind"], p["cause"], p["variance_mm2"])
+                                              for p in uncertainty_account(text)])
+        tally[largest[0].kind if largest else ""] += 1
     return dict(tally.most_common())
 
 

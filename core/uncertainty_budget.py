@@ -48,6 +48,13 @@ def largest(parts: Sequence[UncertaintyPart]) -> tuple[UncertaintyPart, float] |
     return part, part.variance_mm2 / total
 
 
+def tally_words(tally: dict[str, dict[str, int]]) -> list[str]:
+    """Defects by the kind of their largest part and their true outcome (``PASS``: inside the limit, ``REJECT``:
+    beyond it), as ``"<kind's name> inside / beyond"``, the kinds that count most first."""
+    order = sorted(tally, key=lambda k: -sum(tally[k].values()))
+    return [f"{KINDS.get(k, k)} {tally[k].get('PASS', 0)} / {tally[k].get('REJECT', 0)}" for k in order]
+
+
 def cause_clause(parts: Sequence[UncertaintyPart]) -> str:
     """``"its uncertainty: 75 % from <cause>"`` for the largest of ``parts``; '' where there is none."""
     found = largest(parts)

@@ -7,7 +7,7 @@ out as another surface where it stands out of its noise. Moved towards the defec
 the region reads it. So the region is moved every way by a few shares of the box, each copy read from the
 cells over the box grown by as much (``surface_fit.cell_offsets``), and the copy that reads farthest from the
 surface beyond the region's own reading is the candidate: the part of the surroundings that may be the defect
-(``core.depth._parts_variance`` widens the uncertainty to take it in). Where the box holds its defect, every
+(``core.depth._widest_part`` widens the uncertainty to take it in). Where the box holds its defect, every
 copy holds more of its walls and of the plate than the region does and reads nearer the surface.
 """
 from __future__ import annotations

@@ -168,7 +168,7 @@ GROOVE_Z = 5.0
 # those floors, and 2 on a third of them (docs/research-log.md: what widening from 2 cost for what it caught)
 BAND_Z = 3.0
 # from this many of its standard deviations off, a region's central part that reads more than twice its offset may
-# be the defect in a box larger than it, and the uncertainty widens to take it in (``_parts_variance``)
+# be the defect in a box larger than it, and the uncertainty widens to take it in (``_widest_part``)
 PATCH_Z = 2.0
 # from this many standard deviations of their difference beyond the region's offset, the region moved towards where a
 # box's surroundings read farther from the surface may be the defect, the box off it (``box_reach``)
@@ -491,7 +491,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         var_d += weighting
         budget.append(("weighting", WEIGHTING_CAUSE, weighting))
     # and a part of the region that may be the defect, too faint to measure on: a band across it, along its edges,
-    # or its central part (``_parts_variance``)
+    # or its central part (``_widest_part``)
     part = moved = None
     if not groove and np.isfinite(cells.variance):
         patch = band_scan.central_patch(offsets_px, settled_sds, areas, centres, middle,
@@ -577,13 +577,23 @@ def unshared_variance(offset: float, ratio: float) -> float:
     return (2.0 * share * offset) ** 2 if share >= UNSHARED_MIN_LOG else 0.0
 
 
-def _parts_variance(region: float, band: band_scan.Band | None, along_edges: band_scan.Band | None,
-                    patch: surface_fit.RobustOffset | None, moved: box_reach.MovedRegion | None = None,
-                    region_variance: float = 0.0) -> float:
-    """The variance (px^2) to add to a region's offset ``region`` (px) for a part of it that may be the defect while
-    the region reads mostly the surface beside it: the square of how far that part's offset stands from the
-    region's, less what the part's own noise puts in it (what is left is the defect's, unbiased); of several, the
-    one further off; 0 for none.
+@dataclass(frozen=True)
+class _Part:
+    """The part of a region that ``_widest_part`` widens its uncertainty for: which (``band``, ``along_edges``,
+    ``patch`` or ``moved``), its offset (px) and the variance it adds (px^2)."""
+
+    kind: str
+    offset: float
+    variance: float
+
+
+def _widest_part(region: float, band: band_scan.Band | None, along_edges: band_scan.Band | None,
+                 patch: surface_fit.RobustOffset | None, moved: box_reach.MovedRegion | None = None,
+                 region_variance: float = 0.0) -> _Part | None:
+    """The part of a region that may be the defect while the region (its offset ``region``, px) reads mostly the
+    surface beside it, with the variance (px^2) to add to the region's for it: the square of how far that part's
+    offset stands from the region's, less what the part's own noise puts in it (what is left is the defect's,
+    unbiased); of several, the one further off (the first of equals); None where none adds any.
 
     The parts: the scan's ``band`` across the region where it stands BAND_Z or more beyond the rest (a groove too
     faint to measure along); ``along_edges``, the band along the region's edges where the left image shows them all
@@ -596,24 +606,6 @@ def _parts_variance(region: float, band: band_scan.Band | None, along_edges: ban
     (``box_reach``), where it reads farther from the surface than the region by MOVED_Z or more standard deviations
     of their difference, ``region_variance`` (px^2) the region's own (a box half a pit's size off it read 0.03 +-
     0.48 mm for 1.40 mm and passed). docs/research-log.md has what each threshold cost and caught."""
-    part = _widest_part(region, band, along_edges, patch, moved, region_variance)
-    return 0.0 if part is None else part.variance
-
-
-@dataclass(frozen=True)
-class _Part:
-    """The part of a region that ``_parts_variance`` widens its uncertainty for: which (``band``, ``along_edges``,
-    ``patch`` or ``moved``), its offset (px) and the variance it adds (px^2)."""
-
-    kind: str
-    offset: float
-    variance: float
-
-
-def _widest_part(region: float, band: band_scan.Band | None, along_edges: band_scan.Band | None,
-                 patch: surface_fit.RobustOffset | None, moved: box_reach.MovedRegion | None = None,
-                 region_variance: float = 0.0) -> _Part | None:
-    """``_parts_variance``'s part that adds the most variance (the first of equals), None where none adds any."""
     parts = [(kind, b.offset, b.variance) for kind, b in (
         ("band", band if band is not None and abs(band.z) >= BAND_Z else None), ("along_edges", along_edges))
         if b is not None]

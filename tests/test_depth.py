@@ -392,45 +392,51 @@ def _patch(delta: float, variance: float) -> surface_fit.RobustOffset:
     return surface_fit.RobustOffset(delta, variance, 6, 6.0, 1.0)
 
 
+def _parts_variance(*args) -> float:
+    """The variance ``depth._widest_part`` adds for the part it finds, 0 for none."""
+    part = depth._widest_part(*args)
+    return 0.0 if part is None else part.variance
+
+
 class TestPartsVariance:
     def test_none_adds_nothing(self):
-        assert depth._parts_variance(-0.2, None, None, None) == 0.0
+        assert _parts_variance(-0.2, None, None, None) == 0.0
 
     def test_a_band_counts_from_band_z_less_its_own_noise(self):
-        assert depth._parts_variance(-0.1, _band(-0.5, 0.01, depth.BAND_Z), None, None) == pytest.approx(0.15)
-        assert depth._parts_variance(-0.1, _band(-0.5, 0.01, 0.9 * depth.BAND_Z), None, None) == 0.0
+        assert _parts_variance(-0.1, _band(-0.5, 0.01, depth.BAND_Z), None, None) == pytest.approx(0.15)
+        assert _parts_variance(-0.1, _band(-0.5, 0.01, 0.9 * depth.BAND_Z), None, None) == 0.0
 
     def test_the_band_along_the_edges_counts_however_faint(self):
-        assert depth._parts_variance(-0.1, None, _band(-0.5, 0.01, 0.1), None) == pytest.approx(0.15)
+        assert _parts_variance(-0.1, None, _band(-0.5, 0.01, 0.1), None) == pytest.approx(0.15)
 
     def test_the_central_patch_counts_where_it_stands_clearly_further_from_the_surface(self):
         # a box twice a pit's size: the region reads mostly the surface around it, its centre the pit
-        assert depth._parts_variance(-0.01, None, None, _patch(-0.5, 0.0081)) == pytest.approx(0.49 ** 2 - 0.0081)
+        assert _parts_variance(-0.01, None, None, _patch(-0.5, 0.0081)) == pytest.approx(0.49 ** 2 - 0.0081)
         # within PATCH_Z of its own noise of the region: chance, on a region that is all floor
         sd = 0.49 / (0.95 * depth.PATCH_Z)
-        assert depth._parts_variance(-0.01, None, None, _patch(-0.5, sd * sd)) == 0.0
+        assert _parts_variance(-0.01, None, None, _patch(-0.5, sd * sd)) == 0.0
         # nearer the surface than the region: the region's own reading is the further off, and stands
-        assert depth._parts_variance(-0.5, None, None, _patch(-0.01, 0.0001)) == 0.0
+        assert _parts_variance(-0.5, None, None, _patch(-0.01, 0.0001)) == 0.0
         # further off, but the region reads more than half of it: a round pit's deeper centre, not a region that
         # is mostly the surface around its defect
-        assert depth._parts_variance(-0.3, None, None, _patch(-0.5, 0.0001)) == 0.0
-        assert depth._parts_variance(-0.2, None, None, _patch(-0.5, 0.0001)) == pytest.approx(0.09 - 0.0001)
+        assert _parts_variance(-0.3, None, None, _patch(-0.5, 0.0001)) == 0.0
+        assert _parts_variance(-0.2, None, None, _patch(-0.5, 0.0001)) == pytest.approx(0.09 - 0.0001)
         # a raised defect is further from the surface too
-        assert depth._parts_variance(0.01, None, None, _patch(0.5, 0.0081)) > 0.2
+        assert _parts_variance(0.01, None, None, _patch(0.5, 0.0081)) > 0.2
 
     def test_the_region_moved_counts_from_moved_z_and_only_farther_from_the_surface(self):
         # a box a third off its pit: the region reads -0.1, the region moved back onto the pit -0.4
         moved = box_reach.MovedRegion(0.35, 180.0, -0.4, 0.01)
-        assert depth._parts_variance(-0.1, None, None, None, moved) == pytest.approx(0.09 - 0.01)
+        assert _parts_variance(-0.1, None, None, None, moved) == pytest.approx(0.09 - 0.01)
         sd = 0.3 / (0.95 * depth.MOVED_Z)
-        assert depth._parts_variance(-0.1, None, None, None, box_reach.MovedRegion(0.35, 180.0, -0.4, sd * sd)) == 0.0
+        assert _parts_variance(-0.1, None, None, None, box_reach.MovedRegion(0.35, 180.0, -0.4, sd * sd)) == 0.0
         # the region's own noise counts in the difference
-        assert depth._parts_variance(-0.1, None, None, None, moved, 0.03) == 0.0
+        assert _parts_variance(-0.1, None, None, None, moved, 0.03) == 0.0
         # nearer the surface than the region: a box on its defect reads it deepest
-        assert depth._parts_variance(-0.4, None, None, None, box_reach.MovedRegion(0.35, 0.0, -0.1, 0.0001)) == 0.0
+        assert _parts_variance(-0.4, None, None, None, box_reach.MovedRegion(0.35, 0.0, -0.1, 0.0001)) == 0.0
 
     def test_of_several_parts_the_one_further_off(self):
-        assert depth._parts_variance(-0.1, _band(-0.3, 0.0, depth.BAND_Z), _band(-0.4, 0.0, 0.1),
+        assert _parts_variance(-0.1, _band(-0.3, 0.0, depth.BAND_Z), _band(-0.4, 0.0, 0.1),
                                      _patch(-0.6, 0.0001)) == pytest.approx(0.25 - 0.0001)
 
 

@@ -448,7 +448,9 @@ def test_a_link_cut_during_a_pulse_is_an_alarm_and_the_coil_is_reset_before_the_
         events += out.poll()
         assert sim.coil(0) == 1  # what a plant would now have: the gate held open
         proxy.restore()
-        second = part(2, t=time.time())
+        # due after the link's next try (its backoff reaches 200 ms) and the rest write: queued while the link is
+        # still down, as a line's next reject would be, without racing the reconnection
+        second = part(2, t=time.time() + 0.5)
         out.submit(second)
         events += out.close(timeout_s=3)
     alarms = events_of(events, Alarm)

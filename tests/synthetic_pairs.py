@@ -161,3 +161,10 @@ def step_pair(width: int = 160, height: int = 120, plane: tuple[float, float, fl
     left = left + rng.normal(0, noise, left.shape)
     right = right + rng.normal(0, noise, right.shape)
     return left.astype(np.float32), right.astype(np.float32), disparity
+
+
+def census_window(radius_x: int, radius_y: int) -> tuple[tuple[int, int], ...]:
+    """Census offsets of every pixel of a (2ry+1) x (2rx+1) window but its centre: at 4 x 3 the 62 bits that pack
+    into three words, the census kernels' general case (the matcher's own star has 24, one word)."""
+    return tuple((dy, dx) for dy in range(-radius_y, radius_y + 1) for dx in range(-radius_x, radius_x + 1)
+                 if (dy, dx) != (0, 0))

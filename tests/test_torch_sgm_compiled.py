@@ -12,6 +12,7 @@ from plugins.torch_sgm import (aggregate, aggregate_numba, align, align_numba, c
 from plugins.torch_sgm.params import TorchSGMParams
 from plugins.torch_sgm.pipeline import bgr_to_tensor, compute_disparity
 from plugins.torch_sgm.synthetic import layered_scene
+from synthetic_pairs import census_window
 
 ONE_WAY = ((0, 1), (1, 1), (-1, 0))
 
@@ -199,9 +200,8 @@ class TestCheckedWinnersNumba:
         return torch.equal(a.nan_to_num(-99.0), b.nan_to_num(-99.0))
 
     @pytest.mark.parametrize("order", ["pixel-major", "cost volume"])
-    @pytest.mark.parametrize("fit", [select.parabolic_subpixel, select.equiangular_subpixel])
     @pytest.mark.parametrize("first", [0, 3, -2])
-    def test_equals_the_reference_ties_and_nan_included(self, order, fit, first):
+    def test_equals_the_reference_ties_and_nan_included(self, order, first):
         g = torch.Generator().manual_seed(5)
         memory = torch.randint(0, 4, (2, 7, 19, 6), generator=g).float()  # few values: many ties
         memory += 0.25 * torch.rand(memory.shape, generator=g) * (torch.rand(memory.shape, generator=g) > 0.5)
@@ -209,8 +209,8 @@ class TestCheckedWinnersNumba:
         volume = memory.permute(0, 3, 1, 2) if order == "pixel-major" else memory.permute(0, 3, 1, 2).contiguous()
         assert select_numba.pixel_major(volume) == (order == "pixel-major")
         disparities = list(range(first, first + 6))
-        ref = select.checked_winners(volume.contiguous(), disparities, 1.0, fit)
-        got = select_numba.checked_winners_numba(volume, disparities, 1.0, fit)
+        ref = select.checked_winners(volume.contiguous(), disparities, 1.0)
+        got = select_numba.checked_winners_numba(volume, disparities, 1.0)
         for name, a, b in zip(("disparity", "index", "right view", "consistent"), got, ref):
             assert a.dtype == b.dtype and self.same(a, b), name
         assert 0.2 < got[3].float().mean() < 0.9  # the check passes some pixels and fails others
@@ -225,8 +225,6 @@ class TestCheckedWinnersNumba:
     def test_refuses_what_it_cannot_compute(self):
         with pytest.raises(ValueError, match="float32 CPU"):
             select_numba.checked_winners_numba(torch.rand(1, 2, 3, 4, dtype=torch.float64), [0, 1], 1.0)
-        with pytest.raises(ValueError, match="sub-pixel fit"):
-            select_numba.checked_winners_numba(torch.rand(1, 2, 3, 4), [0, 1], 1.0, fit=lambda v, i: i.float())
 
 
 class TestUniqueMinimumNumba:
@@ -464,7 +462,7 @@ class TestCostNumba:
         cost_numba.exp_neg_(got, bits)
         assert np.abs(got - np.exp(-x.astype(np.float64))).max() < 4e-8
 
-    @pytest.mark.parametrize("offsets", [cost.STAR_24, cost.window_offsets(4, 3)], ids=["star", "window"])
+    @pytest.mark.parametrize("offsets", [cost.STAR_24, census_window(4, 3)], ids=["star", "window"])
     def test_the_features_equal_the_reference_and_the_normalised_colour_its_exact_value(self, offsets):
         left, right = self.pair((2, 3, 17, 29))
         ref, got = cost.cost_features(left, right, 3, offsets), cost_numba.cost_features_numba(left, right, 3, offsets)
@@ -479,7 +477,7 @@ class TestCostNumba:
     @pytest.mark.parametrize("weights", [(0.1, 0.6, 0.3), (0.0, 1.0, 0.0), (0.5, 0.0, 0.5)])
     def test_the_fused_cost_equals_the_reference_inside_and_beyond_the_image(self, d_first, count, weights):
         left, right = self.pair()
-        features = cost.cost_features(left, right, 3, cost.window_offsets(4, 3))  # three census words
+        features = cost.cost_features(left, right, 3, census_window(4, 3))  # three census words
         kw = dict(w_ad=weights[0], w_census=weights[1], w_grad=weights[2], lam_ad=1.0, lam_census=6.0, lam_grad=0.02)
         ref = cost.fused_cost_chunk(features, d_first, count, **kw)
         got = cost_numba.fused_cost_numba(features, d_first, count, **kw)

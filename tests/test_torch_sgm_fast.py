@@ -9,6 +9,7 @@ from plugins.torch_sgm import aggregate, cost, sgm
 from plugins.torch_sgm.params import TorchSGMParams
 from plugins.torch_sgm.pipeline import bgr_to_tensor, compute_disparity, cost_volume, cost_volume_fast
 from plugins.torch_sgm.synthetic import layered_scene
+from synthetic_pairs import census_window
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 WEIGHTS = dict(w_ad=0.1, w_census=0.6, w_grad=0.3, lam_ad=1.0, lam_census=6.0, lam_grad=0.02)
@@ -34,7 +35,7 @@ def test_shifted_stack_holds_each_shifted_copy(d_first, count):
 @pytest.mark.parametrize("weights", [WEIGHTS, dict(WEIGHTS, w_ad=0.0), dict(WEIGHTS, w_census=0.0, w_grad=0.0)])
 def test_fused_cost_chunk_equals_fused_cost(census, weights):
     left, right = pair()
-    offsets = cost.STAR_24 if census == "star24" else cost.window_offsets(4, 3)
+    offsets = cost.STAR_24 if census == "star24" else census_window(4, 3)
     f = cost.cost_features(left, right, 3, offsets)
     ref = cost.fused_cost(left, right, list(range(2, 13)), znorm_radius=3, features=f, **weights)
     fast = cost.fused_cost_chunk(f, 2, 11, **weights)

@@ -9,6 +9,7 @@ from plugins.torch_sgm import aggregate, cost, refine, select, sgm
 from plugins.torch_sgm.params import TorchSGMParams
 from plugins.torch_sgm.pipeline import bgr_to_tensor, cost_volume, cost_volume_fast, edge_strength
 from plugins.torch_sgm.synthetic import fronto_parallel
+from synthetic_pairs import census_window
 
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -39,7 +40,7 @@ def test_census_uses_24_bits_and_counts_hamming_distance():
     code = cost.pack_bits(bits)
     assert code.shape == (1, 1, 20, 20)
     assert torch.equal(cost.popcount(code).sum(1), bits.sum(1).int())
-    window = cost.census_transform(grey, cost.window_offsets(4, 3))
+    window = cost.census_transform(grey, census_window(4, 3))
     assert window.shape[1] == 62 and cost.pack_bits(window).shape[1] == 3
     assert torch.equal(cost.popcount(cost.pack_bits(window)).sum(1), window.sum(1).int())
     words = cost.pack_bits(window)
@@ -263,8 +264,6 @@ def test_checked_winners_refine_the_winner_and_leave_the_volume_for_the_uniquene
     assert torch.allclose(disp[0, 1], torch.full((12,), 3.25))  # a parabola's vertex is found exactly
     assert not consistent[0, 0, 9] and consistent[0, 1, 3:].all() and not consistent[0, :, :3].any()
     assert torch.equal(consistent, refine.left_right_check(disp, right_disp, 1.0))
-    _, _, _, equiangular = select.checked_winners(volume, disparities, 1.0, select.equiangular_subpixel)
-    assert torch.equal(equiangular, consistent)
 
 
 def test_left_right_check_rejects_inconsistent_pixels():
@@ -279,9 +278,8 @@ def test_left_right_check_rejects_inconsistent_pixels():
 def test_background_filling_takes_the_farther_side():
     nan = float("nan")
     disp = torch.tensor([[[nan, 9.0, nan, nan, 3.0, nan]]])
-    filled = refine.fill_horizontal(disp, "background")
+    filled = refine.fill_horizontal(disp)
     assert filled.tolist() == [[[9.0, 9.0, 3.0, 3.0, 3.0, 3.0]]]
-    assert refine.fill_horizontal(disp, "left").tolist() == [[[9.0, 9.0, 9.0, 9.0, 3.0, 3.0]]]
 
 
 def test_filling_with_slopes_carries_each_side_along_its_surface():
@@ -290,12 +288,12 @@ def test_filling_with_slopes_carries_each_side_along_its_surface():
     # right side of the middle hole is a nearer, fronto-parallel box (slope 0)
     disp = torch.tensor([[[nan, nan, 11.0, 11.5, 12.0, nan, nan, 30.0, 30.0]]])
     slope = torch.tensor([[[nan, nan, 0.5, 0.5, 0.5, nan, nan, 0.0, 0.0]]])
-    filled = refine.fill_horizontal(disp, "background", slope)
+    filled = refine.fill_horizontal(disp, slope)
     assert filled.tolist() == [[[10.0, 10.5, 11.0, 11.5, 12.0, 12.5, 13.0, 30.0, 30.0]]]
     # without slopes (or where a side has none) the side's value is copied, as before
-    assert refine.fill_horizontal(disp, "background")[0, 0, :2].tolist() == [11.0, 11.0]
+    assert refine.fill_horizontal(disp)[0, 0, :2].tolist() == [11.0, 11.0]
     no_slope = torch.full_like(slope, nan)
-    assert torch.equal(refine.fill_horizontal(disp, "background", no_slope), refine.fill_horizontal(disp))
+    assert torch.equal(refine.fill_horizontal(disp, no_slope), refine.fill_horizontal(disp))
 
 
 def test_out_of_view_drops_a_border_match_that_its_own_surface_could_not_see():
@@ -331,36 +329,6 @@ def test_median_fill_leaves_no_hole_and_removes_streaks():
     out = refine.median_fill(disp, holes, 1)
     assert torch.isfinite(out).all()
     assert torch.allclose(out[0, 4, 2:7], torch.full((5,), 4.0))
-
-
-def test_occlusions_are_told_apart_from_mismatches():
-    left = torch.tensor([[[2.0, 2.0, 2.0, 5.0, 2.0, 2.0]]])
-    right = torch.tensor([[[2.0, 2.0, 2.0, 5.0, 2.0, 2.0]]])
-    occ = refine.occluded(left, right, 1.0)
-    # x = 0, 1 and 3 fall off the right image's left edge; x = 5 lands where the right view saw d = 5.
-    assert occ[0, 0].tolist() == [True, True, False, True, False, True]
-
-
-def test_four_way_filling_uses_background_for_occlusions_and_median_for_mismatches():
-    nan = float("nan")
-    disp = torch.full((1, 5, 5), 4.0)
-    disp[0, 2, 1] = 1.0  # background on the left
-    disp[0, 2, 3] = 8.0  # foreground on the right
-    disp[0, 2, 2] = nan
-    occluded = torch.zeros(1, 5, 5, dtype=torch.bool)
-    occluded[0, 2, 2] = True
-    assert refine.fill_four_directions(disp, occluded)[0, 2, 2] == 4.0  # second smallest of 1, 8, 4, 4
-    assert refine.fill_four_directions(disp, ~occluded)[0, 2, 2] == 4.0
-    disp[0, 1, 2] = disp[0, 3, 2] = 1.0
-    assert refine.fill_four_directions(disp, occluded)[0, 2, 2] == 1.0
-
-
-def test_equiangular_fit_finds_the_minimum_of_a_v_shaped_cost():
-    d = torch.arange(10, dtype=torch.float32).view(1, 10, 1, 1)
-    volume = (d - 6.2).abs()
-    index = select.winner_takes_all(volume)
-    assert abs(select.equiangular_subpixel(volume, index).item() - 6.2) < 1e-4
-    assert abs(select.parabolic_subpixel(volume, index).item() - 6.2) > 0.05
 
 
 def test_winner_takes_all_picks_the_first_of_equal_minima():

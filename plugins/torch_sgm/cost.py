@@ -92,12 +92,6 @@ def _volume(left: torch.Tensor, right: torch.Tensor, disparities, distance) -> t
     return torch.stack([distance(left, shift_right_image(right, d)) for d in disparities], 1)
 
 
-def window_offsets(radius_x: int, radius_y: int) -> tuple[tuple[int, int], ...]:
-    """Every pixel of a (2ry+1) x (2rx+1) window but the centre, e.g. the 62 bits of a 9x7 census."""
-    return tuple((dy, dx) for dy in range(-radius_y, radius_y + 1) for dx in range(-radius_x, radius_x + 1)
-                 if (dy, dx) != (0, 0))
-
-
 BITS_PER_WORD = 30  # non-negative int32 words keep the shifts in popcount free of sign bits
 
 

@@ -44,10 +44,6 @@ class TorchSGMParams(Settings):
     lam_grad: float = Field(0.02, gt=0, description="in normalised Sobel units of [0, 1] intensity")
     znorm_radius: int = Field(3, ge=1, description="window radius of the local zero-normalisation")
     znorm_eps: float = Field(0.001, gt=0, description="added to the local std; larger = less noise boost in flat areas")
-    census: Literal["star24", "window"] = Field("star24", description="star24: the seed's 24-bit star; "
-                                                "window: every pixel of a (2*census_ry+1)x(2*census_rx+1) window")
-    census_rx: int = Field(4, ge=1, le=7)
-    census_ry: int = Field(3, ge=1, le=7)
     # 2. aggregation
     agg_radius: int = Field(3, ge=0)
     agg_eps: float = Field(0.001, gt=0)
@@ -67,20 +63,17 @@ class TorchSGMParams(Settings):
         "magnitude at the pixel, one P2 for every path (the seed); path = the grey step from the pixel's "
         "predecessor on each path, so P2 drops only for the paths that cross an edge")
     # 4. selection
-    subpixel: Literal["parabola", "equiangular"] = "parabola"
     uniqueness: float = Field(0.0, ge=0, description="a pixel whose best aggregated cost does not beat every "
                               "disparity more than 1 step away by this share of itself counts as unmatched (and is "
                               "filled); 0 = off (the seed)")
     # 5. refinement
     lr_tolerance: float = Field(1.0, gt=0)
-    fill: Literal["none", "background", "left", "right", "nearest", "four_way"] = Field(
-        "background", description="background/left/right/nearest: along the row (seed: background); "
-        "four_way: occlusions from the background, mismatches from the median of 4 directions")
-    refine_radius: int = Field(3, ge=0, description="guided-filter refinement radius, 0 = off")
+    fill: Literal["none", "background"] = Field(
+        "background", description="background: each hole along its row from the farther of its two sides (the "
+        "seed's); none: holes stay NaN")
+    refine_radius: int = Field(3, ge=0, description="radius of the guided filter over the whole filled map (the "
+                               "seed's), 0 = off")
     refine_eps: float = Field(0.001, gt=0)
-    refine_scope: Literal["all", "holes"] = Field("all", description="all: the seed filters the whole map; holes: "
-                                                  "only pixels that failed the LR check, so matched pixels keep "
-                                                  "their sub-pixel value")
     median_radius: int = Field(2, ge=0, le=10, description="median over filled pixels, 0 = off")
     plane_fill: bool = Field(False, description="holes inside a region of the left image bounded by colour edges "
                              "take the robust plane of that region's matched pixels, where it has one")
@@ -110,8 +103,6 @@ class TorchSGMParams(Settings):
                                    "of the right image (refine.out_of_view); 0 = off (the seed)")
     fill_slope: bool = Field(False, description="the row-wise filling carries each side's plane slope into the hole "
                              "(with plane_fill) instead of copying its value; off = the seed")
-    median_scope: Literal["holes", "all"] = Field("holes", description="all: also a final median over every "
-                                                  "pixel, which removes isolated mismatches")
     wmf_radius: int = Field(0, ge=0, le=10, description="last, a median over every pixel's (2r+1)^2 window "
                             "weighted by colour similarity and distance, which moves disparity edges onto colour "
                             "edges; 0 = off (the seed)")

@@ -31,8 +31,7 @@ def bgr_to_tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
 def cost_volume(left: torch.Tensor, right: torch.Tensor, disparities: list[int], p: TorchSGMParams) -> torch.Tensor:
     """Stages 1 and 2: fused cost, guided-filtered, built ``chunk_disparities`` slices at a time so
     only one chunk's temporaries exist besides the (B, D, H, W) result."""
-    offsets = cost.STAR_24 if p.census == "star24" else cost.window_offsets(p.census_rx, p.census_ry)
-    features = cost.cost_features(left, right, p.znorm_radius, offsets, p.znorm_eps)
+    features = cost.cost_features(left, right, p.znorm_radius, cost.STAR_24, p.znorm_eps)
     guide = cost.to_grey(left)
     weight = texture_weight(guide, p)
     volume = torch.empty(left.shape[0], len(disparities), *left.shape[-2:], device=left.device, dtype=left.dtype)
@@ -69,9 +68,8 @@ def cost_volume_fast(left: torch.Tensor, right: torch.Tensor, disparities: list[
     """``cost_volume`` (the reference) from ``cost.fused_cost_chunk`` and ``aggregate.guided_filter_fast``
     (on float32 CPU tensors ``cost_numba`` and ``aggregate_numba``): the disparities of a chunk in one strided
     view, the guide's statistics computed once."""
-    offsets = cost.STAR_24 if p.census == "star24" else cost.window_offsets(p.census_rx, p.census_ry)
     features = (cost_numba.cost_features_numba if compiled(p, left, right) else cost.cost_features)(
-        left, right, p.znorm_radius, offsets, p.znorm_eps)
+        left, right, p.znorm_radius, cost.STAR_24, p.znorm_eps)
     guide = cost.to_grey(left)
     weight = texture_weight(guide, p)
     compiled_guide = (aggregate_numba.Guide(guide, p.agg_radius, p.agg_detail_radius, p.agg_eps, weight)
@@ -210,8 +208,7 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
             aggregated = (sgm.sgm_fast if fast else sgm.sgm)(volume, p.p1, penalty, paths)
         del volume
     with clock("winners"):
-        fit = select.parabolic_subpixel if p.subpixel == "parabola" else select.equiangular_subpixel
-        disp, index, right_disp, consistent = checked(aggregated, disparities, p.lr_tolerance, fit)
+        disp, index, _, consistent = checked(aggregated, disparities, p.lr_tolerance)
         if p.uniqueness > 0:
             unique = select_numba.unique_minimum_numba if compiled(p, aggregated) else select.unique_minimum
             consistent &= unique(aggregated, index, p.uniqueness)
@@ -246,16 +243,10 @@ def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, ma
                                else planes.planes_and_slopes(*args))
                 holes = ~torch.isfinite(disp)
         with clock("row filling and medians"):
-            if p.fill == "four_way":
-                disp = refine.fill_four_directions(disp, refine.occluded(raw_disp, right_disp, p.lr_tolerance) & holes)
-            else:
-                disp = refine.fill_horizontal(disp, p.fill, slope if p.fill_slope else None)
+            disp = refine.fill_horizontal(disp, slope if p.fill_slope else None)
             disp = refine.median_fill(disp, holes, 0)  # the guided filter needs a hole-free map
-            smooth = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
-            disp = smooth if p.refine_scope == "all" else torch.where(holes, smooth, disp)
+            disp = refine.guided_refine(disp, cost.to_grey(left), p.refine_radius, p.refine_eps)
             disp = refine.median_fill(disp, holes, p.median_radius)
-            if p.median_scope == "all" and p.median_radius > 0:
-                disp = refine.median_filter(disp, p.median_radius)
         with clock("weighted median"):
             median = refine_numba.weighted_median_numba if compiled(p, disp, left) else refine.weighted_median
             disp = median(disp, left, p.wmf_radius, p.wmf_sigma_colour, p.wmf_sigma_space, p.wmf_jump)

@@ -13,13 +13,6 @@ def left_right_check(left_disp: torch.Tensor, right_disp: torch.Tensor, toleranc
     return view_mismatch(left_disp, right_disp) <= tolerance  # NaN and inf compare False
 
 
-def occluded(left_disp: torch.Tensor, right_disp: torch.Tensor, tolerance: float = 1.0) -> torch.Tensor:
-    """Pixels that fail the LR check because something nearer hides them in the right view: there
-    the right image saw a larger disparity. (B, H, W) -> bool. The rest of the failures are mismatches."""
-    target, seen = _seen_by_right(left_disp, right_disp)
-    return (target < 0) | (seen.nan_to_num(-1.0) > left_disp + tolerance)
-
-
 def _seen_by_right(left_disp: torch.Tensor, right_disp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, H, W) x2 -> (the right image's column x - d, rounded, unclamped; the right map's value there,
     read at the nearest column inside the image). A NaN d reads column x."""
@@ -29,31 +22,9 @@ def _seen_by_right(left_disp: torch.Tensor, right_disp: torch.Tensor) -> tuple[t
     return target, right_disp.gather(-1, target.clamp(0, w - 1).long())
 
 
-def fill_four_directions(disp: torch.Tensor, occlusion: torch.Tensor) -> torch.Tensor:
-    """Hirschmüller-style filling from the nearest valid pixel left, right, above and below:
-    occluded pixels take the second-smallest of those (the background, robust to one outlier),
-    mismatched pixels their median. (B, H, W) float NaN = hole, (B, H, W) bool -> (B, H, W)."""
-    candidates = torch.stack([
-        _nearest_valid(disp, False), _nearest_valid(disp, True),
-        _nearest_valid(disp.transpose(-1, -2), False).transpose(-1, -2),
-        _nearest_valid(disp.transpose(-1, -2), True).transpose(-1, -2),
-    ], 0)
-    ordered = candidates.nan_to_num(float("inf")).sort(0).values
-    count = torch.isfinite(candidates).sum(0)
-    second = torch.where(count >= 2, ordered[1], ordered[0])
-    background = torch.where(torch.isfinite(second), second, torch.full_like(second, float("nan")))
-    median = candidates.nanmedian(0).values
-    fill = torch.where(occlusion, background, median)
-    return torch.where(torch.isfinite(disp), disp, fill)
-
-
-def _nearest_valid(disp: torch.Tensor, reverse: bool) -> torch.Tensor:
-    """For every pixel, the value of the nearest valid pixel to its left (or right when reverse)."""
-    return _nearest_valid_at(disp, reverse)[0]
-
-
 def _nearest_valid_at(disp: torch.Tensor, reverse: bool) -> tuple[torch.Tensor, torch.Tensor]:
-    """``_nearest_valid`` and that pixel's column (int64; -1, or W when reverse, where there is none)."""
+    """For every pixel, the value of the nearest valid pixel to its left (or right when ``reverse``), and that
+    pixel's column (int64; -1, or W when reverse, where there is none)."""
     w = disp.shape[-1]
     if reverse:
         value, column = _nearest_valid_at(disp.flip(-1), False)
@@ -65,12 +36,10 @@ def _nearest_valid_at(disp: torch.Tensor, reverse: bool) -> tuple[torch.Tensor, 
     return torch.where(last >= 0, value, torch.full_like(value, float("nan"))), last
 
 
-def fill_horizontal(disp: torch.Tensor, mode: str = "background", slope: torch.Tensor | None = None) -> torch.Tensor:
-    """Fill each hole from the nearest valid pixels on its row.
-
-    background: the smaller disparity of the two sides, because holes after the LR check are mostly
-    occlusions, which belong to the farther surface; left / right: that side only; nearest: the
-    closer side. A side that has no valid pixel gives way to the other.
+def fill_horizontal(disp: torch.Tensor, slope: torch.Tensor | None = None) -> torch.Tensor:
+    """Fill each hole from the nearest valid pixels on its row: the smaller disparity of the two sides,
+    because holes after the LR check are mostly occlusions, which belong to the farther surface. A side
+    that has no valid pixel gives way to the other.
     With ``slope`` (B, H, W), a side's value is carried into the hole along its surface: value + slope x
     distance, where its slope is finite (``planes.planes_and_slopes``); a slanted wall beside a hole
     goes on slanting instead of stopping at the hole's edge."""
@@ -81,19 +50,7 @@ def fill_horizontal(disp: torch.Tensor, mode: str = "background", slope: torch.T
     if slope is not None:
         left = left + slope.gather(-1, li.clamp(0, w - 1)).nan_to_num(0.0) * (x - li)
         right = right - slope.gather(-1, ri.clamp(0, w - 1)).nan_to_num(0.0) * (ri - x)
-    if mode == "background":
-        fill = torch.fmin(left, right)
-    elif mode == "left":
-        fill = torch.where(torch.isfinite(left), left, right)
-    elif mode == "right":
-        fill = torch.where(torch.isfinite(right), right, left)
-    elif mode == "nearest":
-        # a missing side (column -1 or W) may look nearer; its NaN then gives way to the other side
-        fill = torch.where((x - li) <= (ri - x), left, right)
-        fill = torch.where(torch.isfinite(fill), fill, torch.fmax(left, right))
-    else:
-        raise ValueError(f"unknown fill mode {mode!r}")
-    return torch.where(torch.isfinite(disp), disp, fill)
+    return torch.where(torch.isfinite(disp), disp, torch.fmin(left, right))
 
 
 def out_of_view(disp: torch.Tensor, matched: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
@@ -131,7 +88,8 @@ def guided_refine(disp: torch.Tensor, guide: torch.Tensor, radius: int, eps: flo
 
 
 def median_filter(x: torch.Tensor, radius: int) -> torch.Tensor:
-    """(B, H, W) -> (B, H, W) median over a (2r+1)^2 window ignoring NaN; NaN where all are NaN."""
+    """(B, H, W) -> (B, H, W) median over a (2r+1)^2 window ignoring NaN; NaN where all are NaN: the whole
+    image at once, the reference that ``median_at`` and ``weighted_median`` with flat weights are held to."""
     k = 2 * radius + 1
     patches = F.unfold(F.pad(x.unsqueeze(1), (radius,) * 4, mode="replicate"), k)
     return patches.nanmedian(1).values.view_as(x)

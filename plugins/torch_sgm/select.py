@@ -27,16 +27,6 @@ def _bounded(offset: torch.Tensor, index: torch.Tensor, d: int) -> torch.Tensor:
     return torch.where(inner, offset.clamp(-0.5, 0.5), torch.zeros_like(offset))
 
 
-def equiangular_subpixel(volume: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """Like ``parabolic_subpixel`` but fitting two lines of opposite slope, which suits costs that grow
-    linearly away from the minimum (census, absolute differences) and locks less to integers."""
-    c0, c1, c2 = _neighbour_costs(volume, index)
-    slope = torch.maximum(c0, c2) - c1
-    offset = torch.where(slope > 0, (c0 - c2) / (2 * slope.clamp_min(1e-12)), torch.zeros_like(c1))
-    offset = _bounded(offset, index, volume.shape[1])
-    return index.to(volume.dtype) + offset
-
-
 def parabolic_subpixel(volume: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """Refine integer indices (B, H, W) to float32 indices by fitting a parabola through the cost
     at index-1, index, index+1; the offset is bounded to ±0.5 and zero at the ends of the range."""
@@ -81,17 +71,17 @@ def right_view_wta(volume: torch.Tensor, disparities) -> torch.Tensor:
     return disp
 
 
-def checked_winners(volume: torch.Tensor, disparities, lr_tolerance: float, fit=parabolic_subpixel,
+def checked_winners(volume: torch.Tensor, disparities, lr_tolerance: float,
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Winner-takes-all of both views read off one volume, and the left-right check between them.
 
     (B, D, H, W) cost over ``disparities`` (consecutive integers) -> (disparity (B, H, W) float32, refined
-    by ``fit`` (``parabolic_subpixel`` or ``equiangular_subpixel``); its index (B, H, W) int64 into the
+    by ``parabolic_subpixel``; its index (B, H, W) int64 into the
     volume; the right view's disparity (``right_view_wta``); consistent (B, H, W) bool, the pixels that
     ``left_right_check`` passes within ``lr_tolerance``). Leaves ``volume`` as it was, so that
     ``unique_minimum`` may still be called on it afterwards."""
     index = winner_takes_all(volume)
-    disp = fit(volume, index) + disparities[0]
+    disp = parabolic_subpixel(volume, index) + disparities[0]
     right_disp = right_view_wta(volume, disparities)
     return disp, index, right_disp, left_right_check(disp, right_disp, lr_tolerance)
 

@@ -10,15 +10,15 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from plugins.torch_sgm import refine, select, sgm_numba
+from plugins.torch_sgm import refine, sgm_numba
 
 
 @njit(cache=True, inline="always")
-def _subpixel(c0, c1, c2, i, d_count, d_first, parabola):
+def _subpixel(c0, c1, c2, i, d_count, d_first):
     """The winner ``i``'s disparity from its cost ``c1`` and its neighbours' ``c0``, ``c2`` (float32, as torch
-    computes it): the parabola's or the equiangular fit's vertex, at most half a step away."""
+    computes it): the parabola's vertex, at most half a step away."""
     half, two, tiny = np.float32(0.5), np.float32(2.0), np.float32(1e-12)
-    spread = (c0 - two * c1 + c2) if parabola else (max(c0, c2) - c1)
+    spread = c0 - two * c1 + c2
     offset = np.float32(0.0)
     if 0 < i < d_count - 1 and spread > 0:
         offset = min(max((c0 - c2) / (two * max(spread, tiny)), -half), half)
@@ -26,7 +26,7 @@ def _subpixel(c0, c1, c2, i, d_count, d_first, parabola):
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _checked_winners(cost, d_first, parabola, disp, index, right_best, right_disp):
+def _checked_winners(cost, d_first, disp, index, right_best, right_disp):
     """Each row's winners of both views in one pass over its costs: (B, H, W, D) ``cost`` (any strides) ->
     ``disp`` (sub-pixel, float32 as torch computes it), ``index`` and the right view's ``right_disp``;
     ``right_best`` (B, H, W) scratch."""
@@ -48,7 +48,7 @@ def _checked_winners(cost, d_first, parabola, disp, index, right_best, right_dis
                             break
             index[b, y, x] = i
             disp[b, y, x] = _subpixel(cost[b, y, x, max(i - 1, 0)], cost[b, y, x, i],
-                                      cost[b, y, x, min(i + 1, d_count - 1)], i, d_count, d_first, parabola)
+                                      cost[b, y, x, min(i + 1, d_count - 1)], i, d_count, d_first)
             # the right view: right pixel x - d sees this cost at d; disparities arrive in ascending order at
             # each right pixel, so a strict comparison keeps the lowest of equal costs, as the reference
             for k in range(d_count):
@@ -61,7 +61,7 @@ def _checked_winners(cost, d_first, parabola, disp, index, right_best, right_dis
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _checked_winners_by_slice(cost, d_first, parabola, disp, index, right_best, right_disp):
+def _checked_winners_by_slice(cost, d_first, disp, index, right_best, right_disp):
     """``_checked_winners`` of a (B, D, H, W) ``cost`` whose rows lie contiguous within each disparity slice
     (the cost volume's own memory): each row's slices in turn, every pixel's running winner kept beside
     them, so that the costs are read in memory order instead of one slice apart."""
@@ -101,28 +101,24 @@ def _checked_winners_by_slice(cost, d_first, parabola, disp, index, right_best, 
             i = winner[x]
             index[b, y, x] = i
             disp[b, y, x] = _subpixel(cost[b, max(i - 1, 0), y, x], cost[b, i, y, x],
-                                      cost[b, min(i + 1, d_count - 1), y, x], i, d_count, d_first, parabola)
+                                      cost[b, min(i + 1, d_count - 1), y, x], i, d_count, d_first)
 
 
-def checked_winners_numba(volume: torch.Tensor, disparities, lr_tolerance: float, fit=select.parabolic_subpixel,
+def checked_winners_numba(volume: torch.Tensor, disparities, lr_tolerance: float,
                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``select.checked_winners`` of a float32 CPU volume (B, D, H, W) in either memory order, ``fit``
-    ``select.parabolic_subpixel`` or ``select.equiangular_subpixel``: the same four results."""
+    """``select.checked_winners`` of a float32 CPU volume (B, D, H, W) in either memory order: the same four
+    results."""
     if not sgm_numba.available(volume) or volume.dim() != 4:
         raise ValueError(f"checked_winners_numba: needs a (B, D, H, W) float32 CPU tensor, got {volume.dtype} "
                          f"of shape {tuple(volume.shape)} on {volume.device}")
-    if fit not in (select.parabolic_subpixel, select.equiangular_subpixel):
-        raise ValueError(f"checked_winners_numba: no compiled stand-in for the sub-pixel fit {fit!r}")
     b, _, h, w = volume.shape
     disp, right_disp, best = (np.empty((b, h, w), np.float32) for _ in range(3))
     index = np.empty((b, h, w), np.int64)
     with sgm_numba.torch_threads():
         if volume.is_contiguous():
-            _checked_winners_by_slice(volume.numpy(), int(disparities[0]), fit is select.parabolic_subpixel, disp,
-                                      index, best, right_disp)
+            _checked_winners_by_slice(volume.numpy(), int(disparities[0]), disp, index, best, right_disp)
         else:
-            _checked_winners(volume.permute(0, 2, 3, 1).numpy(), int(disparities[0]),
-                             fit is select.parabolic_subpixel, disp, index, best, right_disp)
+            _checked_winners(volume.permute(0, 2, 3, 1).numpy(), int(disparities[0]), disp, index, best, right_disp)
     disp, right_disp = torch.from_numpy(disp), torch.from_numpy(right_disp)
     return disp, torch.from_numpy(index), right_disp, refine.left_right_check(disp, right_disp, lr_tolerance)
 

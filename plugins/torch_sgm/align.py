@@ -6,8 +6,8 @@ their contrast on horizontal edges: in Middlebury's MiddEval3 scenes (which keep
 rectification of the 2014 capture, Scharstein et al., GCPR 2014) a misalignment of 0.2-0.4 px,
 constant or growing across the image, is common, and a stereo camera whose calibration has drifted
 shows the same. With a first disparity estimate (the coarse pass), the remaining vertical offset of
-every textured pixel follows from Lucas-Kanade; a robust fit of an affine or projective model over the
-image turns those into a smooth field, and the right image is resampled along its columns by that
+every textured pixel follows from Lucas-Kanade; a robust fit of the field a small rotation of the cameras
+gives over the image turns those into a smooth field, and the right image is resampled along its columns by that
 field before the full-resolution pass.
 """
 from __future__ import annotations
@@ -95,24 +95,19 @@ def reliable_offsets(dy: torch.Tensor, min_eigen: torch.Tensor, matched: torch.T
     return out
 
 
-def field_terms(x: torch.Tensor, y: torch.Tensor, model: str) -> torch.Tensor:
+def field_terms(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """The basis of a row-offset field at x, y (any shape, in units of the image's width and height,
-    centred): (..., 3) 1, x, y for ``affine``; (..., 5) with x y and y² added for ``projective``, the
-    vertical component of a small relative rotation of the two cameras (pitch adds 1 + y², yaw x y,
-    roll x) and of a difference in focal length (y), to first order."""
-    return torch.stack(torch.broadcast_tensors(*_terms(x, y, model)), -1)
+    centred): (..., 5) x, y, 1, x y and y², the vertical component of a small relative rotation of the two
+    cameras (pitch adds 1 + y², yaw x y, roll x) and of a difference in focal length (y), to first order."""
+    return torch.stack(torch.broadcast_tensors(*_terms(x, y)), -1)
 
 
-def _terms(x: torch.Tensor, y: torch.Tensor, model: str) -> list[torch.Tensor]:
-    """``field_terms``' K terms, each as broadcast from x and y (so (1, W) and (H, 1) give some of (H, W))."""
-    base = [x, y, torch.ones_like(x)]
-    if model == "projective":
-        base += [x * y, y * y]
-    return base
+def _terms(x: torch.Tensor, y: torch.Tensor) -> list[torch.Tensor]:
+    """``field_terms``' terms, each as broadcast from x and y (so (1, W) and (H, 1) give some of (H, W))."""
+    return [x, y, torch.ones_like(x), x * y, y * y]
 
 
-def fit_row_field(dy: torch.Tensor, reliable: torch.Tensor, model: str = "affine",
-                  min_pixels: int = 100) -> torch.Tensor:
+def fit_row_field(dy: torch.Tensor, reliable: torch.Tensor, min_pixels: int = 100) -> torch.Tensor:
     """Robust least-squares fit of dy to ``field_terms`` over the reliable pixels (Tukey's biweight,
     ``_FIT_RADIUS``), so that wrong first disparities do not tilt it.
 
@@ -120,12 +115,12 @@ def fit_row_field(dy: torch.Tensor, reliable: torch.Tensor, model: str = "affine
     image with fewer than ``min_pixels`` reliable pixels."""
     b, h, w = dy.shape
     none = torch.zeros(0, dtype=torch.float64, device=dy.device)
-    out = torch.zeros(b, field_terms(none, none, model).shape[-1], dtype=torch.float64, device=dy.device)
+    out = torch.zeros(b, field_terms(none, none).shape[-1], dtype=torch.float64, device=dy.device)
     for i in range(b):
         ys, xs = torch.nonzero(reliable[i], as_tuple=True)
         if ys.numel() < min_pixels:
             continue
-        terms = field_terms(xs.double() / w - 0.5, ys.double() / h - 0.5, model).T.contiguous()  # (K, N)
+        terms = field_terms(xs.double() / w - 0.5, ys.double() / h - 0.5).T.contiguous()  # (K, N)
         target = dy[i][reliable[i]].double()
         weight = torch.ones_like(target)
         for _ in range(_FIT_ITERATIONS):
@@ -139,12 +134,12 @@ def fit_row_field(dy: torch.Tensor, reliable: torch.Tensor, model: str = "affine
     return out
 
 
-def row_field(coeffs: torch.Tensor, h: int, w: int, model: str = "affine") -> torch.Tensor:
+def row_field(coeffs: torch.Tensor, h: int, w: int) -> torch.Tensor:
     """(B, K) ``fit_row_field`` coefficients -> (B, H, W) float32 row offsets."""
     y = torch.arange(h, dtype=torch.float64, device=coeffs.device)[:, None] / h - 0.5
     x = torch.arange(w, dtype=torch.float64, device=coeffs.device)[None, :] / w - 0.5
     out = torch.zeros(coeffs.shape[0], h, w, dtype=torch.float64, device=coeffs.device)
-    for k, term in enumerate(_terms(x, y, model)):  # term by term: no (H, W, K) stack of them
+    for k, term in enumerate(_terms(x, y)):  # term by term: no (H, W, K) stack of them
         out += coeffs[:, k, None, None] * term
     return out.float()
 

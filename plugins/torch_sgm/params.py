@@ -142,11 +142,11 @@ class TorchSGMParams(Settings):
     coarse_min_coverage: float = Field(0.2, ge=0, le=1, description="below this share of matched coarse "
                                        "pixels the whole range is searched")
     # rectification
-    align: Literal["none", "affine", "projective"] = Field(
-        "none", description="measure how far the right image's rows sit from the left's (Lucas-Kanade at the "
-        "coarse pass's disparities), fit a field of vertical offsets over the image (affine: 1, x, y; "
-        "projective: also x y and y^2, as a small relative rotation of the cameras gives) and resample the "
-        "right image by it before the full-resolution pass; none: trust the rectification (the seed)")
+    align: Literal["none", "projective"] = Field(
+        "none", description="projective: measure how far the right image's rows sit from the left's (Lucas-Kanade "
+        "at the coarse pass's disparities), fit a field of vertical offsets over the image (1, x, y, x y and y^2, "
+        "as a small relative rotation of the cameras gives) and resample the right image by it before the "
+        "full-resolution pass; none: trust the rectification (the seed)")
     align_radius: int = Field(3, ge=1, le=10, description="window radius of the Lucas-Kanade offsets")
     # memory and speed
     chunk_disparities: int = Field(32, ge=1, description="disparity slices built and filtered at once "

@@ -153,18 +153,18 @@ def narrowed_search(coarse: tuple[torch.Tensor, torch.Tensor] | None, size: tupl
 
 def aligned_right(left: torch.Tensor, right: torch.Tensor, coarse: tuple[torch.Tensor, torch.Tensor],
                   p: TorchSGMParams) -> torch.Tensor:
-    """``align: affine`` or ``projective``: the right image resampled along its columns by the field of
+    """``align: projective``: the right image resampled along its columns by the field of
     vertical offsets measured against the left image at the coarse pass's disparities (see ``align``)."""
     h, w = left.shape[-2:]
     fast = compiled(p, left, right)
     first, matched = align.upsample_disparity(*coarse, p.coarse_factor, (h, w))
     dy, min_eigen = (align_numba.vertical_offsets_numba if fast else align.vertical_offsets)(left, right, first,
                                                                                              p.align_radius)
-    coeffs = align.fit_row_field(dy, align.reliable_offsets(dy, min_eigen, matched), p.align)
+    coeffs = align.fit_row_field(dy, align.reliable_offsets(dy, min_eigen, matched))
     if not coeffs.any():
         return right
     resample = align_numba.resample_rows_numba if fast else align.resample_rows
-    return align.quantise(resample(right, align.row_field(coeffs, h, w, p.align)))
+    return align.quantise(resample(right, align.row_field(coeffs, h, w)))
 
 
 def compute_tensors(left: torch.Tensor, right: torch.Tensor, min_disp: float, max_disp: float,

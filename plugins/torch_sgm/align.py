@@ -6,9 +6,9 @@ their contrast on horizontal edges: in Middlebury's MiddEval3 scenes (which keep
 rectification of the 2014 capture, Scharstein et al., GCPR 2014) a misalignment of 0.2-0.4 px,
 constant or growing across the image, is common, and a stereo camera whose calibration has drifted
 shows the same. With a first disparity estimate (the coarse pass), the remaining vertical offset of
-every textured pixel follows from Lucas-Kanade; a robust fit of the field a small rotation of the cameras
-gives over the image turns those into a smooth field, and the right image is resampled along its columns by that
-field before the full-resolution pass.
+every textured pixel follows from Lucas-Kanade; a robust fit over the image of the field that a small
+rotation of the cameras gives turns those into a smooth field, and the right image is resampled along its
+columns by that field before the full-resolution pass.
 """
 from __future__ import annotations
 

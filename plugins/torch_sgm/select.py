@@ -76,9 +76,9 @@ def checked_winners(volume: torch.Tensor, disparities, lr_tolerance: float,
     """Winner-takes-all of both views read off one volume, and the left-right check between them.
 
     (B, D, H, W) cost over ``disparities`` (consecutive integers) -> (disparity (B, H, W) float32, refined
-    by ``parabolic_subpixel``; its index (B, H, W) int64 into the
-    volume; the right view's disparity (``right_view_wta``); consistent (B, H, W) bool, the pixels that
-    ``left_right_check`` passes within ``lr_tolerance``). Leaves ``volume`` as it was, so that
+    by ``parabolic_subpixel``; its index (B, H, W) int64 into the volume; the right view's disparity
+    (``right_view_wta``); consistent (B, H, W) bool, the pixels that ``left_right_check`` passes within
+    ``lr_tolerance``). Leaves ``volume`` as it was, so that
     ``unique_minimum`` may still be called on it afterwards."""
     index = winner_takes_all(volume)
     disp = parabolic_subpixel(volume, index) + disparities[0]

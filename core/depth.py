@@ -514,13 +514,15 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     fb = calib.focal_px * calib.baseline_mm
     # deviation = fb (c / d - 1) / |n|: c from the ring, d from the defect's own pixels
     deviation = fb * (c / d - 1.0) / n
-    deviation_sigma = float(np.sqrt((fb / (d * n)) ** 2 * cov[0, 0] + (fb * c / (d * d * n)) ** 2 * var_d))
+    # mm^2 of deviation per px^2: of the ring's plane at the centre, and of the region's offset
+    per_ring, per_region = (fb / (d * n)) ** 2, (fb * c / (d * d * n)) ** 2
+    deviation_sigma = float(np.sqrt(per_ring * cov[0, 0] + per_region * var_d))
     distance = fb / d
     if part is not None:
         budget.append((part.kind, _part_cause(part, moved, (detection.width, detection.height),
                                               lambda offset: fb * (c / (c + offset) - 1.0) / n), part.variance))
-    parts = (UncertaintyPart("surface", RING_CAUSE, float((fb / (d * n)) ** 2 * cov[0, 0])),) + tuple(
-        UncertaintyPart(kind, cause, float((fb * c / (d * d * n)) ** 2 * v)) for kind, cause, v in budget if v > 0)
+    parts = (UncertaintyPart("surface", RING_CAUSE, float(per_ring * cov[0, 0])),) + tuple(
+        UncertaintyPart(kind, cause, float(per_region * v)) for kind, cause, v in budget if v > 0)
     return DefectMeasurement(
         detection, float(distance), float(deviation), reference.valid_fraction, reference.depth_resolution_mm,
         reference.area_mm2 * (distance / reference.distance_mm) ** 2,

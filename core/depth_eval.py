@@ -303,14 +303,9 @@ def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backe
             **({} if parts is None else {"error_ring_mm": parts.ring_mm, "error_region_mm": parts.region_mm,
                                          "error_extent_mm": parts.extent_mm}),
             box_shift=float(shift[0]), box_scale=float(scale[0]),
-            uncertainty_from=_largest_kind(m),
+            uncertainty_from=uncertainty_budget.largest_kind(m.uncertainty_parts),
         ))
     return rows
-
-
-def _largest_kind(m: DefectMeasurement) -> str:
-    found = uncertainty_budget.largest(m.uncertainty_parts)
-    return "" if found is None else found[0].kind
 
 
 def _finite(value: float) -> float | None:

@@ -419,9 +419,8 @@ def undecided_by_cause(db: sqlite3.Connection, run_id: int | None = None) -> dic
         # the account is the deviation's: a defect that only a rule on another quantity left undecided is not its
         if not any(NOT_PROVEN in r and "deviation_mm" in r for r in _reasons(reasons)):
             continue
-        largest = uncertainty_budget.largest([UncertaintyPart(p["kind"], p["cause"], p["variance_mm2"])
-                                              for p in uncertainty_account(text)])
-        tally[largest[0].kind if largest else ""] += 1
+        tally[uncertainty_budget.largest_kind([UncertaintyPart(p["kind"], p["cause"], p["variance_mm2"])
+                                               for p in uncertainty_account(text)])] += 1
     return dict(tally.most_common())
 
 

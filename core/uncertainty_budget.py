@@ -48,11 +48,22 @@ def largest(parts: Sequence[UncertaintyPart]) -> tuple[UncertaintyPart, float] |
     return part, part.variance_mm2 / total
 
 
+def largest_kind(parts: Sequence[UncertaintyPart]) -> str:
+    """The kind of ``largest``'s part; '' where there is none (no account, or nothing in it)."""
+    found = largest(parts)
+    return "" if found is None else found[0].kind
+
+
+def kind_name(kind: str) -> str:
+    """A kind's name in a tally (``KINDS``), the kind itself where it has none."""
+    return KINDS.get(kind, kind)
+
+
 def tally_words(tally: dict[str, dict[str, int]]) -> list[str]:
     """Defects by the kind of their largest part and their true outcome (``PASS``: inside the limit, ``REJECT``:
     beyond it), as ``"<kind's name> inside / beyond"``, the kinds that count most first."""
     order = sorted(tally, key=lambda k: -sum(tally[k].values()))
-    return [f"{KINDS.get(k, k)} {tally[k].get('PASS', 0)} / {tally[k].get('REJECT', 0)}" for k in order]
+    return [f"{kind_name(k)} {tally[k].get('PASS', 0)} / {tally[k].get('REJECT', 0)}" for k in order]
 
 
 def cause_clause(parts: Sequence[UncertaintyPart]) -> str:

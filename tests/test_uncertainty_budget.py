@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from core.types import UncertaintyPart
-from core.uncertainty_budget import KINDS, cause_clause, largest, shift_words
+from core.uncertainty_budget import KINDS, cause_clause, kind_name, largest, largest_kind, shift_words
 
 
 def _part(cause: str, variance: float, kind: str = "noise") -> UncertaintyPart:
@@ -39,6 +39,20 @@ class TestLargest:
     @pytest.mark.parametrize("parts", [[], [_part("a", 0.0)], [_part("a", float("nan"))], [_part("a", float("inf"))]])
     def test_none_without_a_variance_to_share(self, parts):
         assert largest(parts) is None
+
+
+class TestLargestKind:
+    def test_the_kind_of_the_largest_part(self):
+        assert largest_kind([_part("a", 1.0, "surface"), _part("b", 3.0, "moved")]) == "moved"
+
+    @pytest.mark.parametrize("parts", [[], [_part("a", 0.0)]])
+    def test_empty_without_a_variance_to_share(self, parts):
+        assert largest_kind(parts) == ""
+
+
+class TestKindName:
+    def test_a_kind_by_its_tally_name_and_an_unknown_one_as_it_is(self):
+        assert kind_name("moved") == KINDS["moved"] and kind_name("ring_side") == "ring_side"
 
 
 class TestCauseClause:

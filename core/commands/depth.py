@@ -47,7 +47,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     from core.depth import warm_up
     from core.engine import SetupError, StageFailed, command_threads, make_plugin, plugin_context
     from core.registry import default_registry
-    from core.uncertainty_budget import KINDS
+    from core.uncertainty_budget import kind_name
     from drivers.sequence_folder import SequenceError, labelled_sequence_problem, read_labels
 
     overrides = list(overrides)
@@ -110,7 +110,7 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
                     dev = "n/a" if r.deviation_mm is None else f"{r.deviation_mm:+.3f}±{r.deviation_sigma_mm or 0:.3f}"
                     z = "   n/a" if r.true_distance_mm is None else f"{r.true_distance_mm:6.1f}"
                     # a measurement no rule could decide says what its uncertainty was mostly made of
-                    why = (f", undecided: mostly {KINDS.get(r.uncertainty_from, r.uncertainty_from)}"
+                    why = (f", undecided: mostly {kind_name(r.uncertainty_from)}"
                            if r.proven == "undecided" and r.uncertainty_from else "")
                     click.echo(f"{folder.name} {r.frame_id} {r.cls:<16} Z {z} true {r.true_deviation_mm:+.3f} "
                                f"measured {dev} mm ({r.status}{why}; disparity alone "

@@ -658,11 +658,11 @@ def _report(db, results: Path, run_id: int | None, csv_path: Path | None) -> Non
             click.echo(f"  {cls:<16} {sum(by_verdict.values()):>4}  ({detail})")
     undecided = store.undecided_by_cause(db, run_id)
     if undecided:
-        from core.uncertainty_budget import KINDS
+        from core.uncertainty_budget import kind_name
 
         click.echo("defects no rule could decide, by the largest part of their uncertainty:")
         for kind, n in undecided.items():
-            click.echo(f"  {n:>4}  {KINDS.get(kind, kind) if kind else WITHOUT_ACCOUNT}")
+            click.echo(f"  {n:>4}  {kind_name(kind) if kind else WITHOUT_ACCOUNT}")
     if csv_path is not None:
         n = store.export_csv(db, csv_path, run_id)  # a file it cannot write: OSError naming it, for cli.main
         click.echo(f"wrote {n} rows to {csv_path}")

@@ -1,6 +1,7 @@
 """Disparity only where depth will read it: around the detector's boxes (``stereo.region: defects``).
 
-``core/depth.py`` reads a detection's box and a ring around it (``ring_gap_px + ring_width_px``).
+``core/depth.py`` reads a detection's box and a ring around it (``ring_gap_px + ring_width_px``, or
+``faint_ring_width_px`` where the surface fit widens the ring).
 That *needed* rectangle, grown by ``roi_margin_px`` so the matcher sees the same context as on the
 full frame (its block, census and filter windows, and enough of every SGM path to settle), is
 matched on a crop of both images. The crop reaches ``max_disp + SEARCH_SLACK_PX`` further to the
@@ -30,7 +31,8 @@ Rect = tuple[int, int, int, int]  # x0, y0, x1, y1; x1 and y1 exclusive
 def needed_rect(box: tuple[float, float, float, float], rule: DepthRule, shape: tuple[int, int]) -> Rect:
     """The pixels ``measure_defect`` reads for this box: the box and its ring, clipped to the image."""
     h, w = shape
-    grow = rule.ring_gap_px + rule.ring_width_px
+    widest = max(rule.ring_width_px, rule.faint_ring_width_px) if rule.method == "surface" else rule.ring_width_px
+    grow = rule.ring_gap_px + widest
     x0, y0, x1, y1 = box
     return (max(0, math.floor(x0) - grow), max(0, math.floor(y0) - grow),
             min(w, math.ceil(x1) + grow), min(h, math.ceil(y1) + grow))

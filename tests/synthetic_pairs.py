@@ -59,10 +59,11 @@ def _texture(seed: int, size: int = 1024) -> np.ndarray:
 
 
 def render(calib: Calibration, distance_mm: float, tilt_deg: float = 0.0, pits: list[Pit | Groove] = (), seed: int = 0,
-           shading: float = 0.0):
+           shading: float = 0.0, contrast=None):
     """Left, right (HxWx3 uint8) and the left image's exact disparity (HxW float32). ``shading``: the walls lit
     from one side, the texture brightened by that much per unit of the surface's slope down the plate (mm per
-    mm; the same for both eyes, as diffuse light is)."""
+    mm; the same for both eyes, as diffuse light is). ``contrast``: the texture's contrast about its mean at plate
+    coordinates (..., 2) mm from the first pit's centre (or the plate's), as a function of them (1 = as drawn)."""
     f, b = calib.focal_px, calib.baseline_mm
     tex = _texture(seed)
     t = np.deg2rad(tilt_deg)
@@ -111,6 +112,9 @@ def render(calib: Calibration, distance_mm: float, tilt_deg: float = 0.0, pits: 
         mx = (local[..., 0] * 2.0 + 512).astype(np.float32)
         my = (local[..., 1] * 2.0 + 512).astype(np.float32)
         grey = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        if contrast is not None:
+            mean = float(tex.mean())
+            grey = mean + (grey - mean) * contrast(local - (centres[0][0] if centres else 0.0)).astype(np.float32)
         if shading:
             slope = (depth_at(local + np.array([0.0, 0.05])) - depth_at(local - np.array([0.0, 0.05]))) / 0.1
             grey = grey * np.clip(1.0 + shading * slope, 0.2, 2.0).astype(np.float32)

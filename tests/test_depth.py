@@ -203,6 +203,59 @@ def test_surface_method_on_a_flat_plate_from_a_whole_pixel_backend(tilt):
     assert reference.method == "disparity" and abs(reference.distance_mm - 400) > abs(m.distance_mm - 400)
 
 
+def _faint_beyond(radius_mm: float):
+    return lambda local: np.where(np.hypot(local[..., 0], local[..., 1]) > radius_mm, 0.15, 1.0)
+
+
+class TestRingWidth:
+    """The ring is widened where its texture is faint against the region's, before the fit (``depth.ring_width``)."""
+
+    def test_a_ring_as_textured_as_its_region_keeps_its_width(self):
+        left, _, _ = render(CALIB, 420.0, 6.0, [Pit(160, 96, 25.0, 1.5, floor=0.8)])
+        assert depth.ring_width(_grey(left), BOX, DepthRule()) == 12
+
+    def test_a_ring_fainter_than_its_region_is_widened(self):
+        # the plate's texture at 0.15 of its contrast from 30 mm around the pit: the whole ring (from 28 px, 34 mm)
+        left, _, _ = render(CALIB, 420.0, 6.0, [Pit(160, 96, 25.0, 1.5, floor=0.8)], contrast=_faint_beyond(30.0))
+        grey = _grey(left)
+        assert depth.ring_width(grey, BOX, DepthRule()) == 20
+        assert depth.ring_width(grey, BOX, DepthRule(faint_ring_width_px=28)) == 28
+        # a faint width no wider than the ring never narrows it
+        assert depth.ring_width(grey, BOX, DepthRule(ring_width_px=16, faint_ring_width_px=8)) == 16
+
+    def test_the_region_s_texture_is_what_the_ring_is_compared_with(self):
+        # the same faint ring around a region as faint as it is: nothing to gain, the ring kept
+        left, _, _ = render(CALIB, 420.0, 6.0, [Pit(160, 96, 25.0, 1.5, floor=0.8)], contrast=lambda local: np.full(
+            local.shape[:-1], 0.15))
+        assert depth.ring_width(_grey(left), BOX, DepthRule()) == 12
+
+    def test_shapes_are_checked(self):
+        with pytest.raises(ValueError, match="HxW"):
+            depth.ring_width(np.zeros((192, 320, 3), np.float32), BOX, DepthRule())
+
+    def test_the_widened_ring_scatters_less_and_its_uncertainty_says_so(self):
+        """Over noisy renders of a pit on a plate whose texture fades beyond it, the measurement with the widened
+        ring scatters less than with the ring kept at its width, reports a smaller uncertainty, and keeps the true
+        deviation within twice it."""
+        kept, widened = [], []
+        for seed in range(12):
+            noise = np.random.default_rng(seed)
+            left, right, disparity = render(CALIB, 420.0, 6.0, [Pit(160, 96, 25.0, 1.5, floor=0.8)], seed=seed,
+                                            contrast=_faint_beyond(30.0))
+            pair = tuple(np.clip(image[..., 0] + noise.normal(0, 2.0, image.shape[:2]), 0, 255).astype(np.float32)
+                         for image in (left, right))
+            blurred = cv2.blur(np.round(disparity * 4) / 4, (9, 9))
+            for out, width in ((kept, 12), (widened, 20)):
+                m = measure_defect(blurred, Detection("pit", 0.9, BOX), CALIB, DepthRule(faint_ring_width_px=width),
+                                   pair)
+                assert m.method == "surface", m.note
+                out.append((m.deviation_mm, m.deviation_sigma_mm))
+        kept, widened = np.array(kept), np.array(widened)
+        assert np.std(widened[:, 0]) < 0.7 * np.std(kept[:, 0])
+        assert np.median(widened[:, 1]) < np.median(kept[:, 1])
+        assert np.mean(np.abs(widened[:, 0] - 1.5) <= 2 * widened[:, 1]) >= 0.9
+
+
 def test_the_matcher_s_noise_in_the_ring_does_not_move_the_surface_fit():
     # a crop of the matcher's map differs from the full frame's by noise where the texture is faint: ring pixels
     # it puts more than its tolerance off the plane in one map and not the other. The fit reads the images over
@@ -509,12 +562,12 @@ def test_a_groove_s_region_takes_the_eyes_rows_offset_from_the_ring_alone(monkey
                         float(data["doffs"]))
     box = tuple(float(v) for v in data["box"])
 
-    def measured():
-        return measure_defect(disparity, Detection("inclusion", 1.0, box), calib, DepthRule(), (left, right))
+    def measured(rule=DepthRule(faint_ring_width_px=12)):  # the ring it was found with (the faint one is wider)
+        return measure_defect(disparity, Detection("inclusion", 1.0, box), calib, rule, (left, right))
 
-    m = measured()
-    assert "along a groove" in m.note
-    assert abs(m.deviation_mm - 2.344) <= 2 * m.deviation_sigma_mm
+    for m in (measured(), measured(DepthRule())):
+        assert "along a groove" in m.note
+        assert abs(m.deviation_mm - 2.344) <= 2 * m.deviation_sigma_mm
     fit = surface_fit.fit_surface
     monkeypatch.setattr(surface_fit, "fit_surface", lambda *args, rows_from_ring=False, **kw: fit(*args, **kw))
     whole = measured()

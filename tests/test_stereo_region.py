@@ -21,10 +21,15 @@ FIXTURE = Path(__file__).resolve().parents[1] / "sim_fixtures" / "steel_plate"
 RULE = DepthRule()
 
 
-def test_needed_rect_is_box_and_ring_clipped():
-    grow = RULE.ring_gap_px + RULE.ring_width_px
+def test_needed_rect_is_box_and_widest_ring_clipped():
+    grow = RULE.ring_gap_px + RULE.faint_ring_width_px  # the surface fit may widen the ring to this
+    assert RULE.faint_ring_width_px > RULE.ring_width_px
     assert needed_rect((100.2, 50.7, 140.5, 80.0), RULE, (376, 672)) == (100 - grow, 50 - grow, 141 + grow, 80 + grow)
     assert needed_rect((2, 3, 660, 370), RULE, (376, 672)) == (0, 0, 672, 376)
+    # the map alone never widens it; nor does a faint width narrower than the ring
+    for rule in (DepthRule(method="disparity"), DepthRule(ring_width_px=24, faint_ring_width_px=8)):
+        grow = rule.ring_gap_px + rule.ring_width_px
+        assert needed_rect((100.2, 50.7, 140.5, 80.0), rule, (376, 672)) == (100 - grow, 50 - grow, 141 + grow, 80 + grow)
 
 
 def test_crop_reaches_the_search_range_to_the_left():

@@ -146,6 +146,9 @@ class DepthSection(Section):
     inner_fraction: float = Field(0.6, gt=0.0, le=0.6)
     ring_gap_px: int = Field(3, ge=0, le=200)
     ring_width_px: int = Field(12, ge=2, le=200)
+    # method surface: the ring's width where its texture is faint against the region's, whose plane then leads
+    # the deviation's uncertainty (core.depth.ring_width; no wider than ring_width_px: never widened)
+    faint_ring_width_px: int = Field(20, ge=2, le=200)
     min_valid_fraction: float = Field(0.10, ge=0.0, le=1.0)
     min_ring_points: int = Field(30, ge=3)
     min_plane_inliers: float = Field(0.6, gt=0.0, le=1.0)

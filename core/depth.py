@@ -57,6 +57,12 @@ class DepthRule:
     disparity_noise_px: float = 0.25
     method: Literal["surface", "disparity"] = "surface"
 
+    @property
+    def widest_ring_px(self) -> int:
+        """The widest ring a measurement may read: ``faint_ring_width_px`` where the surface fit may widen the ring
+        to it (``ring_width``), else ``ring_width_px``."""
+        return max(self.ring_width_px, self.faint_ring_width_px) if self.method == "surface" else self.ring_width_px
+
     @classmethod
     def from_section(cls, section: Any, **changes: Any) -> DepthRule:
         """The rule of a recipe's ``depth`` section (its keys that are not measurement settings left out)."""
@@ -265,9 +271,9 @@ def worst_side_of(on_plane: np.ndarray, u: np.ndarray, v: np.ndarray, box: tuple
 
 
 def ring_width(left: np.ndarray, box: tuple[float, float, float, float], rule: DepthRule) -> int:
-    """The ring's width (px) for ``box`` on the HxW grey ``left`` image: ``rule.faint_ring_width_px`` (when wider)
-    where the left image's horizontal gradient energy over the ring of ``rule.ring_width_px`` is below
-    ``FAINT_RING_RATIO`` times the region's, else ``rule.ring_width_px``.
+    """The ring's width (px) for ``box`` on the HxW grey ``left`` image: ``rule.widest_ring_px`` (the faint ring's,
+    for ``method: surface``) where the left image's horizontal gradient energy over the ring of
+    ``rule.ring_width_px`` is below ``FAINT_RING_RATIO`` times the region's, else ``rule.ring_width_px``.
 
     Why: the deviation is the region's disparity less the ring's plane, and each is known to
     ``sigma * sqrt(2 / sum I_x^2)`` over its pixels. Where the ring's texture is the fainter, its plane leads the
@@ -276,9 +282,9 @@ def ring_width(left: np.ndarray, box: tuple[float, float, float, float], rule: D
     second fit to find out costs more than the wider ring (docs/research-log.md)."""
     if left.ndim != 2:
         raise ValueError(f"ring_width: left {left.shape} must be HxW grey")
-    wide = rule.faint_ring_width_px
-    if wide <= rule.ring_width_px:
-        return rule.ring_width_px
+    wide = rule.widest_ring_px
+    if wide == rule.ring_width_px:
+        return wide
     shape = left.shape
     ring_u, ring_v = ring_pixels(shape, box, rule.ring_gap_px, rule.ring_width_px)
     x0, y0, x1, y1 = _clip_box(roi_box(box, rule), shape)

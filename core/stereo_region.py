@@ -31,8 +31,7 @@ Rect = tuple[int, int, int, int]  # x0, y0, x1, y1; x1 and y1 exclusive
 def needed_rect(box: tuple[float, float, float, float], rule: DepthRule, shape: tuple[int, int]) -> Rect:
     """The pixels ``measure_defect`` reads for this box: the box and its ring, clipped to the image."""
     h, w = shape
-    widest = max(rule.ring_width_px, rule.faint_ring_width_px) if rule.method == "surface" else rule.ring_width_px
-    grow = rule.ring_gap_px + widest
+    grow = rule.ring_gap_px + rule.widest_ring_px
     x0, y0, x1, y1 = box
     return (max(0, math.floor(x0) - grow), max(0, math.floor(y0) - grow),
             min(w, math.ceil(x1) + grow), min(h, math.ceil(y1) + grow))

@@ -220,8 +220,9 @@ class TestRingWidth:
         grey = _grey(left)
         assert depth.ring_width(grey, BOX, DepthRule()) == 20
         assert depth.ring_width(grey, BOX, DepthRule(faint_ring_width_px=28)) == 28
-        # a faint width no wider than the ring never narrows it
+        # a faint width no wider than the ring never narrows it, and the map alone never widens it
         assert depth.ring_width(grey, BOX, DepthRule(ring_width_px=16, faint_ring_width_px=8)) == 16
+        assert depth.ring_width(grey, BOX, DepthRule(method="disparity")) == 12
 
     def test_the_region_s_texture_is_what_the_ring_is_compared_with(self):
         # the same faint ring around a region as faint as it is: nothing to gain, the ring kept

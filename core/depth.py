@@ -427,7 +427,8 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         return _outside_search(unseen, pair, ring_all, calib, searched)
     start = -float(np.median(offsets))
     left, right = pair
-    fit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)
+    ring_fit = surface_fit.fit_ring(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)
+    fit = None if ring_fit is None else surface_fit.fit_defect(ring_fit)
     # no fallback to the backend's map: where the images cannot be fitted, its value is not one to vouch for
     if fit is None:
         return _outside_search(_unavailable(reference, "the surface fit did not settle"), pair, ring_all, calib,
@@ -484,8 +485,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
         # the region holds the groove and the surface beside it, which one offset does not model: the eyes'
         # rows offset is then the ring's alone (a 2.34 mm groove at HD720 read 2.06 +- 0.05 mm with it fitted
         # to the whole, 2.33 +- 0.05 mm with the ring's; docs/research-log.md)
-        refit = surface_fit.fit_surface(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights,
-                                        rows_from_ring=True)
+        refit = surface_fit.fit_defect(ring_fit, rows_from_ring=True)
         if refit is not None and refit.matches:
             # the same cells (their centres and the band's are the pixels'), read again at the refit
             refit_offsets, refit_sds, _, _ = surface_fit.cell_offsets(left, right, refit, (uu, vv), weights,

@@ -33,6 +33,7 @@ residuals are correlated (the right image is interpolated; a JPEG has blocks).
 """
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -350,23 +351,32 @@ class _Problem:
                                                   theta, idx, HUBER_K, 1e-3)
 
 
-def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.ndarray],
-                defect: tuple[np.ndarray, np.ndarray], plane: tuple[float, float, float],
-                delta0: float = 0.0, defect_weights: np.ndarray | None = None,
-                search_px: float = SEARCH_PX, rows_from_ring: bool = False) -> SurfaceFit | None:
-    """Fit the ring's disparity plane and the defect's offset to the grey levels of a rectified pair.
+@dataclass(frozen=True)
+class RingFit:
+    """The ring's plane fitted coarse to fine from the backend's and its cells weighed (``fit_ring``): what every
+    fit of the defect's offset from it starts from (``fit_defect``). ``theta`` (11,) the parameters so far,
+    ``prior`` (N,) each pixel's share with the ring's cells weighed, ``ring_prior`` the shares before;
+    ``problem`` the pixels and the images' levels, ``origin`` and ``right_x0`` the windows it reads
+    (``DefectImages``), ``delta0`` and ``search_px`` where the defect's offset is searched."""
 
-    left, right: HxW float32 grey images of the same shape. ring, defect: (u, v) integer pixel
-    coordinates (1-D arrays) of the surrounding surface and of the defect's region. defect_weights:
-    (len(defect[0]),) each defect pixel's share of the region (its area inside a region whose border
-    cuts pixels), 1 if not given. plane: the starting plane ``d = a * u + b * v + c`` of the ring in
-    image coordinates (disparity px, without doffs). delta0: the defect's starting offset, searched
-    ``search_px`` either side. rows_from_ring: the eyes' vertical offset ``e`` fitted on the ring alone and
-    held there while the defect's offset is fitted, for a region that holds more than one surface (a groove
-    across its box), whose single offset is the wrong model: the misfit moved ``e`` by a quarter of a pixel
-    along a groove's slanted walls, and with it the groove's depth by a sixth. None when too few usable
-    pixels remain or the fit does not settle.
-    """
+    problem: _Problem
+    theta: np.ndarray
+    prior: np.ndarray
+    ring_prior: np.ndarray
+    centre: tuple[float, float]
+    origin: tuple[int, int]
+    right_x0: int
+    delta0: float
+    search_px: float
+
+
+def fit_ring(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.ndarray],
+             defect: tuple[np.ndarray, np.ndarray], plane: tuple[float, float, float], delta0: float = 0.0,
+             defect_weights: np.ndarray | None = None, search_px: float = SEARCH_PX) -> RingFit | None:
+    """The first stage of ``fit_surface`` (its arguments as there): the ring's plane, exposure and the eyes'
+    vertical offset, coarse to fine from ``plane``, moved to the plane most of the ring's cells agree on and
+    with the cells that stand off it weighed down. None when too few usable pixels remain or a level does not
+    settle."""
     if left.shape != right.shape or left.ndim != 2:
         raise ValueError(f"fit_surface: left {left.shape} and right {right.shape} must be the same HxW")
     if len(ring[0]) != len(ring[1]) or len(defect[0]) != len(defect[1]):
@@ -399,14 +409,28 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
             return None
     p.level(0.0)
     theta = _ring_consensus(p, theta)
-    ring_prior = prior.copy()
-    prior[on_ring] *= _ring_cell_weights(p, theta)
+    weighed = prior.copy()
+    weighed[on_ring] *= _ring_cell_weights(p, theta)
+    return RingFit(p, theta, weighed, prior, centre, (x0, y0), right_x0, delta0, search_px)
+
+
+def fit_defect(start: RingFit, rows_from_ring: bool = False) -> SurfaceFit | None:
+    """The second stage of ``fit_surface``: the defect's offset searched from ``start.delta0`` at full
+    resolution, then fitted with the ring's parameters, the ring's cells weighed again at that fit and the fit
+    repeated. ``start`` is left as it was, so that one ring's fit serves more than one (a groove's, with
+    ``rows_from_ring``, after the region's). None when the fit leaves the searched minimum or its information
+    is singular."""
+    p = copy.copy(start.problem)  # shares of its own: the ring's cells are weighed again
+    p.prior = prior = start.prior.copy()
+    theta, ring_prior = start.theta.copy(), start.ring_prior
+    on_ring = p.m == 0
     joint = ALL
     if rows_from_ring:
         theta, _ = p.gauss_newton(theta, RING, ITERATIONS[-1], on_ring, TOLERANCE_PX)
         if theta is None:
             return None
         joint = [i for i in ALL if i != E]
+    delta0, search_px = start.delta0, start.search_px
     searched = _search_offset(p, theta, delta0 - search_px, delta0 + search_px)
     if searched is None:
         return None
@@ -428,9 +452,30 @@ def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.
     covariance, inflation = found
     ring_weights = np.where(ok[on_ring], prior[on_ring], 0.0)
     signal = _robust_scale(p.lvals[on_ring & p.usable])
-    return SurfaceFit(theta, covariance, centre, int((ok & on_ring).sum()), int((ok & ~on_ring).sum()),
+    return SurfaceFit(theta, covariance, start.centre, int((ok & on_ring).sum()), int((ok & ~on_ring).sum()),
                       _robust_scale(r), inflation, converged, ring_weights, signal,
-                      DefectImages((x0, y0), right_x0, p.L, p.R, p.Rx))
+                      DefectImages(start.origin, start.right_x0, p.L, p.R, p.Rx))
+
+
+def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.ndarray],
+                defect: tuple[np.ndarray, np.ndarray], plane: tuple[float, float, float],
+                delta0: float = 0.0, defect_weights: np.ndarray | None = None,
+                search_px: float = SEARCH_PX, rows_from_ring: bool = False) -> SurfaceFit | None:
+    """Fit the ring's disparity plane and the defect's offset to the grey levels of a rectified pair.
+
+    left, right: HxW float32 grey images of the same shape. ring, defect: (u, v) integer pixel
+    coordinates (1-D arrays) of the surrounding surface and of the defect's region. defect_weights:
+    (len(defect[0]),) each defect pixel's share of the region (its area inside a region whose border
+    cuts pixels), 1 if not given. plane: the starting plane ``d = a * u + b * v + c`` of the ring in
+    image coordinates (disparity px, without doffs). delta0: the defect's starting offset, searched
+    ``search_px`` either side. rows_from_ring: the eyes' vertical offset ``e`` fitted on the ring alone and
+    held there while the defect's offset is fitted, for a region that holds more than one surface (a groove
+    across its box), whose single offset is the wrong model: the misfit moved ``e`` by a quarter of a pixel
+    along a groove's slanted walls, and with it the groove's depth by a sixth. None when too few usable
+    pixels remain or the fit does not settle. ``fit_ring`` followed by ``fit_defect``.
+    """
+    start = fit_ring(left, right, ring, defect, plane, delta0, defect_weights, search_px)
+    return None if start is None else fit_defect(start, rows_from_ring)
 
 
 def warm_up() -> SurfaceFit | None:

@@ -569,8 +569,8 @@ def test_a_groove_s_region_takes_the_eyes_rows_offset_from_the_ring_alone(monkey
     for m in (measured(), measured(DepthRule())):
         assert "along a groove" in m.note
         assert abs(m.deviation_mm - 2.344) <= 2 * m.deviation_sigma_mm
-    fit = surface_fit.fit_surface
-    monkeypatch.setattr(surface_fit, "fit_surface", lambda *args, rows_from_ring=False, **kw: fit(*args, **kw))
+    fit = surface_fit.fit_defect
+    monkeypatch.setattr(surface_fit, "fit_defect", lambda start, rows_from_ring=False: fit(start))
     whole = measured()
     assert 2.344 - whole.deviation_mm > 4 * whole.deviation_sigma_mm
 

@@ -502,6 +502,42 @@ class TestFitSurface:
         assert sf.fit_surface(left, right, (ring[0][:5], ring[1][:5]), _regions()[1], PLANE) is None
 
 
+class TestFitRingThenDefect:
+    def test_one_ring_fit_serves_both_defect_fits_as_fit_surface_gives_them(self):
+        # a groove's refit (the rows from the ring) starts from the ring the region's fit started from
+        left, right, _ = step_pair(plane=PLANE, step_px=-0.3, noise=1.5, seed=8)
+        ring, defect = _regions()
+        start = sf.fit_ring(left, right, ring, defect, PLANE, 0.1)
+        kept = (start.theta.copy(), start.prior.copy(), start.ring_prior.copy())
+        for rows_from_ring in (False, True, False):
+            fit = sf.fit_defect(start, rows_from_ring)
+            whole = sf.fit_surface(left, right, ring, defect, PLANE, 0.1, rows_from_ring=rows_from_ring)
+            np.testing.assert_array_equal(fit.params, whole.params)
+            np.testing.assert_array_equal(fit.covariance, whole.covariance)
+            np.testing.assert_array_equal(fit.ring_weights, whole.ring_weights)
+        for before, after in zip(kept, (start.theta, start.prior, start.ring_prior)):
+            np.testing.assert_array_equal(before, after)
+        # the two kinds differ: holding the rows at the ring's moves the other parameters
+        assert not np.array_equal(sf.fit_defect(start).params, sf.fit_defect(start, True).params)
+
+    def test_the_ring_fit_weighs_a_ring_on_another_surface_down(self):
+        left, right, _ = step_pair(plane=PLANE, step_box=(101, 30, 130, 90), step_px=-0.4, seed=5)
+        ring, defect = _regions()
+        start = sf.fit_ring(left, right, ring, defect, PLANE)
+        on_ring = start.problem.m == 0
+        right_side = ring[0] > 100
+        assert start.prior.shape == start.ring_prior.shape == (len(ring[0]) + len(defect[0]),)
+        np.testing.assert_array_equal(start.ring_prior[on_ring], 1.0)
+        assert start.prior[on_ring][right_side].mean() < 0.2 < 0.8 < start.prior[on_ring][~right_side].mean()
+
+    def test_checks_and_nothing_to_fit_as_fit_surface(self):
+        left, right, _ = step_pair()
+        ring, defect = _regions()
+        with pytest.raises(ValueError, match="same HxW"):
+            sf.fit_ring(left, right[:, :-1], ring, defect, PLANE)
+        assert sf.fit_ring(left, right, (ring[0][:5], ring[1][:5]), defect, PLANE) is None
+
+
 class TestMatches:
     def test_a_textured_pair_matches_at_its_surface(self):
         left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=4)

@@ -625,3 +625,55 @@ def offset_costs(lvals: np.ndarray, image: np.ndarray, u: np.ndarray, v: np.ndar
     return _offset_costs(lvals.astype(f64), image, u.astype(f64), v.astype(f64), base.astype(f64), gain.astype(f64),
                          float(offset), weight.astype(f64), float(e), np.asarray(deltas, f64), float(scale),
                          float(huber_k))
+
+
+@njit(cache=True, nogil=True)
+def _sandwich_sums(jt, r, p, cut, groups, n_groups):
+    n_p, n = jt.shape
+    bread_w, meat_w, score = np.empty(n), np.empty(n), np.empty(n)
+    s2 = 0.0
+    for k in range(n):
+        size = abs(r[k])
+        hr = r[k] * _huber_weight(size, cut)
+        bread_w[k] = p[k] if size <= cut else 0.0
+        meat_w[k] = p[k] * p[k]
+        score[k] = p[k] * hr
+        s2 += p[k] * hr * hr
+    bread, meat = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
+    blocks = np.zeros((n_groups, n_p))
+    w = np.empty(n)
+    # one parameter's weighted row at a time, dotted with the others while it is in the cache (as ``_system``)
+    for a in range(n_p):
+        row = jt[a]
+        for k in range(n):
+            w[k] = bread_w[k] * row[k]
+        for b in range(a, n_p):
+            bread[a, b] = bread[b, a] = _dot(w, jt[b])
+        for k in range(n):
+            w[k] = meat_w[k] * row[k]
+        for b in range(a, n_p):
+            meat[a, b] = meat[b, a] = _dot(w, jt[b])
+        for k in range(n):
+            blocks[groups[k], a] += score[k] * row[k]
+    return bread, meat, s2, blocks
+
+
+def sandwich_sums(jt: np.ndarray, r: np.ndarray, p: np.ndarray, cut: float, groups: np.ndarray, n_groups: int
+                  ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """The sums of Huber's M-estimator's sandwich covariance over N pixels of P parameters, in one pass:
+    ``jt`` (P, N) the residuals' Jacobian transposed, ``r`` (N,) the residuals, ``p`` (N,) each pixel's share,
+    ``cut`` Huber's (k times the residuals' scale), ``groups`` (N,) each pixel's block in 0 .. n_groups - 1.
+    Returns (bread (P, P) ``sum p psi' J J^T``, meat (P, P) ``sum p^2 J J^T``, ``sum p (h r)^2`` with ``h`` Huber's
+    weight, blocks (n_groups, P) the block sums of the scores ``p h r J``)."""
+    jt = np.ascontiguousarray(jt, dtype=np.float64)
+    if jt.ndim != 2:
+        raise ValueError(f"sandwich_sums: jt {jt.shape} must be (P, N)")
+    n = jt.shape[1]
+    for name, array in (("r", r), ("p", p), ("groups", groups)):
+        if np.shape(array) != (n,):
+            raise ValueError(f"sandwich_sums: {name} {np.shape(array)} must be ({n},) as jt's columns")
+    groups = np.asarray(groups, dtype=np.int64)
+    if n and (groups.min() < 0 or groups.max() >= n_groups):
+        raise ValueError(f"sandwich_sums: groups must lie in 0 .. {n_groups - 1}")
+    f64 = np.float64
+    return _sandwich_sums(jt, np.asarray(r, f64), np.asarray(p, f64), float(cut), groups, int(n_groups))

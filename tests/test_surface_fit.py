@@ -29,6 +29,13 @@ def _plane_at(u, v, plane=PLANE):
     return plane[0] * u + plane[1] * v + plane[2]
 
 
+def _huber_weights(r, scale):
+    """Huber's weights of residuals ``r`` at ``scale``: the NumPy reference of the compiled kernels' own."""
+    k = sf.HUBER_K * scale
+    a = np.abs(r)
+    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
+
+
 def _floor(left, pixels, noise):
     gx = sf.gradient_x(left)
     return noise * math.sqrt(2) / math.sqrt(float(np.sum(gx[pixels[1], pixels[0]] ** 2)))
@@ -148,7 +155,7 @@ def _numpy_system(p, theta, idx):
     r, J, ok = p.residuals(theta, idx)
     r, J = r[ok], J[ok]
     scale = sf._robust_scale(r)
-    w = sf._huber_weights(r, scale) * p.prior[idx[ok]]
+    w = _huber_weights(r, scale) * p.prior[idx[ok]]
     return (J.T * w) @ J, -((J.T * w) @ r), scale, int(ok.sum())
 
 
@@ -204,7 +211,7 @@ class TestRingCellOffsets:
         r, J, ok = p.residuals(theta, idx)
         j, ok = J[:, 0], ok & (p.prior[idx] > 0)
         scale = sf._robust_scale(r[ok])
-        h = np.where(ok, sf._huber_weights(r, scale), 0.0)
+        h = np.where(ok, _huber_weights(r, scale), 0.0)
         with np.errstate(invalid="ignore"):
             info = np.bincount(cell, h * j * j, minlength=k)
             offset = -np.bincount(cell, h * j * r, minlength=k) / np.maximum(info, 1e-12)
@@ -288,7 +295,7 @@ class TestSandwich:
         theta = np.linalg.lstsq(J, y, rcond=None)[0]
         for _ in range(30):
             r = y - J @ theta
-            h = sf._huber_weights(r, sf._robust_scale(r)) * w
+            h = _huber_weights(r, sf._robust_scale(r)) * w
             theta = np.linalg.solve((J.T * h) @ J, (J.T * h) @ y)
         return theta, y - J @ theta
 
@@ -340,6 +347,39 @@ class TestSandwich:
         r = rng.normal(0.0, 2.0, self.N)
         assert sf.sandwich(J, r, sf._robust_scale(r), np.ones(self.N), np.arange(self.N) % 40,
                            np.arange(self.N) // 40) is None
+
+
+class TestSandwichSums:
+    """``surface_fit_numba.sandwich_sums`` against the NumPy products it replaced."""
+
+    def _inputs(self, n=900, groups=60, seed=4):
+        rng = np.random.default_rng(seed)
+        jt = rng.normal(size=(len(sf.PARAMS), n))
+        r = rng.standard_t(3, size=n)  # tails that Huber's cut reaches
+        return jt, r, rng.uniform(0.2, 1.0, n), rng.integers(0, groups, n), groups
+
+    def test_equals_the_numpy_sums(self):
+        jt, r, p, groups, k = self._inputs()
+        cut = sf.HUBER_K * sf._robust_scale(r)
+        h = _huber_weights(r, cut / sf.HUBER_K)
+        assert (h < 1).sum() > 50  # the cut is reached
+        bread, meat, s2, blocks = sfn.sandwich_sums(jt, r, p, cut, groups, k)
+        inside = (np.abs(r) <= cut) * p
+        np.testing.assert_allclose(bread, (jt * inside) @ jt.T, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(meat, (jt * p * p) @ jt.T, rtol=1e-12, atol=1e-9)
+        assert s2 == pytest.approx(np.sum(p * (h * r) ** 2), rel=1e-12)
+        scores = jt * (p * h * r)
+        expected = np.stack([np.bincount(groups, scores[i], minlength=k) for i in range(len(sf.PARAMS))], axis=1)
+        np.testing.assert_allclose(blocks, expected, rtol=1e-12, atol=1e-9)
+
+    def test_shape_checks(self):
+        jt, r, p, groups, k = self._inputs()
+        with pytest.raises(ValueError, match=r"jt \(900,\) must be \(P, N\)"):
+            sfn.sandwich_sums(jt[0], r, p, 1.0, groups, k)
+        with pytest.raises(ValueError, match="r .* must be \\(900,\\) as jt's columns"):
+            sfn.sandwich_sums(jt, r[:-1], p, 1.0, groups, k)
+        with pytest.raises(ValueError, match="groups must lie in 0 .. 59"):
+            sfn.sandwich_sums(jt, r, p, 1.0, groups + 1, k)
 
 
 class TestOffsetCosts:
@@ -616,7 +656,7 @@ class TestCellSteps:
             ok = np.isfinite(rv) & np.isfinite(gx) & (p > 0)
             r = np.where(ok, lv - gain * rv - o[0] - o[1], 0.0)
             j = np.where(ok, gain * gx, 0.0)
-            h = sf._huber_weights(r, scale) * p
+            h = _huber_weights(r, scale) * p
             num = np.bincount(cell, h * j * r, minlength=k)
             den = np.bincount(cell, h * j * j, minlength=k)
             step = np.where(den > 0, -num / np.maximum(den, 1e-12), 0.0)

@@ -50,6 +50,10 @@ def test_writes_json_markdown_and_figure(evaluated):
     # every frame lies within the working distance: none would make a part without defects an ERROR
     assert body["plate_check"]["frames"] > 0 and body["plate_check"]["flagged"] == []
     assert f"0 of {body['plate_check']['frames']} frames show the plate outside" in table
+    # the depth time per defect, and the reference's within it: the surface fit's own work is the rest
+    assert body["seconds_per_defect"] > 0 and body["reference_seconds_per_defect"] > 0
+    assert re.search(r"Depth per defect \(surface\): \d+\.\d ms on this machine; the reference, the backend's plane "
+                     r"and median alone, \d+\.\d ms\.", table)
 
 
 def test_the_surface_fit_beats_the_backend_alone_and_states_its_uncertainty(evaluated):

@@ -131,7 +131,8 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
             "python": platform.python_version(), "box_scale": box_scale, "box_shift": box_shift, "boxes": boxes,
             "detector": loaded.recipe.detector.plugin, "confidence": loaded.recipe.detector.confidence,
             "unscored": unscored, "plate_check": plate_check}
-    body = ev.report(rows, meta, sum(timings) / len(timings) if timings else None)
+    per_defect = [sum(t) / len(timings) for t in zip(*timings)] if timings else [None, None]
+    body = ev.report(rows, meta, *per_defect)
     written = ev.save(body, rows, out, figure)
     click.echo("")
     click.echo(ev.markdown(body))

@@ -385,6 +385,10 @@ def live_markdown(live: dict[str, Any]) -> str:
         added = live.get("added_share")
         if added is not None:
             matcher = live["rows"]["the matcher's depth"]["mean_ms"]["depth"]
+            # the matcher's depth (method: disparity) also checks where the plate lies around each box, which a
+            # measured surface fit makes unneeded: the fit's own work is more than this difference
             lines.append(f"the surface fit's share beyond the matcher's depth: {added:.0%} "
-                         f"({depth['mean_ms']['depth'] - matcher:.0f} ms a part more than its {matcher:.0f})")
+                         f"({depth['mean_ms']['depth'] - matcher:.0f} ms a part more than its {matcher:.0f}, which holds "
+                         f"the check of where the plate lies; the fit's own work: depth's share less the backend's "
+                         f"plane and median, `inspect eval depth`)")
     return "\n".join(lines) + "\n"

@@ -22,6 +22,7 @@ import resource
 import statistics
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -92,6 +93,9 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
         reference = make_plugin(loaded, registry, ctx, "stereo", backend, "stereo", {**settings, **versus})
     compare = stereo is not None and (region != "full" or bool(versus))
     rule = DepthRule.from_recipe(recipe)
+    # what the surface fit is added to: the backend's plane and median alone, without the check of where the plate
+    # lies that the line's method: disparity adds (a settled fit makes it unneeded)
+    plain = replace(rule, method="disparity") if rule.method == "surface" and stereo is not None else None
     section = recipe.stereo.model_copy(update={"region": region})
     diffs = {"defects": 0, "distance_mm": 0.0, "deviation_mm": 0.0, "availability_differs": 0}
     def open_camera(max_frames):
@@ -101,10 +105,12 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
     with tempfile.TemporaryDirectory() as tmp:
         output = registry.get("output", "log").spec.factory({"file": str(Path(tmp) / "bench.log")}, ctx)
         passes: list[dict[str, float]] = []
+        plain_passes: list[float] = []
         _warm_up(open_camera(1), loaded, detector, stereo, size)
         for _ in range(repeats):
             camera = open_camera(frames)
             totals = dict.fromkeys(STAGES, 0.0)
+            plain_total = 0.0
             count = 0
             iterator = iter(camera.frames())
             while True:
@@ -142,10 +148,15 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
                     previous = t[stage]
                 totals["loop"] += t["outputs"] - t_loop
                 count += 1
+                if plain is not None and measurements:  # untimed in the loop: the next frame's clock starts later
+                    t0 = time.perf_counter()
+                    measure_frame(disparity, detections, frame, plain)
+                    plain_total += time.perf_counter() - t0
                 if compare and measurements and not passes:  # untimed: the next frame's clock starts later
                     _compare_to_full(diffs, reference, frame, recipe.stereo, detections, rule, measurements)
             camera.close()
             passes.append({stage: totals[stage] / max(count, 1) for stage in STAGES})
+            plain_passes.append(plain_total / max(count, 1))
         output.close()
     result: dict[str, Any] = {"backend": backend, "region": region if stereo is not None else "-", "frames": count,
                               "repeats": repeats, "stages_ms": {}}
@@ -162,6 +173,8 @@ def bench_backend(loaded: LoadedRecipe, registry: Registry, backend: str, size: 
     ms = {stage: result["stages_ms"][stage]["median"] for stage in ("stereo", "depth", "detection")}
     result["stereo_and_depth_over_detection"] = ((ms["stereo"] + ms["depth"]) / ms["detection"]
                                                  if stereo is not None and ms["detection"] > 0 else None)
+    if plain is not None:
+        result["plane_and_median_ms"] = statistics.median(p * 1000.0 for p in plain_passes)
     result["peak_rss_mb"] = _peak_rss_mb()
     import torch
 
@@ -364,6 +377,22 @@ def added_share(row: dict[str, Any], reference: dict[str, Any] | None) -> float 
     return (row["mean_ms"]["depth"] - reference["mean_ms"]["depth"]) * row["fps"] / 1000.0
 
 
+def add_own_share(live: dict[str, Any], report: dict[str, Any], backend: str, region: str) -> None:
+    """Add to ``live`` the share of its frame time that the surface fit's own work takes (``own_share``): depth's
+    share less the part of depth the backend's plane and median take (``plane_and_median_of_depth``), as the stage
+    table's row of the recipe's ``backend`` and ``region`` timed them one after another. Nothing where that row,
+    its plane and median, or the loop's depth are missing."""
+    row = next((r for r in report["results"] if r["backend"] == backend and r["region"] == region), None)
+    share = live.get("depth_share")
+    if row is None or share is None or row.get("plane_and_median_ms") is None:
+        return
+    depth_ms = row["stages_ms"]["depth"]["median"]
+    if depth_ms > 0:
+        fraction = min(1.0, row["plane_and_median_ms"] / depth_ms)
+        live["plane_and_median_of_depth"] = fraction
+        live["own_share"] = share * (1.0 - fraction)
+
+
 def live_markdown(live: dict[str, Any]) -> str:
     mode = "detection a frame ahead" if live["concurrent"] else "one frame at a time"
     rounds = live["rounds"]
@@ -386,9 +415,12 @@ def live_markdown(live: dict[str, Any]) -> str:
         if added is not None:
             matcher = live["rows"]["the matcher's depth"]["mean_ms"]["depth"]
             # the matcher's depth (method: disparity) also checks where the plate lies around each box, which a
-            # measured surface fit makes unneeded: the fit's own work is more than this difference
+            # settled surface fit makes unneeded: the fit's own work is more than this difference
             lines.append(f"the surface fit's share beyond the matcher's depth: {added:.0%} "
-                         f"({depth['mean_ms']['depth'] - matcher:.0f} ms a part more than its {matcher:.0f}, which holds "
-                         f"the check of where the plate lies; the fit's own work: depth's share less the backend's "
-                         f"plane and median, `inspect eval depth`)")
+                         f"({depth['mean_ms']['depth'] - matcher:.0f} ms a part more than its {matcher:.0f}, which "
+                         f"holds the check of where the plate lies)")
+        own = live.get("own_share")
+        if own is not None:
+            lines.append(f"the surface fit's own work: {own:.0%} of a frame (depth's share less what the backend's "
+                         f"plane and median take of depth in the stage table, {live['plane_and_median_of_depth']:.0%})")
     return "\n".join(lines) + "\n"

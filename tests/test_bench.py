@@ -6,6 +6,8 @@ import pytest
 
 from conftest import ROOT, cli, cli_here
 
+from core.bench import add_own_share, live_markdown
+
 
 def test_bench_times_every_stage_and_saves_tables(tmp_path):
     out = cli("bench", "--recipe", str(ROOT / "recipes" / "steel_plate.yaml"), "--backends", "opencv_sgbm",
@@ -50,6 +52,9 @@ def test_bench_defect_region_is_compared_with_full_frame_and_detection_alone(tmp
     assert results[0]["stereo_and_depth_over_detection"] is None and results[1]["stereo_and_depth_over_detection"] > 0
     versus = results[1]["depth_vs_full_frame"]
     assert versus["defects"] >= 1 and versus["availability_differs"] == 0
+    # what the surface fit is added to, timed apart: the backend's plane and median alone, a part of depth's time
+    assert "plane_and_median_ms" not in results[0]
+    assert 0 < results[1]["plane_and_median_ms"] < results[1]["stages_ms"]["depth"]["median"]
     assert versus["distance_mm"] < 0.05 and versus["deviation_mm"] < 0.05
     assert "| opencv_sgbm | defects |" in (tmp_path / "bench-wvga-cpu.md").read_text()
 
@@ -159,6 +164,30 @@ def test_live_with_the_matchers_depth_as_the_recipes_runs_it_once(tmp_path):
     live = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())["live"]
     assert live["order"] == ["detection alone", "with depth"] and live["added_share"] is None
     assert live["depth_share"] > 0 and "beyond the matcher's depth" not in out.stdout
+
+
+class TestAddOwnShare:
+    REPORT = {"results": [{"backend": "none", "region": "-", "stages_ms": {"depth": {"median": 0.0}}},
+                          {"backend": "torch_sgm", "region": "full", "stages_ms": {"depth": {"median": 30.0}},
+                           "plane_and_median_ms": 1.0},
+                          {"backend": "torch_sgm", "region": "defects", "stages_ms": {"depth": {"median": 20.0}},
+                           "plane_and_median_ms": 1.0}]}
+
+    def test_depth_s_share_less_the_plane_and_median_s_part_of_the_recipe_s_row(self):
+        live = {"depth_share": 0.30}
+        add_own_share(live, self.REPORT, "torch_sgm", "defects")
+        assert live["plane_and_median_of_depth"] == pytest.approx(0.05)
+        assert live["own_share"] == pytest.approx(0.30 * 0.95)
+        assert "the surface fit's own work: 28% of a frame" in live_markdown(
+            {"concurrent": True, "threads": "auto", "rounds": 1, "rows": {"with depth": {
+                "frames": 1, "fps": 10.0, "fps_rounds": [10.0], "mean_ms": {"depth": 30.0}}}, "ratio": None, **live})
+
+    def test_nothing_without_the_recipe_s_row_its_plane_and_median_or_depth(self):
+        for backend, region, share in (("opencv_sgbm", "defects", 0.3), ("none", "-", 0.3),
+                                       ("torch_sgm", "defects", None)):
+            live = {"depth_share": share}
+            add_own_share(live, self.REPORT, backend, region)
+            assert "own_share" not in live
 
 
 def test_live_rounds_without_live_is_refused(tmp_path):

@@ -54,7 +54,8 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
                   soak, soak_every, quiet, live, live_rounds, threads, overrides, versus):
     """Time capture, detection, stereo, depth, decision, outputs and the whole loop; print and save
     a table (JSON + Markdown). Backend "none" times detection alone."""
-    from core.bench import NO_STEREO, BenchInputError, live_markdown, markdown, run_bench, run_live, run_soak
+    from core.bench import (NO_STEREO, BenchInputError, add_own_share, live_markdown, markdown, run_bench, run_live,
+                            run_soak)
     from core.engine import SetupError, command_threads
     from core.registry import default_registry
 
@@ -124,6 +125,7 @@ def bench_command(recipe, sequence, backends, resolution, min_disp, max_disp, de
     table = markdown(report)
     if live is not None:
         report["live"] = run_live(loaded, registry, live, device, live_rounds)
+        add_own_share(report["live"], report, loaded.recipe.stereo.backend, loaded.recipe.stereo.region)
         table += "\n" + live_markdown(report["live"])
     out.mkdir(parents=True, exist_ok=True)
     stem = f"bench-{resolution}-{report['device']}"

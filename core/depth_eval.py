@@ -229,11 +229,13 @@ def has_truth(defect: dict) -> bool:
 
 
 def evaluate_frame(frame: StereoFrame, labels: dict, loaded: LoadedRecipe, backend, sequence: str,
-                   timings: list[float], box_error: BoxError = BoxError(), detector=None) -> list[DefectRow]:
+                   timings: list[tuple[float, float]], box_error: BoxError = BoxError(), detector=None
+                   ) -> list[DefectRow]:
     """Every labelled defect of one frame (defects whose truth has no deviation are skipped), measured in
     the true boxes as ``box_error`` moves them, or with a ``detector`` in the box of its that matches the
     defect (``MATCH_IOU``; a defect without one is ``MISSED``); the floor is always the true box's, the true
-    distance that where the box looks (``distance_at_box``; unscored without the frame's true disparity)."""
+    distance that where the box looks (``distance_at_box``; unscored without the frame's true disparity).
+    Appends to ``timings`` the frame's depth seconds a defect, of the measurement and of the reference."""
     recipe = loaded.recipe
     rule = DepthRule.from_recipe(recipe)
     reference_rule = DepthRule.from_recipe(recipe, method="disparity")

@@ -484,11 +484,28 @@ def _dot(x, y):
 
 
 @njit(cache=True, nogil=True)
+def _weighted_gram(rows, weight, count):
+    """(R, R) ``sum_k weight[k] rows[a, k] rows[b, k]`` over the first ``count`` columns of ``rows`` (R, N): one
+    row's weighted copy at a time, dotted with the others while it is in the cache (the whole weighted matrix, a
+    megabyte for 10,000 pixels, was half the Gauss-Newton system's time)."""
+    n_rows = rows.shape[0]
+    out = np.zeros((n_rows, n_rows))
+    weighted = np.empty(count)
+    for a in range(n_rows):
+        for k in range(count):
+            weighted[k] = weight[k] * rows[a, k]
+        for b in range(a, n_rows):
+            out[a, b] = out[b, a] = _dot(weighted, rows[b, :count])
+    return out
+
+
+@njit(cache=True, nogil=True)
 def _system(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta, idx, huber_k, scale_floor):
     h, w = splines[0].shape
     n = idx.size
-    r = np.empty(n)
-    jac = np.empty((N_PARAMS, n))
+    # the Jacobian's rows and, last, the residuals: their weighted products with it are -b
+    jac = np.empty((N_PARAMS + 1, n))
+    r = jac[N_PARAMS]
     weight = np.empty(n)
     count = 0
     xs, sampled = _model_samples(splines, u, v, du, dv, m, theta, idx)  # NaN where a sample is no number
@@ -528,18 +545,8 @@ def _system(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, the
     for k in range(count):
         size = abs(res[k])
         weight[k] *= _huber_weight(size, cut)
-    # one parameter's weighted row at a time, dotted with the others while it is in the cache: the whole
-    # weighted Jacobian (a megabyte for 10,000 pixels) was half the system's time
-    a = np.zeros((N_PARAMS, N_PARAMS))
-    b = np.zeros(N_PARAMS)
-    jw = np.empty(count)
-    for p in range(N_PARAMS):
-        for k in range(count):
-            jw[k] = weight[k] * jac[p, k]
-        b[p] = -_dot(jw, res)
-        for q in range(p, N_PARAMS):
-            a[p, q] = a[q, p] = _dot(jw, jac[q, :count])
-    return a, b, scale, count
+    products = _weighted_gram(jac, weight, count)
+    return products[:N_PARAMS, :N_PARAMS].copy(), -products[:N_PARAMS, N_PARAMS], scale, count
 
 
 def _check_fit_arrays(who: str, n_splines: int, lvals, splines, right_saturated, usable, prior, u, v, du, dv, m,
@@ -639,23 +646,11 @@ def _sandwich_sums(jt, r, p, cut, groups, n_groups):
         meat_w[k] = p[k] * p[k]
         score[k] = p[k] * hr
         s2 += p[k] * hr * hr
-    bread, meat = np.zeros((n_p, n_p)), np.zeros((n_p, n_p))
     blocks = np.zeros((n_groups, n_p))
-    w = np.empty(n)
-    # one parameter's weighted row at a time, dotted with the others while it is in the cache (as ``_system``)
     for a in range(n_p):
-        row = jt[a]
         for k in range(n):
-            w[k] = bread_w[k] * row[k]
-        for b in range(a, n_p):
-            bread[a, b] = bread[b, a] = _dot(w, jt[b])
-        for k in range(n):
-            w[k] = meat_w[k] * row[k]
-        for b in range(a, n_p):
-            meat[a, b] = meat[b, a] = _dot(w, jt[b])
-        for k in range(n):
-            blocks[groups[k], a] += score[k] * row[k]
-    return bread, meat, s2, blocks
+            blocks[groups[k], a] += score[k] * jt[a, k]
+    return _weighted_gram(jt, bread_w, n), _weighted_gram(jt, meat_w, n), s2, blocks
 
 
 def sandwich_sums(jt: np.ndarray, r: np.ndarray, p: np.ndarray, cut: float, groups: np.ndarray, n_groups: int

@@ -277,72 +277,14 @@ class _Problem:
             self._levels[sigma] = (L, R, Rx, Ry, L[self.vi, self.ui])
         self.L, self.R, self.Rx, self.Ry, self.lvals = self._levels[sigma]
 
-    def residuals(self, theta, idx=None):
-        """(residuals, Jacobian rows (n, 11), usable) at ``theta`` on the current level's images, for the
-        pixels ``idx`` (indices; all if None)."""
-        idx = slice(None) if idx is None else idx
-        du, dv, m, u, v = self.du[idx], self.dv[idx], self.m[idx], self.ur[idx], self.v[idx]
-        x = u - (theta[0] + theta[1] * du + theta[2] * dv + theta[3] * m)
-        y = v + theta[E]
-        rv, gx, gy = samples((self.R, self.Rx, self.Ry), x, v, theta[E])
-        ok = self.usable[idx] & np.isfinite(rv) & np.isfinite(gx) & np.isfinite(gy)
-        column = np.clip(np.rint(x), 0, self.R.shape[1] - 1).astype(np.intp)
-        row = np.clip(np.rint(y), 0, self.R.shape[0] - 1).astype(np.intp)
-        ok &= ~self.right_saturated[row, column]
-        gain = theta[4] + theta[5] * du + theta[6] * dv + theta[8] * m
-        r = self.lvals[idx] - gain * rv - theta[7] - theta[9] * m
-        # built by parameter (each row of Jt contiguous): filling columns of an (n, 11) array was most of
-        # this function's time
-        Jt = np.empty((len(PARAMS), len(r)))
-        np.multiply(gain, gx, out=Jt[0])  # d r / d disparity
-        np.multiply(Jt[0], du, out=Jt[1])
-        np.multiply(Jt[0], dv, out=Jt[2])
-        np.multiply(Jt[0], m, out=Jt[3])
-        np.negative(rv, out=Jt[4])
-        np.multiply(Jt[4], du, out=Jt[5])
-        np.multiply(Jt[4], dv, out=Jt[6])
-        Jt[7] = -1.0
-        np.multiply(Jt[4], m, out=Jt[8])
-        np.negative(m, out=Jt[9])
-        np.multiply(gain, gy, out=Jt[E])
-        np.negative(Jt[E], out=Jt[E])  # d r / d e
-        return r, Jt.T, ok
-
     def gauss_newton(self, theta, free, iterations, select, tolerance):
         """Huber-weighted Gauss-Newton on the parameters ``free`` over the pixels ``select``:
-        (theta, moved less than ``tolerance`` px in disparity at the end), or (None, False)."""
-        idx = np.flatnonzero(select)
-        free = np.asarray(free)
-        for _ in range(iterations):
-            A, b, scale, count = self.normal_equations(theta, idx)
-            if count < len(free) + 2:
-                return None, False
-            if len(free) < len(PARAMS):
-                A, b = A[np.ix_(free, free)], b[free]
-            if E in free:
-                k = list(free).index(E)
-                A[k, k] += _e_prior(scale)
-                b[k] -= _e_prior(scale) * theta[E]
-            try:
-                step = np.linalg.solve(A, b)
-            except np.linalg.LinAlgError:
-                return None, False
-            if not np.all(np.isfinite(step)):
-                return None, False
-            theta = theta.copy()
-            theta[free] += step
-            moves = [abs(step[i]) for i, f in enumerate(free) if f in (0, 3)]
-            if max(moves, default=0.0) < tolerance:
-                return theta, True
-        return theta, False
-
-    def normal_equations(self, theta, idx):
-        """(A (11, 11), b (11,), scale, pixels used): the Huber-weighted system ``sum w J J^T`` and
-        ``-sum w J r`` of ``residuals`` over the usable pixels of ``idx`` (indices), each weighted by its
-        share, at the residuals' robust scale (compiled: ``surface_fit_numba``)."""
-        return surface_fit_numba.normal_equations(self.lvals, (self.R, self.Rx, self.Ry), self.right_saturated,
-                                                  self.usable, self.prior, self.ur, self.v, self.du, self.dv, self.m,
-                                                  theta, idx, HUBER_K, 1e-3)
+        (theta, moved less than ``tolerance`` px in disparity at the end), or (None, False) (compiled:
+        ``surface_fit_numba.gauss_newton``)."""
+        return surface_fit_numba.gauss_newton(self.lvals, (self.R, self.Rx, self.Ry), self.right_saturated,
+                                              self.usable, self.prior, self.ur, self.v, self.du, self.dv, self.m,
+                                              theta, np.flatnonzero(select), free, iterations, tolerance, HUBER_K,
+                                              1e-3, E_PRIOR_PX)
 
 
 @dataclass(frozen=True)
@@ -436,18 +378,19 @@ def fit_defect(start: RingFit, rows_from_ring: bool = False) -> SurfaceFit | Non
     theta, converged = p.gauss_newton(theta, joint, REFIT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
     if theta is None or abs(theta[3] - searched) > LEFT_SEARCH_PX:  # the refit too (tests/test_surface_fit.py)
         return None
-    r, J, ok = p.residuals(theta)
-    kept = np.flatnonzero(ok)
-    r, J = r[kept], J.T.take(kept, axis=1).T
+    r, jt, kept = surface_fit_numba.jacobian_rows(p.lvals, (p.R, p.Rx, p.Ry), p.right_saturated, p.usable, p.ur, p.v,
+                                                  p.du, p.dv, p.m, theta, np.arange(len(p.u)))
+    ok = np.zeros(len(p.u), dtype=bool)
+    ok[kept] = True
     scale = _robust_scale(r)
-    found = sandwich(J, r, scale, prior[kept], p.at_u[ok], p.at_v[ok])
+    found = sandwich(jt.T, r, scale, prior[kept], p.at_u[ok], p.at_v[ok])
     if found is None:
         return None
     covariance, inflation = found
     ring_weights = np.where(ok[on_ring], prior[on_ring], 0.0)
     signal = _robust_scale(p.lvals[on_ring & p.usable])
     return SurfaceFit(theta, covariance, start.centre, int((ok & on_ring).sum()), int((ok & ~on_ring).sum()),
-                      _robust_scale(r), inflation, converged, ring_weights, signal,
+                      scale, inflation, converged, ring_weights, signal,
                       DefectImages(start.origin, start.right_x0, p.L, p.R, p.Rx))
 
 
@@ -581,8 +524,11 @@ def _exposure(p: _Problem, theta: np.ndarray) -> tuple[float, float]:
     ok = np.isfinite(rv)
     if ok.sum() < 3 or np.std(rv[ok]) < 1e-6:
         return 1.0, 0.0
-    g, o = np.polyfit(rv[ok], lv[ok], 1)
-    return float(g), float(o)
+    x, y = rv[ok], lv[ok]
+    dx = x - x.mean()
+    # the line's closed form: np.polyfit's SVD of a two-column design was a twentieth of a ring's fit
+    g = float(np.dot(dx, y - y.mean()) / np.dot(dx, dx))
+    return g, float(y.mean() - g * x.mean())
 
 
 def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> float | None:
@@ -590,7 +536,9 @@ def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> floa
     (steps of SEARCH_STEP_PX, refined by the parabola through the least cost and its neighbours); None where the
     least cost lies beyond an end of the range: no minimum within it is one the images vouch for (a box across a
     pit's edge, its ring fitted tilted, read a 2.04 mm pit as an 8.2 mm bump from just beyond its range's end)."""
-    scale = p.normal_equations(theta, np.flatnonzero(p.m == 0))[2]  # the ring's residuals' robust scale
+    # the ring's residuals' robust scale
+    scale = surface_fit_numba.normal_equations(p.lvals, (p.R, p.Rx, p.Ry), p.right_saturated, p.usable, p.prior, p.ur,
+                                               p.v, p.du, p.dv, p.m, theta, np.flatnonzero(p.m == 0), HUBER_K, 1e-3)[2]
     sel = p.usable & (p.m == 1)
     if not sel.any():
         return float(theta[3])

@@ -8,9 +8,9 @@ interpolating B-spline keeps frequencies near the pixel pitch that cubic convolu
 differently at each fraction of a pixel; docs/research-log.md). A sample at a float32 position is a number
 1 px from the left or top border and 2 px from the right or bottom one, as the four taps x - 1 .. x + 2 need.
 
-``normal_equations`` is what ``surface_fit._Problem.residuals`` followed by the Huber-weighted products of
-``gauss_newton`` give, ``offset_costs`` the Huber costs the search's NumPy version summed;
-``tests/test_surface_fit.py`` holds them to those.
+``normal_equations`` is the Huber-weighted Gauss-Newton system of the model's residuals, ``gauss_newton`` the
+steps taken with it, ``offset_costs`` the Huber costs of the defect's offset search; ``tests/test_surface_fit.py``
+holds them to NumPy's arithmetic on the same samples.
 """
 from __future__ import annotations
 
@@ -500,13 +500,15 @@ def _weighted_gram(rows, weight, count):
 
 
 @njit(cache=True, nogil=True)
-def _system(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta, idx, huber_k, scale_floor):
+def _jacobian_rows(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta, idx):
+    """(rows (12, n): the Jacobian's 11 rows and, last, the residuals over the usable pixels of ``idx`` in their
+    first ``count`` columns; those pixels' shares (n,); their places in ``idx`` (n,); count)."""
     h, w = splines[0].shape
     n = idx.size
-    # the Jacobian's rows and, last, the residuals: their weighted products with it are -b
     jac = np.empty((N_PARAMS + 1, n))
     r = jac[N_PARAMS]
     weight = np.empty(n)
+    kept = np.empty(n, np.int64)
     count = 0
     xs, sampled = _model_samples(splines, u, v, du, dv, m, theta, idx)  # NaN where a sample is no number
     for k in range(n):
@@ -536,8 +538,17 @@ def _system(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, the
         jac[9, count] = -m[i]
         jac[E, count] = -gain * gy
         weight[count] = prior[i]
+        kept[count] = k
         count += 1
-    res = r[:count]
+    return jac, weight, kept, count
+
+
+@njit(cache=True, nogil=True)
+def _system(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta, idx, huber_k, scale_floor):
+    # the residuals as the rows' last: their weighted products with the Jacobian's are -b
+    jac, weight, _, count = _jacobian_rows(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta,
+                                           idx)
+    res = jac[N_PARAMS][:count]
     scale = robust_scale(res)
     if not scale > 0:
         scale = scale_floor
@@ -584,6 +595,115 @@ def normal_equations(lvals: np.ndarray, splines: tuple[np.ndarray, np.ndarray, n
                    prior.astype(np.float64, copy=False), u, v, du, dv, m.astype(np.float64, copy=False),
                    theta.astype(np.float64, copy=False), np.asarray(idx, dtype=np.int64), float(huber_k),
                    float(scale_floor))
+
+
+def jacobian_rows(lvals: np.ndarray, splines: tuple[np.ndarray, np.ndarray, np.ndarray], right_saturated: np.ndarray,
+                  usable: np.ndarray, u: np.ndarray, v: np.ndarray, du: np.ndarray, dv: np.ndarray, m: np.ndarray,
+                  theta: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The residuals and their Jacobian at ``theta`` over the usable pixels of ``idx`` (arguments as
+    ``normal_equations``'): (residuals (n,), Jacobian transposed (11, n), those pixels' places in ``idx`` (n,)), the
+    pixels in ``idx``'s order."""
+    prior = np.ones(len(lvals))
+    _check_fit_arrays("jacobian_rows", 3, lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta)
+    f64 = np.float64
+    rows, _, kept, count = _jacobian_rows(lvals.astype(f64, copy=False), tuple(splines), right_saturated, usable,
+                                          prior, u, v, du, dv, m.astype(f64, copy=False),
+                                          theta.astype(f64, copy=False), np.asarray(idx, dtype=np.int64))
+    return rows[N_PARAMS, :count].copy(), rows[:N_PARAMS, :count].copy(), kept[:count].copy()
+
+
+@njit(cache=True, nogil=True)
+def _solve(a, b):
+    """x with ``a x = b`` (a (n, n), b (n,)) by Gaussian elimination with partial pivoting; NaN where a pivot is 0
+    (``a`` singular)."""
+    n = b.size
+    lu, x = a.copy(), b.copy()
+    for k in range(n):
+        pivot = k
+        for i in range(k + 1, n):
+            if abs(lu[i, k]) > abs(lu[pivot, k]):
+                pivot = i
+        if lu[pivot, k] == 0.0:
+            x[:] = np.nan
+            return x
+        if pivot != k:
+            for j in range(n):
+                lu[k, j], lu[pivot, j] = lu[pivot, j], lu[k, j]
+            x[k], x[pivot] = x[pivot], x[k]
+        for i in range(k + 1, n):
+            f = lu[i, k] / lu[k, k]
+            for j in range(k, n):
+                lu[i, j] -= f * lu[k, j]
+            x[i] -= f * x[k]
+    for i in range(n - 1, -1, -1):
+        total = x[i]
+        for j in range(i + 1, n):
+            total -= lu[i, j] * x[j]
+        x[i] = total / lu[i, i]
+    return x
+
+
+FAILED, MOVING, SETTLED = 0, 1, 2  # how ``gauss_newton`` ended
+
+
+@njit(cache=True, nogil=True)
+def _gauss_newton(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta, idx, free, iterations,
+                  tolerance, huber_k, scale_floor, e_prior_px):
+    theta = theta.copy()
+    n_free = free.size
+    e_at = -1
+    for a in range(n_free):
+        if free[a] == E:
+            e_at = a
+    for _ in range(iterations):
+        system, rhs, scale, count = _system(lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta,
+                                            idx, huber_k, scale_floor)
+        if count < n_free + 2:
+            return theta, FAILED
+        a_free, b_free = np.empty((n_free, n_free)), np.empty(n_free)
+        for a in range(n_free):
+            b_free[a] = rhs[free[a]]
+            for c in range(n_free):
+                a_free[a, c] = system[free[a], free[c]]
+        if e_at >= 0:
+            # the vertical offset's prior: one observation of 0 with spread e_prior_px, in the residuals' units
+            e_prior = (scale / e_prior_px) ** 2
+            a_free[e_at, e_at] += e_prior
+            b_free[e_at] -= e_prior * theta[E]
+        step = _solve(a_free, b_free)
+        moved = 0.0
+        for a in range(n_free):
+            if not np.isfinite(step[a]):
+                return theta, FAILED
+        for a in range(n_free):
+            theta[free[a]] += step[a]
+            if free[a] == 0 or free[a] == 3:  # the disparity's: the surface's and the defect's offset
+                moved = max(moved, abs(step[a]))
+        if moved < tolerance:
+            return theta, SETTLED
+    return theta, MOVING
+
+
+def gauss_newton(lvals: np.ndarray, splines: tuple[np.ndarray, np.ndarray, np.ndarray], right_saturated: np.ndarray,
+                 usable: np.ndarray, prior: np.ndarray, u: np.ndarray, v: np.ndarray, du: np.ndarray, dv: np.ndarray,
+                 m: np.ndarray, theta: np.ndarray, idx: np.ndarray, free: np.ndarray, iterations: int,
+                 tolerance: float, huber_k: float, scale_floor: float, e_prior_px: float
+                 ) -> tuple[np.ndarray | None, bool]:
+    """Huber-weighted Gauss-Newton on the parameters ``free`` (F,) of ``theta`` (11,) over the pixels ``idx`` (n,),
+    each step from ``normal_equations`` (the arguments as there) with the eyes' vertical offset's prior (one
+    observation of 0 with spread ``e_prior_px``) where it is free, at most ``iterations`` steps. Returns (theta,
+    whether the last step moved the disparity's parameters (0 and 3) less than ``tolerance`` px), or (None, False)
+    where fewer than F + 2 pixels are usable or a step is singular or no number."""
+    _check_fit_arrays("gauss_newton", 3, lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta)
+    free = np.asarray(free, dtype=np.int64)
+    if free.ndim != 1 or free.size == 0 or free.min() < 0 or free.max() >= N_PARAMS or np.unique(free).size != free.size:
+        raise ValueError(f"gauss_newton: free {free.tolist()} must be distinct parameters in 0 .. {N_PARAMS - 1}")
+    f64 = np.float64
+    theta, how = _gauss_newton(lvals.astype(f64, copy=False), tuple(splines), right_saturated, usable,
+                               prior.astype(f64, copy=False), u, v, du, dv, m.astype(f64, copy=False),
+                               theta.astype(f64), np.asarray(idx, dtype=np.int64), free, int(iterations),
+                               float(tolerance), float(huber_k), float(scale_floor), float(e_prior_px))
+    return (None, False) if how == FAILED else (theta, how == SETTLED)
 
 
 @njit(cache=True, nogil=True)

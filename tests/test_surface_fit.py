@@ -150,9 +150,29 @@ def _problem(theta_shift=0.0, saturate=False):
     return p, theta
 
 
+def _numpy_residuals(p, theta, idx=None):
+    """(residuals, Jacobian rows (n, 11), usable) of ``p`` (a ``_Problem``) at ``theta`` on its current level's
+    images for the pixels ``idx`` (indices; all if None), from NumPy's arithmetic on the spline's samples: what the
+    compiled kernels are held to."""
+    idx = slice(None) if idx is None else idx
+    du, dv, m, u, v = p.du[idx], p.dv[idx], p.m[idx], p.ur[idx], p.v[idx]
+    e = theta[sf.E]
+    x = u - (theta[0] + theta[1] * du + theta[2] * dv + theta[3] * m)
+    rv, gx, gy = sf.samples((p.R, p.Rx, p.Ry), x, v, e)
+    ok = p.usable[idx] & np.isfinite(rv) & np.isfinite(gx) & np.isfinite(gy)
+    column = np.clip(np.rint(x), 0, p.R.shape[1] - 1).astype(np.intp)
+    row = np.clip(np.rint(v + e), 0, p.R.shape[0] - 1).astype(np.intp)
+    ok &= ~p.right_saturated[row, column]
+    gain = theta[4] + theta[5] * du + theta[6] * dv + theta[8] * m
+    r = p.lvals[idx] - gain * rv - theta[7] - theta[9] * m
+    J = np.stack([gain * gx, gain * gx * du, gain * gx * dv, gain * gx * m, -rv, -rv * du, -rv * dv,
+                  -np.ones_like(rv), -rv * m, -m, -(gain * gy)], axis=1)
+    return r, J, ok
+
+
 def _numpy_system(p, theta, idx):
-    """The Gauss-Newton system as NumPy builds it from ``_Problem.residuals`` and OpenCV's samples."""
-    r, J, ok = p.residuals(theta, idx)
+    """The Gauss-Newton system as NumPy builds it from ``_numpy_residuals``."""
+    r, J, ok = _numpy_residuals(p, theta, idx)
     r, J = r[ok], J[ok]
     scale = sf._robust_scale(r)
     w = _huber_weights(r, scale) * p.prior[idx[ok]]
@@ -202,13 +222,112 @@ class TestNormalEquations:
                                  p.dv, p.m, theta[:4], idx, 1.0, 1e-3)
 
 
+class TestJacobianRows:
+    @pytest.mark.parametrize("shift,saturate", [(0.0, False), (60.0, False), (0.0, True)])
+    def test_equals_the_numpy_rows_on_the_usable_pixels(self, shift, saturate):
+        p, theta = _problem(shift, saturate)
+        idx = np.flatnonzero(np.random.default_rng(1).random(len(p.u)) < 0.7)
+        r, jt, kept = sfn.jacobian_rows(p.lvals, (p.R, p.Rx, p.Ry), p.right_saturated, p.usable, p.ur, p.v, p.du,
+                                        p.dv, p.m, theta, idx)
+        r_ref, J_ref, ok = _numpy_residuals(p, theta, idx)
+        assert (len(kept) < 0.95 * len(idx)) == (shift > 0 or saturate)
+        np.testing.assert_array_equal(kept, np.flatnonzero(ok))
+        # the kernel's samples are float64 where ``sample_rows`` gives float32
+        np.testing.assert_allclose(r, r_ref[ok], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(jt, J_ref[ok].T, rtol=1e-5, atol=1e-5)
+
+    def test_shape_checks(self):
+        p, theta = _problem()
+        with pytest.raises(ValueError, match="jacobian_rows: du"):
+            sfn.jacobian_rows(p.lvals, (p.R, p.Rx, p.Ry), p.right_saturated, p.usable, p.ur, p.v, p.du[1:], p.dv,
+                              p.m, theta, np.arange(5))
+
+
+def _numpy_gauss_newton(p, theta, free, iterations, idx, tolerance):
+    """Gauss-Newton as NumPy takes its steps from ``_numpy_system``: the reference of the compiled driver."""
+    free = np.asarray(free)
+    for _ in range(iterations):
+        A, b, scale, count = _numpy_system(p, theta, idx)
+        if count < len(free) + 2:
+            return None, False
+        A, b = A[np.ix_(free, free)], b[free]
+        if sf.E in free:
+            k = list(free).index(sf.E)
+            A[k, k] += sf._e_prior(scale)
+            b[k] -= sf._e_prior(scale) * theta[sf.E]
+        step = np.linalg.solve(A, b)
+        theta = theta.copy()
+        theta[free] += step
+        if max(abs(step[i]) for i, f in enumerate(free) if f in (0, 3)) < tolerance:
+            return theta, True
+    return theta, False
+
+
+class TestGaussNewton:
+    @staticmethod
+    def _compiled(p, theta, free, iterations, idx, tolerance):
+        return sfn.gauss_newton(p.lvals, (p.R, p.Rx, p.Ry), p.right_saturated, p.usable, p.prior, p.ur, p.v, p.du,
+                                p.dv, p.m, theta, idx, free, iterations, tolerance, sf.HUBER_K, 1e-3, sf.E_PRIOR_PX)
+
+    @pytest.mark.parametrize("level", [0.0, 2.0])
+    @pytest.mark.parametrize("free,ring_only", [(sf.RING, True), (sf.ALL, False), (sf.ALL[:-1], False)])
+    def test_takes_the_numpy_steps(self, level, free, ring_only):
+        p, theta = _problem(0.4)
+        p.level(level)
+        idx = np.flatnonzero(p.m == 0) if ring_only else np.arange(len(p.u))
+        for iterations in (1, 2, 8):
+            got, settled = self._compiled(p, theta, free, iterations, idx, sf.TOLERANCE_PX)
+            want, want_settled = _numpy_gauss_newton(p, theta, free, iterations, idx, sf.TOLERANCE_PX)
+            assert settled == want_settled
+            # NumPy's steps come from float32 samples, the kernel's from float64 ones
+            np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)
+        assert settled  # eight steps reach the tolerance
+        held = [i for i in sf.ALL if i not in free]
+        np.testing.assert_array_equal(got[held], theta[held])
+
+    def test_finds_the_plane_and_the_step(self):
+        # the pair's truth: the plane PLANE and a region 0.3 px nearer (step_px=-0.3); started 0.4 px off
+        p, theta = _problem(0.4)
+        got, settled = self._compiled(p, theta, sf.ALL, 10, np.arange(len(p.u)), sf.TOLERANCE_PX)
+        assert settled
+        assert got[0] == pytest.approx(_plane_at(80.0, 60.0), abs=0.01)
+        assert got[3] == pytest.approx(-0.3, abs=0.01)
+
+    def test_fails_without_pixels_enough_or_information(self):
+        p, theta = _problem()
+        assert self._compiled(p, theta, sf.ALL, 5, np.arange(12), sf.TOLERANCE_PX) == (None, False)
+        p.R, p.Rx, p.Ry = (np.zeros_like(p.R) for _ in range(3))  # no texture: the disparity's rows are 0
+        assert self._compiled(p, theta, sf.ALL, 5, np.arange(len(p.u)), sf.TOLERANCE_PX) == (None, False)
+
+    def test_shape_checks(self):
+        p, theta = _problem()
+        idx = np.arange(len(p.u))
+        for free in ([0, 0, 1], [11], []):
+            with pytest.raises(ValueError, match="gauss_newton: free"):
+                self._compiled(p, theta, free, 3, idx, sf.TOLERANCE_PX)
+        with pytest.raises(ValueError, match="gauss_newton: theta"):
+            self._compiled(p, theta[:5], sf.ALL, 3, idx, sf.TOLERANCE_PX)
+
+
+class TestSolve:
+    def test_equals_numpy_and_says_singular(self):
+        rng = np.random.default_rng(0)
+        for n in (1, 3, 11):
+            a, b = rng.standard_normal((n, n)), rng.standard_normal(n)
+            np.testing.assert_allclose(sfn._solve(a, b), np.linalg.solve(a, b), rtol=1e-10, atol=1e-12)
+        a = rng.standard_normal((4, 4))
+        a[2] = a[0] + a[1]  # one row the sum of two others
+        a[:, 3] = 0.0
+        assert np.isnan(sfn._solve(a, np.ones(4))).all()
+
+
 class TestRingCellOffsets:
     """``surface_fit_numba.ring_cell_offsets`` against the ring's cells as NumPy reads them from
-    ``_Problem.residuals``."""
+    ``_numpy_residuals``."""
 
     @staticmethod
     def _numpy(p, theta, idx, cell, k):
-        r, J, ok = p.residuals(theta, idx)
+        r, J, ok = _numpy_residuals(p, theta, idx)
         j, ok = J[:, 0], ok & (p.prior[idx] > 0)
         scale = sf._robust_scale(r[ok])
         h = np.where(ok, _huber_weights(r, scale), 0.0)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core import surface_fit
+from core import box_reach_numba, surface_fit, surface_fit_numba
 
 # how far the region is moved, as shares of the box's width and height: a box half its size off its defect
 # overlaps it by a third (IoU 0.33), which a detector's evaluation counts a miss
@@ -24,6 +24,11 @@ SHARES = (0.2, 0.35, 0.5)
 ANGLES_DEG = tuple(np.arange(0.0, 360.0, 22.5))
 MIN_CELLS = 3  # in a moved region: fewer read a glint as much as a floor
 CANDIDATES = 4  # the moved regions read robustly by each ranking (their cells' mean, their median)
+COPIES = [(share, float(angle)) for share in SHARES for angle in ANGLES_DEG]  # (share, angle) of every moved region
+# each copy's share and direction, from which its move is computed as moved_box computes it
+COPIES_SHARE = np.array([share for share, _ in COPIES])
+COPIES_COS = np.array([np.cos(np.deg2rad(angle)) for _, angle in COPIES])
+COPIES_SIN = np.array([np.sin(np.deg2rad(angle)) for _, angle in COPIES])
 
 
 @dataclass(frozen=True)
@@ -51,6 +56,12 @@ def moved_box(box: tuple[float, float, float, float], size: tuple[float, float],
     return (box[0] + dx, box[1] + dy, box[2] + dx, box[3] + dy)
 
 
+def copy_edges(box: tuple[float, float, float, float], size: tuple[float, float]) -> np.ndarray:
+    """(M, 4): ``box`` (x0, y0, x1, y1) moved as each of COPIES, the same numbers ``moved_box`` gives, at once."""
+    dx, dy = COPIES_SHARE * size[0] * COPIES_COS, COPIES_SHARE * size[1] * COPIES_SIN
+    return np.stack([box[0] + dx, box[1] + dy, box[2] + dx, box[3] + dy], axis=1)
+
+
 def reach(box: tuple[float, float, float, float], size: tuple[float, float]) -> tuple[float, float, float, float]:
     """What the region ``box`` (x0, y0, x1, y1) covers moved by every share of SHARES: grown by the largest share
     of ``size`` (the detection's width, height) on every side."""
@@ -76,26 +87,15 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
         raise ValueError(f"moved_regions: offsets {offsets.shape}, sds {sds.shape} and areas {areas.shape} must be "
                          f"(K,), centres {centres.shape} (K, 2)")
     usable = np.isfinite(sds) & (sds > 0) & np.isfinite(offsets) & (areas > 0)
-    copies = [(share, float(angle)) for share in SHARES for angle in ANGLES_DEG]
-    edges = np.array([moved_box(box, size, share, angle) for share, angle in copies])  # (M, 4)
-    u, v = centres[:, 0], centres[:, 1]
-    inside = usable & (u >= edges[:, :1]) & (u < edges[:, 2:3]) & (v >= edges[:, 1:2]) & (v < edges[:, 3:])  # (M, K)
-    counts = inside.sum(axis=1)
-    a = np.where(inside, areas, 0.0)  # inside holds the usable cells alone
-    total = np.maximum(a.sum(axis=1), 1e-12)
-    x, s = np.where(usable, offsets, 0.0), np.where(usable, sds, 0.0)
-    mean = (a * x).sum(axis=1) / total
-    order = np.argsort(x)
-    below = np.cumsum(a[:, order], axis=1)  # (M, K) each copy's area up to each cell, the cells in offset order
-    half = 0.5 * total[:, None]
-    # the two middle cells' mean where the area divides evenly between them, so that pits and bumps rank alike
-    median = 0.5 * (x[order][np.argmax(below >= half, axis=1)] + x[order][np.argmax(below > half, axis=1)])
-    sd = np.sqrt((a * a * s * s).sum(axis=1)) / total  # the mean's: a scale to rank by, the reading is robust
+    edges = copy_edges(box, size)
+    # the two middle cells' mean where the area divides evenly between them, so that pits and bumps rank alike;
+    # the mean's standard deviation: a scale to rank by, the reading is robust
+    inside, counts, mean, median, sd = box_reach_numba.copy_readings(offsets, sds, areas, usable, centres, edges)
     enough = counts >= MIN_CELLS
     # ranked by the mean and by the median: a cell over a pit that a wall's sheen reads as a bump takes the mean of
     # the copy on the pit back to the surface (a pit half a box off read 0.60 mm for 2.13 mm and passed), and where
     # half a copy's cells lie on the pit the median may stand nearer than the robust reading does
-    held = [np.packbits(row).tobytes() for row in inside]  # each copy's cells, to tell copies holding the same apart
+    held = [row.tobytes() for row in np.packbits(inside, axis=1)]  # each copy's cells, to tell copies holding the same apart
     picks: list[int] = []
     for centre in (mean, median):
         screen = np.where(enough, (np.abs(centre) - abs(region)) / np.maximum(sd, 1e-12), -np.inf)
@@ -103,9 +103,10 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
     found = []
     for i in picks:
         keep = inside[i]
-        read = surface_fit.robust_offset(offsets[keep], sds[keep], float(np.median(offsets[keep])), areas=areas[keep])
+        read = surface_fit.robust_offset(offsets[keep], sds[keep], surface_fit_numba.median(offsets[keep]),
+                                         areas=areas[keep])
         if np.isfinite(read.variance) and read.variance > 0:
-            found.append(MovedRegion(copies[i][0], copies[i][1], read.delta, read.variance))
+            found.append(MovedRegion(COPIES[i][0], COPIES[i][1], read.delta, read.variance))
     return found
 
 

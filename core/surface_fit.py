@@ -760,30 +760,14 @@ def robust_offset(offsets: np.ndarray, sds: np.ndarray, start: float, iterations
     if x.size == 0:
         return RobustOffset(start, np.inf, 0, 0.0, 1.0)
     prior = 1.0 / (s * s) if areas is None else np.asarray(areas, dtype=np.float64)[ok]
-    # cells that scatter more than their noise says widen the cut, or good cells would be cut too (compiled: a
-    # defect's few hundred cells took a few tenths of a millisecond a call in NumPy's small steps)
-    mu, w = surface_fit_numba.tukey_mean(x, s, prior, start, iterations, TUKEY_K)
-    alpha = w * prior / np.sum(w * prior)
-    variance = float(np.sum(alpha * alpha * s * s))
-    kept = w > 0
-    birge = 1.0
-    if kept.sum() >= 2:
-        dof = float(w[kept].sum()) - 1 + 1e-12
-        birge = float(np.sum(w[kept] * ((x[kept] - mu) / s[kept]) ** 2) / dof)
-        if birge < 1.0:
-            # Cells that agree better than their noise says: each cell's standard deviation comes from the
-            # fit's residuals, which hold the renderer's or the sensor's aliasing as well as noise, and that
-            # misfit moves an offset less than noise would. The scatter is believed only up to the upper
-            # bound of what so few cells could show at that ratio.
-            birge = min(1.0, max(BIRGE_MIN, birge / _chi2_lower_fraction(dof, BIRGE_CONFIDENCE_Z)))
-    return RobustOffset(mu, variance * birge, int(x.size), float(w.sum()), birge)
-
-
-def _chi2_lower_fraction(dof: float, z: float) -> float:
-    """The ``z`` standard normal deviates' lower quantile of a chi-square with ``dof`` degrees of freedom,
-    over ``dof`` (Wilson-Hilferty); a ratio observed at ``r`` is at most ``r`` over it at that confidence."""
-    a = 2.0 / (9.0 * dof)
-    return max(1.0 - a - z * math.sqrt(a), 1e-6) ** 3
+    # cells that scatter more than their noise says widen the cut, or good cells would be cut too. Cells that agree
+    # better than their noise says: each cell's standard deviation comes from the fit's residuals, which hold the
+    # renderer's or the sensor's aliasing as well as noise, and that misfit moves an offset less than noise would;
+    # the scatter is believed only up to the upper bound of what so few cells could show at that ratio (compiled: in
+    # NumPy's small steps a call took a tenth of a millisecond, eight calls a defect)
+    mu, _, variance, weight, birge = surface_fit_numba.tukey_offset(x, s, prior, start, iterations, TUKEY_K,
+                                                                    BIRGE_CONFIDENCE_Z, BIRGE_MIN)
+    return RobustOffset(mu, variance, int(x.size), weight, birge)
 
 
 def weighting_variance(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, estimate: float,

@@ -460,18 +460,56 @@ def _tukey_mean(x, s, prior, start, iterations, cut_k):
     return mu, w
 
 
-def tukey_mean(x: np.ndarray, s: np.ndarray, prior: np.ndarray, start: float, iterations: int,
-               cut_k: float) -> tuple[float, np.ndarray]:
+@njit(cache=True, nogil=True)
+def _tukey_offset(x, s, prior, start, iterations, cut_k, birge_z, birge_min):
+    mu, w = _tukey_mean(x, s, prior, start, iterations, cut_k)
+    total = 0.0
+    for i in range(x.size):
+        total += w[i] * prior[i]
+    variance, weight, kept, chi2, kept_weight = 0.0, 0.0, 0, 0.0, 0.0
+    for i in range(x.size):
+        alpha = w[i] * prior[i] / total
+        variance += alpha * alpha * s[i] * s[i]
+        weight += w[i]
+        if w[i] > 0:
+            z = (x[i] - mu) / s[i]
+            chi2 += w[i] * (z * z)
+            kept += 1
+            kept_weight += w[i]
+    birge = 1.0
+    if kept >= 2:
+        dof = kept_weight - 1 + 1e-12
+        birge = chi2 / dof
+        if birge < 1.0:
+            # the ratio's upper bound at birge_z: a chi-square's lower quantile over its dof (Wilson-Hilferty)
+            a = 2.0 / (9.0 * dof)
+            birge = min(1.0, max(birge_min, birge / max(1.0 - a - birge_z * math.sqrt(a), 1e-6) ** 3))
+    return mu, w, variance * birge, weight, birge
+
+
+def tukey_offset(x: np.ndarray, s: np.ndarray, prior: np.ndarray, start: float, iterations: int, cut_k: float,
+                 birge_z: float, birge_min: float) -> tuple[float, np.ndarray, float, float, float]:
     """Tukey's M-estimate of the common value of ``x`` (K,) with standard deviations ``s`` (K,, finite, above 0),
     weighed by ``prior`` (K,), from ``start``: the cut at ``cut_k`` times each standard deviation times the values'
     robust spread in those units (at least 1), re-weighted until the estimate moves less than 1e-6 or after
-    ``iterations``. Returns (the estimate, the final Tukey weights (K,))."""
+    ``iterations``; and its variance.
+
+    Returns (the estimate, the final Tukey weights w (K,), the variance, the weights' sum, the Birge ratio). The
+    variance is the weighted mean's with the final weights held, ``sum (w p / sum w p)^2 s^2``, times the Birge ratio
+    ``sum w ((x - estimate) / s)^2 / (sum w - 1)`` over the values kept (w > 0; 1 with fewer than two); a ratio below
+    1 is taken at its upper bound at ``birge_z`` standard normal deviates, between ``birge_min`` and 1."""
     if not (x.shape == s.shape == np.shape(prior)) or x.ndim != 1 or x.size == 0:
-        raise ValueError(f"tukey_mean: x {x.shape}, s {s.shape} and prior {np.shape(prior)} must be the same (K,), "
+        raise ValueError(f"tukey_offset: x {x.shape}, s {s.shape} and prior {np.shape(prior)} must be the same (K,), "
                          "K at least 1")
     f64 = np.float64
-    return _tukey_mean(x.astype(f64), s.astype(f64), np.asarray(prior, f64), float(start), int(iterations),
-                       float(cut_k))
+    mu, w, variance, weight, birge = _tukey_offset(x.astype(f64), s.astype(f64), np.asarray(prior, f64), float(start),
+                                                   int(iterations), float(cut_k), float(birge_z), float(birge_min))
+    return float(mu), w, float(variance), float(weight), float(birge)
+
+
+def median(x: np.ndarray) -> float:
+    """``np.median`` of a 1-D array without NaN, compiled: a few microseconds where NumPy's call takes tens."""
+    return float(_median(np.ascontiguousarray(x, dtype=np.float64)))
 
 
 @njit(cache=True, nogil=True, fastmath=True)

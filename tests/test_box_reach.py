@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from core import box_reach
+from core import box_reach, box_reach_numba
 from core.box_reach import MovedRegion, farthest, moved_box, moved_regions, reach
 
 SIZE = (40.0, 30.0)  # the detection's width and height
@@ -146,6 +146,54 @@ class TestMovedRegions:
             moved_regions(offsets, sds[:-1], areas, centres, (8, 8, 24, 24), SIZE)
         with pytest.raises(ValueError, match="moved_regions"):
             moved_regions(offsets, sds, areas, centres[:, :1], (8, 8, 24, 24), SIZE)
+
+
+def _numpy_copy_readings(offsets, sds, areas, usable, centres, edges):
+    """The copies' cells and readings as NumPy's (copies x cells) arrays give them: the compiled kernel's reference."""
+    u, v = centres[:, 0], centres[:, 1]
+    inside = usable & (u >= edges[:, :1]) & (u < edges[:, 2:3]) & (v >= edges[:, 1:2]) & (v < edges[:, 3:])
+    a = np.where(inside, areas, 0.0)
+    total = np.maximum(a.sum(axis=1), 1e-12)
+    x, s = np.where(usable, offsets, 0.0), np.where(usable, sds, 0.0)
+    order = np.argsort(x)
+    below = np.cumsum(a[:, order], axis=1)
+    half = 0.5 * total[:, None]
+    median = 0.5 * (x[order][np.argmax(below >= half, axis=1)] + x[order][np.argmax(below > half, axis=1)])
+    return (inside, inside.sum(axis=1), (a * x).sum(axis=1) / total, median,
+            np.sqrt((a * a * s * s).sum(axis=1)) / total)
+
+
+class TestCopyReadings:
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_equals_the_numpy_arrays(self, seed):
+        region = region_of(TRUE_BOX)
+        offsets, sds, areas, centres = cells_over(reach(region, SIZE), TRUE_BOX, 0.3, 0.05, seed=seed)
+        rng = np.random.default_rng(seed)
+        areas = rng.choice([4.0, 8.0, 16.0], len(areas))  # cells the reach's border cuts
+        offsets[::5] = np.round(offsets[::5], 1)  # ties in the offsets' order
+        sds[::7] = np.inf  # cells without a reading
+        usable = np.isfinite(sds)
+        edges = box_reach.copy_edges(region, SIZE)
+        got = box_reach_numba.copy_readings(offsets, sds, areas, usable, centres, edges)
+        want = _numpy_copy_readings(offsets, sds, areas, usable, centres, edges)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        for a, b in zip(got[2:], want[2:]):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+        assert (got[1] >= box_reach.MIN_CELLS).sum() > len(edges) // 2
+
+    def test_the_copies_edges_are_moved_boxs(self):
+        region = region_of(TRUE_BOX)
+        np.testing.assert_array_equal(box_reach.copy_edges(region, SIZE),
+                                      [moved_box(region, SIZE, share, angle) for share, angle in box_reach.COPIES])
+
+    def test_shape_checks(self):
+        offsets, sds, areas, centres = cells_over((0, 0, 32, 32), (0, 0, 0, 0), 0.0, 0.05, seed=4)
+        usable = np.ones(len(offsets), dtype=bool)
+        with pytest.raises(ValueError, match="copy_readings: areas"):
+            box_reach_numba.copy_readings(offsets, sds, areas[:-1], usable, centres, np.zeros((3, 4)))
+        with pytest.raises(ValueError, match="copy_readings: centres"):
+            box_reach_numba.copy_readings(offsets, sds, areas, usable, centres, np.zeros((3, 3)))
 
 
 class TestFarthest:

@@ -955,11 +955,11 @@ class TestRobustOffset:
             sf.robust_offset(np.zeros(3), np.ones(3), 0.0, areas=np.ones(2))
 
 
-class TestTukeyMean:
-    """``surface_fit_numba.tukey_mean`` against the reweighting as NumPy does it."""
+class TestTukeyOffset:
+    """``surface_fit_numba.tukey_offset`` against the reweighting and the variance as NumPy computes them."""
 
     @staticmethod
-    def _numpy(x, s, prior, start, iterations, cut_k):
+    def _numpy(x, s, prior, start, iterations, cut_k, birge_z=sf.BIRGE_CONFIDENCE_Z, birge_min=sf.BIRGE_MIN):
         mu, w = start, np.ones_like(x)
         for _ in range(iterations):
             spread = max(1.0, float(1.4826 * np.median(np.abs(x - mu) / s)))
@@ -971,30 +971,53 @@ class TestTukeyMean:
             mu = new
             if done:
                 break
-        return mu, w
+        alpha = w * prior / np.sum(w * prior)
+        variance = float(np.sum(alpha * alpha * s * s))
+        kept = w > 0
+        birge = 1.0
+        if kept.sum() >= 2:
+            dof = float(w[kept].sum()) - 1 + 1e-12
+            birge = float(np.sum(w[kept] * ((x[kept] - mu) / s[kept]) ** 2) / dof)
+            if birge < 1.0:
+                a = 2.0 / (9.0 * dof)
+                birge = min(1.0, max(birge_min, birge / max(1.0 - a - birge_z * math.sqrt(a), 1e-6) ** 3))
+        return mu, w, variance * birge, float(w.sum()), birge
 
-    @pytest.mark.parametrize("n,iterations", [(40, 20), (41, 20), (7, 2), (1, 20)])
-    def test_equals_the_numpy_reweighting(self, n, iterations):
+    @pytest.mark.parametrize("n,iterations,wall_sd", [(40, 20, 0.03), (41, 20, 0.03), (7, 2, 0.03), (1, 20, 0.03),
+                                                      (100, 20, 0.01)])
+    def test_equals_the_numpy_reweighting_and_variance(self, n, iterations, wall_sd):
         rng = np.random.default_rng(n)
-        x = np.r_[rng.normal(-0.3, 0.03, n - n // 4), rng.normal(0.2, 0.03, n // 4)]  # a quarter on a wall
+        # a quarter on a wall; with wall_sd 0.01 the rest scatter at a third of their sds (a Birge ratio below 1)
+        x = np.r_[rng.normal(-0.3, wall_sd, n - n // 4), rng.normal(0.2, 0.03, n // 4)]
         s, prior = rng.uniform(0.01, 0.05, n), rng.uniform(0.5, 2.0, n)
-        mu, w = sfn.tukey_mean(x, s, prior, -0.2, iterations, sf.TUKEY_K)
-        mu_ref, w_ref = self._numpy(x, s, prior, -0.2, iterations, sf.TUKEY_K)
-        assert mu == pytest.approx(mu_ref, rel=1e-12, abs=1e-15)
-        np.testing.assert_allclose(w, w_ref, rtol=1e-9, atol=1e-12)
+        got = sfn.tukey_offset(x, s, prior, -0.2, iterations, sf.TUKEY_K, sf.BIRGE_CONFIDENCE_Z, sf.BIRGE_MIN)
+        want = self._numpy(x, s, prior, -0.2, iterations, sf.TUKEY_K)
+        assert got[0] == pytest.approx(want[0], rel=1e-12, abs=1e-15)
+        np.testing.assert_allclose(got[1], want[1], rtol=1e-9, atol=1e-12)
+        assert got[2:] == pytest.approx(want[2:], rel=1e-9)
         if n >= 40:
-            assert np.sum(w == 0) >= n // 4 - 1  # the wall's cells cut
+            assert np.sum(got[1] == 0) >= n // 4 - 1  # the wall's cells cut
+        if wall_sd < 0.02:
+            assert sf.BIRGE_MIN <= got[4] < 1.0
 
     def test_a_cut_that_keeps_no_value_weighs_them_all_alike(self):
         x, s, prior = np.array([0.0, 1.0, 3.0]), np.full(3, 0.01), np.array([1.0, 1.0, 2.0])
-        mu, w = sfn.tukey_mean(x, s, prior, 10.0, 20, 1e-9)
-        assert w.tolist() == [1.0, 1.0, 1.0] and mu == pytest.approx(7.0 / 4.0)
+        mu, w, _, weight, _ = sfn.tukey_offset(x, s, prior, 10.0, 20, 1e-9, 1.28, 0.25)
+        assert w.tolist() == [1.0, 1.0, 1.0] and weight == 3.0 and mu == pytest.approx(7.0 / 4.0)
 
     def test_shape_checks(self):
         with pytest.raises(ValueError, match="prior"):
-            sfn.tukey_mean(np.zeros(3), np.ones(3), np.ones(2), 0.0, 20, 1.0)
+            sfn.tukey_offset(np.zeros(3), np.ones(3), np.ones(2), 0.0, 20, 1.0, 1.28, 0.25)
         with pytest.raises(ValueError, match="at least 1"):
-            sfn.tukey_mean(np.zeros(0), np.ones(0), np.ones(0), 0.0, 20, 1.0)
+            sfn.tukey_offset(np.zeros(0), np.ones(0), np.ones(0), 0.0, 20, 1.0, 1.28, 0.25)
+
+
+class TestMedian:
+    @pytest.mark.parametrize("n", [1, 2, 7, 40, 41, 1000])
+    def test_is_numpys(self, n):
+        rng = np.random.default_rng(n)
+        for x in (rng.normal(0, 1, n), np.round(rng.normal(0, 1, n), 1), np.full(n, 0.3)):  # ties, all alike
+            assert sfn.median(x) == np.median(x)
 
 
 class TestCellAreas:

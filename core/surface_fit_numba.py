@@ -681,6 +681,72 @@ def _solve(a, b):
     return x
 
 
+@njit(cache=True, nogil=True)
+def _plane_consensus(e, s, x, y, triples, cut_sds, min_gain):
+    n = e.size
+    system, rhs, best = np.empty((3, 3)), np.empty(3), np.empty(3)
+    least = np.inf
+    for t in range(triples.shape[0]):
+        for r in range(3):
+            k = triples[t, r]
+            system[r, 0], system[r, 1], system[r, 2], rhs[r] = 1.0, x[k], y[k], e[k]
+        plane = _solve(system, rhs)
+        if not np.isfinite(plane[0]):  # two cells alike: no plane through the three
+            continue
+        cost = 0.0
+        for k in range(n):
+            z = (plane[0] + plane[1] * x[k] + plane[2] * y[k] - e[k]) / s[k]
+            cost += min(z * z, cut_sds * cut_sds)
+        if cost < least:
+            least = cost
+            best[:] = plane
+    if not least < np.inf:
+        return np.zeros(3), False
+    # noisy cells let some triple beat the fitted plane by chance: move only for a clearly larger consensus
+    inliers = np.empty(n, np.bool_)
+    agree, agreed = 0, 0
+    for k in range(n):
+        inliers[k] = abs(best[0] + best[1] * x[k] + best[2] * y[k] - e[k]) <= cut_sds * s[k]
+        agree += inliers[k]
+        agreed += abs(e[k]) <= cut_sds * s[k]
+    if agree / n - agreed / n < min_gain:
+        return np.zeros(3), False
+    normal, right = np.zeros((3, 3)), np.zeros(3)
+    for k in range(n):
+        if inliers[k]:
+            w = 1.0 / (s[k] * s[k])
+            row = (1.0, x[k], y[k])
+            for a in range(3):
+                right[a] += w * row[a] * e[k]
+                for b in range(3):
+                    normal[a, b] += w * row[a] * row[b]
+    refined = _solve(normal, right)
+    return (refined if np.isfinite(refined[0]) else best), True
+
+
+def plane_consensus(e: np.ndarray, s: np.ndarray, x: np.ndarray, y: np.ndarray, triples: np.ndarray, cut_sds: float,
+                    min_gain: float) -> tuple[np.ndarray, bool]:
+    """The plane ``e = c + a x + b y`` most of the cells agree on, MSAC over ``triples`` (T, 3) of them.
+
+    e, s: (K,) the cells' offsets and standard deviations; x, y: (K,) their positions. Each triple's plane through its
+    three cells costs ``sum min(z^2, cut_sds^2)`` over the cells, z their offsets from it in their standard
+    deviations; the least costly one's inliers (within ``cut_sds``) must outnumber the cells within ``cut_sds`` of
+    e = 0 by ``min_gain`` of the cells, and their weighted least-squares plane (1 / s^2) is returned. Returns
+    ((c, a, b), True), or (zeros, False) where no triple defines a plane or the consensus does not grow by that
+    much."""
+    n = len(e)
+    for name, array in (("s", s), ("x", x), ("y", y)):
+        if np.shape(array) != (n,):
+            raise ValueError(f"plane_consensus: {name} {np.shape(array)} must be ({n},) as e")
+    triples = np.asarray(triples, dtype=np.int64)
+    if triples.ndim != 2 or triples.shape[1] != 3 or (triples.size and (triples.min() < 0 or triples.max() >= n)):
+        raise ValueError(f"plane_consensus: triples {triples.shape} must be (T, 3) indices of the {n} cells")
+    f64 = np.float64
+    plane, moved = _plane_consensus(np.asarray(e, f64), np.asarray(s, f64), np.asarray(x, f64), np.asarray(y, f64),
+                                    triples, float(cut_sds), float(min_gain))
+    return plane, bool(moved)
+
+
 FAILED, MOVING, SETTLED = 0, 1, 2  # how ``gauss_newton`` ended
 
 

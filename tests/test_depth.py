@@ -127,7 +127,8 @@ class TestWarmUp:
             from test_surface_fit import PLANE, _regions
             kernels = (sfn._system, sfn._offset_costs, sfn.robust_scale, sfn._spline_coefficients,
                        sfn._sample_rows, depth_numba._inlier_counts, sfn._ring_cell_offsets, sfn._cell_steps,
-                       sfn._tukey_offset, sfn._gauss_newton, sfn._jacobian_rows, box_reach_numba._copy_readings)
+                       sfn._tukey_offset, sfn._gauss_newton, sfn._jacobian_rows, box_reach_numba._copy_readings,
+                       sfn._plane_consensus)
             depth.warm_up()
             before = [len(k.signatures) for k in kernels]
             left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=0)
@@ -147,7 +148,7 @@ class TestWarmUp:
         before, after = json.loads(out.stdout)
         # every kernel compiled by the warm-up, and nothing more by a measurement: each once (the kernels that
         # read two or three splines compile the sampler with them)
-        assert before == after == [1] * 12, out.stdout
+        assert before == after == [1] * 13, out.stdout
 
 
 def test_area_in_square_mm():

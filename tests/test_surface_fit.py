@@ -309,6 +309,66 @@ class TestGaussNewton:
             self._compiled(p, theta[:5], sf.ALL, 3, idx, sf.TOLERANCE_PX)
 
 
+def _numpy_plane_consensus(e, s, x, y, triples, cut_sds, min_gain):
+    """MSAC over the triples as NumPy's batched solves and (triples x cells) arrays do it: the kernel's reference."""
+    design = np.stack([np.ones_like(x), x, y], axis=1)
+    systems = design[triples]
+    solvable = np.abs(np.linalg.det(systems)) > 0
+    if not solvable.any():
+        return np.zeros(3), False
+    planes = np.linalg.solve(systems[solvable], e[triples[solvable]][..., None])[..., 0]
+    z2 = ((planes[:, :1] + planes[:, 1:2] * x + planes[:, 2:3] * y - e) / s) ** 2
+    best = planes[int(np.argmin(np.minimum(z2, cut_sds**2).sum(axis=1)))]
+    inliers = np.abs(design @ best - e) <= cut_sds * s
+    if inliers.mean() - (np.abs(e) <= cut_sds * s).mean() < min_gain:
+        return np.zeros(3), False
+    w = 1.0 / s[inliers] ** 2
+    return np.linalg.solve((design[inliers] * w[:, None]).T @ design[inliers],
+                           (design[inliers] * w[:, None]).T @ e[inliers]), True
+
+
+class TestPlaneConsensus:
+    @staticmethod
+    def _cells(seed, other_share):
+        """60 ring cells on a plane 0.1 px off the fitted one, ``other_share`` of them (one side) on another surface
+        0.8 px away, each read with its noise."""
+        rng = np.random.default_rng(seed)
+        x, y = rng.uniform(-40, 40, 60), rng.uniform(-30, 30, 60)
+        s = rng.uniform(0.02, 0.05, 60)
+        e = 0.1 + 0.002 * x - 0.001 * y + rng.normal(0, 1, 60) * s
+        e[x > 40 - 80 * other_share] += 0.8
+        triples = np.random.default_rng(0).integers(0, 60, size=(sf.CONSENSUS_SAMPLES, 3))
+        return e, s, x, y, triples
+
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_moves_to_the_plane_most_cells_agree_on_as_numpy_finds_it(self, seed):
+        e, s, x, y, triples = self._cells(seed, 0.3)
+        got, moved = sfn.plane_consensus(e, s, x, y, triples, sf.CONSENSUS_SIGMAS, sf.CONSENSUS_GAIN)
+        want, want_moved = _numpy_plane_consensus(e, s, x, y, triples, sf.CONSENSUS_SIGMAS, sf.CONSENSUS_GAIN)
+        assert moved and want_moved
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+        assert got == pytest.approx([0.1, 0.002, -0.001], abs=0.02)  # the plane, not the other surface
+
+    def test_stays_where_the_fitted_plane_already_holds_the_cells(self):
+        e, s, x, y, triples = self._cells(3, 0.0)
+        e -= 0.1 + 0.002 * x - 0.001 * y  # the fitted plane is the cells' own
+        assert sfn.plane_consensus(e, s, x, y, triples, sf.CONSENSUS_SIGMAS, sf.CONSENSUS_GAIN)[1] is False
+        assert _numpy_plane_consensus(e, s, x, y, triples, sf.CONSENSUS_SIGMAS, sf.CONSENSUS_GAIN)[1] is False
+
+    def test_triples_of_one_cell_define_no_plane(self):
+        e, s, x, y, _ = self._cells(4, 0.3)
+        alike = np.repeat(np.arange(5)[:, None], 3, axis=1)
+        plane, moved = sfn.plane_consensus(e, s, x, y, alike, sf.CONSENSUS_SIGMAS, sf.CONSENSUS_GAIN)
+        assert not moved and plane.tolist() == [0.0, 0.0, 0.0]
+
+    def test_shape_checks(self):
+        e, s, x, y, triples = self._cells(5, 0.3)
+        with pytest.raises(ValueError, match="plane_consensus: y"):
+            sfn.plane_consensus(e, s, x, y[1:], triples, 3.0, 0.05)
+        with pytest.raises(ValueError, match="plane_consensus: triples"):
+            sfn.plane_consensus(e, s, x, y, triples + 60, 3.0, 0.05)
+
+
 class TestSolve:
     def test_equals_numpy_and_says_singular(self):
         rng = np.random.default_rng(0)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core import surface_fit
+from core import band_scan_numba, surface_fit
 
 ANGLE_STEP_DEG = 7.5
 # from the one 4 px cell on the line to six cells: the evaluation sets' grooves are 5-33 px wide
@@ -130,57 +130,31 @@ def central_band(offsets: np.ndarray, sds: np.ndarray, centres: np.ndarray, cent
     surface = np.stack([np.ones_like(x), surface_fit.bowl(du, dv), du, dv], axis=1)  # (K, 4)
     angles = np.deg2rad(np.arange(0.0, 180.0, ANGLE_STEP_DEG) if angles_deg is None
                         else np.asarray(angles_deg, dtype=np.float64) % 180.0)
-    across = -du[None, :] * np.sin(angles)[:, None] + dv[None, :] * np.cos(angles)[:, None]  # (A, K)
-    widths, shifts = np.array(HALF_WIDTHS_PX), np.array(SHIFTS_PX)
-    # (A, W, S, K): each band's cells
-    inside = np.abs(across[:, None, None, :] - shifts[None, None, :, None]) <= widths[None, :, None, None]
-    n_in = inside.sum(axis=-1)
     # weighted least squares of offset = surface + step * in_band, per band. The surface's block S of the normal
     # equations is the same for every band, so each band's step and its variance come from the Schur complement
-    # of that block, s = n_in - u' S^-1 u (u: the band's column against the surface's), without a 5x5 solve per
-    # band. Sums are einsum's own loops: a matrix product would go to the threaded BLAS, whose threads keep
-    # spinning after it and slow the detector (core/depth.py, fit_plane_robust)
-    wb = inside * w  # (A, W, S, K)
+    # of that block (band_scan_numba). Sums are einsum's own loops: a matrix product would go to the threaded BLAS,
+    # whose threads keep spinning after it and slow the detector (core/depth.py, fit_plane_robust)
     ws = surface * w[:, None]  # (K, 4)
     block = np.einsum("ki,kj->ij", ws, surface)
     r0 = np.einsum("ki,k->i", ws, x)
-    u = np.einsum("...k,ki->...i", wb, surface)  # (A, W, S, 4)
-    w_in = wb.sum(axis=-1)
-    wx_in = np.einsum("...k,k->...", wb, x)
-    w_all, wx_all = w.sum(), (w * x).sum()
-    usable = (n_in >= MIN_CELLS) & (x.size - n_in >= MIN_CELLS)
     diagonal = np.sqrt(np.maximum(np.diag(block), 1e-300))
     normalised = np.linalg.det(block / np.outer(diagonal, diagonal))
-    if not usable.any() or abs(normalised) <= 1e-9:
+    if abs(normalised) <= 1e-9:
         return None
     inverse = np.linalg.inv(block)
-    solved_u = np.einsum("ij,...j->...i", inverse, u)  # S^-1 u per band
-    solved_r = inverse @ r0
-    schur = w_in - np.einsum("...i,...i->...", u, solved_u)
-    # bands whose step the surface's terms cannot take up: the 5x5 system's determinant, normalised by its
-    # diagonal, is the surface block's times schur / n_in
-    with np.errstate(invalid="ignore", divide="ignore"):
-        usable &= np.abs(normalised * schur / w_in) > 1e-9
-        step = (wx_in - np.einsum("...i,i->...", u, solved_r)) / schur
-        fitted = np.dot(r0, solved_r) + step * step * schur  # coeffs . rhs of the 5x5 system
-        scatter = np.maximum(((w * x * x).sum() - fitted) / max(x.size - 5, 1), 1.0)
-        z = step / np.sqrt(scatter / schur)
-        m_in, m_out = wx_in / w_in, (wx_all - wx_in) / (w_all - w_in)
-        sd_out = np.sqrt(scatter / (w_all - w_in))
-    # the band stands beyond the rest, away from the surface, and the rest lies on the band's side of the surface or
-    # on it: the surface beside a groove, or its walls (cells that matched the texture a pixel off read as a band
+    # the band must stand beyond the rest, away from the surface, and the rest lie on the band's side of the surface
+    # or on it: the surface beside a groove, or its walls (cells that matched the texture a pixel off read as a band
     # beside cells that read as far the other way)
-    direction = np.sign(m_in)
-    usable &= (np.abs(m_in) > np.abs(m_out)) & (np.sign(z) == direction) & np.isfinite(z)
-    usable &= m_out * direction >= -REST_SDS * sd_out
-    if not usable.any():
+    widths, shifts = np.array(HALF_WIDTHS_PX), np.array(SHIFTS_PX)
+    best, z, m_in, m_out, variance = band_scan_numba.best_band(x, w, surface, du, dv, angles, widths, shifts, inverse,
+                                                               r0, inverse @ r0, normalised, MIN_CELLS, REST_SDS)
+    if best < 0:
         return None
-    best = np.unravel_index(np.argmax(np.where(usable, np.abs(z), -np.inf)), z.shape)
+    a, h, s = np.unravel_index(best, (len(angles), len(widths), len(shifts)))
+    across = -du * np.sin(angles)[a] + dv * np.cos(angles)[a]  # as the kernel's: the sines of all the angles at once
     cells = np.zeros(offsets.size, dtype=bool)
-    cells[np.flatnonzero(ok)] = inside[best]
-    a, h, s = best
-    return Band(float(np.rad2deg(angles[a])), float(widths[h]), float(shifts[s]), cells, float(m_in[best]),
-                float(m_out[best]), float(scatter[best] / w_in[best]), float(z[best]))
+    cells[np.flatnonzero(ok)] = np.abs(across - shifts[s]) <= widths[h]
+    return Band(float(np.rad2deg(angles[a])), float(widths[h]), float(shifts[s]), cells, m_in, m_out, variance, z)
 
 
 def central_patch(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centres: np.ndarray,

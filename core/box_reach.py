@@ -95,7 +95,8 @@ def moved_regions(offsets: np.ndarray, sds: np.ndarray, areas: np.ndarray, centr
     # ranked by the mean and by the median: a cell over a pit that a wall's sheen reads as a bump takes the mean of
     # the copy on the pit back to the surface (a pit half a box off read 0.60 mm for 2.13 mm and passed), and where
     # half a copy's cells lie on the pit the median may stand nearer than the robust reading does
-    held = [row.tobytes() for row in np.packbits(inside, axis=1)]  # each copy's cells, to tell copies holding the same apart
+    # each copy's cells, to tell copies holding the same apart
+    held = [row.tobytes() for row in np.packbits(inside, axis=1)]
     picks: list[int] = []
     for centre in (mean, median):
         screen = np.where(enough, (np.abs(centre) - abs(region)) / np.maximum(sd, 1e-12), -np.inf)

@@ -231,14 +231,16 @@ def fit_plane_robust(
 
 def warm_up() -> None:
     """Load the compiled kernels of a measurement (the ring plane's consensus, the surface fit's, the moved
-    regions') before the first part rather than during it (numba compiles each in seconds where its cache is empty)."""
+    regions', the band scan's) before the first part rather than during it (numba compiles each in seconds where
+    its cache is empty)."""
     u = np.arange(8.0)
     fit_plane_robust(u, u % 3, u)
     surface_fit.warm_up()
-    v, u = np.mgrid[2:16:4, 2:16:4]
-    box_reach.moved_regions(np.zeros(u.size), np.full(u.size, 0.1), np.full(u.size, 16.0),
-                            np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64), (4.0, 4.0, 12.0, 12.0),
-                            (8.0, 8.0))
+    v, u = np.mgrid[2:24:4, 2:24:4]
+    centres = np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
+    offsets, sds = np.random.default_rng(0).normal(0.0, 0.1, u.size), np.full(u.size, 0.1)
+    box_reach.moved_regions(offsets, sds, np.full(u.size, 16.0), centres, (8.0, 8.0, 16.0, 16.0), (8.0, 8.0))
+    band_scan.central_band(offsets, sds, centres, (12.0, 12.0))
 
 
 def _least_squares_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray | None:

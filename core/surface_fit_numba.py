@@ -800,7 +800,8 @@ def gauss_newton(lvals: np.ndarray, splines: tuple[np.ndarray, np.ndarray, np.nd
     where fewer than F + 2 pixels are usable or a step is singular or no number."""
     _check_fit_arrays("gauss_newton", 3, lvals, splines, right_saturated, usable, prior, u, v, du, dv, m, theta)
     free = np.asarray(free, dtype=np.int64)
-    if free.ndim != 1 or free.size == 0 or free.min() < 0 or free.max() >= N_PARAMS or np.unique(free).size != free.size:
+    if free.ndim != 1 or free.size == 0 or free.min() < 0 or free.max() >= N_PARAMS \
+            or np.unique(free).size != free.size:
         raise ValueError(f"gauss_newton: free {free.tolist()} must be distinct parameters in 0 .. {N_PARAMS - 1}")
     f64 = np.float64
     theta, how = _gauss_newton(lvals.astype(f64, copy=False), tuple(splines), right_saturated, usable,

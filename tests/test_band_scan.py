@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from core import band_scan
+from core import band_scan, band_scan_numba, surface_fit
 from core.band_scan import central_band, edge_direction
 
 
@@ -133,6 +133,89 @@ def plate_with_groove(angle_deg: float | None, wall_contrast: float, seed: int =
     inner = (np.abs(u - c) < 16) & (np.abs(v - c) < 16)
     ring = (np.abs(u - c) < 31) & (np.abs(v - c) < 31) & ~((np.abs(u - c) < 19) & (np.abs(v - c) < 19))
     return image, (u[inner], v[inner]), (u[ring], v[ring])
+
+
+def _numpy_central_band(offsets, sds, centres, centre, angles_deg=None):
+    """``central_band`` from NumPy's (angles x widths x shifts x cells) arrays: the compiled scan's reference."""
+    ok = np.isfinite(sds) & (sds > 0) & np.isfinite(offsets)
+    if ok.sum() < 2 * band_scan.MIN_CELLS:
+        return None
+    x, w = offsets[ok], 1.0 / sds[ok] ** 2
+    du, dv = centres[ok, 0] - centre[0], centres[ok, 1] - centre[1]
+    surface = np.stack([np.ones_like(x), surface_fit.bowl(du, dv), du, dv], axis=1)
+    angles = np.deg2rad(np.arange(0.0, 180.0, band_scan.ANGLE_STEP_DEG) if angles_deg is None
+                        else np.asarray(angles_deg, dtype=np.float64) % 180.0)
+    across = -du[None, :] * np.sin(angles)[:, None] + dv[None, :] * np.cos(angles)[:, None]
+    widths, shifts = np.array(band_scan.HALF_WIDTHS_PX), np.array(band_scan.SHIFTS_PX)
+    inside = np.abs(across[:, None, None, :] - shifts[None, None, :, None]) <= widths[None, :, None, None]
+    n_in = inside.sum(axis=-1)
+    wb = inside * w
+    ws = surface * w[:, None]
+    block = np.einsum("ki,kj->ij", ws, surface)
+    r0 = np.einsum("ki,k->i", ws, x)
+    u = np.einsum("...k,ki->...i", wb, surface)
+    w_in = wb.sum(axis=-1)
+    wx_in = np.einsum("...k,k->...", wb, x)
+    w_all, wx_all = w.sum(), (w * x).sum()
+    usable = (n_in >= band_scan.MIN_CELLS) & (x.size - n_in >= band_scan.MIN_CELLS)
+    diagonal = np.sqrt(np.maximum(np.diag(block), 1e-300))
+    normalised = np.linalg.det(block / np.outer(diagonal, diagonal))
+    if not usable.any() or abs(normalised) <= 1e-9:
+        return None
+    inverse = np.linalg.inv(block)
+    solved_u = np.einsum("ij,...j->...i", inverse, u)
+    solved_r = inverse @ r0
+    schur = w_in - np.einsum("...i,...i->...", u, solved_u)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        usable &= np.abs(normalised * schur / w_in) > 1e-9
+        step = (wx_in - np.einsum("...i,i->...", u, solved_r)) / schur
+        fitted = np.dot(r0, solved_r) + step * step * schur
+        scatter = np.maximum(((w * x * x).sum() - fitted) / max(x.size - 5, 1), 1.0)
+        z = step / np.sqrt(scatter / schur)
+        m_in, m_out = wx_in / w_in, (wx_all - wx_in) / (w_all - w_in)
+        sd_out = np.sqrt(scatter / (w_all - w_in))
+    direction = np.sign(m_in)
+    usable &= (np.abs(m_in) > np.abs(m_out)) & (np.sign(z) == direction) & np.isfinite(z)
+    usable &= m_out * direction >= -band_scan.REST_SDS * sd_out
+    if not usable.any():
+        return None
+    best = np.unravel_index(np.argmax(np.where(usable, np.abs(z), -np.inf)), z.shape)
+    cells = np.zeros(offsets.size, dtype=bool)
+    cells[np.flatnonzero(ok)] = inside[best]
+    a, h, s = best
+    return band_scan.Band(float(np.rad2deg(angles[a])), float(widths[h]), float(shifts[s]), cells,
+                          float(m_in[best]), float(m_out[best]), float(scatter[best] / w_in[best]), float(z[best]))
+
+
+class TestBestBand:
+    """``band_scan_numba.best_band``, through ``central_band``, against NumPy's arrays."""
+
+    @pytest.mark.parametrize("seed", range(6))
+    def test_picks_the_numpy_band(self, seed):
+        rng = np.random.default_rng(seed)
+        angle, half_width = rng.uniform(0, 180), rng.uniform(2, 10)
+        offsets, sds, centres, _, centre = groove_cells(angle, rng.uniform(0.0, 0.5), half_width, 0.3, seed=seed,
+                                                        size_px=int(rng.choice([32, 48, 64])))
+        sds = sds * rng.uniform(0.5, 2.0, len(sds))
+        sds[rng.random(len(sds)) < 0.1] = np.inf  # cells without a reading
+        for angles in (None, angle + np.array(band_scan.EDGE_ANGLES_DEG)):
+            got = central_band(offsets, sds, centres, centre, angles_deg=angles)
+            want = _numpy_central_band(offsets, sds, centres, centre, angles_deg=angles)
+            assert (got is None) == (want is None)
+            if got is not None:
+                assert (got.angle_deg, got.half_width_px, got.shift_px) == (want.angle_deg, want.half_width_px,
+                                                                             want.shift_px)
+                np.testing.assert_array_equal(got.cells, want.cells)
+                assert (got.offset, got.rest, got.variance, got.z) == pytest.approx(
+                    (want.offset, want.rest, want.variance, want.z), rel=1e-9, abs=1e-12)
+
+    def test_shape_checks(self):
+        with pytest.raises(ValueError, match="best_band: dv"):
+            band_scan_numba.best_band(np.zeros(8), np.ones(8), np.ones((8, 4)), np.zeros(8), np.zeros(7), np.zeros(3),
+                                      np.ones(2), np.zeros(1), np.eye(4), np.zeros(4), np.zeros(4), 1.0, 6, 3.0)
+        with pytest.raises(ValueError, match="best_band: surface"):
+            band_scan_numba.best_band(np.zeros(8), np.ones(8), np.ones((8, 4)), np.zeros(8), np.zeros(8), np.zeros(3),
+                                      np.ones(2), np.zeros(1), np.eye(3), np.zeros(4), np.zeros(4), 1.0, 6, 3.0)
 
 
 class TestEdgeDirection:

@@ -123,12 +123,13 @@ class TestWarmUp:
             import json
             import numpy as np
             from synthetic_pairs import step_pair
-            from core import box_reach, box_reach_numba, depth, depth_numba, surface_fit as sf, surface_fit_numba as sfn
+            from core import band_scan, band_scan_numba, box_reach, box_reach_numba, depth, depth_numba
+            from core import surface_fit as sf, surface_fit_numba as sfn
             from test_surface_fit import PLANE, _regions
             kernels = (sfn._system, sfn._offset_costs, sfn.robust_scale, sfn._spline_coefficients,
                        sfn._sample_rows, depth_numba._inlier_counts, sfn._ring_cell_offsets, sfn._cell_steps,
                        sfn._tukey_offset, sfn._gauss_newton, sfn._jacobian_rows, box_reach_numba._copy_readings,
-                       sfn._plane_consensus)
+                       sfn._plane_consensus, band_scan_numba._best_band)
             depth.warm_up()
             before = [len(k.signatures) for k in kernels]
             left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=0)
@@ -137,6 +138,7 @@ class TestWarmUp:
             offsets, sds, centres, _ = sf.cell_offsets(left, right, fit, _regions()[1])
             sf.robust_offset(offsets, sds, fit.delta, areas=np.ones(len(offsets)))
             box_reach.moved_regions(offsets, sds, np.ones(len(offsets)), centres, (74, 55, 86, 65), (24, 18))
+            band_scan.central_band(offsets, sds, centres, (80.0, 60.0))
             sf.interior_variance(left, right, fit, _regions()[1], None, (68, 51, 92, 69), 1.0)
             u, v = np.meshgrid(np.arange(60.0), np.arange(40.0))
             assert depth.fit_plane_robust(u.ravel(), v.ravel(), 0.1 * u.ravel() + 50) is not None
@@ -148,7 +150,7 @@ class TestWarmUp:
         before, after = json.loads(out.stdout)
         # every kernel compiled by the warm-up, and nothing more by a measurement: each once (the kernels that
         # read two or three splines compile the sampler with them)
-        assert before == after == [1] * 13, out.stdout
+        assert before == after == [1] * 14, out.stdout
 
 
 def test_area_in_square_mm():

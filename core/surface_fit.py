@@ -480,8 +480,8 @@ def _ring_consensus(p: _Problem, theta: np.ndarray) -> np.ndarray:
         return theta
     e = offset[good]
     triples = np.random.default_rng(0).integers(0, len(e), size=(CONSENSUS_SAMPLES, 3))
-    # compiled: every triple's plane and cost in one pass, where NumPy's batched solves and (triples x cells) arrays
-    # were a twentieth of a defect's time
+    # compiled: every triple's plane and cost in one pass instead of NumPy's batched solves and a (triples x cells)
+    # array
     shift, moved = surface_fit_numba.plane_consensus(e, sd[good], du[good], dv[good], triples, CONSENSUS_SIGMAS,
                                                      CONSENSUS_GAIN)
     if not moved:

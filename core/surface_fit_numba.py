@@ -508,7 +508,8 @@ def tukey_offset(x: np.ndarray, s: np.ndarray, prior: np.ndarray, start: float, 
 
 
 def median(x: np.ndarray) -> float:
-    """``np.median`` of a 1-D array without NaN, compiled: a few microseconds where NumPy's call takes tens."""
+    """``np.median`` of a 1-D array without NaN, compiled: under a microsecond for a moved region's few dozen cells,
+    where NumPy's call takes ten."""
     return float(_median(np.ascontiguousarray(x, dtype=np.float64)))
 
 

@@ -1,6 +1,7 @@
 """The surface fit's inner loops compiled with numba: the cubic B-spline the images are sampled from, the
 Gauss-Newton system (one pass over a fit's pixels per step instead of some thirty NumPy operations on a few
-thousand of them each) and the costs of the defect's offset search.
+thousand of them each) and its steps, the costs of the defect's offset search, the ring's and the region's cells,
+the ring cells' consensus and the cells' robust mean.
 
 The fit reads the right image between its pixels from the cubic B-spline through them (``spline_coefficients``,
 ``sample_rows``): of the kernels tried, the one whose samples a sub-pixel shift moves least (the
@@ -10,7 +11,7 @@ differently at each fraction of a pixel; docs/research-log.md). A sample at a fl
 
 ``normal_equations`` is the Huber-weighted Gauss-Newton system of the model's residuals, ``gauss_newton`` the
 steps taken with it, ``offset_costs`` the Huber costs of the defect's offset search; ``tests/test_surface_fit.py``
-holds them to NumPy's arithmetic on the same samples.
+holds each kernel to NumPy's arithmetic on the same samples or cells.
 """
 from __future__ import annotations
 

@@ -693,7 +693,7 @@ def _plane_consensus(e, s, x, y, triples, cut_sds, min_gain):
             k = triples[t, r]
             system[r, 0], system[r, 1], system[r, 2], rhs[r] = 1.0, x[k], y[k], e[k]
         plane = _solve(system, rhs)
-        if not np.isfinite(plane[0]):  # two cells alike: no plane through the three
+        if not np.isfinite(plane[0]):  # the three on one line (or two alike): no one plane through them
             continue
         cost = 0.0
         for k in range(n):

@@ -223,9 +223,9 @@ def _cell_means(cell: np.ndarray, k: int, *values: np.ndarray) -> list[np.ndarra
 
 
 def _e_prior(scale: float) -> float:
-    """The vertical offset's prior information in the normal equations: one observation of 0 with spread
-    E_PRIOR_PX, in units of the residuals' ``scale``."""
-    return (scale / E_PRIOR_PX) ** 2
+    """The vertical offset's prior information in the normal equations, with spread E_PRIOR_PX (the Gauss-Newton
+    kernel's own: ``surface_fit_numba.e_prior``)."""
+    return float(surface_fit_numba.e_prior(scale, E_PRIOR_PX))
 
 
 def _robust_scale(r: np.ndarray) -> float:
@@ -277,12 +277,28 @@ class _Problem:
             self._levels[sigma] = (L, R, Rx, Ry, L[self.vi, self.ui])
         self.L, self.R, self.Rx, self.Ry, self.lvals = self._levels[sigma]
 
+    def _pixels(self):
+        """(left grey levels, the right image's three splines, its saturated pixels, usable): the first arguments
+        of the model's kernels (``surface_fit_numba.normal_equations``)."""
+        return self.lvals, (self.R, self.Rx, self.Ry), self.right_saturated, self.usable
+
+    def normal_equations(self, theta, idx):
+        """(A (11, 11), b (11,), scale, pixels used): the Huber-weighted system of the model's residuals over the
+        usable pixels of ``idx`` (indices), each weighted by its share (``surface_fit_numba.normal_equations``)."""
+        return surface_fit_numba.normal_equations(*self._pixels(), self.prior, self.ur, self.v, self.du, self.dv,
+                                                  self.m, theta, idx, HUBER_K, 1e-3)
+
+    def jacobian_rows(self, theta):
+        """(residuals (n,), Jacobian transposed (11, n), the pixels they are of (n,)) at ``theta`` over the usable
+        pixels (``surface_fit_numba.jacobian_rows``)."""
+        return surface_fit_numba.jacobian_rows(*self._pixels(), self.ur, self.v, self.du, self.dv, self.m, theta,
+                                               np.arange(len(self.u)))
+
     def gauss_newton(self, theta, free, iterations, select, tolerance):
         """Huber-weighted Gauss-Newton on the parameters ``free`` over the pixels ``select``:
         (theta, moved less than ``tolerance`` px in disparity at the end), or (None, False) (compiled:
         ``surface_fit_numba.gauss_newton``)."""
-        return surface_fit_numba.gauss_newton(self.lvals, (self.R, self.Rx, self.Ry), self.right_saturated,
-                                              self.usable, self.prior, self.ur, self.v, self.du, self.dv, self.m,
+        return surface_fit_numba.gauss_newton(*self._pixels(), self.prior, self.ur, self.v, self.du, self.dv, self.m,
                                               theta, np.flatnonzero(select), free, iterations, tolerance, HUBER_K,
                                               1e-3, E_PRIOR_PX)
 
@@ -378,8 +394,7 @@ def fit_defect(start: RingFit, rows_from_ring: bool = False) -> SurfaceFit | Non
     theta, converged = p.gauss_newton(theta, joint, REFIT_ITERATIONS, np.ones_like(on_ring), TOLERANCE_PX)
     if theta is None or abs(theta[3] - searched) > LEFT_SEARCH_PX:  # the refit too (tests/test_surface_fit.py)
         return None
-    r, jt, kept = surface_fit_numba.jacobian_rows(p.lvals, (p.R, p.Rx, p.Ry), p.right_saturated, p.usable, p.ur, p.v,
-                                                  p.du, p.dv, p.m, theta, np.arange(len(p.u)))
+    r, jt, kept = p.jacobian_rows(theta)
     ok = np.zeros(len(p.u), dtype=bool)
     ok[kept] = True
     scale = _robust_scale(r)
@@ -523,9 +538,7 @@ def _search_offset(p: _Problem, theta: np.ndarray, lo: float, hi: float) -> floa
     (steps of SEARCH_STEP_PX, refined by the parabola through the least cost and its neighbours); None where the
     least cost lies beyond an end of the range: no minimum within it is one the images vouch for (a box across a
     pit's edge, its ring fitted tilted, read a 2.04 mm pit as an 8.2 mm bump from just beyond its range's end)."""
-    # the ring's residuals' robust scale
-    scale = surface_fit_numba.normal_equations(p.lvals, (p.R, p.Rx, p.Ry), p.right_saturated, p.usable, p.prior, p.ur,
-                                               p.v, p.du, p.dv, p.m, theta, np.flatnonzero(p.m == 0), HUBER_K, 1e-3)[2]
+    scale = p.normal_equations(theta, np.flatnonzero(p.m == 0))[2]  # the ring's residuals' robust scale
     sel = p.usable & (p.m == 1)
     if not sel.any():
         return float(theta[3])

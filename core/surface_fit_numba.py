@@ -653,6 +653,13 @@ def jacobian_rows(lvals: np.ndarray, splines: tuple[np.ndarray, np.ndarray, np.n
 
 
 @njit(cache=True, nogil=True)
+def e_prior(scale, spread_px):
+    """The eyes' vertical offset's prior information in the normal equations: one observation of 0 with spread
+    ``spread_px``, in units of the residuals' ``scale``."""
+    return (scale / spread_px) ** 2
+
+
+@njit(cache=True, nogil=True)
 def _solve(a, b):
     """x with ``a x = b`` (a (n, n), b (n,)) by Gaussian elimination with partial pivoting; NaN where a pivot is 0
     (``a`` singular)."""
@@ -772,10 +779,9 @@ def _gauss_newton(lvals, splines, right_saturated, usable, prior, u, v, du, dv, 
             for c in range(n_free):
                 a_free[a, c] = system[free[a], free[c]]
         if e_at >= 0:
-            # the vertical offset's prior: one observation of 0 with spread e_prior_px, in the residuals' units
-            e_prior = (scale / e_prior_px) ** 2
-            a_free[e_at, e_at] += e_prior
-            b_free[e_at] -= e_prior * theta[E]
+            information = e_prior(scale, e_prior_px)
+            a_free[e_at, e_at] += information
+            b_free[e_at] -= information * theta[E]
         step = _solve(a_free, b_free)
         moved = 0.0
         for a in range(n_free):

@@ -720,16 +720,17 @@ def _plane_consensus(e, s, x, y, triples, cut_sds, min_gain):
         agreed += abs(e[k]) <= cut_sds * s[k]
     if agree / n - agreed / n < min_gain:
         return np.zeros(3), False
-    normal, right = np.zeros((3, 3)), np.zeros(3)
+    # the inliers' weighted least-squares plane: the plane's rows and, last, the offsets, whose products are its
+    # right-hand side
+    rows, weight = np.empty((4, agree)), np.empty(agree)
+    m = 0
     for k in range(n):
         if inliers[k]:
-            w = 1.0 / (s[k] * s[k])
-            row = (1.0, x[k], y[k])
-            for a in range(3):
-                right[a] += w * row[a] * e[k]
-                for b in range(3):
-                    normal[a, b] += w * row[a] * row[b]
-    refined = _solve(normal, right)
+            rows[0, m], rows[1, m], rows[2, m], rows[3, m] = 1.0, x[k], y[k], e[k]
+            weight[m] = 1.0 / (s[k] * s[k])
+            m += 1
+    products = _weighted_gram(rows, weight, agree)
+    refined = _solve(products[:3, :3].copy(), products[:3, 3].copy())
     return (refined if np.isfinite(refined[0]) else best), True
 
 

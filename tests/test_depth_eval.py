@@ -54,6 +54,10 @@ def test_writes_json_markdown_and_figure(evaluated):
     assert body["seconds_per_defect"] > 0 and body["reference_seconds_per_defect"] > 0
     assert re.search(r"Depth per defect \(surface\): \d+\.\d ms on this machine; the reference, the backend's plane "
                      r"and median alone, \d+\.\d ms\.", table)
+    # each class of the labels on its own, every defect in one of them
+    assert set(body["classes"]) == {"crazing", "inclusion", "pitted_surface", "scratches"}
+    assert sum(c["defects"] for c in body["classes"].values()) == len(body["rows"])
+    assert all(f"\n| {name} | {c['defects']} ({c['measured']}) |" in table for name, c in body["classes"].items())
 
 
 def test_the_surface_fit_beats_the_backend_alone_and_states_its_uncertainty(evaluated):
@@ -479,6 +483,43 @@ class TestSummarise:
         assert ev.summarise(rows).distance_over_floor_per_defect == pytest.approx(1.5, abs=0.1)
         rows[0].distance_floor_mm = None  # a set without noise has none: that row does not count
         assert ev.summarise(rows[:1]).distance_over_floor_per_defect is None
+
+
+class TestByClass:
+    def _row(self, cls, true, measured, sigma, proven, true_status, width=20):
+        row = TestSummarise()._row(true, measured, sigma, proven, true_status)
+        return dataclasses.replace(row, cls=cls, box=(0, 0, width, width))
+
+    def _body(self, rows):
+        return ev.report(rows, {"recipe": "r.yaml", "backend": "b", "method": "surface", "machine": "m",
+                                "uncertain": "reject"}, None)
+
+    def test_each_class_is_summarised_from_its_own_defects(self):
+        rows = [self._row("crazing", 2.0, 1.2, 0.2, "undecided", "REJECT"),  # a narrow one reading short
+                self._row("crazing", 2.0, 1.9, 0.1, "REJECT", "REJECT", width=60),
+                self._row("pit", 2.0, 2.0, 0.1, "REJECT", "REJECT"),
+                self._row("pit", 0.5, 0.5, 0.1, "PASS", "PASS")]
+        classes = self._body(rows)["classes"]
+        assert list(classes) == ["crazing", "pit"]
+        assert classes["crazing"]["defects"] == 2 and classes["crazing"]["narrow_ratio_median"] == pytest.approx(0.6)
+        assert classes["crazing"]["ratio_median"] == pytest.approx(np.median([0.6, 0.95]))
+        assert classes["pit"]["ratio_median"] == pytest.approx(1.0)
+        assert classes["crazing"]["confusion"] == {"REJECT": {"undecided": 1, "REJECT": 1}}
+
+    def test_the_table_gives_a_row_per_class_with_its_decisions(self):
+        rows = [self._row("crazing", 2.0, 1.2, 0.2, "undecided", "REJECT"),
+                self._row("crazing", 1.5, 0.5, 0.1, "PASS", "REJECT"),  # a clear-cut silent PASS
+                self._row("pit", 0.5, 0.5, 0.1, "PASS", "PASS"),
+                self._row("pit", 0.6, 0.8, 0.2, "undecided", "PASS")]
+        table = ev.markdown(self._body(rows))
+        assert "By the labels' class (surface; narrow: boxes under 30 px):" in table
+        # inside the limit: proven / undecided; beyond it: proven / undecided; wrong side (silent PASS)
+        assert re.search(r"\n\| crazing \| 2 \(2\) \| [^|]+ \| [^|]+ \| [^|]+ \| [^|]+ \| 0 / 0 \| 0 / 1 \| 1 \(1\) \|", table)
+        assert re.search(r"\n\| pit \| 2 \(2\) \| [^|]+ \| [^|]+ \| [^|]+ \| [^|]+ \| 1 / 1 \| 0 / 0 \| 0 \(0\) \|", table)
+
+    def test_one_class_alone_has_no_table_of_its_own(self):
+        body = self._body([self._row("pit", 2.0, 2.0, 0.1, "REJECT", "REJECT")])
+        assert list(body["classes"]) == ["pit"] and "By the labels' class" not in ev.markdown(body)
 
 
 def test_a_plate_outside_the_working_distance_gets_no_deviation(tmp_path):

@@ -36,8 +36,9 @@ def eval_depth_command(sequences, recipe, backend, overrides, out, figure, devic
     true boxes: distance and deviation errors (median, p90, max), measured ÷ true, the physical floor,
     where the error lies (the ring, the region's estimate, the region's extent; from the sequence's true
     disparity), the calibration of the reported uncertainty and the decisions at the recipe's rules, for the
-    recipe's depth method and for the backend's disparity alone; and how many frames the check of a part
-    without defects would say show the plate outside the working distance. Saves JSON, Markdown and a figure.
+    recipe's depth method and for the backend's disparity alone, per sequence and, for the method, per class of
+    the labels; and how many frames the check of a part without defects would say show the plate outside the
+    working distance. Saves JSON, Markdown and a figure.
 
     --box-scale and --box-shift measure in boxes that are off as a detector's are; --boxes detector in the
     boxes of the recipe's detector that match the labels, and counts the labelled defects it missed. The

@@ -11,7 +11,8 @@ floor where the centre of its box looks. ZED WVGA geometry, as the goals' indepe
 ``render_sequence(out, kind, frames, seed)`` writes the sequence-folder layout (``left/``, ``right/``,
 ``labels/``, ``gt/``, ``calib.yaml``; ``true_disparity``: the left eye's ray through each pixel's centre, unknown
 on a wall); ``kind`` is ``textured`` (pits 30-80 px at 350-650 mm) or ``low``
-(faint texture, pits 10-25 px at 380-460 mm).
+(faint texture, pits 10-25 px at 380-460 mm); ``image_format`` ``jpg`` saves the eyes as JPEG (quality 95), the
+same scene as the seed's PNG.
 """
 from __future__ import annotations
 
@@ -194,11 +195,13 @@ def plan_pits(rng: np.random.Generator, z0: float, axes: np.ndarray, kind: Kind)
 
 
 def render_sequence(out: Path, kind: str = "textured", frames: int = 8, seed: int = 0,
-                    supersample: int = SUPERSAMPLE) -> None:
+                    supersample: int = SUPERSAMPLE, image_format: str = "png") -> None:
     spec = KINDS[kind]
     rng = np.random.default_rng(seed)
     out = Path(out)
-    write_calibration(out, dict(CALIB, camera="ZED WVGA (ray cast)", generator=f"sim.raycast {kind} (seed {seed})"))
+    saved = ", JPEG quality 95" if image_format == "jpg" else ""
+    write_calibration(out, dict(CALIB, camera="ZED WVGA (ray cast)",
+                                generator=f"sim.raycast {kind} (seed {seed}{saved})"))
     for i in range(frames):
         z0 = float(rng.uniform(*spec.distance_mm))
         axes = rotation(rng.uniform(-8, 8), rng.uniform(-8, 8))
@@ -213,4 +216,5 @@ def render_sequence(out: Path, kind: str = "textured", frames: int = 8, seed: in
         write_frame(out, frame_id, *(cv2.cvtColor(e, cv2.COLOR_GRAY2BGR) for e in eyes),
                     gt_disparity=true_disparity(z0, axes, pits),
                     labels={"frame_id": frame_id, "distance_mm": round(z0, 3), "sensor": {"noise_sigma": NOISE_SIGMA},
-                            "defects": labels})
+                            "defects": labels},
+                    image_format=image_format)

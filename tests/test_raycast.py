@@ -183,3 +183,22 @@ def test_inspect_sim_raycast_writes_a_sequence_that_inspect_eval_depth_measures_
         # with the true disparity its error splits into parts; a pit's walls are vertical, so the region inside
         # the box holds its floor alone
         assert row["error_ring_mm"] is not None and abs(row["error_extent_mm"]) < 0.05
+
+
+def test_inspect_sim_raycast_saves_the_same_scene_as_jpeg(tmp_path):
+    # a camera's pipeline may save JPEG: the seed's scene, its truth and labels those of its PNG
+    png, jpg = tmp_path / "png", tmp_path / "jpg"
+    for out, image_format in ((png, "png"), (jpg, "jpg")):
+        result = CliRunner().invoke(_build(), ["sim", "raycast", str(out), "--frames", "1", "--seed", "4", "--kind",
+                                               "low", "--image-format", image_format])
+        assert result.exit_code == 0, result.output
+    assert "JPEG quality 95" in read_calibration(jpg)["generator"]
+    assert (jpg / "labels" / "000000.json").read_text() == (png / "labels" / "000000.json").read_text()
+    assert (jpg / "gt" / "000000.png").read_bytes() == (png / "gt" / "000000.png").read_bytes()
+    for side in ("left", "right"):
+        assert sorted(p.name for p in (jpg / side).iterdir()) == ["000000.jpg"]
+        assert (jpg / side / "000000.jpg").read_bytes()[:2] == b"\xff\xd8"
+        lossless = cv2.imread(str(png / side / "000000.png"), cv2.IMREAD_GRAYSCALE).astype(np.float64)
+        saved = cv2.imread(str(jpg / side / "000000.jpg"), cv2.IMREAD_GRAYSCALE).astype(np.float64)
+        # quality 95 rounds away about a grey level a pixel, most of it the sensor's noise (1.5), and no more
+        assert 0.3 < np.abs(saved - lossless).mean() < 2.5

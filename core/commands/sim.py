@@ -246,8 +246,11 @@ def register(cli: click.Group) -> None:
                   help="textured: pits 30-80 px at 350-650 mm; low: faint texture, pits 10-25 px at 380-460 mm")
     @click.option("--frames", default=8, show_default=True, type=click.IntRange(1, 1000))
     @click.option("--seed", default=0, show_default=True, type=click.IntRange(0))
+    @click.option("--image-format", type=click.Choice(["png", "jpg"]), default="png", show_default=True,
+                  help="left/right images as lossless PNG or JPEG quality 95, as a camera's pipeline may save them "
+                       "(the true disparity is always a 16-bit PNG)")
     @click.option("--overwrite", is_flag=True, help="replace the frames of a sequence already in OUT")
-    def raycast(out, kind, frames, seed, overwrite) -> None:
+    def raycast(out, kind, frames, seed, image_format, overwrite) -> None:
         """Render a labelled sequence with the second, independent renderer (sim/raycast.py): flat-bottomed
         pits with vertical walls, ray cast, for checking ``inspect eval depth`` against plates that
         ``inspect sim generate`` did not draw."""
@@ -256,7 +259,7 @@ def register(cli: click.Group) -> None:
         prepare_folder(out, overwrite)
         start = time.perf_counter()
         try:
-            render_sequence(out, kind, frames, seed)
+            render_sequence(out, kind, frames, seed, image_format=image_format)
         except OSError as exc:  # a full disk, the folder removed under it
             discard_and_fail(out, exc)
         click.echo(f"wrote {frames} frames to {out} in {time.perf_counter() - start:.1f} s")

@@ -435,19 +435,9 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     left, right = pair
     ring_fit = surface_fit.fit_ring(left, right, (ring_u, ring_v), (uu, vv), shift, start, weights)
     fit = None if ring_fit is None else surface_fit.fit_defect(ring_fit)
-    # no fallback to the backend's map: where the images cannot be fitted, its value is not one to vouch for
-    if fit is None:
-        return _outside_search(_unavailable(reference, "the surface fit did not settle"), pair, ring_all, calib,
-                               searched)
-    if not fit.matches:
-        why = (f"the images do not match at the fitted surface (residuals {fit.residual_sigma:.1f} grey levels "
-               f"against a texture of {fit.signal_sigma:.1f}, the right eye's gain {fit.params[4]:.2f} on the surface "
-               f"and {fit.params[4] + fit.params[8]:.2f} on the defect): too little texture, the plate outside the "
-               f"stereo search range (working distance), or the matcher far off on the defect")
+    why = _not_vouched_for(fit, calib, searched)
+    if why is not None:
         return _outside_search(_unavailable(reference, why), pair, ring_all, calib, searched)
-    settled = _settled_outside(fit, calib, searched)
-    if settled is not None:
-        return _outside_search(_unavailable(reference, settled), pair, ring_all, calib, searched)
     rows, limit = float(fit.params[surface_fit.E]), rectified_within_px(disparity.shape[1])
     if abs(rows) > limit:
         # what the fit measured holds for a rectified pair; beyond that, a defect on faint texture was read at
@@ -466,19 +456,81 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     if share < rule.min_plane_inliers:
         return _unavailable(reference, f"the surface around the box is not one plane ({how} in the images, "
                             f"{rule.min_plane_inliers:.0%} needed)")
-    images = fit.images  # the high-passed window the fit read
-    interior = surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner, INTERIOR_MARGIN_PX, images)
+    interior = surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner, INTERIOR_MARGIN_PX,
+                                             fit.images)
     if not np.isfinite(interior):
         return _unavailable(reference, f"the region ({inner[2] - inner[0]:.0f} x {inner[3] - inner[1]:.0f} px) has no "
                             f"interior with a texture of its own to measure")
+    reading = _read_region(left, right, ring_fit, fit, (uu, vv), weights, inner, ring_all, interior)
+    c = reading.fit.c + calib.doffs  # the surrounding surface's disparity at the region's centre
+    d, var_d, budget = _region_disparity(reading, c)
+    var_d, budget, part, moved = _widened(reading, c, d, var_d, budget, (left, right), (uu, vv), weights, ring_all,
+                                          inner, detection, shift)
+    if d <= 0 or c <= 0:
+        return _unavailable(reference, "the surface fit gave no disparity in front of the camera")
+    return _surface_in_mm(reading, c, d, var_d, budget, part, moved, detection, calib, reference)
+
+
+def _not_vouched_for(fit: surface_fit.SurfaceFit | None, calib: Calibration, searched: tuple[float, float] | None
+                     ) -> str | None:
+    """Why a surface fit's reading is no measurement: it did not settle, the images do not match at it, or it settled
+    outside the disparities the backend searched (``searched``); None where it is one."""
+    # no fallback to the backend's map: where the images cannot be fitted, its value is not one to vouch for
+    if fit is None:
+        return "the surface fit did not settle"
+    if not fit.matches:
+        return (f"the images do not match at the fitted surface (residuals {fit.residual_sigma:.1f} grey levels "
+                f"against a texture of {fit.signal_sigma:.1f}, the right eye's gain {fit.params[4]:.2f} on the surface "
+                f"and {fit.params[4] + fit.params[8]:.2f} on the defect): too little texture, the plate outside the "
+                f"stereo search range (working distance), or the matcher far off on the defect")
+    return _settled_outside(fit, calib, searched)
+
+
+@dataclass(frozen=True)
+class _RegionReading:
+    """The region's cells read at a fit (``_read_region``): ``fit`` the fit they were read at (a groove's refit where
+    that reads it farther); each cell's offset (px), standard deviation, centre (u, v) and area; ``settled_sds``
+    the standard deviations of the cells that settled, inf for the others (of the first reading: what the region's
+    parts are scanned on where there is no groove); the band across the region and the band along its edges
+    (``band_scan.Band`` or None); whether it is read along a groove, the cells then the band's alone; the cells'
+    robust offset; the region's width (px, the band's where a groove) and its interior's variance (px^2)."""
+
+    fit: surface_fit.SurfaceFit
+    offsets_px: np.ndarray
+    sds: np.ndarray
+    centres: np.ndarray
+    areas: np.ndarray
+    settled_sds: np.ndarray
+    band: band_scan.Band | None
+    along_edges: band_scan.Band | None
+    groove: bool
+    cells: surface_fit.RobustOffset
+    width: float
+    interior: float
+
+
+def _middle(inner: tuple[float, float, float, float]) -> tuple[float, float]:
+    """The region's centre in pixel coordinates (a pixel's centre at its index)."""
+    return (inner[0] + inner[2]) / 2 - 0.5, (inner[1] + inner[3]) / 2 - 0.5
+
+
+def _read_region(left: np.ndarray, right: np.ndarray, ring_fit: surface_fit.RingFit, fit: surface_fit.SurfaceFit,
+                 region: tuple[np.ndarray, np.ndarray], weights: np.ndarray, inner: tuple[float, float, float, float],
+                 ring: tuple[np.ndarray, np.ndarray], interior: float) -> _RegionReading:
+    """The region's pixels ``region`` (u, v) with their ``weights`` read cell by cell at ``fit``, and where a band of
+    cells across the region reads a groove farther from the surface than the whole region does, the groove's cells
+    alone, at a refit with the eyes' rows offset from ``ring_fit`` alone where that reads it farther still.
+    ``interior``: the region's interior variance (px^2) at ``fit``."""
+    uu, vv = region
+    images = fit.images  # the high-passed window the fit read
     offsets_px, sds, centres, settled = surface_fit.cell_offsets(left, right, fit, (uu, vv), weights, images=images)
     areas = surface_fit.cell_areas((uu, vv), weights)
     # a band only of cells that settled: on a scratch's repeating lines, cells that did not swing a pixel or more off
     # together, and as a band would read a groove where there is none
-    middle = ((inner[0] + inner[2]) / 2 - 0.5, (inner[1] + inner[3]) / 2 - 0.5)
+    middle = _middle(inner)
     settled_sds = np.where(settled, sds, np.inf)
     band = band_scan.central_band(offsets_px, settled_sds, centres, middle)
-    along_edges = _band_along_edges(images, (uu, vv), (ring_u, ring_v), offsets_px, settled_sds, centres, middle)
+    along_edges = _band_along_edges(images, (uu, vv), ring, offsets_px, settled_sds, centres, middle)
     # the offset searched a pixel and a half either way: a band beyond that is a glint's, not the groove's
     groove = band is not None and abs(band.z) >= GROOVE_Z and abs(band.offset - fit.delta) <= surface_fit.SEARCH_PX
     width = min(inner[2] - inner[0], inner[3] - inner[1])
@@ -501,25 +553,41 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
                 fit, offsets_px, sds, along = refit, refit_offsets, refit_sds, on_band
                 interior = surface_fit.interior_variance(left, right, fit, (uu, vv), weights, inner,
                                                          INTERIOR_MARGIN_PX, fit.images)
-    if groove:
         offsets_px, sds, centres, areas = offsets_px[band.cells], sds[band.cells], centres[band.cells], areas[band.cells]
         width = min(width, 2 * band.half_width_px)
         cells = along
-    cov = fit.covariance
-    c = fit.c + calib.doffs  # the surrounding surface's disparity at the region's centre
+    return _RegionReading(fit, offsets_px, sds, centres, areas, settled_sds, band, along_edges, groove, cells, width,
+                          interior)
+
+
+def _region_disparity(reading: _RegionReading, c: float) -> tuple[float, float, list[tuple[str, str, float]]]:
+    """The region's disparity (px) from ``reading`` with the surface's ``c`` at its centre, its variance (px^2) and
+    that variance as the budget's terms (kind, cause, variance)."""
+    cells, fit = reading.cells, reading.fit
     if np.isfinite(cells.variance):
         # The cells' Tukey mean weighs each cell by its information, the joint fit each pixel by its residual
         # with the defect's exposure free: their errors are partly their own, and their mean is nearer the
         # truth than either on nearly every group of evaluation sets (docs/research-log.md). The cells'
         # variance stays: their scatter is what shows a region holding more than one surface. A groove is
         # read on its band alone.
-        offset = cells.delta if groove else (1 - FIT_SHARE) * cells.delta + FIT_SHARE * fit.delta
-        d, var_d = c + offset, cells.variance
-        budget = _cells_budget(cells)
-    else:
-        d, var_d = c + fit.delta, cov[0, 0] + cov[3, 3] + 2 * cov[0, 3]
-        budget = [("noise", NOISE_CAUSE, var_d)]
-    # (each term below goes into the budget with its cause: what a rule that cannot decide names)
+        offset = cells.delta if reading.groove else (1 - FIT_SHARE) * cells.delta + FIT_SHARE * fit.delta
+        return c + offset, cells.variance, _cells_budget(cells)
+    cov = fit.covariance
+    var_d = cov[0, 0] + cov[3, 3] + 2 * cov[0, 3]
+    return c + fit.delta, var_d, [("noise", NOISE_CAUSE, var_d)]
+
+
+def _widened(reading: _RegionReading, c: float, d: float, var_d: float, budget: list[tuple[str, str, float]],
+             pair: tuple[np.ndarray, np.ndarray], region: tuple[np.ndarray, np.ndarray], weights: np.ndarray,
+             ring: tuple[np.ndarray, np.ndarray], inner: tuple[float, float, float, float], detection: Detection,
+             shift: tuple[float, float, float]
+             ) -> tuple[float, list[tuple[str, str, float]], _Part | None, box_reach.MovedRegion | None]:
+    """The region's variance ``var_d`` (px^2, its ``budget``'s terms) widened by what the cells' noise does not hold,
+    each term with its cause: the defect's wall, contrast one eye alone sees, an uneven floor, the strongly textured
+    cells, a part of the region or beyond it that may be the defect, and at least the interior's. Returns (the
+    variance, its budget, that part or None, the region moved within its box that reads farthest or None)."""
+    fit, cells, width = reading.fit, reading.cells, reading.width
+    left, right = pair
     # The region may hold part of a pixel of the defect's wall that the fit cannot tell from its floor
     # (the wall facing the camera is seen broad, the other foreshortened): a share of WALL_PX / w of a region
     # w pixels across, and so of the offset (docs/research-log.md).
@@ -528,37 +596,46 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
     budget.append(("wall", f"the defect's wall, which a region {width:.0f} px across may hold", wall))
     # and what one eye sees of the region and the other does not (the walls' sheen, a wall one eye sees broad and the
     # other edge-on) may pull the offset by that share of it: a narrow pit's walls read 0.63 +- 0.17 mm for 2.18 mm
-    if not groove:
-        unshared = unshared_variance(d - c, surface_fit.contrast_ratio(fit, (ring_u, ring_v), (uu, vv), weights))
+    if not reading.groove:
+        unshared = unshared_variance(d - c, surface_fit.contrast_ratio(fit, ring, region, weights))
         var_d += unshared
         budget.append(("unshared", UNSHARED_CAUSE, unshared))
     # and a floor that is not flat over the region (the box cut through a wall) widens it by how much
-    uneven = surface_fit.unevenness_variance(offsets_px, sds, centres)
+    uneven = surface_fit.unevenness_variance(reading.offsets_px, reading.sds, reading.centres)
     var_d += uneven
     budget.append(("uneven", UNEVEN_CAUSE, uneven))
     # and by how much its strongly textured cells (the information weighs them) disagree with its area
     if np.isfinite(cells.variance):
-        weighting = surface_fit.weighting_variance(offsets_px, sds, areas, cells.delta)
+        weighting = surface_fit.weighting_variance(reading.offsets_px, reading.sds, reading.areas, cells.delta)
         var_d += weighting
         budget.append(("weighting", WEIGHTING_CAUSE, weighting))
     # and a part of the region that may be the defect, too faint to measure on: a band across it, along its edges,
     # or its central part (``_widest_part``)
     part = moved = None
-    if not groove and np.isfinite(cells.variance):
-        patch = band_scan.central_patch(offsets_px, settled_sds, areas, centres, middle,
-                                        ((inner[2] - inner[0]) / 2, (inner[3] - inner[1]) / 2))
+    if not reading.groove and np.isfinite(cells.variance):
+        patch = band_scan.central_patch(reading.offsets_px, reading.settled_sds, reading.areas, reading.centres,
+                                        _middle(inner), ((inner[2] - inner[0]) / 2, (inner[3] - inner[1]) / 2))
         moved = _farthest_moved(left, right, fit, inner, (detection.width, detection.height), shift, cells.delta,
                                 cells.variance)
-        part = _widest_part(cells.delta, band, along_edges, patch, moved, cells.variance)
+        part = _widest_part(cells.delta, reading.band, reading.along_edges, patch, moved, cells.variance)
         var_d += 0.0 if part is None else part.variance
     # and it is known no better than the region would be at its interior's information per pixel (the border
     # may be the walls' edges, strong gradients that each eye sees at another place)
     # (the interior's variance comes from the same residuals as the cells': their scatter scales it alike)
-    at_interior = interior * min(cells.birge, 1.0)
+    at_interior = reading.interior * min(cells.birge, 1.0)
     if at_interior > var_d:
         var_d, budget, part = at_interior, [("interior", INTERIOR_CAUSE, at_interior)], None
-    if d <= 0 or c <= 0:
-        return _unavailable(reference, "the surface fit gave no disparity in front of the camera")
+    return var_d, budget, part, moved
+
+
+def _surface_in_mm(reading: _RegionReading, c: float, d: float, var_d: float, budget: list[tuple[str, str, float]],
+                   part: _Part | None, moved: box_reach.MovedRegion | None, detection: Detection, calib: Calibration,
+                   reference: DefectMeasurement) -> DefectMeasurement:
+    """The measurement in millimetres: the surface's disparity ``c`` and the region's ``d`` (px, both in front of the
+    camera) with the region's variance ``var_d`` (px^2) and its ``budget``, the fit's covariance for the surface's;
+    ``reference`` the backend's measurement of the same box."""
+    fit = reading.fit
+    cov = fit.covariance
     a, b = fit.slopes
     u0, v0 = fit.centre
     n = Plane(a, b, c - a * u0 - b * v0).normal_length(calib)
@@ -574,6 +651,7 @@ def _surface_measurement(pair, disparity, detection, calib, rule, plane, ring_al
                                               lambda offset: fb * (c / (c + offset) - 1.0) / n), part.variance))
     parts = (UncertaintyPart("surface", RING_CAUSE, float(per_ring * cov[0, 0])),) + tuple(
         UncertaintyPart(kind, cause, float(per_region * v)) for kind, cause, v in budget if v > 0)
+    groove, band = reading.groove, reading.band
     return DefectMeasurement(
         detection, float(distance), float(deviation), reference.valid_fraction, reference.depth_resolution_mm,
         reference.area_mm2 * (distance / reference.distance_mm) ** 2,

@@ -588,6 +588,7 @@ def _widened(reading: _RegionReading, c: float, d: float, var_d: float, budget: 
     variance, its budget, that part or None, the region moved within its box that reads farthest or None)."""
     fit, cells, width = reading.fit, reading.cells, reading.width
     left, right = pair
+    budget = list(budget)
     # The region may hold part of a pixel of the defect's wall that the fit cannot tell from its floor
     # (the wall facing the camera is seen broad, the other foreshortened): a share of WALL_PX / w of a region
     # w pixels across, and so of the offset (docs/research-log.md).
@@ -647,8 +648,8 @@ def _surface_in_mm(reading: _RegionReading, c: float, d: float, var_d: float, bu
     deviation_sigma = float(np.sqrt(per_ring * cov[0, 0] + per_region * var_d))
     distance = fb / d
     if part is not None:
-        budget.append((part.kind, _part_cause(part, moved, (detection.width, detection.height),
-                                              lambda offset: fb * (c / (c + offset) - 1.0) / n), part.variance))
+        budget = budget + [(part.kind, _part_cause(part, moved, (detection.width, detection.height),
+                                                   lambda offset: fb * (c / (c + offset) - 1.0) / n), part.variance)]
     parts = (UncertaintyPart("surface", RING_CAUSE, float(per_ring * cov[0, 0])),) + tuple(
         UncertaintyPart(kind, cause, float(per_region * v)) for kind, cause, v in budget if v > 0)
     groove, band = reading.groove, reading.band

@@ -40,7 +40,7 @@ from core.error_parts import error_parts, true_ring_plane
 from core.plate_view import plate_elsewhere
 from core.recipe import LoadedRecipe
 from core import uncertainty_budget
-from core.report_text import number, percent
+from core.report_text import decided, number, percent
 from core.surface_fit import gradient_x, to_grey
 from core.types import Detection, DefectMeasurement, Status, StereoFrame
 from drivers.file_writes import write_text
@@ -567,13 +567,12 @@ def markdown(body: dict[str, Any]) -> str:
                   "| clear-cut on the wrong side (silent PASS) |",
                   "|---|---|---|---|---|---|---|---|---|"]
         for name, s in classes.items():
-            inside, beyond = (s["confusion"].get(truth, {}) for truth in (Status.PASS.value, Status.REJECT.value))
+            proven_pass, undecided_pass, proven_reject, undecided_reject = decided(s["confusion"])
             lines.append(
                 f"| {name} | {s['defects']} ({s['measured']}) | {number(s['ratio_median'])} "
                 f"({number(s['narrow_ratio_median'])}) | {number(s['error_over_floor_per_defect'])} | "
                 f"{percent(s['within_2_sigma'])} | {number(s['sigma_over_floor_median'])} | "
-                f"{inside.get(Status.PASS.value, 0)} / {inside.get('undecided', 0)} | "
-                f"{beyond.get(Status.REJECT.value, 0)} / {beyond.get('undecided', 0)} | "
+                f"{proven_pass} / {undecided_pass} | {proven_reject} / {undecided_reject} | "
                 f"{s['clear_cut_wrong']} ({s['clear_cut_silent_pass']}) |")
     pooled = body["all"]["measurement"]
     if pooled.get("texture_floor_over_floor_median") is not None:

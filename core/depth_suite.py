@@ -16,7 +16,7 @@ from typing import Any
 
 import yaml
 
-from core.report_text import number, percent
+from core.report_text import decided, number, percent
 from core.uncertainty_budget import tally_words
 from drivers.text_files import NotUtf8, decode
 from drivers.yaml_reader import Misread, safe_load
@@ -129,7 +129,7 @@ def is_rendered(folder: Path) -> bool:
 def group_row(name: str, body: dict) -> dict[str, Any]:
     """A group's row from its ``depth_eval.json`` (``body``): the depth method's figures over all its sets."""
     s = body["all"]["measurement"]
-    confusion = s.get("confusion", {})
+    proven_pass, undecided_pass, proven_reject, undecided_reject = decided(s.get("confusion", {}))
     return {
         "group": name,
         "defects": s["defects"],
@@ -149,10 +149,10 @@ def group_row(name: str, body: dict) -> dict[str, Any]:
         "distance_within_2_sigma": s.get("distance_within_2_sigma"),
         "distance_per_defect": s.get("distance_over_floor_per_defect"),
         "silent_pass": s.get("clear_cut_silent_pass", 0),
-        "proven_pass": confusion.get("PASS", {}).get("PASS", 0),
-        "undecided_pass": confusion.get("PASS", {}).get("undecided", 0),
-        "proven_reject": confusion.get("REJECT", {}).get("REJECT", 0),
-        "undecided_reject": confusion.get("REJECT", {}).get("undecided", 0),
+        "proven_pass": proven_pass,
+        "undecided_pass": undecided_pass,
+        "proven_reject": proven_reject,
+        "undecided_reject": undecided_reject,
         # the undecided by the largest part of their uncertainty (core/uncertainty_budget.py) and true outcome
         "undecided_from": s.get("undecided_from", {}),
     }

@@ -182,8 +182,12 @@ BAND_Z = 3.0
 # be the defect in a box larger than it, and the uncertainty widens to take it in (``_widest_part``)
 PATCH_Z = 2.0
 # from this many standard deviations of their difference beyond the region's offset, the region moved towards where a
-# box's surroundings read farther from the surface may be the defect, the box off it (``box_reach``)
+# box's surroundings read farther from the surface may be the defect, the box off it (``box_reach``), and the
+# uncertainty widens to take it in; from MOVED_FROM_Z, by that share of it: a step at MOVED_Z made a reading's
+# uncertainty jump fourfold between copies a hundredth of a standard deviation apart, and a clear-cut defect in a box
+# a third off passed or not as the fit's last digits fell (docs/research-log.md)
 MOVED_Z = 2.0
+MOVED_FROM_Z = 1.5
 # the pixels whose cells the moved regions read, at most: a WVGA box 80 px wide reaches 128 x 128
 MOVED_MAX_PIXELS = 128 * 128
 
@@ -735,20 +739,32 @@ def _widest_part(region: float, band: band_scan.Band | None, along_edges: band_s
     does, and it stands PATCH_Z of its standard deviations or more further off (a box twice a narrow pit's size on
     a polished plate read 0.04 +- 0.36 mm for 2.06 mm and passed; a round pit's centre in a box that fits it is
     deeper than the region, but not twice as deep); and ``moved``, the region moved about within its box's size
-    (``box_reach``), where it reads farther from the surface than the region by MOVED_Z or more standard deviations
-    of their difference, ``region_variance`` (px^2) the region's own (a box half a pit's size off it read 0.03 +-
-    0.48 mm for 1.40 mm and passed). docs/research-log.md has what each threshold cost and caught."""
-    parts = [(kind, b.offset, b.variance) for kind, b in (
+    (``box_reach``), where it reads farther from the surface than the region by MOVED_FROM_Z or more standard
+    deviations of their difference, ``region_variance`` (px^2) the region's own, by ``moved_share`` of what it adds (a
+    box half a pit's size off it read 0.03 +- 0.48 mm for 1.40 mm and passed). docs/research-log.md has what each
+    threshold cost and caught."""
+    # (kind, offset, its variance, the share of what it adds that counts)
+    parts = [(kind, b.offset, b.variance, 1.0) for kind, b in (
         ("band", band if band is not None and abs(band.z) >= BAND_Z else None), ("along_edges", along_edges))
         if b is not None]
     if patch is not None and abs(patch.delta) > 2 * abs(region) \
             and abs(patch.delta - region) >= PATCH_Z * np.sqrt(patch.variance):
-        parts.append(("patch", patch.delta, patch.variance))
-    if moved is not None and moved.z(region, region_variance) >= MOVED_Z:
-        parts.append(("moved", moved.offset, moved.variance))
-    added = [_Part(kind, offset, max(0.0, (offset - region) ** 2 - variance)) for kind, offset, variance in parts]
+        parts.append(("patch", patch.delta, patch.variance, 1.0))
+    if moved is not None:
+        share = moved_share(moved.z(region, region_variance))
+        if share > 0:
+            parts.append(("moved", moved.offset, moved.variance, share))
+    added = [_Part(kind, offset, share * max(0.0, (offset - region) ** 2 - variance))
+             for kind, offset, variance, share in parts]
     widest = max(added, key=lambda p: p.variance, default=None)
     return widest if widest is not None and widest.variance > 0 else None
+
+
+def moved_share(z: float) -> float:
+    """The share of what the region moved within its box adds to the uncertainty where it reads ``z`` standard
+    deviations of their difference farther from the surface than the region: 0 below MOVED_FROM_Z, all of it from
+    MOVED_Z, in proportion between."""
+    return min(1.0, max(0.0, (z - MOVED_FROM_Z) / (MOVED_Z - MOVED_FROM_Z)))
 
 
 def _farthest_moved(left: np.ndarray, right: np.ndarray, fit: surface_fit.SurfaceFit,

@@ -482,20 +482,39 @@ class TestPartsVariance:
         # a raised defect is further from the surface too
         assert _parts_variance(0.01, None, None, _patch(0.5, 0.0081)) > 0.2
 
-    def test_the_region_moved_counts_from_moved_z_and_only_farther_from_the_surface(self):
+    def test_the_region_moved_counts_from_moved_from_z_in_full_from_moved_z_and_only_farther_from_the_surface(self):
         # a box a third off its pit: the region reads -0.1, the region moved back onto the pit -0.4
         moved = box_reach.MovedRegion(0.35, 180.0, -0.4, 0.01)
         assert _parts_variance(-0.1, None, None, None, moved) == pytest.approx(0.09 - 0.01)
-        sd = 0.3 / (0.95 * depth.MOVED_Z)
-        assert _parts_variance(-0.1, None, None, None, box_reach.MovedRegion(0.35, 180.0, -0.4, sd * sd)) == 0.0
-        # the region's own noise counts in the difference
-        assert _parts_variance(-0.1, None, None, None, moved, 0.03) == 0.0
+        for z in (0.95 * depth.MOVED_FROM_Z, 1.0 * depth.MOVED_FROM_Z):
+            sd = 0.3 / z
+            assert _parts_variance(-0.1, None, None, None, box_reach.MovedRegion(0.35, 180.0, -0.4, sd * sd)) \
+                == pytest.approx(0.0, abs=1e-12)
+        # halfway between, half of what it adds
+        sd = 0.3 / ((depth.MOVED_FROM_Z + depth.MOVED_Z) / 2)
+        assert _parts_variance(-0.1, None, None, None, box_reach.MovedRegion(0.35, 180.0, -0.4, sd * sd)) \
+            == pytest.approx(0.5 * (0.09 - sd * sd))
+        # the region's own noise counts in the difference: 0.3 / sqrt(0.06), 1.2 standard deviations
+        assert _parts_variance(-0.1, None, None, None, moved, 0.05) == 0.0
         # nearer the surface than the region: a box on its defect reads it deepest
         assert _parts_variance(-0.4, None, None, None, box_reach.MovedRegion(0.35, 0.0, -0.1, 0.0001)) == 0.0
 
     def test_of_several_parts_the_one_further_off(self):
         assert _parts_variance(-0.1, _band(-0.3, 0.0, depth.BAND_Z), _band(-0.4, 0.0, 0.1),
                                      _patch(-0.6, 0.0001)) == pytest.approx(0.25 - 0.0001)
+
+
+class TestMovedShare:
+    def test_none_below_moved_from_z_all_from_moved_z_in_proportion_between(self):
+        assert depth.moved_share(-3.0) == depth.moved_share(depth.MOVED_FROM_Z) == 0.0
+        assert depth.moved_share(depth.MOVED_Z) == depth.moved_share(9.0) == 1.0
+        lo, hi = depth.MOVED_FROM_Z, depth.MOVED_Z
+        assert depth.moved_share(lo + 0.25 * (hi - lo)) == pytest.approx(0.25)
+
+    def test_it_has_no_step_a_reading_near_the_threshold_could_fall_either_side_of(self):
+        z = np.linspace(0.0, 4.0, 4001)
+        shares = np.array([depth.moved_share(float(x)) for x in z])
+        assert np.all(np.diff(shares) >= 0) and np.max(np.diff(shares)) < 0.01
 
 
 class TestWidestPart:

@@ -183,9 +183,9 @@ BAND_Z = 3.0
 PATCH_Z = 2.0
 # from this many standard deviations of their difference beyond the region's offset, the region moved towards where a
 # box's surroundings read farther from the surface may be the defect, the box off it (``box_reach``), and the
-# uncertainty widens to take it in; from MOVED_FROM_Z, by that share of it: a step at MOVED_Z made a reading's
-# uncertainty jump fourfold between copies a hundredth of a standard deviation apart, and a clear-cut defect in a box
-# a third off passed or not as the fit's last digits fell (docs/research-log.md)
+# uncertainty widens to take it in; from MOVED_FROM_Z, by a share of that growing in proportion (``moved_share``): a
+# step at MOVED_Z made a reading's uncertainty jump fourfold between copies a few hundredths of a standard deviation
+# apart, and a clear-cut defect in a box a third off passed or not as the fit's last digits fell (docs/research-log.md)
 MOVED_Z = 2.0
 MOVED_FROM_Z = 1.5
 # the pixels whose cells the moved regions read, at most: a WVGA box 80 px wide reaches 128 x 128

@@ -292,6 +292,9 @@ def write_disparity_png(path: Path, disparity: np.ndarray) -> None:
     write_image(path, np.clip(raw, 0, 65535).astype(np.uint16))
 
 
+JPEG_QUALITY = 95  # what ``write_frame`` saves a ``jpg`` pair at: a camera pipeline's usual setting
+
+
 def write_frame(
     folder: Path,
     frame_id: str,
@@ -301,10 +304,10 @@ def write_frame(
     labels: dict | list | None = None,
     image_format: str = "png",
 ) -> None:
-    """The pair as ``image_format`` images (``png``, or ``jpg`` at quality 95), the ground truth as a 16-bit
+    """The pair as ``image_format`` images (``png``, or ``jpg`` at JPEG_QUALITY), the ground truth as a 16-bit
     PNG and the labels as JSON, each where given."""
     folder = Path(folder)
-    params = (cv2.IMWRITE_JPEG_QUALITY, 95) if image_format == "jpg" else ()
+    params = (cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY) if image_format == "jpg" else ()
     for sub, image in (("left", left), ("right", right)):
         (folder / sub).mkdir(parents=True, exist_ok=True)
         write_image(folder / sub / f"{frame_id}.{image_format}", image, params)

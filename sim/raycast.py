@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.sequence_folder import write_calibration, write_frame
+from drivers.sequence_folder import JPEG_QUALITY, write_calibration, write_frame
 
 CALIB = dict(focal_px=350.06, baseline_mm=120.0, cx=335.5, cy=187.5, width=672, height=376, doffs=0.0)
 TEXEL_MM = 0.25
@@ -199,7 +199,7 @@ def render_sequence(out: Path, kind: str = "textured", frames: int = 8, seed: in
     spec = KINDS[kind]
     rng = np.random.default_rng(seed)
     out = Path(out)
-    saved = ", JPEG quality 95" if image_format == "jpg" else ""
+    saved = f", JPEG quality {JPEG_QUALITY}" if image_format == "jpg" else ""
     write_calibration(out, dict(CALIB, camera="ZED WVGA (ray cast)",
                                 generator=f"sim.raycast {kind} (seed {seed}{saved})"))
     for i in range(frames):

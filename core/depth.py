@@ -751,9 +751,9 @@ def _widest_part(region: float, band: band_scan.Band | None, along_edges: band_s
             and abs(patch.delta - region) >= PATCH_Z * np.sqrt(patch.variance):
         parts.append(("patch", patch.delta, patch.variance, 1.0))
     if moved is not None:
-        share = moved_share(moved.z(region, region_variance))
-        if share > 0:
-            parts.append(("moved", moved.offset, moved.variance, share))
+        counted = moved_share(moved.z(region, region_variance))
+        if counted > 0:
+            parts.append(("moved", moved.offset, moved.variance, counted))
     added = [_Part(kind, offset, share * max(0.0, (offset - region) ** 2 - variance))
              for kind, offset, variance, share in parts]
     widest = max(added, key=lambda p: p.variance, default=None)

@@ -640,6 +640,7 @@ def _surface_in_mm(reading: _RegionReading, c: float, d: float, var_d: float, bu
     camera) with the region's variance ``var_d`` (px^2) and its ``budget``, the fit's covariance for the surface's;
     ``reference`` the backend's measurement of the same box."""
     fit = reading.fit
+    cov = fit.covariance
     a, b = fit.slopes
     u0, v0 = fit.centre
     n = Plane(a, b, c - a * u0 - b * v0).normal_length(calib)
@@ -648,12 +649,12 @@ def _surface_in_mm(reading: _RegionReading, c: float, d: float, var_d: float, bu
     deviation = fb * (c / d - 1.0) / n
     # mm^2 of deviation per px^2: of the ring's plane at the centre, and of the region's offset
     per_ring, per_region = (fb / (d * n)) ** 2, (fb * c / (d * d * n)) ** 2
-    deviation_sigma = float(np.sqrt(per_ring * fit.surface_variance + per_region * var_d))
+    deviation_sigma = float(np.sqrt(per_ring * cov[0, 0] + per_region * var_d))
     distance = fb / d
     if part is not None:
         budget = budget + [(part.kind, _part_cause(part, moved, (detection.width, detection.height),
                                                    lambda offset: fb * (c / (c + offset) - 1.0) / n), part.variance)]
-    parts = (UncertaintyPart("surface", RING_CAUSE, float(per_ring * fit.surface_variance)),) + tuple(
+    parts = (UncertaintyPart("surface", RING_CAUSE, float(per_ring * cov[0, 0])),) + tuple(
         UncertaintyPart(kind, cause, float(per_region * v)) for kind, cause, v in budget if v > 0)
     groove, band = reading.groove, reading.band
     return DefectMeasurement(

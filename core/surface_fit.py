@@ -87,13 +87,6 @@ class SurfaceFit:
     ring_weights: np.ndarray | None = None  # (ring pixels,) each one's cell weight in [0, 1] at the end
     signal_sigma: float = float("inf")  # grey levels: the robust spread of the ring's high-passed left image
     images: DefectImages | None = None  # the high-passed window the fit read, for the defect's cells
-    ring_birge: float = 1.0  # the ring's cells' scatter over what the covariance says, where below 1 (``ring_birge``)
-
-    @property
-    def surface_variance(self) -> float:
-        """The variance (px^2) of the ring's plane at the region's centre (``c``): the covariance's, times the ring's
-        cells' Birge ratio where they agree better than it says."""
-        return float(self.covariance[0, 0] * self.ring_birge)
 
     @property
     def matches(self) -> bool:
@@ -411,11 +404,9 @@ def fit_defect(start: RingFit, rows_from_ring: bool = False) -> SurfaceFit | Non
     covariance, inflation = found
     ring_weights = np.where(ok[on_ring], prior[on_ring], 0.0)
     signal = _robust_scale(p.lvals[on_ring & p.usable])
-    _, _, ring_offsets, ring_sds, _, _ = _ring_cells(p, theta)
     return SurfaceFit(theta, covariance, start.centre, int((ok & on_ring).sum()), int((ok & ~on_ring).sum()),
                       scale, inflation, converged, ring_weights, signal,
-                      DefectImages(start.origin, start.right_x0, p.L, p.R, p.Rx),
-                      ring_birge(ring_offsets, ring_sds, inflation))
+                      DefectImages(start.origin, start.right_x0, p.L, p.R, p.Rx))
 
 
 def fit_surface(left: np.ndarray, right: np.ndarray, ring: tuple[np.ndarray, np.ndarray],
@@ -524,27 +515,6 @@ def _ring_cell_weights(p: _Problem, theta: np.ndarray) -> np.ndarray:
     cell, ok, offset, sd, _, _ = _ring_cells(p, theta)
     z = np.where(np.isfinite(sd), offset / (TUKEY_K * sd), np.inf)
     return np.where(ok, _tukey_weights(z)[cell], 0.0)
-
-
-def ring_birge(offsets: np.ndarray, sds: np.ndarray, inflation: float = 1.0) -> float:
-    """How much the ring's cells scatter about its fitted plane over what their noise says, as a factor (at most 1)
-    on the plane's variance: below 1, the Birge ratio's upper bound as the region's cells take it
-    (``robust_offset``), never below BIRGE_MIN; 1 where they scatter as much or more (the residuals' clusters widen
-    the covariance for that, ``sandwich``) and with fewer than six cells' weight.
-
-    offsets, sds: (K,) each ring cell's disparity offset from the plane and its standard deviation from the
-    residuals' scale (inf: no gradient), as ``ring_cell_offsets`` gives them; inflation: the covariance's factor for
-    correlated residuals, by which the cells' sds are widened alike. Each cell is weighed by Tukey's weight of its
-    offset, as the fit weighs its pixels; the plane's three parameters were fitted to the same cells."""
-    if offsets.shape != sds.shape or offsets.ndim != 1:
-        raise ValueError(f"ring_birge: offsets {offsets.shape} and sds {sds.shape} must be the same (K,)")
-    good = np.isfinite(sds) & (sds > 0)
-    z = offsets[good] / (sds[good] * math.sqrt(inflation))
-    w = _tukey_weights(z / TUKEY_K)
-    if w.sum() < 6:
-        return 1.0
-    return min(1.0, surface_fit_numba.birge_bound(float(np.sum(w * z * z)), float(w.sum() - 3), BIRGE_CONFIDENCE_Z,
-                                                  BIRGE_MIN))
 
 
 def _exposure(p: _Problem, theta: np.ndarray) -> tuple[float, float]:

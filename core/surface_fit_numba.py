@@ -477,20 +477,15 @@ def _tukey_offset(x, s, prior, start, iterations, cut_k, birge_z, birge_min):
             chi2 += w[i] * (z * z)
             kept += 1
             kept_weight += w[i]
-    birge = birge_bound(chi2, kept_weight - 1, birge_z, birge_min) if kept >= 2 else 1.0
+    birge = 1.0
+    if kept >= 2:
+        dof = kept_weight - 1 + 1e-12
+        birge = chi2 / dof
+        if birge < 1.0:
+            # the ratio's upper bound at birge_z: a chi-square's lower quantile over its dof (Wilson-Hilferty)
+            a = 2.0 / (9.0 * dof)
+            birge = min(1.0, max(birge_min, birge / max(1.0 - a - birge_z * math.sqrt(a), 1e-6) ** 3))
     return mu, w, variance * birge, weight, birge
-
-
-@njit(cache=True, nogil=True)
-def birge_bound(chi2, dof, birge_z, birge_min):
-    """The Birge ratio ``chi2 / dof``, and where it is below 1 its upper bound at ``birge_z`` standard normal
-    deviates (a chi-square's lower quantile over its dof, Wilson-Hilferty), between ``birge_min`` and 1."""
-    dof = dof + 1e-12
-    birge = chi2 / dof
-    if birge < 1.0:
-        a = 2.0 / (9.0 * dof)
-        birge = min(1.0, max(birge_min, birge / max(1.0 - a - birge_z * math.sqrt(a), 1e-6) ** 3))
-    return birge
 
 
 def tukey_offset(x: np.ndarray, s: np.ndarray, prior: np.ndarray, start: float, iterations: int, cut_k: float,

@@ -757,68 +757,6 @@ class TestFitRingThenDefect:
         assert sf.fit_ring(left, right, (ring[0][:5], ring[1][:5]), defect, PLANE) is None
 
 
-class TestRingBirge:
-    def test_cells_that_agree_better_than_their_noise_narrow_it_to_the_bound_of_their_scatter(self):
-        # each cell's sd comes from the residuals, which hold the renderer's aliasing as well as the noise: ring
-        # cells scattering at 0.7 of it say the plane is known better, but only as well as 100 cells can show it
-        rng = np.random.default_rng(2)
-        offsets, sds = rng.normal(0, 0.014, 100), np.full(100, 0.02)
-        factor = sf.ring_birge(offsets, sds)
-        z = offsets / 0.02
-        w = np.clip(1 - (z / sf.TUKEY_K) ** 2, 0, None) ** 2
-        chi2, dof = float(np.sum(w * z * z)), float(w.sum() - 3)  # the plane's three parameters
-        assert 0.5 < factor < 0.75
-        assert chi2 / dof < factor
-        assert factor == pytest.approx(sfn.birge_bound(chi2, dof, sf.BIRGE_CONFIDENCE_Z, sf.BIRGE_MIN), rel=1e-9)
-
-    def test_cells_that_scatter_as_their_noise_says_or_more_leave_it(self):
-        rng = np.random.default_rng(3)
-        assert sf.ring_birge(rng.normal(0, 0.03, 100), np.full(100, 0.02)) == 1.0
-        assert sf.ring_birge(rng.normal(0, 0.02, 400), np.full(400, 0.02)) > 0.9
-
-    def test_few_cells_leave_it(self):
-        assert sf.ring_birge(np.full(5, 1e-4), np.full(5, 0.02)) == 1.0
-
-    def test_cells_that_agree_to_the_digit_keep_a_quarter_of_it(self):
-        assert sf.ring_birge(np.zeros(200), np.full(200, 0.02)) == sf.BIRGE_MIN
-
-    def test_a_cell_on_another_surface_does_not_count(self):
-        # the fit's Tukey weights leave a cell on a wall out; it must not make the others look noisy
-        rng = np.random.default_rng(4)
-        offsets, sds = rng.normal(0, 0.01, 80), np.full(80, 0.02)
-        calm = sf.ring_birge(offsets, sds)
-        assert calm < 0.6
-        assert sf.ring_birge(np.r_[offsets, 0.6], np.r_[sds, 0.02]) == pytest.approx(calm, rel=1e-6)
-
-    def test_cells_without_gradient_are_left_out(self):
-        rng = np.random.default_rng(5)
-        offsets, sds = rng.normal(0, 0.01, 80), np.full(80, 0.02)
-        assert sf.ring_birge(np.r_[offsets, 0.0, 5.0], np.r_[sds, np.inf, np.inf]) == sf.ring_birge(offsets, sds)
-
-    def test_the_covariances_inflation_widens_the_cells_noise_alike(self):
-        rng = np.random.default_rng(6)
-        offsets, sds = rng.normal(0, 0.016, 200), np.full(200, 0.02)
-        assert sf.ring_birge(offsets, sds, 2.0) == pytest.approx(sf.ring_birge(offsets, sds) / 2, rel=0.1)
-
-    def test_shape_check(self):
-        with pytest.raises(ValueError, match="same"):
-            sf.ring_birge(np.zeros(3), np.ones(4))
-
-    def test_the_fits_plane_variance_carries_it_and_stays_calibrated(self):
-        # independent noise in both eyes: interpolating the right eye filters its share, so the ring's cells
-        # agree better than the residuals say, and the plane's reported uncertainty still holds its errors
-        ring, defect = _regions()
-        z, factors = [], []
-        for seed in range(20):
-            left, right, _ = step_pair(plane=PLANE, step_px=-0.3, noise=1.5, seed=seed)
-            fit = sf.fit_surface(left, right, ring, defect, PLANE, 0.0)
-            assert fit.surface_variance == pytest.approx(fit.covariance[0, 0] * fit.ring_birge, rel=1e-12)
-            z.append((fit.c - _plane_at(*fit.centre)) / math.sqrt(fit.surface_variance))
-            factors.append(fit.ring_birge)
-        assert sf.BIRGE_MIN <= min(factors) < 0.9 and max(factors) <= 1.0
-        assert 0.5 < math.sqrt(np.mean(np.square(z))) < 1.2  # 0.73 with the covariance alone, 0.80 with the factor
-
-
 class TestMatches:
     def test_a_textured_pair_matches_at_its_surface(self):
         left, right, _ = step_pair(plane=PLANE, step_px=-0.3, seed=4)

@@ -210,17 +210,17 @@ def undecided_table(rows: list[dict[str, Any]]) -> str:
 
 def decision_changes(before: list[dict], after: list[dict]) -> dict[str, int]:
     """How the defects of two runs of one group (their ``depth_eval.json`` rows, the same defects in any
-    order) were decided differently: good parts and parts beyond a limit no longer or newly proven, and
-    clear-cut parts beyond a limit proven inside it (a silent PASS) in each. ValueError where the rows are
-    not the same defects."""
+    order) were decided differently: good parts and parts beyond a limit no longer or newly proven; in each run
+    the defects proven on the wrong side of their limit, however near it, and of those the clear-cut parts beyond
+    a limit proven inside it (a silent PASS). ValueError where the rows are not the same defects."""
     def by_defect(rows):
         return {(r["sequence"], r["frame_id"], tuple(r["box"])): r for r in rows}
 
     earlier, later = by_defect(before), by_defect(after)
     if earlier.keys() != later.keys() or len(earlier) != len(before) or len(later) != len(after):
         raise ValueError("the two runs did not measure the same defects (other sets)")
-    change = dict.fromkeys(("good_lost", "good_gained", "beyond_lost", "beyond_gained", "silent_before",
-                            "silent_after"), 0)
+    change = dict.fromkeys(("good_lost", "good_gained", "beyond_lost", "beyond_gained", "wrong_before", "wrong_after",
+                            "silent_before", "silent_after"), 0)
     for key, a in earlier.items():
         b = later[key]
         proven = a["true_status"] if a["true_status"] in ("PASS", "REJECT") else None
@@ -228,17 +228,22 @@ def decision_changes(before: list[dict], after: list[dict]) -> dict[str, int]:
         if proven is not None:
             change[f"{side}_lost"] += a["proven"] == proven and b["proven"] != proven
             change[f"{side}_gained"] += a["proven"] != proven and b["proven"] == proven
-        for key, row in (("silent_before", a), ("silent_after", b)):
-            change[key] += bool(row["clear_cut"] and row["true_status"] == "REJECT" and row["proven"] == "PASS")
+        for run, row in (("before", a), ("after", b)):
+            # a change that proves a defect on the wrong side is one to look at even where it lies near its limit:
+            # the guard band is all that keeps such a defect undecided
+            wrong = {"PASS": "REJECT", "REJECT": "PASS"}.get(row["true_status"]) == row["proven"]
+            change[f"wrong_{run}"] += wrong
+            change[f"silent_{run}"] += wrong and row["true_status"] == "REJECT" and bool(row["clear_cut"])
     return change
 
 
 def changes_table(changes: dict[str, dict[str, int]]) -> str:
     """Per group, ``decision_changes`` as a Markdown table."""
     lines = ["| group | good parts no longer proven | good parts newly proven | beyond the limit no longer proven | "
-             "beyond the limit newly proven | clear-cut silent PASS before → after |",
-             "|---|---|---|---|---|---|"]
+             "beyond the limit newly proven | proven on the wrong side before → after | clear-cut silent PASS before → "
+             "after |",
+             "|---|---|---|---|---|---|---|"]
     for name, c in changes.items():
         lines.append(f"| {name} | {c['good_lost']} | {c['good_gained']} | {c['beyond_lost']} | {c['beyond_gained']} | "
-                     f"{c['silent_before']} → {c['silent_after']} |")
+                     f"{c['wrong_before']} → {c['wrong_after']} | {c['silent_before']} → {c['silent_after']} |")
     return "\n".join(lines) + "\n"

@@ -113,14 +113,26 @@ class TestDecisionChanges:
                  row("s", "2", "REJECT", "REJECT"), row("s", "3", "REJECT", "PASS"), row("s", "4", "REJECT", "undecided")]
         # the same defects in another order compare alike
         assert ds.decision_changes(before, after[::-1]) == {
-            "good_lost": 1, "good_gained": 1, "beyond_lost": 0, "beyond_gained": 0, "silent_before": 1,
-            "silent_after": 1}
+            "good_lost": 1, "good_gained": 1, "beyond_lost": 0, "beyond_gained": 0, "wrong_before": 1,
+            "wrong_after": 1, "silent_before": 1, "silent_after": 1}
 
     def test_a_part_beyond_the_limit_no_longer_proven_and_one_not_clear_cut_is_no_silent_pass(self):
         before = [row("s", "0", "REJECT", "REJECT"), row("s", "1", "REJECT", "PASS", clear_cut=False)]
         after = [row("s", "0", "REJECT", "undecided"), row("s", "1", "REJECT", "PASS", clear_cut=False)]
         c = ds.decision_changes(before, after)
         assert c["beyond_lost"] == 1 and c["silent_before"] == c["silent_after"] == 0
+        assert c["wrong_before"] == c["wrong_after"] == 1
+
+    def test_every_defect_proven_on_the_wrong_side_counts_however_near_its_limit(self):
+        # a change that narrows sigma may prove defects near the limit on the wrong side, none of them clear-cut
+        before = [row("s", "0", "REJECT", "undecided", clear_cut=False), row("s", "1", "PASS", "undecided"),
+                  row("s", "2", "PASS", "PASS")]
+        after = [row("s", "0", "REJECT", "PASS", clear_cut=False), row("s", "1", "PASS", "REJECT"),
+                 row("s", "2", "PASS", "PASS")]
+        c = ds.decision_changes(before, after)
+        assert (c["wrong_before"], c["wrong_after"]) == (0, 2)
+        assert c["silent_after"] == 0 and c["good_lost"] == c["beyond_gained"] == 0
+        assert "| g | 0 | 0 | 0 | 0 | 0 → 2 | 0 → 0 |" in ds.changes_table({"g": c})
 
     def test_other_defects_cannot_be_compared(self):
         with pytest.raises(ValueError, match="not measure the same defects"):
@@ -158,7 +170,7 @@ def test_renders_the_missing_sets_scores_each_group_and_compares_with_an_earlier
     assert "rendering" not in again.stdout
     changes = json.loads((tmp_path / "second" / "suite.json").read_text())["changes"]
     assert changes == {"true_boxes": dict.fromkeys(("good_lost", "good_gained", "beyond_lost", "beyond_gained",
-                                                    "silent_before", "silent_after"), 0)}
+                                                    "wrong_before", "wrong_after", "silent_before", "silent_after"), 0)}
 
 
 def test_a_set_that_cannot_be_rendered_is_a_one_line_error_naming_it(tmp_path):

@@ -46,7 +46,8 @@ def eval_depth_suite_command(root, suite_path, groups, overrides, out, against, 
     its groups (their reports in OUT/GROUP/) and print one row per group: the deviation's error against the
     floor, the uncertainty's calibration, the distance, and the decisions at the recipe's rules. Saves
     OUT/suite.md and OUT/suite.json. With --against an earlier OUT, says per group which defects are now
-    proven or no longer proven on their side of a limit, and any clear-cut one proven on the wrong side."""
+    proven or no longer proven on their side of a limit, and how many each run proved on the wrong side, however
+    near the limit, and of those clear-cut and beyond it."""
     from core import depth_suite as ds
     from core.commands.inspection import fail
 

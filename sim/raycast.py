@@ -12,11 +12,12 @@ floor where the centre of its box looks. ZED WVGA geometry, as the goals' indepe
 ``labels/``, ``gt/``, ``calib.yaml``; ``true_disparity``: the left eye's ray through each pixel's centre, unknown
 on a wall); ``kind`` is ``textured`` (pits 30-80 px at 350-650 mm) or ``low``
 (faint texture, pits 10-25 px at 380-460 mm); ``image_format`` ``jpg`` saves the eyes as JPEG (quality 95), the
-same scene as the seed's PNG.
+same scene as the seed's PNG. ``look`` (``Look``) changes how the same scene is lit and seen: walls the light
+falls on, more noise and a larger exposure difference between the eyes, a finer texture, vignetting.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -30,6 +31,40 @@ SUPERSAMPLE = 4
 WALL_SHADE = 0.55  # a wall turned from the light
 NOISE_SIGMA = 1.5  # grey levels, each eye
 RIGHT_GAIN, RIGHT_OFFSET = 1.03, 2.0
+
+
+@dataclass(frozen=True)
+class Look:
+    """How a scene is lit and seen, its geometry and its draws the same: ``wall_shade`` a wall's grey level over
+    the plate's where the ray meets it (below 1 turned from the light, above 1 lit), ``noise_sigma`` each eye's
+    sensor noise (grey levels), ``right_gain`` and ``right_offset`` the right eye's exposure against the left's,
+    ``texel_mm`` the texture's finest detail on the plate (a pixel spans 1-2 mm), ``vignetting`` how much darker
+    each eye sees the frame's corners than its centre (falling off with the square of the distance from the
+    principal point). The defaults are the evaluation sets' own."""
+
+    wall_shade: float = WALL_SHADE
+    noise_sigma: float = NOISE_SIGMA
+    right_gain: float = RIGHT_GAIN
+    right_offset: float = RIGHT_OFFSET
+    texel_mm: float = TEXEL_MM
+    vignetting: float = 0.0
+
+    def words(self) -> str:
+        """What differs from the defaults, as ``inspect sim raycast``'s options say it ("" for none)."""
+        plain = Look()
+        parts = [f"wall shade {self.wall_shade:g}" if self.wall_shade != plain.wall_shade else "",
+                 f"noise {self.noise_sigma:g}" if self.noise_sigma != plain.noise_sigma else "",
+                 f"right eye's exposure {self.right_gain:g} x + {self.right_offset:g}"
+                 if (self.right_gain, self.right_offset) != (plain.right_gain, plain.right_offset) else "",
+                 f"texel {self.texel_mm:g} mm" if self.texel_mm != plain.texel_mm else "",
+                 f"vignetting {self.vignetting:g}" if self.vignetting else ""]
+        return ", ".join(p for p in parts if p)
+
+    def vignette(self) -> np.ndarray:
+        """HxW float32: each pixel's share of the light an eye sees at its principal point."""
+        v, u = np.mgrid[0:CALIB["height"], 0:CALIB["width"]].astype(np.float32)
+        r2 = (u - CALIB["cx"]) ** 2 + (v - CALIB["cy"]) ** 2
+        return (1.0 - self.vignetting * r2 / r2.max()).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -62,9 +97,22 @@ class Pit:
         return (np.abs(s - self.s) < self.a) & (np.abs(t - self.t) < self.b)
 
 
-def plate_texture(rng: np.random.Generator, size_mm: float, kind: Kind) -> np.ndarray:
-    """A square of the plate's grey level, ``size_mm`` a side, TEXEL_MM a texel."""
-    n = int(size_mm / TEXEL_MM)
+MAX_TEXELS = 17_000  # a side of the plate's texture: each of its float32 layers then takes up to 1.2 GB
+
+
+def texture_texels(z0: float, texel_mm: float = TEXEL_MM) -> int:
+    """The side, in texels, of the texture ``render_sequence`` tabulates for a plate ``z0`` mm away."""
+    return int(_plate_mm(z0) / texel_mm)
+
+
+def _plate_mm(z0: float) -> float:
+    # the plate the view holds, tilted by up to 8° (its far side a seventh farther), with room to spare
+    return 1.3 * z0 * CALIB["width"] / CALIB["focal_px"]
+
+
+def plate_texture(rng: np.random.Generator, size_mm: float, kind: Kind, texel_mm: float = TEXEL_MM) -> np.ndarray:
+    """A square of the plate's grey level, ``size_mm`` a side, ``texel_mm`` a texel."""
+    n = int(size_mm / texel_mm)
     tex = np.zeros((n, n), np.float32)
     for blur, weight in kind.scales:
         layer = cv2.GaussianBlur(rng.standard_normal((n, n)).astype(np.float32), (0, 0), blur)
@@ -103,21 +151,22 @@ def _landing(rays: np.ndarray, eye: np.ndarray, z0: float, axes: np.ndarray, dep
 
 
 def render_eye(eye_x: float, z0: float, axes: np.ndarray, pits: list[Pit], texture: np.ndarray,
-               supersample: int = SUPERSAMPLE) -> np.ndarray:
-    """HxW float32 grey image of the plate (through (0, 0, z0), ``axes`` as ``rotation``) seen by a
-    rectified eye at (eye_x, 0, 0) mm."""
+               supersample: int = SUPERSAMPLE, texel_mm: float = TEXEL_MM, wall_shade: float = WALL_SHADE
+               ) -> np.ndarray:
+    """HxW float32 grey image of the plate (through (0, 0, z0), ``axes`` as ``rotation``; ``texture`` tabulated
+    ``texel_mm`` a texel) seen by a rectified eye at (eye_x, 0, 0) mm, a wall ``wall_shade`` of the plate's grey."""
     w, h = CALIB["width"], CALIB["height"]
     rays = _rays((np.arange(w * supersample) + 0.5) / supersample - 0.5,
                  (np.arange(h * supersample) + 0.5) / supersample - 0.5)
     eye = np.array([eye_x, 0.0, 0.0])
-    origin = -texture.shape[0] * TEXEL_MM / 2
+    origin = -texture.shape[0] * texel_mm / 2
 
     def landing(depth: float) -> tuple[np.ndarray, np.ndarray]:
         return _landing(rays, eye, z0, axes, depth)[:2]
 
     def grey(s: np.ndarray, t: np.ndarray) -> np.ndarray:
-        return cv2.remap(texture, ((s - origin) / TEXEL_MM).astype(np.float32),
-                         ((t - origin) / TEXEL_MM).astype(np.float32), cv2.INTER_LINEAR,
+        return cv2.remap(texture, ((s - origin) / texel_mm).astype(np.float32),
+                         ((t - origin) / texel_mm).astype(np.float32), cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REFLECT)
 
     s, t = landing(0.0)
@@ -128,7 +177,7 @@ def render_eye(eye_x: float, z0: float, axes: np.ndarray, pits: list[Pit], textu
         floor = mouth & pit.holds(sf, tf)
         image = np.where(floor, grey(sf, tf), image)
         # a ray through the mouth that misses the floor meets a wall on its way down
-        image = np.where(mouth & ~floor, WALL_SHADE * grey(0.5 * (s + sf), 0.5 * (t + tf)), image)
+        image = np.where(mouth & ~floor, wall_shade * grey(0.5 * (s + sf), 0.5 * (t + tf)), image)
     return cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
 
 
@@ -195,26 +244,34 @@ def plan_pits(rng: np.random.Generator, z0: float, axes: np.ndarray, kind: Kind)
 
 
 def render_sequence(out: Path, kind: str = "textured", frames: int = 8, seed: int = 0,
-                    supersample: int = SUPERSAMPLE, image_format: str = "png") -> None:
-    spec = KINDS[kind]
+                    supersample: int = SUPERSAMPLE, image_format: str = "png", look: Look = Look(),
+                    distance_mm: tuple[float, float] | None = None) -> None:
+    """``frames`` plates of ``kind``, drawn from ``seed``, lit and seen as ``look`` says, at the kind's distances or
+    ``distance_mm`` (near, far), written to ``out`` (the module docstring)."""
+    spec = KINDS[kind] if distance_mm is None else replace(KINDS[kind], distance_mm=tuple(distance_mm))
     rng = np.random.default_rng(seed)
     out = Path(out)
     saved = f", JPEG quality {JPEG_QUALITY}" if image_format == "jpg" else ""
+    seen = "".join(f", {words}" for words in (look.words(),) if words)
+    at = f", {spec.distance_mm[0]:g}-{spec.distance_mm[1]:g} mm" if distance_mm is not None else ""
     write_calibration(out, dict(CALIB, camera="ZED WVGA (ray cast)",
-                                generator=f"sim.raycast {kind} (seed {seed}{saved})"))
+                                generator=f"sim.raycast {kind} (seed {seed}{saved}{at}{seen})"))
+    vignette = look.vignette() if look.vignetting else None
     for i in range(frames):
         z0 = float(rng.uniform(*spec.distance_mm))
         axes = rotation(rng.uniform(-8, 8), rng.uniform(-8, 8))
-        # the plate the view holds, tilted by up to 8° (its far side a seventh farther), with room to spare
-        texture = plate_texture(rng, 1.3 * z0 * CALIB["width"] / CALIB["focal_px"], spec)
+        texture = plate_texture(rng, _plate_mm(z0), spec, look.texel_mm)
         pits, labels = plan_pits(rng, z0, axes, spec)
-        left = render_eye(0.0, z0, axes, pits, texture, supersample)
-        right = RIGHT_GAIN * render_eye(CALIB["baseline_mm"], z0, axes, pits, texture, supersample) + RIGHT_OFFSET
-        eyes = [np.clip(np.round(img + rng.normal(0, NOISE_SIGMA, img.shape)), 0, 255).astype(np.uint8)
+        eyes = [render_eye(x, z0, axes, pits, texture, supersample, look.texel_mm, look.wall_shade)
+                for x in (0.0, CALIB["baseline_mm"])]
+        if vignette is not None:
+            eyes = [eye * vignette for eye in eyes]
+        left, right = eyes[0], look.right_gain * eyes[1] + look.right_offset
+        eyes = [np.clip(np.round(img + rng.normal(0, look.noise_sigma, img.shape)), 0, 255).astype(np.uint8)
                 for img in (left, right)]
         frame_id = f"{i:06d}"
         write_frame(out, frame_id, *(cv2.cvtColor(e, cv2.COLOR_GRAY2BGR) for e in eyes),
                     gt_disparity=true_disparity(z0, axes, pits),
-                    labels={"frame_id": frame_id, "distance_mm": round(z0, 3), "sensor": {"noise_sigma": NOISE_SIGMA},
-                            "defects": labels},
+                    labels={"frame_id": frame_id, "distance_mm": round(z0, 3),
+                            "sensor": {"noise_sigma": look.noise_sigma}, "defects": labels},
                     image_format=image_format)

@@ -202,3 +202,78 @@ def test_inspect_sim_raycast_saves_the_same_scene_as_jpeg(tmp_path):
         saved = cv2.imread(str(jpg / side / "000000.jpg"), cv2.IMREAD_GRAYSCALE).astype(np.float64)
         # quality 95 rounds away about a grey level a pixel, most of it the sensor's noise (1.5), and no more
         assert 0.3 < np.abs(saved - lossless).mean() < 2.5
+
+
+class TestLook:
+    def test_the_defaults_are_the_evaluation_sets_and_name_nothing(self):
+        plain = raycast.Look()
+        assert (plain.wall_shade, plain.noise_sigma, plain.right_gain, plain.right_offset, plain.texel_mm) == (
+            raycast.WALL_SHADE, raycast.NOISE_SIGMA, raycast.RIGHT_GAIN, raycast.RIGHT_OFFSET, raycast.TEXEL_MM)
+        assert plain.vignetting == 0.0 and plain.words() == ""
+        assert raycast.Look(noise_sigma=3.0, vignetting=0.3).words() == "noise 3, vignetting 0.3"
+
+    def test_vignetting_darkens_towards_the_corners_from_the_principal_point(self):
+        share = raycast.Look(vignetting=0.3).vignette()
+        assert share.shape == (raycast.CALIB["height"], raycast.CALIB["width"])
+        cx, cy = round(raycast.CALIB["cx"]), round(raycast.CALIB["cy"])
+        assert share[cy, cx] == pytest.approx(1.0, abs=1e-4)
+        assert share.min() == pytest.approx(0.7, abs=1e-6) and share[0, -1] < share[cy, cx + 100] < share[cy, cx]
+
+    def test_a_lit_wall_is_seen_brighter_inside_the_mouth(self, texture):
+        z0 = 400.0
+        scale = z0 / raycast.CALIB["focal_px"]
+        deep = raycast.Pit(0.0, 0.0, 110 * scale, 70 * scale, 8.0, False)
+        lit = raycast.render_eye(0.0, z0, raycast.rotation(0, 0), [deep], texture, 2, wall_shade=1.4)
+        plain = raycast.render_eye(0.0, z0, raycast.rotation(0, 0), [], texture, 2)
+        cx, cy = int(raycast.CALIB["cx"]), int(raycast.CALIB["cy"])
+        wall = np.s_[cy - 30:cy + 30, cx + 107:cx + 110]  # as the shaded wall's test
+        assert (lit[wall].mean(axis=0) - plain[wall].mean(axis=0)).max() > 20
+
+    def test_a_finer_texture_is_tabulated_finer(self):
+        kind = raycast.KINDS["textured"]
+        fine = raycast.plate_texture(np.random.default_rng(0), 100.0, kind, texel_mm=0.1)
+        assert fine.shape == (1000, 1000) and raycast.texture_texels(650.0, 0.1) > raycast.texture_texels(650.0)
+
+
+def _render(tmp_path, name, *options):
+    out = tmp_path / name
+    result = CliRunner().invoke(_build(), ["sim", "raycast", str(out), "--frames", "1", "--seed", "4", *options])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_inspect_sim_raycast_lights_and_sees_the_same_scene_otherwise(tmp_path):
+    plain = _render(tmp_path, "plain")
+    seen = _render(tmp_path, "seen", "--noise-sigma", "3", "--exposure", "0.9", "-8", "--vignetting", "0.3",
+                   "--wall-shade", "1.4")
+    # the geometry and its truth are the scene's, whatever the look
+    assert (seen / "gt" / "000000.png").read_bytes() == (plain / "gt" / "000000.png").read_bytes()
+    labels = json.loads((seen / "labels" / "000000.json").read_text())
+    assert labels["sensor"]["noise_sigma"] == 3.0
+    assert labels["defects"] == json.loads((plain / "labels" / "000000.json").read_text())["defects"]
+    assert "noise 3, right eye's exposure 0.9 x + -8, vignetting 0.3" in read_calibration(seen)["generator"]
+    left, right = (cv2.imread(str(seen / side / "000000.png"), cv2.IMREAD_GRAYSCALE).astype(np.float64)
+                   for side in ("left", "right"))
+    # the right eye sees 0.9 of the left's light less 8 grey levels: the plate's mean grey shows it
+    assert right.mean() == pytest.approx(0.9 * left.mean() - 8, abs=3)
+    dark = cv2.imread(str(plain / "left" / "000000.png"), cv2.IMREAD_GRAYSCALE).astype(np.float64)
+    corner, centre = np.s_[:60, :80], np.s_[158:218, 296:376]
+    assert left[corner].mean() / left[centre].mean() < 0.85 * dark[corner].mean() / dark[centre].mean()
+
+
+def test_inspect_sim_raycast_draws_the_plates_distance_from_the_range_given(tmp_path):
+    out = _render(tmp_path, "near", "--kind", "low", "--distance-range-mm", "320", "330")  # the kind's: 380-460
+    plate = json.loads((out / "labels" / "000000.json").read_text())["distance_mm"]
+    assert 320 <= plate <= 330 and "320-330 mm" in read_calibration(out)["generator"]
+
+
+@pytest.mark.parametrize("options, words", [
+    (["--texel-mm", "0.05"], "--texel-mm 0.05"),
+    (["--exposure", "3", "0"], "--exposure"),
+    (["--distance-range-mm", "700", "400"], "--distance-range-mm"),
+    (["--distance-range-mm", "200", "400"], "--distance-range-mm"),
+])
+def test_inspect_sim_raycast_refuses_a_look_it_cannot_render_in_one_line(tmp_path, options, words):
+    result = CliRunner().invoke(_build(), ["sim", "raycast", str(tmp_path / "no"), *options])
+    assert result.exit_code == 2 and words in result.output
+    assert len(result.output.strip().splitlines()) == 1 and not (tmp_path / "no").exists()

@@ -250,16 +250,53 @@ def register(cli: click.Group) -> None:
                   help="left/right images as lossless PNG or JPEG quality 95, as a camera's pipeline may save them "
                        "(the true disparity is always a 16-bit PNG)")
     @click.option("--overwrite", is_flag=True, help="replace the frames of a sequence already in OUT")
-    def raycast(out, kind, frames, seed, image_format, overwrite) -> None:
+    @click.option("--distance-range-mm", nargs=2, type=FINITE, default=None, metavar="NEAR FAR",
+                  help="plate distance drawn uniformly per frame instead of the kind's (300-1200 mm)")
+    @click.option("--wall-shade", type=Finite(0.05, 3.0), default=None,
+                  help="a pit wall's grey level over the plate's (default 0.55, a wall turned from the light; above 1: "
+                       "lit)")
+    @click.option("--noise-sigma", type=Finite(0.0, 20.0), default=None,
+                  help="each eye's sensor noise, grey levels (default 1.5)")
+    @click.option("--exposure", nargs=2, type=FINITE, default=None, metavar="GAIN OFFSET",
+                  help="the right eye's exposure against the left's (default 1.03 2; gain 0.5-2, offset -50-50)")
+    @click.option("--texel-mm", type=Finite(0.02, 2.0), default=None,
+                  help="the texture's finest detail on the plate, mm (default 0.25; a pixel spans 1-2 mm)")
+    @click.option("--vignetting", type=Finite(0.0, 0.8), default=0.0, show_default=True,
+                  help="how much darker each eye sees the frame's corners than its centre")
+    def raycast(out, kind, frames, seed, image_format, overwrite, distance_range_mm, wall_shade, noise_sigma,
+                exposure, texel_mm, vignetting) -> None:
         """Render a labelled sequence with the second, independent renderer (sim/raycast.py): flat-bottomed
         pits with vertical walls, ray cast, for checking ``inspect eval depth`` against plates that
-        ``inspect sim generate`` did not draw."""
-        from sim.raycast import render_sequence
+        ``inspect sim generate`` did not draw. The look options light and see the same scene otherwise."""
+        from sim.raycast import KINDS, MAX_TEXELS, Look, render_sequence, texture_texels
 
+        if distance_range_mm is not None:
+            near, far = distance_range_mm
+            if not 300.0 <= near <= far <= 1200.0:
+                click.echo(f"error: --distance-range-mm: {near:g} {far:g} must be NEAR <= FAR within 300-1200 mm",
+                           err=True)
+                raise SystemExit(2)
+        if exposure is not None and not (0.5 <= exposure[0] <= 2.0 and -50.0 <= exposure[1] <= 50.0):
+            click.echo(f"error: --exposure: gain {exposure[0]:g} must lie in 0.5-2 and offset {exposure[1]:g} in -50-50",
+                       err=True)
+            raise SystemExit(2)
+        plain = Look()
+        look = Look(plain.wall_shade if wall_shade is None else wall_shade,
+                    plain.noise_sigma if noise_sigma is None else noise_sigma,
+                    *((plain.right_gain, plain.right_offset) if exposure is None else exposure),
+                    plain.texel_mm if texel_mm is None else texel_mm, vignetting)
+        far = KINDS[kind].distance_mm[1] if distance_range_mm is None else distance_range_mm[1]
+        texels = texture_texels(far, look.texel_mm)
+        if texels > MAX_TEXELS:
+            click.echo(f"error: --texel-mm {look.texel_mm:g}: a plate {far:g} mm away needs a texture of {texels} x "
+                       f"{texels} texels, beyond the {MAX_TEXELS} a side that fit a few GB of memory: a larger "
+                       f"--texel-mm or nearer plates", err=True)
+            raise SystemExit(2)
         prepare_folder(out, overwrite)
         start = time.perf_counter()
         try:
-            render_sequence(out, kind, frames, seed, image_format=image_format)
+            render_sequence(out, kind, frames, seed, image_format=image_format, look=look,
+                            distance_mm=distance_range_mm)
         except OSError as exc:  # a full disk, the folder removed under it
             discard_and_fail(out, exc)
         click.echo(f"wrote {frames} frames to {out} in {time.perf_counter() - start:.1f} s")

@@ -13,6 +13,7 @@ This module imports nothing from the rest of stereo-inspect, so it can be tried 
 """
 from __future__ import annotations
 
+import difflib
 import json
 import re
 from dataclasses import dataclass
@@ -32,6 +33,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 # 30000x20000 pixels decoded into 3.5 GB before its size could be checked against the calibration's.
 MAX_IMAGE_PIXELS = 64_000_000
 CALIB_KEYS = ("focal_px", "baseline_mm", "cx", "cy", "width", "height")
+# Keys beyond these (a recorder's notes, a serial number) are left alone, but one that reads like a misspelt
+# calibration key is refused: "dofs: 40" would leave doffs at 0, and every distance off without a word.
+CALIB_SPELLING_CUTOFF = 0.75
 
 
 class SequenceError(Exception):
@@ -138,11 +142,28 @@ def read_calibration(folder: Path) -> dict:
         raise SequenceError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(data, dict):
         raise SequenceError(f"{path}: expected a mapping with {', '.join(CALIB_KEYS)}")
+    misspelt = _misspelt_keys(data)
+    if misspelt:
+        raise SequenceError(f"{path}: " + "; ".join(f"unknown key {key!r}, did you mean {known!r}?"
+                                                   for key, known in misspelt.items()))
     missing = [k for k in CALIB_KEYS if k not in data]
     if missing:
         raise SequenceError(f"{path}: missing {', '.join(missing)}")
     data.setdefault("doffs", 0.0)
     return _checked_calibration(path, data)
+
+
+def _misspelt_keys(data: dict) -> dict[str, str]:
+    """{key: the calibration key it reads like} for each key of ``data`` that is no calibration key but close to
+    one that ``data`` lacks (difflib's ratio at least CALIB_SPELLING_CUTOFF): beside focal_px, focal_mm is a note."""
+    known = [k for k in (*CALIB_KEYS, "doffs") if k not in data]
+    found = {}
+    for key in data:
+        if isinstance(key, str) and key not in known:
+            close = difflib.get_close_matches(key, known, n=1, cutoff=CALIB_SPELLING_CUTOFF)
+            if close:
+                found[key] = close[0]
+    return found
 
 
 def write_calibration(folder: Path, calib: dict) -> None:

@@ -154,6 +154,24 @@ class TestReadCalibration:
                 f"calib.yaml:{len(lines)}: focal_px: given twice (first at line {first}); one of them would be ignored")):
             read_calibration(info["folder"])
 
+    @pytest.mark.parametrize("typo, meant", [("dofs", "doffs"), ("doffset", "doffs"), ("basline_mm", "baseline_mm"),
+                                             ("focal", "focal_px")])
+    def test_a_misspelt_key_is_named_with_the_key_it_reads_like(self, plane_sequence, typo, meant):
+        # doffs has a default: "dofs: 40" would have left it at 0 and put every distance off without a word
+        info = plane_sequence([0.0])
+        path = info["folder"] / "calib.yaml"
+        data = yaml.safe_load(path.read_text())
+        data[typo] = data.pop(meant, 40.0)
+        path.write_text(yaml.safe_dump(data))
+        with pytest.raises(SequenceError, match=re.escape(f"calib.yaml: unknown key {typo!r}, did you mean {meant!r}?")):
+            read_calibration(info["folder"])
+
+    def test_notes_beside_the_calibration_are_left_alone(self, plane_sequence):
+        info = plane_sequence([0.0])
+        path = info["folder"] / "calib.yaml"
+        path.write_text(path.read_text() + "serial: 12345\nfocal_mm: 2.1\nrecorded_by: line 3\n")
+        assert read_calibration(info["folder"])["focal_px"] == pytest.approx(350.06)
+
     def test_an_alias_that_holds_itself_is_named_not_followed(self, plane_sequence):
         info = plane_sequence([0.0])
         path = info["folder"] / "calib.yaml"

@@ -240,6 +240,38 @@ def _whole_bytes(path: Path, what: str) -> bytes:
     return data
 
 
+def declared_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) that an image file's header states, read without decoding its pixels; None where the file
+    or its header cannot be read (the frame's reader says why when it comes to it)."""
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(path) as image:
+                return int(image.size[0]), int(image.size[1])
+    except Exception:  # Pillow raises many kinds for a header it cannot read
+        return None
+
+
+def first_frame_problem(folder: Path, calib: dict) -> str | None:
+    """Where the first frame's left image is not of the calibration's size, a sentence naming both (a calibration
+    from another camera mode would otherwise make every part an ERROR only once the line runs); else None, and
+    where the frames cannot be listed (the camera says why when it opens)."""
+    try:
+        frames = list_frames(folder)
+    except SequenceError:
+        return None
+    first = next((f.left for f in frames if f.left is not None), None)
+    size = None if first is None else declared_size(first)
+    if size is None or size == (calib["width"], calib["height"]):
+        return None
+    return (f"{first} is {size[0]}x{size[1]} but the calibration is for {calib['width']}x{calib['height']} images: "
+            f"the calibration file is not this recording's")
+
+
 def declared_pixels(data: bytes) -> float:
     """The pixels an encoded image's header states, read without decoding them (infinity where Pillow refuses
     the size as a decompression bomb); 0 where the header cannot be read, for the decoder to say why."""

@@ -48,9 +48,11 @@ class ReplaySettings(Settings):
             raise ValueError(f"sequence folder not found: {folder}")
         # what the camera would fail on when it opens, said where the recipe names the folder
         try:
-            seq.read_calibration(folder)
+            problem = seq.first_frame_problem(folder, seq.read_calibration(folder))
         except seq.SequenceError as exc:
             raise ValueError(str(exc)) from None
+        if problem is not None:
+            raise ValueError(problem)
         return str(folder)
 
 

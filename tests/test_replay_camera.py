@@ -80,11 +80,25 @@ def test_why_an_encoded_image_is_not_whole(name, data, says):
 
 def test_an_image_declaring_more_pixels_than_any_camera_is_refused_before_decoding(plane_sequence):
     # 10000 x 7000 in 70 KB: decoded, 210 MB before its size could be held against the calibration's
-    info = plane_sequence([0.0])
-    (info["folder"] / "left" / "000000.png").write_bytes(png_declaring(10_000, 7_000))
-    (frame,) = list(_camera(info["folder"]).frames())
-    assert isinstance(frame, FrameError)
-    assert "left image of frame 000000 declares more than 64 MP, more than any camera's frame" in frame.message
+    # (a later frame: the camera's opening holds the first one's size against the calibration)
+    info = plane_sequence([0.0, 0.0])
+    (info["folder"] / "left" / "000001.png").write_bytes(png_declaring(10_000, 7_000))
+    first, frame = list(_camera(info["folder"]).frames())
+    assert isinstance(frame, FrameError) and not isinstance(first, FrameError)
+    assert "left image of frame 000001 declares more than 64 MP, more than any camera's frame" in frame.message
+
+
+def test_a_recording_of_another_size_than_its_calibration_is_refused_when_the_camera_opens(plane_sequence):
+    # each part had become an ERROR and the run an alarm, once the line ran; `inspect validate` said nothing
+    import cv2
+
+    info = plane_sequence([0.0, 0.0])
+    for eye in ("left", "right"):
+        for path in (info["folder"] / eye).glob("*.png"):
+            cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (160, 120)))
+    with pytest.raises(ValueError, match=re.escape("left/000000.png is 160x120 but the calibration is for 320x192 "
+                                                   "images: the calibration file is not this recording's")):
+        _camera(info["folder"])
 
 
 def test_a_damaged_tiff_is_refused_without_pillows_warnings(plane_sequence, recwarn):

@@ -132,6 +132,16 @@ def test_missing_calibration(plane_sequence):
         _camera(info["folder"])
 
 
+def _calibration_changed(plane_sequence, change):
+    """A one-frame sequence's folder whose calib.yaml ``change`` (a function of its mapping) has rewritten."""
+    info = plane_sequence([0.0])
+    path = info["folder"] / "calib.yaml"
+    data = yaml.safe_load(path.read_text())
+    change(data)
+    path.write_text(yaml.safe_dump(data))
+    return info["folder"]
+
+
 class TestReadCalibration:
     """``sequence_folder.read_calibration``: a camera's values, or one line naming the file and the key."""
 
@@ -149,13 +159,9 @@ class TestReadCalibration:
         ("focal_px", 1e300, "focal_px 1e+300 is no camera's for a 320 px wide image"),
     ])
     def test_a_value_no_camera_has_is_named(self, plane_sequence, key, value, says):
-        info = plane_sequence([0.0])
-        path = info["folder"] / "calib.yaml"
-        data = yaml.safe_load(path.read_text())
-        data[key] = value
-        path.write_text(yaml.safe_dump(data))
+        folder = _calibration_changed(plane_sequence, lambda data: data.update({key: value}))
         with pytest.raises(SequenceError, match=re.escape(f"calib.yaml: {says}")):
-            read_calibration(info["folder"])
+            read_calibration(folder)
 
     def test_a_key_given_twice_is_named_with_both_lines(self, plane_sequence):
         # YAML keeps the second focal length without a word: every depth of the sequence would follow it
@@ -172,13 +178,9 @@ class TestReadCalibration:
                                              ("focal", "focal_px")])
     def test_a_misspelt_key_is_named_with_the_key_it_reads_like(self, plane_sequence, typo, meant):
         # doffs has a default: "dofs: 40" would have left it at 0 and put every distance off without a word
-        info = plane_sequence([0.0])
-        path = info["folder"] / "calib.yaml"
-        data = yaml.safe_load(path.read_text())
-        data[typo] = data.pop(meant, 40.0)
-        path.write_text(yaml.safe_dump(data))
+        folder = _calibration_changed(plane_sequence, lambda data: data.update({typo: data.pop(meant, 40.0)}))
         with pytest.raises(SequenceError, match=re.escape(f"calib.yaml: unknown key {typo!r}, did you mean {meant!r}?")):
-            read_calibration(info["folder"])
+            read_calibration(folder)
 
     def test_notes_beside_the_calibration_are_left_alone(self, plane_sequence):
         info = plane_sequence([0.0])

@@ -156,11 +156,12 @@ def read_calibration(folder: Path) -> dict:
 def _misspelt_keys(data: dict) -> dict[str, str]:
     """{key: the calibration key it reads like} for each key of ``data`` that is no calibration key but close to
     one that ``data`` lacks (difflib's ratio at least CALIB_SPELLING_CUTOFF): beside focal_px, focal_mm is a note."""
-    known = [k for k in (*CALIB_KEYS, "doffs") if k not in data]
+    keys = (*CALIB_KEYS, "doffs")
+    lacking = [k for k in keys if k not in data]
     found = {}
     for key in data:
-        if isinstance(key, str) and key not in known:
-            close = difflib.get_close_matches(key, known, n=1, cutoff=CALIB_SPELLING_CUTOFF)
+        if isinstance(key, str) and key not in keys:
+            close = difflib.get_close_matches(key, lacking, n=1, cutoff=CALIB_SPELLING_CUTOFF)
             if close:
                 found[key] = close[0]
     return found

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 import stereo_inspect_fixed_roi
-from conftest import ROOT, cli_here, write_recipe
+from conftest import ROOT, cli_here, png_declaring, write_recipe
 from test_engine import RECIPE
 
 from core import engine, stereo_memory
@@ -134,7 +134,8 @@ class TestEngine:
 
 
 def _big_sequence(tmp_path):
-    """The demo sequence with a calibration that states a frame 40 times as large each way."""
+    """The demo sequence with a calibration that states a frame 40 times as large each way, its first pair black
+    images of that size (whose headers the recipe's check reads; no check here decodes them)."""
     seq = tmp_path / "big"
     shutil.copytree(ROOT / "sim_fixtures" / "steel_plate", seq)
     calib = seq / "calib.yaml"
@@ -143,6 +144,9 @@ def _big_sequence(tmp_path):
         key, _, value = line.partition(": ")
         lines.append(f"{key}: {float(value) * 40:g}" if key in ("focal_px", "cx", "cy", "width", "height") else line)
     calib.write_text("\n".join(lines) + "\n")
+    for eye in ("left", "right"):
+        (seq / eye / "000000.jpg").unlink()
+        (seq / eye / "000000.png").write_bytes(png_declaring(672 * 40, 376 * 40))
     return seq
 
 

@@ -243,18 +243,10 @@ def _whole_bytes(path: Path, what: str) -> bytes:
 
 def declared_size(path: Path) -> tuple[int, int] | None:
     """(width, height) that an image file's header states, read without decoding its pixels; None where the file
-    or its header cannot be read (the frame's reader says why when it comes to it)."""
-    import warnings
-
-    from PIL import Image
-
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            with Image.open(path) as image:
-                return int(image.size[0]), int(image.size[1])
-    except Exception:  # Pillow raises many kinds for a header it cannot read
-        return None
+    or its header cannot be read, or Pillow refuses the size as a decompression bomb (the frame's reader says why
+    when it comes to it)."""
+    size = _header_size(path)
+    return None if size is None or not all(np.isfinite(size)) else (int(size[0]), int(size[1]))
 
 
 def first_frame_problem(folder: Path, calib: dict) -> str | None:
@@ -277,6 +269,14 @@ def declared_pixels(data: bytes) -> float:
     """The pixels an encoded image's header states, read without decoding them (infinity where Pillow refuses
     the size as a decompression bomb); 0 where the header cannot be read, for the decoder to say why."""
     import io
+
+    size = _header_size(io.BytesIO(data))
+    return 0.0 if size is None else size[0] * size[1]
+
+
+def _header_size(source) -> tuple[float, float] | None:
+    """(width, height) from the header of the image ``source`` (a path or a binary file), its pixels not decoded;
+    (inf, inf) where Pillow refuses the size as a decompression bomb, None where the header cannot be read."""
     import warnings
 
     from PIL import Image
@@ -284,12 +284,12 @@ def declared_pixels(data: bytes) -> float:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # a damaged header's warnings (bombs, EXIF): the decoder says why
-            with Image.open(io.BytesIO(data)) as image:
-                return float(image.size[0] * image.size[1])
+            with Image.open(source) as image:
+                return float(image.size[0]), float(image.size[1])
     except Image.DecompressionBombError:
-        return float("inf")
+        return float("inf"), float("inf")
     except Exception:  # Pillow raises many kinds for a header it cannot read
-        return 0.0
+        return None
 
 
 def read_image(path: Path | None, what: str = "image") -> np.ndarray:

@@ -280,11 +280,9 @@ def register(cli: click.Group) -> None:
             click.echo(f"error: --exposure: gain {exposure[0]:g} must lie in 0.5-2 and offset {exposure[1]:g} in -50-50",
                        err=True)
             raise SystemExit(2)
-        plain = Look()
-        look = Look(plain.wall_shade if wall_shade is None else wall_shade,
-                    plain.noise_sigma if noise_sigma is None else noise_sigma,
-                    *((plain.right_gain, plain.right_offset) if exposure is None else exposure),
-                    plain.texel_mm if texel_mm is None else texel_mm, vignetting)
+        given = dict(wall_shade=wall_shade, noise_sigma=noise_sigma, texel_mm=texel_mm, vignetting=vignetting,
+                     **({} if exposure is None else dict(right_gain=exposure[0], right_offset=exposure[1])))
+        look = Look(**{name: value for name, value in given.items() if value is not None})  # the rest as Look's own
         far = KINDS[kind].distance_mm[1] if distance_range_mm is None else distance_range_mm[1]
         texels = texture_texels(far, look.texel_mm)
         if texels > MAX_TEXELS:

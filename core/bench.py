@@ -353,11 +353,21 @@ def run_live(loaded: LoadedRecipe, registry: Registry, frames: int, device: str,
                       "mean_ms": {k: sum(s.stage_seconds.get(k, 0.0) for s in summaries) / max(parts, 1) * 1000.0
                                   for k in stages},
                       "counts": counts}
-    ratios = [d / a for a, d in zip(rows["detection alone"]["fps_rounds"], rows["with depth"]["fps_rounds"]) if a]
+    ratios = paired_ratios(rows["with depth"], rows["detection alone"])
+    fit_ratios = paired_ratios(rows["with depth"], rows.get("the matcher's depth"))
     return {"concurrent": recipe.stereo.concurrent, "threads": recipe.threads, "rounds": rounds,
             "order": order, "rows": rows, "ratios": ratios, "ratio": statistics.median(ratios) if ratios else None,
+            "fit_ratios": fit_ratios, "fit_ratio": statistics.median(fit_ratios) if fit_ratios else None,
             "depth_share": depth_share(rows["with depth"]),
             "added_share": added_share(rows["with depth"], rows.get("the matcher's depth"))}
+
+
+def paired_ratios(row: dict[str, Any], reference: dict[str, Any] | None) -> list[float]:
+    """``row``'s rate over ``reference``'s, round by round (each pair ran within a minute of each other, so that
+    the machine's drift between rounds falls on both); empty without a reference."""
+    if reference is None:
+        return []
+    return [r / ref for ref, r in zip(reference["fps_rounds"], row["fps_rounds"]) if ref]
 
 
 def depth_share(row: dict[str, Any]) -> float | None:
@@ -406,6 +416,12 @@ def live_markdown(live: dict[str, Any]) -> str:
     if live["ratio"] is not None:
         each = ", ".join(f"{r:.2f}" for r in live["ratios"])
         lines += ["", f"with depth ÷ detection alone: {live['ratio']:.2f} (round by round {each})"]
+    if live.get("fit_ratio") is not None:
+        each = ", ".join(f"{r:.2f}" for r in live["fit_ratios"])
+        # the loop as it runs: depth on the second core beside the next frame's detection costs the rate only
+        # what it takes from detection's share of the machine
+        lines.append(f"with depth ÷ the matcher's depth: {live['fit_ratio']:.2f} (round by round {each}): what the "
+                     f"surface fit costs the loop's rate as it runs")
     share = live.get("depth_share")
     if share is not None:
         depth = live["rows"]["with depth"]

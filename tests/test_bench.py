@@ -145,6 +145,10 @@ def test_live_runs_the_real_loop_alone_with_the_matchers_depth_and_with_the_reci
     assert live["ratios"] == [d / a for a, d in zip(alone["fps_rounds"], depth["fps_rounds"])]
     assert live["ratio"] == pytest.approx(sum(live["ratios"]) / 2) and live["ratio"] > 0
     assert "with depth ÷ detection alone" in out.stdout and "round by round" in out.stdout
+    # what the surface fit costs the loop as it runs: the recipe's rate over the matcher's, round by round
+    assert live["fit_ratios"] == [d / m for m, d in zip(matcher["fps_rounds"], depth["fps_rounds"])]
+    assert live["fit_ratio"] == pytest.approx(sum(live["fit_ratios"]) / 2) and live["fit_ratio"] > 0
+    assert f"with depth ÷ the matcher's depth: {live['fit_ratio']:.2f}" in out.stdout
     # depth's share of a frame: its mean time a part over the frame time at the loop's rate
     assert live["depth_share"] == pytest.approx(depth["mean_ms"]["depth"] * depth["fps"] / 1000.0)
     assert 0 < live["depth_share"] < 1 and f"depth's share of a frame with depth: {live['depth_share']:.0%}" in out.stdout
@@ -163,7 +167,8 @@ def test_live_with_the_matchers_depth_as_the_recipes_runs_it_once(tmp_path):
     assert out.returncode == 0, out.stderr
     live = json.loads((tmp_path / "bench-wvga-cpu.json").read_text())["live"]
     assert live["order"] == ["detection alone", "with depth"] and live["added_share"] is None
-    assert live["depth_share"] > 0 and "beyond the matcher's depth" not in out.stdout
+    assert live["fit_ratios"] == [] and live["fit_ratio"] is None
+    assert live["depth_share"] > 0 and "the matcher's depth" not in out.stdout
 
 
 class TestAddOwnShare:

@@ -252,7 +252,8 @@ def render_sequence(out: Path, kind: str = "textured", frames: int = 8, seed: in
     rng = np.random.default_rng(seed)
     out = Path(out)
     saved = f", JPEG quality {JPEG_QUALITY}" if image_format == "jpg" else ""
-    seen = f", {look.words()}" if look.words() else ""
+    words = look.words()
+    seen = f", {words}" if words else ""
     at = f", {spec.distance_mm[0]:g}-{spec.distance_mm[1]:g} mm" if distance_mm is not None else ""
     write_calibration(out, dict(CALIB, camera="ZED WVGA (ray cast)",
                                 generator=f"sim.raycast {kind} (seed {seed}{saved}{at}{seen})"))

@@ -46,6 +46,23 @@ def prepare_folder(out: Path, overwrite: bool) -> None:
         raise SystemExit(2)
 
 
+def refuse_bad_ranges(ranges) -> None:
+    """A one-line error (exit 2) for the first range option given (name, (MIN, MAX) or None, lowest or None,
+    highest or None) whose MIN exceeds its MAX or whose ends leave the bounds."""
+    for name, pair, low, high in ranges:
+        if pair is None:
+            continue
+        if pair[0] > pair[1]:
+            click.echo(f"error: {name}: MIN {pair[0]:g} is larger than MAX {pair[1]:g}", err=True)
+            raise SystemExit(2)
+        if low is not None and pair[0] < low:
+            click.echo(f"error: {name}: {pair[0]:g} is below the smallest allowed, {low:g}", err=True)
+            raise SystemExit(2)
+        if high is not None and pair[1] > high:
+            click.echo(f"error: {name}: {pair[1]:g} is beyond the largest allowed, {high:g}", err=True)
+            raise SystemExit(2)
+
+
 def discard_and_fail(out: Path, exc: Exception) -> None:
     """End a render that failed with a one-line error (exit 2), the frames it wrote to OUT removed again:
     half a sequence would evaluate as a whole one."""
@@ -164,24 +181,13 @@ def register(cli: click.Group) -> None:
                                   largest_defect_px, nearest_plate_mm, zed_calibration)
         from sim.neu_crops import NeuDetError
 
-        for name, pair, low, high in (("--distance-range-mm", distance_range_mm, 100.0, MAX_DISTANCE_MM),
-                                      ("--defect-size-px", defect_size_px, 4.0, None),
-                                      ("--depth-range-mm", depth_range_mm, -MAX_DEPTH_MM, MAX_DEPTH_MM),
-                                      ("--defects-per-frame", defects_per_frame, 1, None),
-                                      ("--flat-floor", flat_floor, 0.0, None),
-                                      ("--defect-aspect", defect_aspect, 1.0, None),
-                                      ("--defect-angle-deg", defect_angle_deg, -180.0, 180.0)):
-            if pair is None:
-                continue
-            if pair[0] > pair[1]:
-                click.echo(f"error: {name}: MIN {pair[0]:g} is larger than MAX {pair[1]:g}", err=True)
-                raise SystemExit(2)
-            if low is not None and pair[0] < low:
-                click.echo(f"error: {name}: {pair[0]:g} is below the smallest allowed, {low:g}", err=True)
-                raise SystemExit(2)
-            if high is not None and pair[1] > high:
-                click.echo(f"error: {name}: {pair[1]:g} is beyond the largest allowed, {high:g}", err=True)
-                raise SystemExit(2)
+        refuse_bad_ranges((("--distance-range-mm", distance_range_mm, 100.0, MAX_DISTANCE_MM),
+                           ("--defect-size-px", defect_size_px, 4.0, None),
+                           ("--depth-range-mm", depth_range_mm, -MAX_DEPTH_MM, MAX_DEPTH_MM),
+                           ("--defects-per-frame", defects_per_frame, 1, None),
+                           ("--flat-floor", flat_floor, 0.0, None),
+                           ("--defect-aspect", defect_aspect, 1.0, None),
+                           ("--defect-angle-deg", defect_angle_deg, -180.0, 180.0)))
         if capture_drift_px and captures < 2:
             click.echo("error: --capture-drift-px: a drift from capture to capture needs --captures 2 or more", err=True)
             raise SystemExit(2)
@@ -270,12 +276,7 @@ def register(cli: click.Group) -> None:
         ``inspect sim generate`` did not draw. The look options light and see the same scene otherwise."""
         from sim.raycast import KINDS, MAX_TEXELS, Look, render_sequence, texture_texels
 
-        if distance_range_mm is not None:
-            near, far = distance_range_mm
-            if not 300.0 <= near <= far <= 1200.0:
-                click.echo(f"error: --distance-range-mm: {near:g} {far:g} must be NEAR <= FAR within 300-1200 mm",
-                           err=True)
-                raise SystemExit(2)
+        refuse_bad_ranges((("--distance-range-mm", distance_range_mm, 300.0, 1200.0),))
         if exposure is not None and not (0.5 <= exposure[0] <= 2.0 and -50.0 <= exposure[1] <= 50.0):
             click.echo(f"error: --exposure: gain {exposure[0]:g} must lie in 0.5-2 and offset {exposure[1]:g} in -50-50",
                        err=True)

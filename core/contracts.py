@@ -67,7 +67,11 @@ class Detector(Protocol):
 
     def detect(self, image: np.ndarray) -> list[Detection]:
         """Defects in an HxWx3 uint8 BGR image, boxes in its pixel coordinates. The image is read-only: stereo
-        and depth measure the same pixels afterwards (draw on a copy)."""
+        and depth measure the same pixels afterwards (draw on a copy). Called once per part, in frame order
+        (the recipe's master parts, ``verify.path``, first), and for nothing else."""
+
+    # Optional: ``warm_up()``, called once before the first part, where the first call is slow (a model set
+    # up): otherwise the first part is late and trips the recipe's ``watchdog_s``.
 
 
 @runtime_checkable

@@ -66,22 +66,21 @@ class Pipeline:
     outputs: list[tuple[str, Any]]
 
     def warm_up(self) -> None:
-        """Run the detector once, the stereo backend's optional ``warm_up`` and a depth measurement, before
-        the first part: their first calls build the model and compile kernels (on the 2-core development
-        machine 74 s for torch_sgm's and 14 s for the depth measurement's with numba's cache empty), which would
-        make the first part late for the actuator and trip the watchdog. The backend's first: torch_sgm's has
-        depth's kernels compiled beside its own (``plugins/torch_sgm/kernel_warm_up.py``). A stage that fails
-        here fails on the parts too, where the failure is reported per part."""
-        try:
-            self.detector.detect(np.zeros((64, 64, 3), dtype=np.uint8))
-        except Exception:
-            pass
-        warm_up = getattr(self.stereo, "warm_up", None)
-        if callable(warm_up):
-            try:
-                warm_up()
-            except Exception:
-                pass
+        """Run the detector's and the stereo backend's optional ``warm_up`` and a depth measurement, before the
+        first part: their first calls build the model and compile kernels (on the 2-core development machine 74 s
+        for torch_sgm's and 14 s for the depth measurement's with numba's cache empty), which would make the first
+        part late for the actuator and trip the watchdog. The backend's first: torch_sgm's has depth's kernels
+        compiled beside its own (``plugins/torch_sgm/kernel_warm_up.py``). ``detect`` itself is called once per
+        part and for nothing else: a detector that hands out each frame's boxes in turn (an evaluation's true
+        boxes) stays in step with the parts. A stage that fails here fails on the parts too, where the failure is
+        reported per part."""
+        for stage in (self.detector, self.stereo):
+            warm_up = getattr(stage, "warm_up", None)
+            if callable(warm_up):
+                try:
+                    warm_up()
+                except Exception:
+                    pass
         try:
             depth.warm_up()
         except Exception:

@@ -73,8 +73,8 @@ class TestClockSteps:
 
 
 class StepsTheClock:
-    """A detector that finds the region given; while it looks at the first frame (its second call: the engine
-    warms it up on a blank image) the system clock is set."""
+    """A detector that finds the region given; while it looks at the first frame (its first call) the system
+    clock is set."""
 
     class_names = ["pit"]
 
@@ -83,7 +83,7 @@ class StepsTheClock:
 
     def detect(self, image):
         self.calls += 1
-        if self.calls == 2:
+        if self.calls == 1:
             self.clock.offset += self.step_s
         return [Detection("pit", 0.9, self.box)]
 

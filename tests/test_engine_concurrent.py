@@ -16,7 +16,7 @@ from core.contracts import PluginSpec
 from core.hookspecs import hookimpl
 from core.recipe import load_recipe
 from core.registry import Registry, make_manager
-from core.types import Status
+from core.types import Detection, Status
 
 
 def _run(tmp_path, info, overrides=(), registry=None, max_frames=None):
@@ -197,6 +197,47 @@ def test_the_stereo_backends_optional_warm_up_runs_once_before_the_first_part(tm
     loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), registry=registry)
     engine.run(loaded, registry=registry, device="cpu")
     assert stereo.calls[0] == "warm_up" and stereo.calls.count("warm_up") == 1 and "compute" in stereo.calls
+
+
+class InTurnDetector:
+    """Hands out the boxes of the frames in turn, as an evaluation's detector of true boxes does: it must be
+    called once per part and for nothing else. ``warm_up`` where given."""
+
+    class_names = ["pit"]
+
+    def __init__(self, boxes, warm):
+        self.boxes, self.calls = list(boxes), []
+        if warm:
+            self.warm_up = lambda: self.calls.append("warm_up")
+
+    def detect(self, image):
+        self.calls.append(image.shape)
+        return [Detection("pit", 0.9, self.boxes.pop(0))] if self.boxes else []
+
+
+@pytest.mark.parametrize("warm", [False, True])
+@pytest.mark.parametrize("concurrent", [False, True])
+def test_the_detector_sees_the_parts_alone_and_its_optional_warm_up_comes_first(tmp_path, plane_sequence, warm,
+                                                                                 concurrent):
+    # the engine had warmed every detector up with a call on a blank image: a detector handing out each frame's
+    # true boxes in turn then measured every part in the boxes of the part before
+    info = plane_sequence([0.0, 6.0, 0.5])
+    detector = InTurnDetector([tuple(info["box"])] * 3, warm)
+
+    class Plugin:
+        @hookimpl
+        def stereo_inspect_detectors(self):
+            return [PluginSpec("in_turn", "detector", lambda s, ctx: detector)]
+
+    registry = Registry(make_manager((stereo_inspect_fixed_roi, Plugin())))
+    text = RECIPE.format(box=info["box"], output="log").replace("plugin: fixed_roi", "plugin: in_turn")
+    loaded = load_recipe(write_recipe(tmp_path / "r.yaml", text), [f"stereo.concurrent={str(concurrent).lower()}"],
+                         registry=registry)
+    seen = []
+    engine.run(loaded, registry=registry, on_part=seen.append, device="cpu")
+    shape = (info["calib"].height, info["calib"].width, 3)
+    assert detector.calls == ["warm_up"] * warm + [shape] * 3
+    assert [o.part.verdict.status for o in seen] == [Status.PASS, Status.REJECT, Status.PASS]
 
 
 def test_the_surface_fit_is_warmed_up_before_the_first_part(tmp_path, plane_sequence, monkeypatch):

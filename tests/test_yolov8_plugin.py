@@ -113,6 +113,14 @@ def test_a_device_is_one_torch_knows_and_has(untrained_weights):
             _detector(untrained_weights, device="cuda:0")
 
 
+def test_the_warm_up_sets_the_predictor_up_before_the_first_part(untrained_weights):
+    # the engine calls a detector's optional warm_up, never detect, before the parts (core/engine.py, Pipeline)
+    detector = _detector(untrained_weights, tile_size=None, imgsz=64)
+    assert detector.model.predictor is None
+    detector.warm_up()
+    assert detector.model.predictor is not None
+
+
 def test_detection_leaves_torch_thread_count_alone(untrained_weights):
     import torch
 

@@ -213,6 +213,10 @@ class YoloDetector:
             out.append((b.xyxy.cpu().numpy(), b.conf.cpu().numpy(), b.cls.cpu().numpy().astype(int)))
         return out
 
+    def warm_up(self) -> None:
+        """The model's first prediction sets ultralytics' predictor up (seconds on a CPU): before the first part."""
+        self.detect(np.zeros((64, 64, 3), dtype=np.uint8))
+
     def detect(self, image: np.ndarray) -> list[Detection]:
         s = self.settings
         h, w = image.shape[:2]
